@@ -1,0 +1,8 @@
+"""qmg-lab: closed-loop scale-factor self-calibration campaigns for MEMS Coriolis vibratory gyroscopes."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("qmg-lab")
+except PackageNotFoundError:  # running from a checkout without installing
+    __version__ = "0.0.0+local"

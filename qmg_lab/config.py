@@ -1,0 +1,367 @@
+"""The TOML configuration of a campaign, validated with pydantic.
+
+Every section is a strict model (unknown keys are errors) whose fields carry their unit in the name or in
+the description, and their allowed range as constraints. `load_config(path)` reads and validates a file;
+`ConfigError` carries a message that names the offending field and its allowed range, for the CLI to print
+with exit code 2.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the field and what is allowed."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class CampaignSection(_Section):
+    """What kind of campaign the `[plan]` describes."""
+
+    name: str = Field("campaign", min_length=1, max_length=200, description="free-text name stored in the file")
+    kind: Literal["temperature_sweep", "allan", "bandwidth", "linearity"] = Field(
+        "temperature_sweep",
+        description="temperature_sweep: the paper's Figs. 4-6; allan: Fig. 7; bandwidth/linearity: Figs. 3/2",
+    )
+
+
+class DeviceSection(_Section):
+    """Nominal constants of the gyroscope and its front end, used to design the loops (paper eq. 5)."""
+
+    f0_hz: float = Field(2200.0, ge=100.0, le=100e3, description="drive = sense resonance frequency, Hz")
+    q_factor: float = Field(1.2e6, ge=1e2, le=1e8, description="quality factor (both modes)")
+    angular_gain: float = Field(0.8, gt=0.0, le=1.0, description="Bryan angular gain k (dimensionless)")
+    sf_nominal_v_per_dps: float = Field(
+        0.06, gt=0.0, le=10.0, description="nominal FTR scale factor, V of rate output per deg/s"
+    )
+    drive_amplitude_vrms: float = Field(
+        0.5, gt=0.0, le=5.0, description="AGC setpoint: drive pickoff amplitude R on the drive demod, Vrms"
+    )
+    drive_voltage_v: float = Field(
+        0.05, gt=0.0, le=10.0, description="drive output amplitude that sustains the nominal drive amplitude, V"
+    )
+    max_forcer_v: float = Field(10.0, gt=0.0, le=10.0, description="forcer voltage limit, V (paper: 10 V)")
+
+    @property
+    def tau_s(self) -> float:
+        """Energy decay time tau = 2Q/omega, s."""
+        return 2.0 * self.q_factor / (2.0 * math.pi * self.f0_hz)
+
+
+class LoopsSection(_Section):
+    """Closed-loop bandwidths (paper: PLL 15 Hz, AGC 0.5 Hz, rate 2 Hz, quadrature 2 Hz)."""
+
+    pll_bandwidth_hz: float = Field(15.0, gt=0.0, le=500.0)
+    pll_damping: float = Field(0.707, gt=0.0, le=5.0, description="PLL damping ratio zeta")
+    agc_bandwidth_hz: float = Field(0.5, gt=0.0, le=50.0)
+    rate_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0, description="FTR rate-loop bandwidth, Hz")
+    quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
+    rate_zero_offset_hz: float = Field(
+        0.0, ge=0.0, le=5.0,
+        description="move the rate PI zero above 1/tau by this much (hides the slow mode when modes are mismatched)",
+    )
+    lock_timeout_s: float = Field(60.0, gt=0.0, le=3600.0, description="how long to wait for PLL lock and settling")
+    lock_settle_s: float = Field(10.0, ge=0.0, le=3600.0, description="time all loops must stay locked before the run")
+
+
+class DitherSection(_Section):
+    """The CLSF virtual rate: a square wave from the DS345 added to the FTR command."""
+
+    frequency_hz: float = Field(7.0, gt=0.0, le=100.0, description="dither (virtual-rate) frequency, Hz")
+    virtual_rate_dps: float = Field(
+        5.0, gt=0.0, le=100.0, description="virtual-rate amplitude (deg/s); DS345 amplitude = 2*this*SF Vpp"
+    )
+
+
+class ClsfSection(_Section):
+    """Host-side closed-loop scale factor estimator and gain controller."""
+
+    mode: Literal["observe", "correct", "off"] = Field("observe")
+    time_constant_s: float = Field(60.0, gt=0.0, le=1e5, description="correct mode: CLSF loop time constant, s")
+    hold_s: float = Field(1.0, ge=0.0, le=60.0, description="hold updates this long around commanded table moves, s")
+    reference_periods: int = Field(
+        50, ge=1, le=100000, description="dither periods averaged to form the reference level D0 at the start"
+    )
+
+
+class PlanSection(_Section):
+    """The steps: chamber program and table rates. Times in s, temperatures in deg C, rates in deg/s."""
+
+    chamber_start_c: float = Field(25.0, ge=-60.0, le=150.0)
+    chamber_end_c: float = Field(35.0, ge=-60.0, le=150.0)
+    chamber_ramp_c_per_min: float = Field(0.25, gt=0.0, le=20.0)
+    chamber_soak_s: float = Field(300.0, ge=0.0, le=86400.0, description="hold at the start temperature first")
+    chamber_band_c: float = Field(
+        2.0, gt=0.0, le=50.0, description="suspend the campaign while |T - setpoint| exceeds this, deg C"
+    )
+    table_rate_dps: float = Field(5.0, ge=0.0, le=1000.0, description="magnitude of the alternating table rates")
+    table_accel_dps2: float = Field(300.0, gt=0.0, le=10000.0)
+    dwell_s: float = Field(60.0, gt=0.0, le=86400.0, description="time at each table rate, settle included")
+    settle_s: float = Field(5.0, ge=0.0, le=3600.0, description="start of each dwell excluded from analysis")
+    duration_s: float = Field(
+        10800.0, gt=0.0, le=30 * 86400.0, description="allan campaign: total logging time at constant temperature"
+    )
+    table_step_interval_s: float = Field(
+        0.0, ge=0.0, le=86400.0, description="allan campaign: a +-rate pair every this many s (0 = table at rest)"
+    )
+    # characterization
+    bandwidth_frequencies_hz: list[PositiveFloat] = Field(
+        default_factory=lambda: [0.2, 0.5, 1.0, 1.5, 2.0, 3.0, 5.0],
+        description="bandwidth: sinusoidal table-rate frequencies, Hz",
+    )
+    bandwidth_amplitude_dps: float = Field(5.0, gt=0.0, le=1000.0)
+    bandwidth_cycles: int = Field(10, ge=2, le=10000)
+    linearity_rates_dps: list[FiniteFloat] = Field(
+        default_factory=lambda: [-5.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    )
+
+    @model_validator(mode="after")
+    def _settle_inside_dwell(self) -> PlanSection:
+        if self.settle_s >= self.dwell_s:
+            raise ValueError(f"plan.settle_s ({self.settle_s}) must be shorter than plan.dwell_s ({self.dwell_s})")
+        return self
+
+
+class LockInSection(_Section):
+    """Zurich Instruments HF2LI: data server address, device, demodulator stream and wiring."""
+
+    sim: bool = Field(False, description="use the HF2 twin instead of a data server")
+    host: str = Field("localhost", min_length=1)
+    port: int = Field(8005, ge=1, le=65535, description="HF2 data server port (HF2: 8005)")
+    device: str = Field("dev0", pattern=r"^dev\d+$", description="device id, e.g. dev1234")
+    demod_rate_hz: float = Field(1400.0, ge=200.0, le=28800.0, description="demodulator streaming rate, Sa/s")
+    demod_timeconstant_s: float = Field(1e-4, gt=0.0, le=10.0, description="demodulator filter time constant, s")
+    demod_order: int = Field(1, ge=1, le=8)
+    poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
+    drive_sigin: int = Field(0, ge=0, le=1, description="signal input of the drive pickoff (0 = SigIn1)")
+    sense_sigin: int = Field(1, ge=0, le=1, description="signal input of the sense pickoff")
+    drive_sigout: int = Field(0, ge=0, le=1, description="signal output driving the drive electrodes")
+    forcer_sigout: int = Field(1, ge=0, le=1, description="signal output carrying the forcer carrier")
+    forcer_carrier_amplitude: float = Field(
+        0.5, gt=0.0, le=1.0, description="nominal forcer carrier amplitude (fraction of range) = gain 1.0"
+    )
+    rate_auxout: int = Field(0, ge=0, le=3, description="AuxOut carrying the rate PID output (cabled to AuxIn1)")
+    quadrature_auxout: int = Field(1, ge=0, le=3, description="AuxOut carrying the quadrature PID output")
+    rate_auxin: int = Field(0, ge=0, le=1, description="AuxIn recording the rate output")
+    dither_auxin: int = Field(1, ge=0, le=1, description="AuxIn recording the DS345 dither")
+    output_safe_v: float = Field(0.0, ge=-10.0, le=10.0, description="AuxOut value in the safe state, V")
+
+    @model_validator(mode="after")
+    def _distinct_wiring(self) -> LockInSection:
+        if self.rate_auxin == self.dither_auxin:
+            raise ValueError("lockin.rate_auxin and lockin.dither_auxin must be different AuxIn channels")
+        if self.rate_auxout == self.quadrature_auxout:
+            raise ValueError("lockin.rate_auxout and lockin.quadrature_auxout must be different AuxOut channels")
+        if self.drive_sigin == self.sense_sigin:
+            raise ValueError("lockin.drive_sigin and lockin.sense_sigin must be different inputs")
+        return self
+
+
+class GeneratorSection(_Section):
+    """SRS DS345 function generator (the dither source), over VISA."""
+
+    sim: bool = Field(False)
+    resource: str = Field("GPIB0::19::INSTR", min_length=1, description="VISA resource string")
+    visa_backend: str = Field("", description="pyvisa backend: '' default, '@py', or 'file.yaml@sim'")
+    timeout_ms: int = Field(2000, ge=10, le=60000)
+    max_amplitude_vpp: float = Field(10.0, gt=0.0, le=10.0, description="DS345: 10 Vpp into 50 ohm")
+
+
+class TableSection(_Section):
+    """Ideal Aerosmith 1291BR rate table, over a pyserial URL."""
+
+    sim: bool = Field(False)
+    port: str = Field("/dev/ttyUSB0", min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://h:p, ...")
+    baudrate: int = Field(9600, ge=300, le=115200)
+    timeout_s: float = Field(1.0, gt=0.0, le=30.0)
+    max_rate_dps: float = Field(100.0, gt=0.0, le=1000.0, description="refuse commands above this rate")
+    max_accel_dps2: float = Field(500.0, gt=0.0, le=10000.0, description="refuse accelerations above this")
+    sim_transport: Literal["inprocess", "pty", "socket"] = Field(
+        "inprocess", description="twin only: how the driver reaches the twin"
+    )
+
+
+class ChamberSection(_Section):
+    """Thermal chamber controller (Sun Electronic Systems EC1x ASCII protocol), over a pyserial URL."""
+
+    sim: bool = Field(False)
+    port: str = Field("/dev/ttyUSB1", min_length=1)
+    baudrate: int = Field(9600, ge=300, le=115200)
+    timeout_s: float = Field(1.0, gt=0.0, le=30.0)
+    min_c: float = Field(-40.0, ge=-100.0, le=200.0, description="lowest setpoint allowed, deg C")
+    max_c: float = Field(85.0, ge=-100.0, le=200.0, description="highest setpoint allowed, deg C")
+    max_ramp_c_per_min: float = Field(5.0, gt=0.0, le=50.0)
+    safe_setpoint_c: float = Field(25.0, ge=-100.0, le=200.0, description="setpoint in the safe state")
+    sim_transport: Literal["inprocess", "pty", "socket"] = Field("inprocess")
+
+    @model_validator(mode="after")
+    def _limits_ordered(self) -> ChamberSection:
+        if self.min_c >= self.max_c:
+            raise ValueError(f"chamber.min_c ({self.min_c}) must be below chamber.max_c ({self.max_c})")
+        if not self.min_c <= self.safe_setpoint_c <= self.max_c:
+            raise ValueError(
+                f"chamber.safe_setpoint_c ({self.safe_setpoint_c}) must lie in [{self.min_c}, {self.max_c}]"
+            )
+        return self
+
+
+class StorageSection(_Section):
+    flush_interval_s: float = Field(1.0, gt=0.0, le=60.0, description="flush the HDF5 file at least this often")
+    compression: Literal["none", "gzip", "lzf"] = Field("lzf")
+
+
+class SimFaultsSection(_Section):
+    """Faults the twins inject (reliability testing). Probabilities are per transaction; times in sim s."""
+
+    serial_timeout_prob: float = Field(0.0, ge=0.0, le=1.0)
+    serial_garble_prob: float = Field(0.0, ge=0.0, le=1.0)
+    visa_timeout_prob: float = Field(0.0, ge=0.0, le=1.0)
+    disconnect_at_s: list[FiniteFloat] = Field(default_factory=list, description="table link drops at these times")
+    disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0)
+    interlock_trip_at_s: float | None = Field(None, ge=0.0)
+    chamber_overshoot_at_s: float | None = Field(None, ge=0.0)
+    chamber_overshoot_c: float = Field(5.0, ge=0.0, le=50.0)
+    chamber_dropout_at_s: float | None = Field(None, ge=0.0)
+    sample_loss_at_s: list[FiniteFloat] = Field(default_factory=list)
+    pll_unlock_at_s: float | None = Field(None, ge=0.0)
+    pll_unlock_duration_s: float = Field(3.0, ge=0.0, le=3600.0)
+
+
+class SimSection(_Section):
+    """Parameters of the simulated test stand (the paper's QMG by default). See docs/simulation.md."""
+
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    f0_hz: float = Field(2200.0, ge=100.0, le=100e3)
+    q_factor: float = Field(1.2e6, ge=1e2, le=1e8)
+    damping_mismatch: float = Field(0.01, ge=0.0, le=0.5, description="Delta(1/tau)/(1/tau), paper dQ/Q = 1 %")
+    damping_axis_deg: float = Field(5.0, ge=-90.0, le=90.0)
+    freq_mismatch_hz: float = Field(0.0, ge=0.0, le=10.0)
+    stiffness_axis_deg: float = Field(0.0, ge=-90.0, le=90.0)
+    angular_gain: float = Field(0.8, gt=0.0, le=1.0)
+    arw_dps_per_rt_hz: float | None = Field(
+        None, ge=0.0, description="override ARW directly in (deg/s)/sqrt(Hz); default from arw_deg_per_rt_h"
+    )
+    arw_deg_per_rt_h: float = Field(0.02, ge=0.0, le=100.0, description="angle random walk, deg/sqrt(h)")
+    bias_instability_deg_per_h: float = Field(0.2, ge=0.0, le=1000.0, description="IEEE 952 B, deg/h")
+    pickoff_noise_vrms_per_rt_hz: float = Field(1e-7, ge=0.0, le=1e-2)
+    forcer_tempco_ppm_per_c: float = Field(-1000.0, ge=-1e5, le=1e5, description="forcer gain, what CLSF removes")
+    frequency_tempco_ppm_per_c: float = Field(-30.0, ge=-1e4, le=1e4)
+    pickoff_ratio_tempco_ppm_per_c: float = Field(
+        60.0, ge=-1e4, le=1e4, description="residual G_py/G_px drift: what CLSF cannot see"
+    )
+    reference_temperature_c: float = Field(25.0, ge=-100.0, le=200.0)
+    thermal_lag_s: float = Field(600.0, gt=0.0, le=1e6, description="chamber air -> gyro first-order lag, s")
+    chamber_time_constant_s: float = Field(60.0, gt=0.0, le=1e5, description="chamber air -> its setpoint, s")
+    initial_temperature_c: float = Field(25.0, ge=-60.0, le=150.0)
+    table_rate_scale_error_ppm: float = Field(60.0, ge=-1e4, le=1e4, description="1291BR: 100 ppm rate accuracy")
+    loop_delay_us: float = Field(0.0, ge=0.0, le=1e4, description="lock-in loop delay, us")
+    drive_voltage_v: float = Field(0.05, gt=0.0, le=10.0, description="true drive voltage at nominal amplitude, V")
+    sf_true_v_per_dps: float = Field(0.06, gt=0.0, le=10.0, description="true FTR SF at the reference temperature")
+    faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
+
+
+class Config(_Section):
+    """A whole campaign configuration."""
+
+    campaign: CampaignSection = Field(default_factory=CampaignSection)
+    device: DeviceSection = Field(default_factory=DeviceSection)
+    loops: LoopsSection = Field(default_factory=LoopsSection)
+    dither: DitherSection = Field(default_factory=DitherSection)
+    clsf: ClsfSection = Field(default_factory=ClsfSection)
+    plan: PlanSection = Field(default_factory=PlanSection)
+    lockin: LockInSection = Field(default_factory=LockInSection)
+    generator: GeneratorSection = Field(default_factory=GeneratorSection)
+    table: TableSection = Field(default_factory=TableSection)
+    chamber: ChamberSection = Field(default_factory=ChamberSection)
+    storage: StorageSection = Field(default_factory=StorageSection)
+    sim: SimSection = Field(default_factory=SimSection)
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> Config:
+        if self.dither.frequency_hz > self.lockin.demod_rate_hz / 20:
+            raise ValueError(
+                f"dither.frequency_hz ({self.dither.frequency_hz}) needs at least 20 demod samples per period: "
+                f"at most lockin.demod_rate_hz/20 = {self.lockin.demod_rate_hz / 20:g} Hz"
+            )
+        if self.loops.rate_bandwidth_hz >= self.dither.frequency_hz:
+            raise ValueError(
+                f"loops.rate_bandwidth_hz ({self.loops.rate_bandwidth_hz}) must be below dither.frequency_hz "
+                f"({self.dither.frequency_hz}): the dither has to lie outside the rate-loop bandwidth"
+            )
+        return self
+
+    def with_all_sim(self, sim: bool = True) -> Config:
+        """The same configuration with every instrument set to its twin (the CLI's --sim)."""
+        update = {name: getattr(self, name).model_copy(update={"sim": sim})
+                  for name in ("lockin", "generator", "table", "chamber")}
+        return self.model_copy(update=update)
+
+    @property
+    def any_sim(self) -> bool:
+        return any(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+
+    @property
+    def all_sim(self) -> bool:
+        return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+
+
+def _describe(error: dict[str, Any]) -> str:
+    loc = ".".join(str(p) for p in error.get("loc", ())) or "(top level)"
+    kind = error.get("type", "")
+    ctx = error.get("ctx") or {}
+    msg = error.get("msg", "invalid")
+    if kind == "extra_forbidden":
+        return f"{loc}: unknown key (check the spelling; see docs/configuration.md)"
+    if kind in {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}:
+        return f"{loc}: {msg} (got {error.get('input')!r})"
+    if kind == "literal_error":
+        return f"{loc}: {msg} (got {error.get('input')!r})"
+    if ctx.get("error") is not None and kind == "value_error":
+        return f"{ctx['error']}" if str(ctx["error"]).startswith(loc.split(".")[0]) else f"{loc}: {ctx['error']}"
+    return f"{loc}: {msg} (got {error.get('input')!r})"
+
+
+def parse_config(text: str, source: str = "<string>") -> Config:
+    """Validate TOML text into a Config; raise ConfigError naming every bad field and its allowed range."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe(e) for e in exc.errors(include_url=False)]
+        raise ConfigError(f"{source}: invalid configuration:\n  " + "\n  ".join(lines)) from None
+
+
+def load_config(path: str | Path) -> tuple[Config, str]:
+    """Read and validate a configuration file. Returns the model and the file's text (stored in run files)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a configuration file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+    return parse_config(text, str(p)), text
+
+
+def config_fingerprint(text: str) -> str:
+    """SHA-256 of the configuration text, hex: the identity `--resume` checks."""
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()

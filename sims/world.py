@@ -1,0 +1,298 @@
+"""The simulated test stand's shared physical state and its virtual clock.
+
+One `World` is shared by every twin: the DS345 twin writes the dither, the table twin the rate command, the
+chamber twin the setpoint; the HF2 twin advances the clock block by block (`advance`), receiving the inputs the
+gyro physics needs at every step. Nothing here sleeps: a 3-hour campaign takes as long as its arithmetic.
+
+Dynamics (all exact for inputs held over a step, evaluated vectorised per block):
+
+* Table, rate mode: rate moves toward the command at the acceleration limit a,
+  r(t) = r0 + sign(r1 - r0) * min(a t, |r1 - r0|); sinusoid mode: r(t) = A sin(2 pi f (t - t_s)).
+  The delivered rate is the profile times (1 + e), e the table's rate scale error (1291BR: 100 ppm class).
+  Position is the integral of the rate.
+* Chamber: the controller setpoint s(t) ramps to the target at the ramp rate (deg C/min); the air follows s with
+  a first-order lag tau_air; the gyro follows the air with a first-order lag tau_gyro. Exact ZOH recursion
+  y[k+1] = a y[k] + (1 - a) u[k], a = exp(-dt/tau), run with scipy.signal.lfilter.
+* Dither (DS345 output): v(t) = offset + (Vpp/2) w(f (t - t_origin) + phase/360), w the unit waveform (square:
+  +1 on the first half period, -1 on the second; sine: sin 2 pi u). Evaluated at mid-step, so square-wave edges
+  that fall on step boundaries are exact.
+
+Every input returned for step k is its mean over [t_k, t_k + dt) (mid-step value), the ZOH convention of the
+gyro kernel.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
+
+
+@dataclass
+class WorldParams:
+    """Physical constants of the stand outside the gyro itself."""
+
+    chamber_time_constant_s: float = 60.0
+    thermal_lag_s: float = 600.0
+    initial_temperature_c: float = 25.0
+    table_rate_scale_error_ppm: float = 60.0
+
+
+@dataclass
+class DitherState:
+    function: int = DITHER_SINE
+    frequency_hz: float = 1000.0
+    amplitude_vpp: float = 0.0
+    offset_v: float = 0.0
+    phase_deg: float = 0.0
+    origin_s: float = 0.0
+
+
+@dataclass
+class TableState:
+    mode: str = "rate"  # "rate" | "sine"
+    rate_command_dps: float = 0.0
+    accel_dps2: float = 300.0
+    rate_dps: float = 0.0  # profile rate (before the scale error) at the current time
+    angle_deg: float = 0.0
+    sine_amplitude_dps: float = 0.0
+    sine_frequency_hz: float = 0.0
+    sine_start_s: float = 0.0
+    interlock: bool = False
+
+
+@dataclass
+class ChamberState:
+    target_c: float = 25.0
+    ramp_c_per_min: float = 1.0
+    controller_setpoint_c: float = 25.0
+    air_c: float = 25.0
+    gyro_c: float = 25.0
+    heater_on: bool = True
+    disturbance_c: float = 0.0  # added to the air temperature (fault injection: overshoot)
+
+
+@dataclass
+class BlockInputs:
+    """Per-step inputs for one block of n steps: t[k] is the start of step k."""
+
+    t: np.ndarray
+    table_rate_dps: np.ndarray  # delivered rate, mean over the step
+    table_angle_deg: np.ndarray  # at the start of the step
+    chamber_c: np.ndarray  # air temperature
+    gyro_c: np.ndarray  # gyro temperature
+    dither_v: np.ndarray  # DS345 output, mean over the step (mid-step value)
+
+
+@dataclass
+class TruthRecord:
+    time: np.ndarray
+    scale_factor: np.ndarray
+    temperature: np.ndarray
+    rate: np.ndarray
+
+
+class World:
+    """The virtual clock and the shared physical state. Thread-safe: twins on pty threads read it too."""
+
+    def __init__(self, params: WorldParams | None = None, clock: str = "virtual") -> None:
+        if clock not in ("virtual", "wall"):
+            raise ValueError("clock must be 'virtual' or 'wall'")
+        self.params = params or WorldParams()
+        self.clock = clock
+        self.lock = threading.RLock()
+        self.t = 0.0
+        self._wall0 = time.monotonic()
+        self.dither = DitherState()
+        self.table = TableState()
+        t0 = self.params.initial_temperature_c
+        self.chamber = ChamberState(target_c=t0, controller_setpoint_c=t0, air_c=t0, gyro_c=t0)
+        self._truth: deque[TruthRecord] = deque()
+        self.forcer_gain = 1.0  # forcer-path gain set through the lock-in (CLSF correct mode)
+
+    # ------------------------------------------------------------------ clock
+    def now(self) -> float:
+        """Current time, s. On a wall clock the slow dynamics are first brought up to date."""
+        if self.clock == "wall":
+            self.sync_wall()
+        return self.t
+
+    def sync_wall(self, dt: float = 0.01) -> None:
+        """Wall-clock mode (no HF2 twin advancing the world): integrate up to the real elapsed time."""
+        with self.lock:
+            target = time.monotonic() - self._wall0
+            n = int((target - self.t) / dt)
+            if n > 0:
+                self.advance(n, dt)
+
+    # ------------------------------------------------------------------ commands from the twins
+    def set_dither(self, *, function: int | None = None, frequency_hz: float | None = None,
+                   amplitude_vpp: float | None = None, offset_v: float | None = None,
+                   phase_deg: float | None = None) -> None:
+        """Change the generator's settings. A new frequency restarts the phase origin at the current time."""
+        with self.lock:
+            d = self.dither
+            if function is not None:
+                d.function = int(function)
+            if frequency_hz is not None and frequency_hz != d.frequency_hz:
+                d.frequency_hz = float(frequency_hz)
+                d.origin_s = self.t
+            if amplitude_vpp is not None:
+                d.amplitude_vpp = float(amplitude_vpp)
+            if offset_v is not None:
+                d.offset_v = float(offset_v)
+            if phase_deg is not None:
+                d.phase_deg = float(phase_deg)
+
+    def set_table_rate(self, rate_dps: float, accel_dps2: float) -> None:
+        with self.lock:
+            self._freeze_table_profile()
+            self.table.mode = "rate"
+            self.table.rate_command_dps = float(rate_dps)
+            self.table.accel_dps2 = float(accel_dps2)
+
+    def set_table_sine(self, amplitude_dps: float, frequency_hz: float) -> None:
+        with self.lock:
+            self._freeze_table_profile()
+            self.table.mode = "sine"
+            self.table.sine_amplitude_dps = float(amplitude_dps)
+            self.table.sine_frequency_hz = float(frequency_hz)
+            self.table.sine_start_s = self.t
+
+    def stop_table(self, accel_dps2: float | None = None) -> None:
+        with self.lock:
+            self.set_table_rate(0.0, accel_dps2 if accel_dps2 is not None else self.table.accel_dps2)
+
+    def trip_interlock(self) -> None:
+        """Hardware protection: the table brakes to rest and ignores rate commands until reset."""
+        with self.lock:
+            self.set_table_rate(0.0, max(self.table.accel_dps2, 300.0))
+            self.table.interlock = True
+
+    def reset_interlock(self) -> None:
+        with self.lock:
+            self.table.interlock = False
+
+    def set_chamber(self, target_c: float, ramp_c_per_min: float | None = None) -> None:
+        with self.lock:
+            self.chamber.target_c = float(target_c)
+            if ramp_c_per_min is not None:
+                self.chamber.ramp_c_per_min = float(ramp_c_per_min)
+
+    def set_forcer_gain(self, gain: float) -> None:
+        with self.lock:
+            self.forcer_gain = float(gain)
+
+    # ------------------------------------------------------------------ read-backs
+    def table_rate_dps(self) -> float:
+        """Delivered table rate now, deg/s."""
+        with self.lock:
+            return self.table.rate_dps * (1.0 + self.params.table_rate_scale_error_ppm * 1e-6)
+
+    def table_angle_deg(self) -> float:
+        with self.lock:
+            return self.table.angle_deg
+
+    def chamber_air_c(self) -> float:
+        with self.lock:
+            return self.chamber.air_c + self.chamber.disturbance_c
+
+    # ------------------------------------------------------------------ truth
+    def record_truth(self, rec: TruthRecord) -> None:
+        self._truth.append(rec)
+
+    def drain_truth(self) -> TruthRecord | None:
+        recs = []
+        while self._truth:
+            recs.append(self._truth.popleft())
+        if not recs:
+            return None
+        return TruthRecord(*(np.concatenate([getattr(r, f) for r in recs])
+                             for f in ("time", "scale_factor", "temperature", "rate")))
+
+    # ------------------------------------------------------------------ dynamics
+    def _freeze_table_profile(self) -> None:
+        """A new command starts from the rate the table has now."""
+        if self.table.mode == "sine":
+            tab = self.table
+            tab.rate_dps = tab.sine_amplitude_dps * math.sin(
+                2 * math.pi * tab.sine_frequency_hz * (self.t - tab.sine_start_s))
+            tab.rate_command_dps = tab.rate_dps
+
+    def _table_profile(self, tau: np.ndarray) -> np.ndarray:
+        """Profile rate (before scale error) at times tau (s from now)."""
+        tab = self.table
+        if tab.mode == "sine":
+            return tab.sine_amplitude_dps * np.sin(
+                2 * np.pi * tab.sine_frequency_hz * (self.t + tau - tab.sine_start_s))
+        r0, r1, a = tab.rate_dps, tab.rate_command_dps, tab.accel_dps2
+        if r0 == r1:
+            return np.full_like(tau, r0)
+        return r0 + math.copysign(1.0, r1 - r0) * np.minimum(a * tau, abs(r1 - r0))
+
+    def _dither_wave(self, t_mid: np.ndarray) -> np.ndarray:
+        d = self.dither
+        if d.amplitude_vpp == 0.0:
+            return np.full_like(t_mid, d.offset_v)
+        u = d.frequency_hz * (t_mid - d.origin_s) + d.phase_deg / 360.0
+        frac = u - np.floor(u)
+        if d.function == DITHER_SQUARE:
+            w = np.where(frac < 0.5, 1.0, -1.0)
+        elif d.function == DITHER_TRIANGLE:
+            w = 1.0 - 4.0 * np.abs(frac - 0.5)
+        elif d.function == DITHER_RAMP:
+            w = 2.0 * frac - 1.0
+        else:
+            w = np.sin(2 * np.pi * u)
+        return d.offset_v + 0.5 * d.amplitude_vpp * w
+
+    def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
+        c = self.chamber
+        s0, s1 = c.controller_setpoint_c, c.target_c
+        if s0 == s1:
+            return np.full_like(tau, s0)
+        slope = c.ramp_c_per_min / 60.0
+        return s0 + math.copysign(1.0, s1 - s0) * np.minimum(slope * tau, abs(s1 - s0))
+
+    def advance(self, n: int, dt: float) -> BlockInputs:
+        """Advance the clock by n steps of dt and return the inputs of each step."""
+        if n <= 0:
+            raise ValueError("advance needs n >= 1")
+        with self.lock:
+            k = np.arange(n, dtype=np.float64)
+            tau_start = k * dt
+            tau_mid = tau_start + 0.5 * dt
+            t = self.t + tau_start
+            # table
+            prof_mid = self._table_profile(tau_mid)
+            scale = 1.0 + self.params.table_rate_scale_error_ppm * 1e-6
+            rate = prof_mid * scale
+            angle = self.table.angle_deg + np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt))
+            # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
+            c = self.chamber
+            sp = self._chamber_setpoint(tau_start)
+            a_air = math.exp(-dt / self.params.chamber_time_constant_s)
+            a_gyro = math.exp(-dt / self.params.thermal_lag_s)
+            air, _ = lfilter([0.0, 1.0 - a_air], [1.0, -a_air], sp, zi=[c.air_c])
+            air_meas = air + c.disturbance_c
+            gyro, _ = lfilter([0.0, 1.0 - a_gyro], [1.0, -a_gyro], air_meas, zi=[c.gyro_c])
+            # state at the end of the block
+            end = float(n * dt)
+            self.table.rate_dps = float(self._table_profile(np.array([end]))[0])
+            self.table.angle_deg = float(angle[-1] + rate[-1] * dt)
+            sp_end = float(self._chamber_setpoint(np.array([end]))[0])
+            c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
+            c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
+            c.controller_setpoint_c = sp_end
+            dither = self._dither_wave(t + 0.5 * dt)
+            self.t = self.t + end
+            return BlockInputs(t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas,
+                               gyro_c=gyro, dither_v=dither)
+
