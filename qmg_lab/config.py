@@ -105,6 +105,9 @@ class PlanSection(_Section):
     chamber_end_c: float = Field(35.0, ge=-60.0, le=150.0)
     chamber_ramp_c_per_min: float = Field(0.25, gt=0.0, le=20.0)
     chamber_soak_s: float = Field(300.0, ge=0.0, le=86400.0, description="hold at the start temperature first")
+    chamber_end_hold_s: float = Field(
+        600.0, ge=0.0, le=86400.0, description="keep stepping this long after the ramp ends (the gyro lags the air)"
+    )
     chamber_band_c: float = Field(
         2.0, gt=0.0, le=50.0, description="suspend the campaign while |T - setpoint| exceeds this, deg C"
     )

@@ -10,6 +10,7 @@ second squared, *_deg degrees, *_c degrees Celsius, *_s seconds.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -252,6 +253,8 @@ class Station:
     chamber: ThermalChamber
     simulated: dict[str, bool] = field(default_factory=dict)
     truth: TruthSource | None = None
+    # Twins only: told where the physical world was when a resumed run's process died (last time, temperatures)
+    restore: Callable[[dict[str, Any]], None] | None = None
 
     def instruments(self) -> dict[str, Instrument]:
         return {"lockin": self.lockin, "generator": self.generator, "table": self.table, "chamber": self.chamber}
