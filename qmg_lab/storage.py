@@ -1,0 +1,632 @@
+"""The run file: a crash-safe, self-describing HDF5 file in the "qmg-lab/1" layout (DESIGN.md section 5).
+
+Protocol (docs/hdf5.md):
+
+* `RunWriter.create` makes every group and every dataset up front — 1-D, chunked, unlimited `maxshape`, with a
+  `units` and a `description` attribute — writes the root attributes, then switches the file to HDF5 SWMR
+  (single-writer/multiple-reader) mode: `libver="latest"`, `file.swmr_mode = True`. From then on HDF5 orders its
+  metadata writes so that the file on disk is always a consistent snapshot as of the last flush: a process
+  killed at any instant leaves a file that h5py opens (with `swmr=True`; `read_run` does this), having lost only
+  what was appended after the last flush.
+* Appends go to a small per-group memory buffer that is written and flushed when `maybe_flush` finds that
+  `flush_interval_s` of wall time has passed, on `flush`, on every `append_step` and `set_status`, and on
+  `close`. A step row with status "completed" is therefore a checkpoint: every sample appended before it is in
+  the file when the row is.
+* A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
+  `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
+* HDF5 marks a file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags
+  stay set and HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
+  (`_clear_superblock_flags`, the equivalent of `h5clear -s`) after checking that the file's writer is gone.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import socket
+import struct
+import time as _time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import h5py
+import numpy as np
+
+FORMAT = "qmg-lab/1"
+
+LOCKIN_UNITS = {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
+                "drive_frequency": "Hz", "dither": "V"}
+CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1"}
+TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
+CHAMBER_UNITS = {"time": "s", "setpoint": "degC", "temperature": "degC"}
+TRUTH_UNITS = {"time": "s", "scale_factor": "V/(deg/s)", "temperature": "degC", "rate": "deg/s"}
+STEPS_UNITS = {"index": "1", "kind": "text", "t_start": "s", "t_end": "s", "table_rate": "deg/s",
+               "chamber_setpoint": "degC", "status": "text"}
+
+#: group name -> column name -> units (the order is the column order in the file)
+GROUP_UNITS: dict[str, dict[str, str]] = {"lockin": LOCKIN_UNITS, "clsf": CLSF_UNITS, "table": TABLE_UNITS,
+                                          "chamber": CHAMBER_UNITS, "truth": TRUTH_UNITS}
+
+DESCRIPTIONS: dict[str, str] = {
+    "lockin/time": "sample time, s since the root attribute t0_unix",
+    "lockin/x_sense": "sense demodulator in-phase component c_y (X), Vrms",
+    "lockin/y_sense": "sense demodulator quadrature component s_y (Y), Vrms",
+    "lockin/rate_output": "FTR rebalance command f_y (rate PID output, recorded on an AuxIn), V",
+    "lockin/drive_amplitude": "drive pickoff amplitude R of the drive demodulator, Vrms",
+    "lockin/drive_frequency": "PLL oscillator frequency, Hz",
+    "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
+    "clsf/time": "end of the dither period the row describes, s since t0_unix",
+    "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
+                "change seen by the dither)",
+    "clsf/sf_change_estimate": "CLSF estimate of the scale-factor change SF/SF0 - 1 = 1/(1 + eta) - 1",
+    "clsf/gain_correction": "CLSF gain correction g_c in force during the period (1.0 = none; correct mode only)",
+    "table/time": "reading time, s since t0_unix",
+    "table/rate_command": "commanded table rate, deg/s",
+    "table/rate_measured": "table rate reported by the controller, deg/s",
+    "table/position": "table position, deg",
+    "chamber/time": "reading time, s since t0_unix",
+    "chamber/setpoint": "chamber controller setpoint, degC",
+    "chamber/temperature": "chamber air temperature, degC",
+    "truth/time": "sample time, s since t0_unix (twins only)",
+    "truth/scale_factor": "true FTR scale factor of the simulated gyro, V per deg/s",
+    "truth/temperature": "true gyro temperature, degC",
+    "truth/rate": "true input rate (table rate seen by the gyro), deg/s",
+    "steps/index": "step number in the plan, from 0",
+    "steps/kind": "step kind: lock, dither, soak, rate, hold, sine:<f>Hz, level, return",
+    "steps/t_start": "step start, s since t0_unix",
+    "steps/t_end": "step end, s since t0_unix",
+    "steps/table_rate": "table rate of the step (sine steps: amplitude), deg/s",
+    "steps/chamber_setpoint": "chamber setpoint during the step, degC",
+    "steps/status": "completed | aborted | started | skipped; only completed rows are checkpoints",
+}
+
+KIND_BYTES = 48
+STATUS_BYTES = 16
+STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_start": np.float64,
+                                "t_end": np.float64, "table_rate": np.float64, "chamber_setpoint": np.float64,
+                                "status": f"S{STATUS_BYTES}"}
+#: rows per chunk: lock-in ~2.9 s at 1400 Sa/s; the slow groups a few minutes
+CHUNK_ROWS = {"lockin": 4096, "clsf": 1024, "table": 512, "chamber": 512, "truth": 4096, "steps": 128}
+COMPRESSIONS = ("none", "gzip", "lzf")
+GZIP_LEVEL = 4
+MODES = ("sim", "hardware")
+STATUSES = ("running", "completed", "aborted")
+
+
+class StorageError(Exception):
+    """A run file that cannot be created, read or resumed; the message names the file and what is wrong."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# HDF5 superblock consistency flags (what `h5clear -s` does)
+
+
+def _lookup3(data: bytes, initval: int = 0) -> int:
+    """Bob Jenkins' lookup3 `hashlittle` (public domain), the checksum HDF5 puts on superblock v2/v3.
+
+    Three 32-bit lanes a, b, c start at 0xdeadbeef + len + initval; each 12-byte block is added little-endian
+    and mixed, the last (1..12 byte, zero-padded) block is added and put through the final avalanche; the hash
+    is c. A zero-length key returns c unmixed.
+    """
+    m = 0xFFFFFFFF
+
+    def rot(x: int, k: int) -> int:
+        return ((x << k) | (x >> (32 - k))) & m
+
+    n = len(data)
+    a = b = c = (0xDEADBEEF + n + initval) & m
+    if n == 0:
+        return c
+    pos = 0
+    while n - pos > 12:
+        x, y, z = struct.unpack_from("<III", data, pos)
+        a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
+        a = ((a - c) & m) ^ rot(c, 4); c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 6); a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 8); b = (b + a) & m
+        a = ((a - c) & m) ^ rot(c, 16); c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 19); a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 4); b = (b + a) & m
+        pos += 12
+    x, y, z = struct.unpack("<III", data[pos:].ljust(12, b"\0"))
+    a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
+    c = (c ^ b) - rot(b, 14) & m
+    a = (a ^ c) - rot(c, 11) & m
+    b = (b ^ a) - rot(a, 25) & m
+    c = (c ^ b) - rot(b, 16) & m
+    a = (a ^ c) - rot(c, 4) & m
+    b = (b ^ a) - rot(a, 14) & m
+    c = (c ^ b) - rot(b, 24) & m
+    return c
+
+
+_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _superblock(path: Path) -> tuple[bytes, int]:
+    """Read a v2/v3 superblock at offset 0: (its bytes without the checksum, its length with the checksum)."""
+    with open(path, "rb") as fh:
+        head = fh.read(64)
+    if head[:8] != _SIGNATURE:
+        raise StorageError(f"{path}: not an HDF5 file (no HDF5 signature at offset 0)")
+    version = head[8]
+    if version not in (2, 3):
+        raise StorageError(f"{path}: HDF5 superblock version {version}; qmg-lab files use version 3 "
+                           f"(libver='latest'); this file was not written by qmg-lab")
+    size_offsets = head[9]
+    length = 12 + 4 * size_offsets + 4  # signature..flags, 4 addresses, checksum
+    body = head[: length - 4]
+    (stored,) = struct.unpack_from("<I", head, length - 4)
+    if _lookup3(body) != stored:
+        raise StorageError(f"{path}: HDF5 superblock checksum mismatch: the file is damaged")
+    return body, length
+
+
+def writer_flags_set(path: str | Path) -> bool:
+    """True if the superblock says a writer opened the file and never closed it (killed, or still running)."""
+    body, _ = _superblock(Path(path))
+    return body[11] != 0
+
+
+def _clear_superblock_flags(path: Path) -> None:
+    """Zero the superblock's file-consistency flags and rewrite its checksum (h5clear -s)."""
+    body, _ = _superblock(path)
+    if body[11] == 0:
+        return
+    new = body[:11] + b"\0" + body[12:]
+    with open(path, "r+b") as fh:
+        fh.seek(0)
+        fh.write(new + struct.pack("<I", _lookup3(new)))
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# writer
+
+
+def _text(value: Any) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class RunWriter:
+    """Appends campaign data to a qmg-lab/1 run file in SWMR mode. Use `create` or `reopen`, not the constructor.
+
+    Not thread-safe: one writer object, one thread. Usable as a context manager: an exception leaving the
+    `with` block marks the run "aborted" with the exception as `abort_reason`, then closes the file.
+    """
+
+    def __init__(self, path: Path, h5: h5py.File, *, flush_interval_s: float,
+                 clock: Callable[[], float] = _time.monotonic) -> None:
+        if not flush_interval_s > 0:
+            raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
+        self.path = path
+        self._h5 = h5
+        self.flush_interval_s = float(flush_interval_s)
+        self._clock = clock
+        self._last_flush = clock()
+        self._groups = [g for g in GROUP_UNITS if g in h5]
+        self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
+        self._last_time: dict[str, float] = {}
+        for g in self._groups:
+            t = h5[g]["time"]
+            self._last_time[g] = float(t[t.shape[0] - 1]) if t.shape[0] else -np.inf
+        steps = h5["steps"]
+        self._completed: set[int] = {
+            int(i) for i, s in zip(steps["index"][:], steps["status"][:], strict=True) if s == b"completed"}
+        self._closed = False
+
+    # ---- construction ---------------------------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, path: str | Path, *, config_text: str, config_sha256: str, mode: str, software_version: str,
+               t0_unix: float, flush_interval_s: float = 1.0, compression: str = "lzf", truth: bool,
+               planned_steps: int = -1, planned_step_kinds: Iterable[str] = (),
+               extra_attrs: Mapping[str, Any] | None = None,
+               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
+        """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
+
+        planned_steps / planned_step_kinds: the plan's length and its step kinds (root attributes
+        `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
+        extra_attrs: further root attributes (scalars or strings), written before SWMR starts.
+        """
+        p = Path(path)
+        if mode not in MODES:
+            raise StorageError(f"{p}: mode must be one of {MODES}, got {mode!r}")
+        if compression not in COMPRESSIONS:
+            raise StorageError(f"{p}: compression must be one of {COMPRESSIONS}, got {compression!r}")
+        if not np.isfinite(t0_unix):
+            raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
+        if p.exists():
+            raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume")
+        if not p.parent.is_dir():
+            raise StorageError(f"{p}: directory {p.parent} does not exist")
+        try:
+            h5 = h5py.File(p, "w-", libver="latest")
+        except OSError as exc:
+            raise StorageError(f"{p}: cannot create the run file: {exc}") from None
+        try:
+            a = h5.attrs
+            a["format"] = FORMAT
+            a["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+            a["t0_unix"] = float(t0_unix)
+            a["software_version"] = software_version
+            a["mode"] = mode
+            a["config_toml"] = config_text
+            a["config_sha256"] = config_sha256
+            a["status"] = "running"
+            a["abort_reason"] = ""
+            a["completed_steps"] = 0
+            a["resume_count"] = 0
+            a["planned_steps"] = int(planned_steps)
+            a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
+            a["compression"] = compression
+            a["flush_interval_s"] = float(flush_interval_s)
+            a["writer_pid"] = os.getpid()
+            a["writer_host"] = socket.gethostname()
+            for k, v in (extra_attrs or {}).items():
+                if k in a:
+                    raise StorageError(f"{p}: extra attribute {k!r} clashes with a contract attribute")
+                a[k] = v
+            filt: dict[str, Any] = {}
+            if compression == "gzip":
+                filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
+            elif compression == "lzf":
+                filt = {"compression": "lzf", "shuffle": True}
+            for g, units in GROUP_UNITS.items():
+                if g == "truth" and not truth:
+                    continue
+                grp = h5.create_group(g)
+                for col, unit in units.items():
+                    ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=np.float64,
+                                            chunks=(CHUNK_ROWS[g],), **filt)
+                    ds.attrs["units"] = unit
+                    ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
+            grp = h5.create_group("steps")
+            for col, dtype in STEPS_DTYPES.items():
+                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS["steps"],))
+                ds.attrs["units"] = STEPS_UNITS[col]
+                ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
+            h5.flush()
+            h5.swmr_mode = True
+        except BaseException:
+            h5.close()
+            p.unlink(missing_ok=True)
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+
+    @classmethod
+    def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
+               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
+        """Reopen a run file to resume it (after a crash or an abort).
+
+        Refuses a file of another configuration (StorageError naming both fingerprints) and a file whose
+        writer process is still alive. Then: clears the crash flags, cuts every group to its shortest column,
+        drops /steps rows whose status is not "completed", sets status "running" (abort_reason ""),
+        increments resume_count and restarts SWMR.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise StorageError(f"{p}: no such run file to resume")
+        run = read_run(p, select=("steps",))
+        stored = run.attrs.get("config_sha256", "")
+        if stored != config_sha256:
+            raise StorageError(f"{p}: was written with configuration {stored}, not with this configuration "
+                               f"{config_sha256}; resume with the configuration the run was started with")
+        if run.writer_open:
+            pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
+            if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
+                raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
+            _clear_superblock_flags(p)
+        try:
+            h5 = h5py.File(p, "r+", libver="latest")
+        except OSError as exc:
+            raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
+        try:
+            for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
+                n = min(h5[g][c].shape[0] for c in h5[g])
+                for c in h5[g]:
+                    if h5[g][c].shape[0] != n:
+                        h5[g][c].resize((n,))
+            steps = h5["steps"]
+            keep = steps["status"][:] == b"completed"
+            if not keep.all():
+                for c in steps:
+                    kept = steps[c][:][keep]
+                    steps[c].resize((kept.shape[0],))
+                    if kept.shape[0]:
+                        steps[c][:] = kept
+            h5.attrs["status"] = "running"
+            h5.attrs["abort_reason"] = ""
+            h5.attrs["completed_steps"] = int(np.unique(steps["index"][:]).shape[0])
+            h5.attrs["resume_count"] = int(h5.attrs.get("resume_count", 0)) + 1
+            h5.attrs["writer_pid"] = os.getpid()
+            h5.attrs["writer_host"] = socket.gethostname()
+            h5.flush()
+            h5.swmr_mode = True
+        except BaseException:
+            h5.close()
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+
+    # ---- appending ------------------------------------------------------------------------------------------
+
+    def append(self, group: str, **columns: np.ndarray) -> None:
+        """Buffer rows for `group`: every column of the group, 1-D, same length; time non-decreasing."""
+        self._check_open()
+        if group not in GROUP_UNITS:
+            raise StorageError(f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
+                               f"(steps are written with append_step)")
+        if group not in self._buffer:
+            raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
+        expected = GROUP_UNITS[group]
+        if set(columns) != set(expected):
+            missing = sorted(set(expected) - set(columns))
+            extra = sorted(set(columns) - set(expected))
+            raise StorageError(f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
+                               f"missing {missing}, unknown {extra}")
+        arrays = {c: np.asarray(columns[c], dtype=np.float64).reshape(-1) if np.ndim(columns[c]) == 0
+                  else np.asarray(columns[c], dtype=np.float64) for c in expected}
+        n = arrays["time"].shape[0]
+        for c, arr in arrays.items():
+            if arr.ndim != 1 or arr.shape[0] != n:
+                raise StorageError(f"{self.path}: /{group}/{c} has shape {arr.shape}; every column of the append "
+                                   f"must be 1-D with {n} rows like /{group}/time")
+        if n == 0:
+            return
+        t = arrays["time"]
+        if not np.all(np.isfinite(t)):
+            raise StorageError(f"{self.path}: /{group}/time contains NaN or infinite values")
+        if t[0] < self._last_time[group] or (n > 1 and np.any(np.diff(t) < 0)):
+            raise StorageError(f"{self.path}: /{group}/time must not decrease (last stored "
+                               f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)")
+        self._last_time[group] = float(t[-1])
+        self._buffer[group].append(arrays)
+
+    def append_step(self, *, index: int, kind: str, t_start: float, t_end: float, table_rate: float,
+                    chamber_setpoint: float, status: str) -> None:
+        """Append one /steps row and flush everything: a "completed" row is a checkpoint for --resume."""
+        self._check_open()
+        kb, sb = kind.encode("utf-8"), status.encode("utf-8")
+        if not kb or len(kb) > KIND_BYTES:
+            raise StorageError(f"{self.path}: step kind must be 1..{KIND_BYTES} bytes, got {kind!r}")
+        if not sb or len(sb) > STATUS_BYTES:
+            raise StorageError(f"{self.path}: step status must be 1..{STATUS_BYTES} bytes, got {status!r}")
+        if index < 0:
+            raise StorageError(f"{self.path}: step index must be >= 0, got {index}")
+        self._flush_buffers()
+        row = {"index": int(index), "kind": kb, "t_start": float(t_start), "t_end": float(t_end),
+               "table_rate": float(table_rate), "chamber_setpoint": float(chamber_setpoint), "status": sb}
+        steps = self._h5["steps"]
+        n = steps["index"].shape[0]
+        for c, v in row.items():
+            steps[c].resize((n + 1,))
+            steps[c][n] = v
+        if status == "completed":
+            self._completed.add(int(index))
+            self._h5.attrs["completed_steps"] = len(self._completed)
+        self._flush_file()
+
+    # ---- queries --------------------------------------------------------------------------------------------
+
+    def completed_steps(self) -> set[int]:
+        """Indices of the steps with a "completed" row."""
+        return set(self._completed)
+
+    def last_time(self) -> float:
+        """Last /lockin/time appended (buffered or stored), s; 0.0 if none: a resumed run continues after it."""
+        t = self._last_time.get("lockin", -np.inf)
+        return float(t) if np.isfinite(t) else 0.0
+
+    # ---- flushing and status --------------------------------------------------------------------------------
+
+    def maybe_flush(self) -> None:
+        """Write the buffers and flush the file if `flush_interval_s` of wall time passed since the last flush."""
+        self._check_open()
+        if self._clock() - self._last_flush >= self.flush_interval_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write every buffered row and flush the file to disk (SWMR readers see it from now on)."""
+        self._check_open()
+        self._flush_buffers()
+        self._flush_file()
+
+    def set_status(self, status: str, abort_reason: str = "") -> None:
+        """Set the root status ("running" | "completed" | "aborted") and abort_reason; flushes."""
+        self._check_open()
+        if status not in STATUSES:
+            raise StorageError(f"{self.path}: status must be one of {STATUSES}, got {status!r}")
+        self._flush_buffers()
+        self._h5.attrs["status"] = status
+        self._h5.attrs["abort_reason"] = abort_reason
+        self._flush_file()
+
+    def set_plan(self, planned_steps: int, planned_step_kinds: Iterable[str]) -> None:
+        """Store the plan's length and step kinds (root attrs planned_steps, planned_step_kinds as JSON)."""
+        self._check_open()
+        kinds = list(planned_step_kinds)
+        if planned_steps < 0 or (kinds and len(kinds) != planned_steps):
+            raise StorageError(f"{self.path}: planned_steps ({planned_steps}) must be >= 0 and match the "
+                               f"{len(kinds)} planned step kinds")
+        self._h5.attrs["planned_steps"] = int(planned_steps)
+        self._h5.attrs["planned_step_kinds"] = json.dumps(kinds)
+        self._flush_file()
+
+    def close(self) -> None:
+        """Flush and close (idempotent). Closing clears the superblock's writer flags: a clean file."""
+        if self._closed:
+            return
+        try:
+            self._flush_buffers()
+        finally:
+            self._closed = True
+            self._h5.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is not None and not self._closed:
+            try:
+                if _text(self._h5.attrs["status"]) == "running":
+                    reason = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"{exc_type.__name__}: {exc}"
+                    self.set_status("aborted", reason)
+            finally:
+                self.close()
+        else:
+            self.close()
+
+    # ---- internals ------------------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StorageError(f"{self.path}: the run file is closed")
+
+    def _flush_buffers(self) -> None:
+        for g, blocks in self._buffer.items():
+            if not blocks:
+                continue
+            grp = self._h5[g]
+            for c in GROUP_UNITS[g]:  # time first: a partial write leaves time the column to be cut
+                data = blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks])
+                ds = grp[c]
+                n = ds.shape[0]
+                ds.resize((n + data.shape[0],))
+                ds[n:] = data
+            blocks.clear()
+
+    def _flush_file(self) -> None:
+        self._h5.flush()
+        self._last_flush = self._clock()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# reader
+
+
+@dataclass
+class RunData:
+    """A run file read into memory.
+
+    attrs: root attributes (strings decoded, numbers as Python scalars); groups: group -> column -> array, each
+    group cut to its shortest column (whole rows only); steps: /steps columns (kind and status as str arrays);
+    units: "group/column" -> units; writer_open: the superblock says a writer never closed the file (it was
+    killed, or is still writing); rows_cut: "group" -> rows dropped to make the columns equal.
+    """
+
+    path: Path
+    attrs: dict[str, Any]
+    groups: dict[str, dict[str, np.ndarray]]
+    steps: dict[str, np.ndarray]
+    units: dict[str, str] = field(default_factory=dict)
+    writer_open: bool = False
+    rows_cut: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        return str(self.attrs.get("status", ""))
+
+    @property
+    def has_truth(self) -> bool:
+        return "truth" in self.groups
+
+    @property
+    def planned_step_kinds(self) -> list[str]:
+        try:
+            return [str(k) for k in json.loads(self.attrs.get("planned_step_kinds", "[]"))]
+        except (TypeError, ValueError):
+            return []
+
+
+def _py(value: Any) -> Any:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
+    """Read a qmg-lab/1 run file — complete, still being written, or left by a killed process.
+
+    select: what to load, as group names ("lockin") or columns ("lockin/rate_output"); default everything.
+    /steps is always loaded. Raises StorageError naming the file and the problem for anything else.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise StorageError(f"{p}: no such run file")
+    writer_open = writer_flags_set(p)
+    try:
+        h5 = h5py.File(p, "r", swmr=True, libver="latest")
+    except OSError as exc:
+        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
+    wanted: dict[str, set[str] | None] | None = None
+    if select is not None:
+        wanted = {}
+        for item in select:
+            g, _, c = str(item).strip("/").partition("/")
+            if c:
+                cols = wanted.get(g, set())
+                if cols is not None:
+                    cols.add(c)
+                    wanted[g] = cols
+            else:
+                wanted[g] = None
+    with h5:
+        attrs = {k: _py(v) for k, v in h5.attrs.items()}
+        if attrs.get("format") != FORMAT:
+            raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
+        if "steps" not in h5:
+            raise StorageError(f"{p}: the /steps group is missing")
+        units: dict[str, str] = {}
+        groups: dict[str, dict[str, np.ndarray]] = {}
+        rows_cut: dict[str, int] = {}
+        for g in [*GROUP_UNITS, "steps"]:
+            if g not in h5:
+                if g != "truth":
+                    raise StorageError(f"{p}: the /{g} group is missing")
+                continue
+            grp = h5[g]
+            cols = list(GROUP_UNITS.get(g, STEPS_UNITS))
+            absent = [c for c in cols if c not in grp]
+            if absent:
+                raise StorageError(f"{p}: /{g} lacks the datasets {absent}")
+            for c in cols:
+                units[f"{g}/{c}"] = _py(grp[c].attrs.get("units", ""))
+            n = min(grp[c].shape[0] for c in cols)
+            rows_cut[g] = max(grp[c].shape[0] for c in cols) - n
+            if g != "steps" and wanted is not None:
+                if g not in wanted:
+                    continue
+                sel = wanted[g]
+                if sel is not None:
+                    unknown = sorted(sel - set(cols))
+                    if unknown:
+                        raise StorageError(f"{p}: /{g} has no columns {unknown}")
+                    cols = [c for c in cols if c in sel or c == "time"]
+            groups[g] = {c: grp[c][:n] for c in cols}
+    steps = groups.pop("steps")
+    for c in ("kind", "status"):
+        steps[c] = np.array([s.decode("utf-8", "replace") for s in steps[c]], dtype=str)
+    return RunData(path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open,
+                   rows_cut=rows_cut)
