@@ -1,0 +1,204 @@
+"""Driver for the Ideal Aerosmith 1291BR single-axis rate table over a pyserial-like port.
+
+Protocol: the command table in drivers/aerosmith_commands.py (mnemonic + value + CR LF; one reply line ending
+CR, then the prompt line ">" CR; refusals answer "E<nn> text"). Every transaction is checked strictly: the
+value line must parse, the prompt must follow, nothing else is accepted; any deviation raises InstrumentError
+naming the command and the bytes received. Limits are checked before anything is sent (LimitError).
+
+Sequences:
+* set_rate(r, a): ACL a, JOG r, then STA to resynchronise (and to see an interlock at once).
+* set_sinusoid(A, f, a): requires the peak acceleration of rate(t) = A sin(2 pi f t), A 2 pi f, to be <= a
+  and a <= max_accel; then ACL a, AMP A, FRQ f, SGO, STA.
+* stop(): STO, STA.  safe_state(): STO only (idempotent, one transaction).
+* read(): PVE, PPO, STA -> TableReading (interlock = STA bit 2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+from drivers import aerosmith_commands as proto
+from drivers.serial_link import SerialLink, SerialPort
+from qmg_lab.instruments import (
+    InstrumentError,
+    InterlockError,
+    LimitError,
+    RateTable,
+    TableReading,
+    check_limit,
+)
+
+MAX_SINE_FREQUENCY_HZ = 100.0
+
+
+class Aerosmith1291BR(RateTable):
+    """The 1291BR rate table.
+
+    port: an open pyserial-like port (9600 8N1 on hardware). max_rate_dps, max_accel_dps2: the station's
+    limits (commands beyond them are refused before sending). port_factory: a callable that opens a new port,
+    used by reconnect().
+    """
+
+    NAME = "1291BR"
+
+    def __init__(self, port: SerialPort, *, max_rate_dps: float, max_accel_dps2: float,
+                 port_factory: Callable[[], SerialPort] | None = None) -> None:
+        if not (math.isfinite(max_rate_dps) and max_rate_dps > 0):
+            raise ValueError(f"max_rate_dps must be a positive finite number, got {max_rate_dps!r}")
+        if not (math.isfinite(max_accel_dps2) and max_accel_dps2 > 0):
+            raise ValueError(f"max_accel_dps2 must be a positive finite number, got {max_accel_dps2!r}")
+        self.max_rate_dps = float(max_rate_dps)
+        self.max_accel_dps2 = float(max_accel_dps2)
+        self._link = SerialLink(port, name=self.NAME, command_terminator=proto.COMMAND_TERMINATOR,
+                                reply_terminator=proto.REPLY_TERMINATOR, max_reply_bytes=proto.MAX_REPLY_BYTES)
+        self._factory = port_factory
+        self._mode = "rate"
+        self._rate_command_dps = 0.0
+        self._accel_dps2: float | None = None
+        self._sine: tuple[float, float] | None = None
+
+    # ------------------------------------------------------------------ transactions
+    def _transact(self, key: str, value: float | None = None) -> Any:
+        """Send one command from the table; return its parsed reply (None for prompt-only commands)."""
+        cmd = proto.COMMANDS[key]
+        raw = cmd.encode(value)
+        self._link.send(raw)
+        result: Any = None
+        line = self._link.read_line(raw)
+        self._raise_if_error(raw, line)
+        if cmd.reply is not None:
+            try:
+                result = cmd.reply(line)
+            except ValueError as exc:
+                raise InstrumentError(
+                    f"{self.NAME}: garbled reply to {cmd.mnemonic!r}: received {line!r} ({exc})") from exc
+            line = self._link.read_line(raw)
+            self._raise_if_error(raw, line)
+        if line.encode("ascii") + proto.REPLY_TERMINATOR != proto.PROMPT_LINE:
+            raise InstrumentError(
+                f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of "
+                f"{proto.PROMPT_LINE!r}")
+        return result
+
+    def _raise_if_error(self, raw: bytes, line: str) -> None:
+        m = proto.ERROR_LINE.match(line)
+        if m is None:
+            return
+        code = int(m.group(1))
+        text = raw[: -len(proto.COMMAND_TERMINATOR)].decode("ascii")
+        # the prompt follows the error line; consume it so the link stays in step
+        try:
+            self._link.read_line(raw)
+        except InstrumentError:
+            pass
+        meaning = proto.ERROR_CODES.get(code, "undocumented error code")
+        exc_type = InterlockError if code == proto.ERROR_INTERLOCK else InstrumentError
+        raise exc_type(f"{self.NAME}: {text!r} refused: E{code:02d} {m.group(2)} ({meaning})")
+
+    def _check_interlock(self, status: int, after: str) -> None:
+        if status & proto.TableStatus.INTERLOCK:
+            raise InterlockError(f"{self.NAME}: interlock tripped (STA={status}) after {after}")
+
+    # ------------------------------------------------------------------ RateTable
+    def set_rate(self, rate_dps: float, accel_dps2: float) -> None:
+        """ACL accel, JOG rate, STA. |rate| <= max_rate_dps, 0 < accel <= max_accel_dps2."""
+        check_limit("table rate", rate_dps, -self.max_rate_dps, self.max_rate_dps, "deg/s")
+        self._check_accel(accel_dps2)
+        self._transact("accel", accel_dps2)
+        self._transact("jog", rate_dps)
+        self._mode, self._rate_command_dps, self._accel_dps2, self._sine = "rate", float(rate_dps), float(
+            accel_dps2), None
+        self._check_interlock(self._transact("status"), "JOG")
+
+    def set_sinusoid(self, amplitude_dps: float, frequency_hz: float, accel_dps2: float) -> None:
+        """ACL, AMP, FRQ, SGO, STA for rate(t) = A sin(2 pi f t); needs A * 2 pi f <= accel <= max_accel."""
+        check_limit("sinusoid amplitude", amplitude_dps, 0.0, self.max_rate_dps, "deg/s")
+        check_limit("sinusoid frequency", frequency_hz, 0.0, MAX_SINE_FREQUENCY_HZ, "Hz")
+        if frequency_hz <= 0.0 or amplitude_dps <= 0.0:
+            raise LimitError(f"sinusoid amplitude ({amplitude_dps:g} deg/s) and frequency ({frequency_hz:g} Hz) "
+                             "must be positive")
+        self._check_accel(accel_dps2)
+        peak = amplitude_dps * 2.0 * math.pi * frequency_hz
+        if peak > accel_dps2:
+            raise LimitError(
+                f"sinusoid peak acceleration amplitude*2*pi*frequency = {peak:g} deg/s^2 exceeds the "
+                f"acceleration limit {accel_dps2:g} deg/s^2")
+        self._transact("accel", accel_dps2)
+        self._transact("sine_amplitude", amplitude_dps)
+        self._transact("sine_frequency", frequency_hz)
+        self._transact("sine_go")
+        self._mode, self._sine, self._accel_dps2 = "sine", (float(amplitude_dps), float(frequency_hz)), float(
+            accel_dps2)
+        self._check_interlock(self._transact("status"), "SGO")
+
+    def stop(self) -> None:
+        """STO (decelerate at the last ACL), then STA."""
+        self._transact("stop")
+        self._mode, self._rate_command_dps, self._sine = "rate", 0.0, None
+        self._transact("status")
+
+    def read(self) -> TableReading:
+        """PVE (deg/s), PPO (deg, in [0, 360)), STA."""
+        rate = self._transact("velocity")
+        position = self._transact("position")
+        status = self._transact("status")
+        return TableReading(rate_dps=rate, position_deg=position, status=status,
+                            interlock=bool(status & proto.TableStatus.INTERLOCK))
+
+    def motion_complete(self, tolerance_dps: float) -> bool:
+        """MCO<tol>: True when the rate is within `tolerance_dps` of the command (rate mode)."""
+        check_limit("motion-complete tolerance", tolerance_dps, 0.0, self.max_rate_dps, "deg/s")
+        return bool(self._transact("motion_complete", tolerance_dps))
+
+    # ------------------------------------------------------------------ Instrument
+    def identify(self) -> str:
+        """The public command set has no identity query: STA (assumed) checks that a 1291BR-style controller
+        answers with its framing; the identity string says so."""
+        status = self._transact("identify")
+        return f"Ideal Aerosmith 1291BR (3-letter mnemonic protocol; STA={status})"
+
+    def state(self) -> dict[str, Any]:
+        reading = self.read()
+        return {
+            "mode": self._mode,
+            "rate_command_dps": self._rate_command_dps,
+            "accel_dps2": self._accel_dps2,
+            "sine_amplitude_dps": None if self._sine is None else self._sine[0],
+            "sine_frequency_hz": None if self._sine is None else self._sine[1],
+            "rate_dps": reading.rate_dps,
+            "position_deg": reading.position_deg,
+            "status": reading.status,
+            "status_bits": [b.name for b in proto.TableStatus if reading.status & b],
+            "interlock": reading.interlock,
+            "max_rate_dps": self.max_rate_dps,
+            "max_accel_dps2": self.max_accel_dps2,
+        }
+
+    def safe_state(self) -> None:
+        """STO: the table decelerates to rest. Idempotent (STO at rest is accepted)."""
+        self._transact("stop")
+        self._mode, self._rate_command_dps, self._sine = "rate", 0.0, None
+
+    def close(self) -> None:
+        self._link.close()
+
+    def reconnect(self) -> None:
+        """Close the port, open a new one with the factory, identify. Motion is not re-commanded: the
+        controller keeps running its last command across a host link drop (assumed)."""
+        if self._factory is None:
+            raise InstrumentError(f"{self.NAME}: cannot reconnect: no port_factory was given")
+        self._link.close()
+        try:
+            port = self._factory()
+        except (OSError, ValueError) as exc:
+            raise InstrumentError(f"{self.NAME}: reopening the port failed: {exc}") from exc
+        self._link.replace_port(port)
+        self.identify()
+
+    # ------------------------------------------------------------------ helpers
+    def _check_accel(self, accel_dps2: float) -> None:
+        check_limit("table acceleration", accel_dps2, 0.0, self.max_accel_dps2, "deg/s^2")
+        if accel_dps2 <= 0.0:
+            raise LimitError(f"table acceleration = {accel_dps2:g} deg/s^2 must be positive")

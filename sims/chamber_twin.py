@@ -1,0 +1,136 @@
+"""Byte-level twin of a Sun Electronic Systems EC1x thermal-chamber controller.
+
+It plays the instrument (no code shared with the driver) against the shared World, under `world.lock`:
+
+* a command line is the command text + CR LF (delivered without the LF; a missing CR answers ?FRAMING).
+* every command answers exactly one line ending CR LF: queries their value, settings/actions ``OK``,
+  refusals ``?`` + reason: ?UNKNOWN COMMAND, ?BAD VALUE (not a number), ?RANGE (outside the controller's
+  range), ?LIMIT (setpoint outside LTL/UTL), ?FRAMING.
+* RATE=x (0 < x <= max_ramp_c_per_min, deg C/min), SET=x (LTL <= x <= UTL), ON, OFF, LTL=x, UTL=x (inside the
+  hardware range, LTL < UTL), RATE?, SET?, LTL?, UTL?, C1? (air, world.chamber_air_c(), "%.2f"), STATUS?.
+* power on: the world's chamber target is the SET= value at the RATE= ramp (world.set_chamber); power off: the
+  world is driven to ambient (WorldParams.initial_temperature_c) through the same ramp and lag, and the stored
+  SET= value waits for ON.
+* SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on; the
+  stored SET= value while off. STATUS? is 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping
+  (on and the setpoint has not reached the target), the rest N.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+from sims.serial_twin import FaultableTwin
+from sims.world import World
+
+REPLY_END = b"\r\n"
+STATUS_FLAGS = 16
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
+
+
+class _Refused(Exception):
+    pass
+
+
+class ChamberTwin(FaultableTwin):
+    """The EC1x controller. hardware_min_c/hardware_max_c: the controller's own range; max_ramp_c_per_min."""
+
+    def __init__(self, world: World, *, hardware_min_c: float = -70.0, hardware_max_c: float = 180.0,
+                 max_ramp_c_per_min: float = 60.0) -> None:
+        self.world = world
+        self.hardware_min_c = float(hardware_min_c)
+        self.hardware_max_c = float(hardware_max_c)
+        self.max_ramp_c_per_min = float(max_ramp_c_per_min)
+        self.ltl_c, self.utl_c = self.hardware_min_c, self.hardware_max_c
+        with world.lock:
+            self._power = world.chamber.heater_on
+            self._target = world.chamber.target_c
+            self._ramp = world.chamber.ramp_c_per_min
+        self.commands_seen = 0
+        self._settings = {"SET": self._set, "RATE": self._rate, "LTL": self._ltl, "UTL": self._utl}
+        self._queries = {"SET?": self._q_set, "RATE?": lambda: f"{self._ramp:.3f}",
+                         "LTL?": lambda: f"{self.ltl_c:.2f}", "UTL?": lambda: f"{self.utl_c:.2f}",
+                         "C1?": lambda: f"{self.world.chamber_air_c():.2f}", "STATUS?": self._status}
+
+    def execute(self, line: bytes) -> bytes:
+        self.commands_seen += 1
+        try:
+            if not line.endswith(b"\r"):
+                raise _Refused("FRAMING")
+            try:
+                text = line[:-1].decode("ascii")
+            except UnicodeDecodeError:
+                raise _Refused("UNKNOWN COMMAND") from None
+            with self.world.lock:
+                self.world.now()
+                answer = self._dispatch(text)
+        except _Refused as r:
+            answer = f"?{r}"
+        return answer.encode("ascii") + REPLY_END
+
+    def _dispatch(self, text: str) -> str:
+        if text in self._queries:
+            return self._queries[text]()
+        if text == "ON":
+            self._power_on()
+            return "OK"
+        if text == "OFF":
+            self._power_off()
+            return "OK"
+        name, eq, arg = text.partition("=")
+        if eq and name in self._settings:
+            if not _NUMBER.match(arg) or not math.isfinite(float(arg)):
+                raise _Refused("BAD VALUE")
+            self._settings[name](float(arg))
+            return "OK"
+        raise _Refused("UNKNOWN COMMAND")
+
+    # ---------------------------------------------------------------- settings
+    def _apply(self) -> None:
+        if self._power:
+            self.world.set_chamber(self._target, self._ramp)
+
+    def _set(self, v: float) -> None:
+        if not self.ltl_c <= v <= self.utl_c:
+            raise _Refused("LIMIT")
+        self._target = v
+        self._apply()
+
+    def _rate(self, v: float) -> None:
+        if not 0.0 < v <= self.max_ramp_c_per_min:
+            raise _Refused("RANGE")
+        self._ramp = v
+        self._apply()
+
+    def _ltl(self, v: float) -> None:
+        if not self.hardware_min_c <= v < self.utl_c:
+            raise _Refused("RANGE")
+        self.ltl_c = v
+
+    def _utl(self, v: float) -> None:
+        if not self.ltl_c < v <= self.hardware_max_c:
+            raise _Refused("RANGE")
+        self.utl_c = v
+
+    def _power_on(self) -> None:
+        self._power = True
+        self.world.chamber.heater_on = True
+        self._apply()
+
+    def _power_off(self) -> None:
+        self._power = False
+        self.world.chamber.heater_on = False
+        self.world.set_chamber(self.world.params.initial_temperature_c, self._ramp)
+
+    # ---------------------------------------------------------------- queries
+    def _q_set(self) -> str:
+        return f"{self.world.chamber.controller_setpoint_c if self._power else self._target:.2f}"
+
+    def _status(self) -> str:
+        flags = ["N"] * STATUS_FLAGS
+        if self._power:
+            flags[0] = flags[1] = flags[2] = "Y"
+            if self.world.chamber.controller_setpoint_c != self.world.chamber.target_c:
+                flags[8] = "Y"
+        return "".join(flags)

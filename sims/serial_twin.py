@@ -1,0 +1,287 @@
+"""Serial plumbing for the byte-level twins: in-process port, pty server, loopback TCP server.
+
+A twin is a `LineTwin`: `respond(line) -> bytes` takes one received command line (the bytes before LF, CR
+included if sent) and returns the bytes the instrument writes back. Framing into lines is per connection
+(`LineFramer`), so one twin can serve several connections. Three ways to reach a twin:
+
+1. `InProcessSerial(twin)`: the pyserial `Serial` methods drivers use, no thread, no OS buffer. A reply is
+   available as soon as the command's LF is written; a read that finds no terminator returns what there is at
+   once (the virtual-time equivalent of a pyserial timeout).
+2. `serve_pty(twin) -> (device_path, stop)`: a thread on the master side of `os.openpty()`; the driver opens
+   `serial.Serial(device_path)` and sees a real tty (raw mode: no echo, no CR/LF translation).
+3. `serve_socket(twin, host="127.0.0.1", port=0) -> ("socket://127.0.0.1:N", stop)`: a loopback TCP server
+   for `serial.serial_for_url(url)`; any number of sequential or simultaneous connections.
+
+Threads wait in `select` on their descriptors and a wake-up pipe, so `stop()` returns at once and never sleeps.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import select
+import socket
+import threading
+import tty
+from collections.abc import Callable
+from typing import Protocol
+
+import serial
+
+MAX_LINE_BYTES = 1024
+
+
+class LineTwin(Protocol):
+    """A byte-level instrument: one command line in, the instrument's reply bytes out."""
+
+    def respond(self, line: bytes) -> bytes: ...
+
+
+class LineFramer:
+    """Split a byte stream into LF-terminated lines. An over-long line (> MAX_LINE_BYTES without LF) is
+    passed on as it is, so that the twin answers it with its framing error, and the buffer restarts."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[bytes]:
+        self._buf.extend(data)
+        lines: list[bytes] = []
+        while True:
+            i = self._buf.find(b"\n")
+            if i < 0:
+                break
+            lines.append(bytes(self._buf[:i]))
+            del self._buf[: i + 1]
+        if len(self._buf) > MAX_LINE_BYTES:
+            lines.append(bytes(self._buf))
+            self._buf.clear()
+        return lines
+
+
+def _answer(twin: LineTwin, framer: LineFramer, data: bytes) -> bytes:
+    return b"".join(twin.respond(line) for line in framer.feed(data))
+
+
+class InProcessSerial:
+    """A pyserial-like port wired straight to a twin (same thread, no OS involved)."""
+
+    def __init__(self, twin: LineTwin, *, port: str = "inprocess://twin", timeout: float | None = 1.0) -> None:
+        self.twin = twin
+        self.port = port
+        self.timeout = timeout  # kept for API compatibility; reads never wait
+        self.baudrate = 9600
+        self._framer = LineFramer()
+        self._rx = bytearray()
+        self._open = True
+
+    # ---------------------------------------------------------------- state
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def open(self) -> None:
+        self._open = True
+        self._framer = LineFramer()
+        self._rx.clear()
+
+    def close(self) -> None:
+        self._open = False
+
+    def _check_open(self) -> None:
+        if not self._open:
+            raise serial.PortNotOpenError()
+
+    # ---------------------------------------------------------------- writing
+    def write(self, data: bytes) -> int:
+        self._check_open()
+        data = bytes(data)
+        self._rx.extend(_answer(self.twin, self._framer, data))
+        return len(data)
+
+    def flush(self) -> None:
+        self._check_open()
+
+    def reset_output_buffer(self) -> None:
+        self._check_open()
+
+    # ---------------------------------------------------------------- reading
+    @property
+    def in_waiting(self) -> int:
+        self._check_open()
+        return len(self._rx)
+
+    def reset_input_buffer(self) -> None:
+        self._check_open()
+        self._rx.clear()
+
+    def read(self, size: int = 1) -> bytes:
+        self._check_open()
+        out = bytes(self._rx[:size])
+        del self._rx[:size]
+        return out
+
+    def read_until(self, expected: bytes = b"\n", size: int | None = None) -> bytes:
+        """Bytes up to and including `expected`, at most `size`; what there is if the terminator is absent."""
+        self._check_open()
+        i = self._rx.find(expected)
+        n = len(self._rx) if i < 0 else i + len(expected)
+        if size is not None:
+            n = min(n, size)
+        return self.read(n)
+
+    def readline(self, size: int | None = None) -> bytes:
+        return self.read_until(b"\n", size)
+
+
+# -------------------------------------------------------------------------------------------------- threads
+
+
+class _Server:
+    """A select() loop in a daemon thread; `stop()` wakes it through a pipe and joins it."""
+
+    def __init__(self, name: str) -> None:
+        self._wake_r, self._wake_w = os.pipe()
+        self._thread = threading.Thread(target=self._run_guarded, name=name, daemon=True)
+        self._stopped = False
+        self.error: BaseException | None = None
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        if self._stopped:
+            return
+        self._stopped = True
+        os.write(self._wake_w, b"x")
+        self._thread.join(timeout=5.0)
+        for fd in (self._wake_r, self._wake_w):
+            os.close(fd)
+        self._close()
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except BaseException as exc:  # noqa: BLE001 - surfaced through .error for tests
+            self.error = exc
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        raise NotImplementedError
+
+
+class _PtyServer(_Server):
+    def __init__(self, twin: LineTwin) -> None:
+        super().__init__("pty-twin")
+        self.twin = twin
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no echo, no CR -> LF translation on the driver's side
+        self.path = os.ttyname(self.slave)
+
+    def _run(self) -> None:
+        framer = LineFramer()
+        while True:
+            ready, _, _ = select.select([self.master, self._wake_r], [], [])
+            if self._wake_r in ready:
+                return
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:  # EIO: no slave open right now
+                continue
+            if data:
+                reply = _answer(self.twin, framer, data)
+                if reply:
+                    os.write(self.master, reply)
+
+    def _close(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def serve_pty(twin: LineTwin) -> tuple[str, Callable[[], None]]:
+    """Serve `twin` on a new pseudo-terminal. Returns (slave device path, stop callable)."""
+    server = _PtyServer(twin)
+    server.start()
+    return server.path, server.stop
+
+
+class _SocketServer(_Server):
+    def __init__(self, twin: LineTwin, host: str, port: int) -> None:
+        super().__init__("socket-twin")
+        if not ipaddress.ip_address(host).is_loopback:
+            raise ValueError(f"serve_socket host must be a loopback address (127.0.0.0/8 or ::1), got {host!r}")
+        self.twin = twin
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self.listener = socket.socket(family, socket.SOCK_STREAM)
+        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.listener.bind((host, port))
+        self.listener.listen(4)
+        self.address = self.listener.getsockname()[:2]
+        self._conns: dict[socket.socket, LineFramer] = {}
+
+    def _run(self) -> None:
+        while True:
+            ready, _, _ = select.select([self.listener, self._wake_r, *self._conns], [], [])
+            if self._wake_r in ready:
+                return
+            for s in ready:
+                if s is self.listener:
+                    conn, _ = self.listener.accept()
+                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    self._conns[conn] = LineFramer()
+                    continue
+                try:
+                    data = s.recv(4096)
+                except OSError:
+                    data = b""
+                if not data:
+                    self._conns.pop(s)
+                    s.close()
+                    continue
+                reply = _answer(self.twin, self._conns[s], data)
+                if reply:
+                    try:
+                        s.sendall(reply)
+                    except OSError:
+                        self._conns.pop(s)
+                        s.close()
+
+    def _close(self) -> None:
+        for s in list(self._conns):
+            s.close()
+        self._conns.clear()
+        self.listener.close()
+
+
+def serve_socket(twin: LineTwin, host: str = "127.0.0.1", port: int = 0) -> tuple[str, Callable[[], None]]:
+    """Serve `twin` on a loopback TCP port. Returns ("socket://HOST:PORT" for serial.serial_for_url, stop)."""
+    server = _SocketServer(twin, host, port)
+    server.start()
+    h, p = server.address
+    url_host = f"[{h}]" if ":" in h else h
+    return f"socket://{url_host}:{p}", server.stop
+
+
+# -------------------------------------------------------------------------------------------------- twin base
+
+ReplyFilter = Callable[[bytes, bytes], bytes]
+
+
+class FaultableTwin:
+    """Base of the line twins: `respond` = `execute` + the fault hook.
+
+    `fault_hook(command_line, reply) -> bytes` is the one place where a reply can be dropped (return b""),
+    garbled or truncated before it reaches the wire; None (default) sends replies unchanged.
+    """
+
+    fault_hook: ReplyFilter | None = None
+
+    def execute(self, line: bytes) -> bytes:
+        raise NotImplementedError
+
+    def respond(self, line: bytes) -> bytes:
+        reply = self.execute(line)
+        hook = self.fault_hook
+        return hook(line, reply) if hook is not None else reply

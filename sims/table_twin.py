@@ -1,0 +1,169 @@
+"""Byte-level twin of the Ideal Aerosmith 1291BR rate-table controller.
+
+It plays the instrument: it parses command lines itself (it shares no code with the driver) and reads/writes
+the shared `sims.world.World` under `world.lock`. Protocol implemented (documented in docs/instruments.md):
+
+* a command line is ``<MNE><value>`` CR LF (the serial plumbing delivers it without the LF; the CR must be
+  there, else E05). Mnemonics are three upper-case letters; the value is a decimal number.
+* answer: settings/actions -> ``b">\\r"``; queries -> ``b"<value>\\r>\\r"``; refusals ->
+  ``b"E<nn> <text>\\r>\\r"`` with E01 unknown command, E02 bad/missing argument, E03 outside the controller's
+  range, E04 interlock tripped, E05 framing.
+* ACL a (0 < a <= max_accel_dps2), JOG r (|r| <= max_rate_dps; world.set_table_rate(r, a)), STO
+  (world.stop_table(a)), PVE -> world.table_rate_dps() "%.6f" (the delivered rate, scale error included),
+  PPO -> world.table_angle_deg() wrapped to [0, 360) "%.4f", STA -> status integer, MCO tol -> "1" if rate
+  mode and |PVE - command| <= tol, AMP A, FRQ f, SGO (world.set_table_sine(A, f); E03 if A 2 pi f > ACL).
+* STA bits: 1 moving (profile rate != 0), 2 at rate (rate mode, ramp finished), 4 interlock, 8 servo on
+  (always), 16 sinusoid running.
+* while world.table.interlock is set, JOG and SGO answer E04 (STO is accepted).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+from sims.serial_twin import FaultableTwin
+from sims.world import World
+
+PROMPT = b">\r"
+_LINE = re.compile(r"^([A-Z]{3})(.*)$")
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
+
+STA_MOVING, STA_AT_RATE, STA_INTERLOCK, STA_SERVO_ON, STA_SINE = 1, 2, 4, 8, 16
+
+
+class _Refused(Exception):
+    def __init__(self, code: int, text: str) -> None:
+        super().__init__(text)
+        self.code, self.text = code, text
+
+
+class RateTableTwin(FaultableTwin):
+    """The 1291BR controller. max_rate_dps / max_accel_dps2 / max_sine_hz: the controller's own limits."""
+
+    def __init__(self, world: World, *, max_rate_dps: float = 1000.0, max_accel_dps2: float = 1000.0,
+                 max_sine_hz: float = 100.0) -> None:
+        self.world = world
+        self.max_rate_dps = float(max_rate_dps)
+        self.max_accel_dps2 = float(max_accel_dps2)
+        self.max_sine_hz = float(max_sine_hz)
+        with world.lock:
+            self._accel = world.table.accel_dps2
+        self._amplitude = 0.0
+        self._frequency = 0.0
+        self.commands_seen = 0
+        self._handlers = {
+            "ACL": self._acl, "JOG": self._jog, "STO": self._sto, "PPO": self._ppo, "PVE": self._pve,
+            "STA": self._sta, "MCO": self._mco, "AMP": self._amp, "FRQ": self._frq, "SGO": self._sgo,
+        }
+
+    # ---------------------------------------------------------------- framing
+    def execute(self, line: bytes) -> bytes:
+        self.commands_seen += 1
+        try:
+            if not line.endswith(b"\r"):
+                raise _Refused(5, "FRAMING")
+            try:
+                text = line[:-1].decode("ascii")
+            except UnicodeDecodeError:
+                raise _Refused(1, "UNKNOWN COMMAND") from None
+            m = _LINE.match(text)
+            handler = self._handlers.get(m.group(1)) if m else None
+            if m is None or handler is None:
+                raise _Refused(1, "UNKNOWN COMMAND")
+            with self.world.lock:
+                self.world.now()  # wall-clock worlds integrate up to now
+                value = handler(m.group(2))
+        except _Refused as r:
+            return f"E{r.code:02d} {r.text}\r".encode("ascii") + PROMPT
+        if value is None:
+            return PROMPT
+        return value.encode("ascii") + b"\r" + PROMPT
+
+    @staticmethod
+    def _number(arg: str) -> float:
+        if not _NUMBER.match(arg):
+            raise _Refused(2, "BAD ARGUMENT")
+        v = float(arg)
+        if not math.isfinite(v):
+            raise _Refused(2, "BAD ARGUMENT")
+        return v
+
+    @staticmethod
+    def _no_arg(arg: str) -> None:
+        if arg:
+            raise _Refused(2, "BAD ARGUMENT")
+
+    # ---------------------------------------------------------------- commands
+    def _acl(self, arg: str) -> None:
+        a = self._number(arg)
+        if not 0.0 < a <= self.max_accel_dps2:
+            raise _Refused(3, "RANGE")
+        self._accel = a
+
+    def _jog(self, arg: str) -> None:
+        r = self._number(arg)
+        if abs(r) > self.max_rate_dps:
+            raise _Refused(3, "RANGE")
+        if self.world.table.interlock:
+            raise _Refused(4, "INTERLOCK")
+        self.world.set_table_rate(r, self._accel)
+
+    def _sto(self, arg: str) -> None:
+        self._no_arg(arg)
+        self.world.stop_table(self._accel)
+
+    def _ppo(self, arg: str) -> str:
+        self._no_arg(arg)
+        text = f"{self.world.table_angle_deg() % 360.0:.4f}"
+        return "0.0000" if text == "360.0000" else text
+
+    def _pve(self, arg: str) -> str:
+        self._no_arg(arg)
+        return f"{self.world.table_rate_dps():.6f}"
+
+    def status(self) -> int:
+        """The STA integer from the world's table state (call under world.lock)."""
+        tab = self.world.table
+        bits = STA_SERVO_ON
+        if tab.rate_dps != 0.0:
+            bits |= STA_MOVING
+        if tab.mode == "rate" and tab.rate_dps == tab.rate_command_dps:
+            bits |= STA_AT_RATE
+        if tab.mode == "sine":
+            bits |= STA_SINE
+        if tab.interlock:
+            bits |= STA_INTERLOCK
+        return bits
+
+    def _sta(self, arg: str) -> str:
+        self._no_arg(arg)
+        return str(self.status())
+
+    def _mco(self, arg: str) -> str:
+        tol = self._number(arg)
+        if tol < 0.0:
+            raise _Refused(3, "RANGE")
+        tab = self.world.table
+        done = tab.mode == "rate" and abs(self.world.table_rate_dps() - tab.rate_command_dps) <= tol
+        return "1" if done else "0"
+
+    def _amp(self, arg: str) -> None:
+        a = self._number(arg)
+        if not 0.0 <= a <= self.max_rate_dps:
+            raise _Refused(3, "RANGE")
+        self._amplitude = a
+
+    def _frq(self, arg: str) -> None:
+        f = self._number(arg)
+        if not 0.0 < f <= self.max_sine_hz:
+            raise _Refused(3, "RANGE")
+        self._frequency = f
+
+    def _sgo(self, arg: str) -> None:
+        self._no_arg(arg)
+        if self._frequency <= 0.0 or self._amplitude * 2.0 * math.pi * self._frequency > self._accel:
+            raise _Refused(3, "RANGE")
+        if self.world.table.interlock:
+            raise _Refused(4, "INTERLOCK")
+        self.world.set_table_sine(self._amplitude, self._frequency)
