@@ -40,7 +40,7 @@ FORMAT = "qmg-lab/1"
 
 LOCKIN_UNITS = {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
                 "drive_frequency": "Hz", "dither": "V"}
-CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1"}
+CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
 TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
 CHAMBER_UNITS = {"time": "s", "setpoint": "degC", "temperature": "degC"}
 TRUTH_UNITS = {"time": "s", "scale_factor": "V/(deg/s)", "temperature": "degC", "rate": "deg/s"}
@@ -64,6 +64,7 @@ DESCRIPTIONS: dict[str, str] = {
                 "change seen by the dither)",
     "clsf/sf_change_estimate": "CLSF estimate of the scale-factor change SF/SF0 - 1 = 1/(1 + eta) - 1",
     "clsf/gain_correction": "CLSF gain correction g_c in force during the period (1.0 = none; correct mode only)",
+    "clsf/rate_output_mean": "rate output averaged over the whole dither period (the dither cancels), V",
     "table/time": "reading time, s since t0_unix",
     "table/rate_command": "commanded table rate, deg/s",
     "table/rate_measured": "table rate reported by the controller, deg/s",
@@ -201,6 +202,21 @@ def _pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+@dataclass(frozen=True)
+class ResumeState:
+    """What a run file says about the moment its writer stopped (for `--resume`)."""
+
+    last_time: float
+    rho_ref: float | None
+    gain_correction: float | None
+    chamber_setpoint_c: float | None
+    chamber_temperature_c: float | None
+    gyro_temperature_c: float | None
+
+    def as_dict(self) -> dict[str, float | None]:
+        return dict(self.__dict__)
 
 
 class RunWriter:
@@ -431,6 +447,31 @@ class RunWriter:
         """Last /lockin/time appended (buffered or stored), s; 0.0 if none: a resumed run continues after it."""
         t = self._last_time.get("lockin", -np.inf)
         return float(t) if np.isfinite(t) else 0.0
+
+    def set_clsf_reference(self, rho_ref: float) -> None:
+        """Store the CLSF reference level rho_0 (root attr clsf_reference): a resumed run keeps its reference."""
+        self._check_open()
+        if self._h5.attrs.get("clsf_reference") != rho_ref:
+            self._h5.attrs["clsf_reference"] = float(rho_ref)
+
+    def resume_state(self) -> ResumeState:
+        """Where a resumed run continues: last time, CLSF reference and gain, last chamber and truth readings."""
+        self._check_open()
+        self._flush_buffers()
+
+        def last(group: str, col: str) -> float | None:
+            if group not in self._h5:
+                return None
+            ds = self._h5[group][col]
+            return float(ds[ds.shape[0] - 1]) if ds.shape[0] else None
+
+        ref = self._h5.attrs.get("clsf_reference")
+        return ResumeState(last_time=self.last_time(),
+                           rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
+                           gain_correction=last("clsf", "gain_correction"),
+                           chamber_setpoint_c=last("chamber", "setpoint"),
+                           chamber_temperature_c=last("chamber", "temperature"),
+                           gyro_temperature_c=last("truth", "temperature"))
 
     # ---- flushing and status --------------------------------------------------------------------------------
 

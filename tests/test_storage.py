@@ -26,7 +26,8 @@ FS = 1400.0  # Sa/s
 CONTRACT = {
     "lockin": {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
                "drive_frequency": "Hz", "dither": "V"},
-    "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1"},
+    "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1",
+             "rate_output_mean": "V"},
     "table": {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"},
     "chamber": {"time": "s", "setpoint": "degC", "temperature": "degC"},
     "steps": {"index": "1", "kind": "text", "t_start": "s", "t_end": "s", "table_rate": "deg/s",
@@ -84,7 +85,7 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
     w = new_writer(p, clock=lambda: now[0], flush_interval_s=1.0)
     w.append("lockin", **lockin_block(0))
     w.append("clsf", time=[1 / 7, 2 / 7], eta=[1e-4, 2e-4], sf_change_estimate=[-1e-4, -2e-4],
-             gain_correction=[1.0, 1.0])
+             gain_correction=[1.0, 1.0], rate_output_mean=[0.3, 0.3])
     w.append("table", time=0.25, rate_command=5.0, rate_measured=5.0001, position=1.25)
     assert w.last_time() == pytest.approx(699 / FS)
     assert w._h5["lockin/time"].shape == (0,)  # buffered: nothing written before the interval
