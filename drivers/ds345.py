@@ -25,8 +25,10 @@ what would be sent, and BEFORE anything is sent:
 Ordering of AMPL and OFFS: the instrument checks A/2 + |offset| <= 5 V after each command, so the driver
 orders the two so that every intermediate state is legal: AMPL first if A_new/2 + |offset_old| <= 5 V, else
 OFFS first. The driver remembers the offset it set; when it does not know it (first setting after
-construction or reconnect, or after a failed OFFS) it asks "OFFS?" once before the AMPL/OFFS pair. One of the two orders always works: if both failed, A_new/2 + |o_old| + A_old/2 + |o_new| > 10 V,
-yet the old and the new state each sum to <= 5 V.
+construction or reconnect, or after a failed OFFS) it first asks "OFFS?" once:
+    fresh set_square(7, 0.6) -> "OFFS?\n" (reply), then the eight messages above.
+One of the two orders always works: if both failed, A_new/2 + |o_old| + A_old/2 + |o_new| > 10 V, yet the
+old and the new state each sum to <= 5 V.
 
 Replies are parsed strictly after stripping surrounding whitespace (the RS-232 reply terminator is not
 confirmed, so a trailing CR is tolerated): FUNC? one digit 0-5; FREQ?/OFFS? a decimal number; AMPL? a number
@@ -272,7 +274,7 @@ class DS345(FunctionGenerator):
 
     def reconnect(self) -> None:
         """Close, reopen through the factory, check *IDN? names a DS345 (and the same serial number as
-        before, if it was read), then re-apply the last settings."""
+        before, if it was read), clear the status (*CLS), then re-apply the last settings."""
         if self._reopen is None:
             raise InstrumentError("DS345 cannot reconnect: no reopen factory was given")
         try:
@@ -288,6 +290,7 @@ class DS345(FunctionGenerator):
         identity = self.identify()
         if previous is not None and previous.split(",")[2].strip() != identity.split(",")[2].strip():
             raise InstrumentError(f"DS345: reconnected to a different unit: {identity!r} (was {previous!r})")
+        self._write("*CLS")  # stale error bits (e.g. the query error of a timed-out read) are not news
         self._offset_v = None
         if self._last is not None:
             self._apply(self._last)
@@ -334,12 +337,12 @@ class DS345(FunctionGenerator):
 
     def _apply(self, w: Waveform) -> None:
         """FUNC, FREQ, then AMPL/OFFS in the order that keeps every intermediate state legal."""
+        if self._offset_v is None:
+            self._offset_v = self._query_number("OFFS?")
         self._command(f"FUNC {w.function}")
         self._command(f"FREQ {format_number(w.frequency_hz, FREQ_DECIMALS)}")
         ampl_cmd = f"AMPL {format_number(w.amplitude_vpp, AMPL_DECIMALS)}VP"
         offs_cmd = f"OFFS {format_number(w.offset_v, OFFS_DECIMALS)}"
-        if self._offset_v is None:
-            self._offset_v = self._query_number("OFFS?")
         ampl_first = w.amplitude_vpp / 2 + abs(self._offset_v) <= PEAK_PLUS_OFFSET_MAX_V
         order = (ampl_cmd, offs_cmd) if ampl_first else (offs_cmd, ampl_cmd)
         self._last = w

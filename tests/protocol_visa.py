@@ -10,6 +10,8 @@ with the next expected command + the documented terminator (LF for the DS345). A
 whose reply is not None queues the reply for the next read; `TIMEOUT` as the reply makes that read raise
 pyvisa's VisaIOError(VI_ERROR_TMO), as a silent instrument would. On leaving the block every pair must have
 been used and every reply read: a driver that sends too little, too much, or the wrong bytes fails the test.
+A violation raises ProtocolError at once and is remembered, so a driver that wraps it into its own error
+(as it should wrap real I/O errors) still fails the test when the block ends.
 """
 
 from __future__ import annotations
@@ -45,6 +47,13 @@ class ProtocolResource:
         self.timeout = 2000
         self.closed = False
         self.sent: list[bytes] = []  # every message as it went on the wire
+        self.violation: ProtocolError | None = None  # first violation (kept even if the driver swallows it)
+
+    def _fail(self, message: str) -> ProtocolError:
+        error = ProtocolError(message)
+        if self.violation is None:
+            self.violation = error
+        return error
 
     def write(self, message: str) -> int:
         if self.closed:
@@ -52,12 +61,12 @@ class ProtocolResource:
         wire = (message + self.write_termination).encode("ascii")
         self.sent.append(wire)
         if self._replies:
-            raise ProtocolError(f"wrote {wire!r} while a reply was still unread: {self._replies[0]!r}")
+            raise self._fail(f"wrote {wire!r} while a reply was still unread: {self._replies[0]!r}")
         if not self._pairs:
-            raise ProtocolError(f"wrote {wire!r}, but no more messages were expected")
+            raise self._fail(f"wrote {wire!r}, but no more messages were expected")
         cmd, reply = self._pairs.popleft()
         if wire != cmd + self._terminator:
-            raise ProtocolError(f"wrote {wire!r}, expected {cmd + self._terminator!r}")
+            raise self._fail(f"wrote {wire!r}, expected {cmd + self._terminator!r}")
         if reply is not None:
             self._replies.append(reply)
         return len(wire)
@@ -66,7 +75,7 @@ class ProtocolResource:
         if self.closed:
             raise pyvisa.errors.InvalidSession()
         if not self._replies:
-            raise ProtocolError("read with no reply expected")
+            raise self._fail("read with no reply expected")
         reply = self._replies.popleft()
         if reply is TIMEOUT:
             raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
@@ -87,7 +96,9 @@ class ProtocolResource:
         self.closed = True
 
     def check_done(self) -> None:
-        """Raise ProtocolError unless every expected pair was used and every reply was read."""
+        """Raise ProtocolError unless the conversation had no violation, used every pair and read every reply."""
+        if self.violation is not None:
+            raise self.violation
         if self._pairs:
             raise ProtocolError(f"{len(self._pairs)} expected message(s) never sent, first: {self._pairs[0]!r}")
         if self._replies:
