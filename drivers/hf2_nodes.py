@@ -1,0 +1,193 @@
+"""HF2LI node settings for the gyroscope loops: pure functions from a LockInSetup and the bench wiring to the
+list of (relative node path, value) pairs the driver sends in one transaction, and the limit checks that run
+before anything is sent. Node semantics: reference/hf2li.md; the cabling: docs/wiring.md.
+
+Channel assignment (fixed here, documented in docs/wiring.md):
+* demod 0 = drive (input drive_sigin), demod 1 = sense (input sense_sigin), both on the PLL 0 oscillator,
+  harmonic 1, phaseshift 0, same rate and filter;
+* PLL 0 on drive_sigin: frequency = freqcenter + p e + i int(e) (e = phase - setpoint, deg), range freqrange;
+* PID 0 = AGC: input R (2) of demod 0 -> output drive_sigout amplitude (0/1), mixer channel DRIVE_MIXER_CHANNEL;
+* PID 1 = rate: input X (0) of demod 1 -> AuxOut offset (3), channel rate_auxout (manual mode, outputselect -1);
+* PID 2 = quadrature: input Y (1) of demod 1 -> AuxOut offset (3), channel quadrature_auxout; PID 3 off;
+* forcer carrier: forcer_sigout mixer channel forcer_mixer_channel (default 1 = demod 1's oscillator, i.e. the
+  PLL frequency), amplitude = forcer_carrier_amplitude * forcer_gain (fraction of the output range).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+from qmg_lab.instruments import LimitError, LockInSetup, PidGains, check_limit
+
+DRIVE_DEMOD, SENSE_DEMOD = 0, 1
+AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
+DRIVE_MIXER_CHANNEL = 0  # uses demod 0's oscillator = the PLL oscillator
+DEFAULT_FORCER_MIXER_CHANNEL = 1  # uses demod 1's oscillator = the PLL oscillator
+SIGOUT_RANGES_V = (0.01, 0.1, 1.0, 10.0)
+FORCER_OUTPUT_RANGE_V = 1.0  # carrier into the external modulator: amplitude = fraction * 1 V
+SIGIN_RANGE_V = 1.0  # pickoff inputs: drive pickoff ~0.7 V peak at 0.5 Vrms
+AUXOUT_LIMIT_V = 10.0
+FORCER_GAIN_LIMITS = (0.5, 2.0)
+N_MIXER_CHANNELS = 8
+
+
+class LockInWiring(Protocol):
+    """The cabling fields of qmg_lab.config.LockInSection (or any object with them)."""
+
+    drive_sigin: int
+    sense_sigin: int
+    drive_sigout: int
+    forcer_sigout: int
+    forcer_carrier_amplitude: float
+    rate_auxout: int
+    quadrature_auxout: int
+    rate_auxin: int
+    dither_auxin: int
+
+
+def forcer_mixer_channel(wiring: LockInWiring) -> int:
+    return int(getattr(wiring, "forcer_mixer_channel", DEFAULT_FORCER_MIXER_CHANNEL))
+
+
+def check_wiring(wiring: LockInWiring) -> None:
+    """Raise ValueError naming the first impossible wiring field."""
+    for name, hi in (("drive_sigin", 1), ("sense_sigin", 1), ("drive_sigout", 1), ("forcer_sigout", 1),
+                     ("rate_auxout", 3), ("quadrature_auxout", 3), ("rate_auxin", 1), ("dither_auxin", 1)):
+        v = getattr(wiring, name, None)
+        if not isinstance(v, int) or not 0 <= v <= hi:
+            raise ValueError(f"lock-in wiring: {name} = {v!r} must be an integer in [0, {hi}]")
+    m = forcer_mixer_channel(wiring)
+    if not 0 <= m < N_MIXER_CHANNELS or m == DRIVE_MIXER_CHANNEL and wiring.forcer_sigout == wiring.drive_sigout:
+        raise ValueError(f"lock-in wiring: forcer_mixer_channel = {m} must be in [0, 7] and differ from the "
+                         "drive channel when both use the same output")
+    if not 0.0 < float(wiring.forcer_carrier_amplitude) <= 1.0:
+        raise ValueError(f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
+                         "in (0, 1] (fraction of the output range)")
+    for a, b in (("drive_sigin", "sense_sigin"), ("rate_auxin", "dither_auxin"),
+                 ("rate_auxout", "quadrature_auxout")):
+        if getattr(wiring, a) == getattr(wiring, b):
+            raise ValueError(f"lock-in wiring: {a} and {b} must differ (both {getattr(wiring, a)})")
+
+
+def forcer_amplitude(wiring: LockInWiring, gain: float) -> float:
+    """Forcer carrier amplitude (fraction of range) for a forcer-path gain; LimitError outside the limits."""
+    check_limit("forcer_gain", gain, *FORCER_GAIN_LIMITS, "")
+    amplitude = float(wiring.forcer_carrier_amplitude) * gain
+    if amplitude > 1.0:
+        raise LimitError(f"forcer carrier amplitude = {amplitude:g} (nominal {wiring.forcer_carrier_amplitude:g} "
+                         f"x gain {gain:g}) is above the limit 1.0 of the output range")
+    return amplitude
+
+
+def drive_output_range(agc: PidGains) -> float:
+    """Smallest HF2 output range (V) that holds the AGC output centre +- range."""
+    need = max(abs(agc.center + agc.range), abs(agc.center - agc.range))
+    for r in SIGOUT_RANGES_V:
+        if need <= r:
+            return r
+    raise LimitError(f"AGC output centre +- range reaches {need:g} V, above the HF2 output limit 10 V")
+
+
+def _check_pid(name: str, g: PidGains, limit_v: float | None) -> None:
+    for field in ("p", "i", "d", "setpoint", "center", "range"):
+        v = getattr(g, field)
+        if not math.isfinite(v):
+            raise LimitError(f"{name}.{field} = {v!r} is not a finite number")
+    if g.range <= 0:
+        raise LimitError(f"{name}.range = {g.range:g} must be positive")
+    if limit_v is not None and abs(g.center) + g.range > limit_v:
+        raise LimitError(f"{name} output centre {g.center:g} V +- range {g.range:g} V exceeds the limit "
+                         f"+-{limit_v:g} V")
+
+
+def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
+    """Every limit of a LockInSetup, checked before anything is sent (LimitError names the limit)."""
+    check_wiring(wiring)
+    check_limit("f0_hz", setup.f0_hz, 1.0, 100e6, "Hz")
+    check_limit("pll_range_hz", setup.pll_range_hz, 1e-3, min(setup.f0_hz, 100e6), "Hz")
+    check_limit("demod_rate_hz", setup.demod_rate_hz, 1.0, 460e3, "Sa/s")
+    check_limit("demod_timeconstant_s", setup.demod_timeconstant_s, 780e-9, 500.0, "s")
+    check_limit("demod_order", setup.demod_order, 1, 8, "")
+    if int(setup.demod_order) != setup.demod_order:
+        raise LimitError(f"demod_order = {setup.demod_order!r} must be an integer 1..8")
+    _check_pid("pll", setup.pll, None)
+    _check_pid("agc", setup.agc, None)
+    drive_output_range(setup.agc)
+    _check_pid("rate", setup.rate, AUXOUT_LIMIT_V)
+    _check_pid("quadrature", setup.quadrature, AUXOUT_LIMIT_V)
+    forcer_amplitude(wiring, setup.forcer_gain)
+
+
+def _pid_nodes(n: int, g: PidGains, inp: int, inch: int, out: int, outch: int) -> list[tuple[str, Any]]:
+    b = f"pids/{n}/"
+    return [(b + "enable", 0), (b + "input", inp), (b + "inputchannel", inch), (b + "output", out),
+            (b + "outputchannel", outch), (b + "setpointselect", 0), (b + "setpoint", g.setpoint),
+            (b + "p", g.p), (b + "i", g.i), (b + "d", g.d), (b + "center", g.center), (b + "range", g.range),
+            (b + "outputdefaultenable", 0)]
+
+
+def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[tuple[str, Any]]:
+    """The (relative path, value) pairs of a full configuration, loops enabled last. Call check_setup first."""
+    w = wiring
+    fm = forcer_mixer_channel(w)
+    drange = drive_output_range(setup.agc)
+    s: list[tuple[str, Any]] = [
+        ("pids/*/enable", 0), ("plls/0/enable", 0),
+        (f"sigins/{w.drive_sigin}/range", SIGIN_RANGE_V), (f"sigins/{w.sense_sigin}/range", SIGIN_RANGE_V),
+        (f"oscs/{pll_osc}/freq", setup.f0_hz),
+    ]
+    for d, sigin in ((DRIVE_DEMOD, w.drive_sigin), (SENSE_DEMOD, w.sense_sigin)):
+        b = f"demods/{d}/"
+        s += [(b + "adcselect", sigin), (b + "oscselect", pll_osc), (b + "harmonic", 1), (b + "phaseshift", 0.0),
+              (b + "order", int(setup.demod_order)), (b + "timeconstant", setup.demod_timeconstant_s),
+              (b + "sinc", 0), (b + "trigger", 0), (b + "rate", setup.demod_rate_hz), (b + "enable", 1)]
+    if fm not in (DRIVE_DEMOD, SENSE_DEMOD):  # the forcer channel's oscillator must be the PLL's too
+        s += [(f"demods/{fm}/oscselect", pll_osc), (f"demods/{fm}/harmonic", 1), (f"demods/{fm}/phaseshift", 0.0)]
+    b = "plls/0/"
+    s += [(b + "adcselect", w.drive_sigin), (b + "harmonic", 1), (b + "freqcenter", setup.f0_hz),
+          (b + "freqrange", setup.pll_range_hz), (b + "setpoint", setup.pll.setpoint), (b + "p", setup.pll.p),
+          (b + "i", setup.pll.i), (b + "d", setup.pll.d), (b + "autocenter", 0), (b + "autopid", 1),
+          (b + "autotimeconstant", 1), (b + "timeconstant", setup.demod_timeconstant_s),
+          (b + "order", int(setup.demod_order))]
+    # outputs: drive channel and forcer carrier; every other mixer channel of the used outputs off
+    used = {(w.drive_sigout, DRIVE_MIXER_CHANNEL), (w.forcer_sigout, fm)}
+    for out in sorted({w.drive_sigout, w.forcer_sigout}):
+        for m in range(N_MIXER_CHANNELS):
+            if (out, m) not in used:
+                s.append((f"sigouts/{out}/enables/{m}", 0))
+    s += [(f"sigouts/{w.drive_sigout}/range", drange), (f"sigouts/{w.drive_sigout}/add", 0),
+          (f"sigouts/{w.drive_sigout}/offset", 0.0),
+          (f"sigouts/{w.drive_sigout}/waveforms/{DRIVE_MIXER_CHANNEL}", 0),
+          (f"sigouts/{w.drive_sigout}/amplitudes/{DRIVE_MIXER_CHANNEL}", setup.agc.center / drange),
+          (f"sigouts/{w.drive_sigout}/enables/{DRIVE_MIXER_CHANNEL}", 1)]
+    if w.forcer_sigout != w.drive_sigout:
+        s += [(f"sigouts/{w.forcer_sigout}/range", FORCER_OUTPUT_RANGE_V), (f"sigouts/{w.forcer_sigout}/add", 0),
+              (f"sigouts/{w.forcer_sigout}/offset", 0.0)]
+    s += [(f"sigouts/{w.forcer_sigout}/waveforms/{fm}", 0),
+          (f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", forcer_amplitude(w, setup.forcer_gain)),
+          (f"sigouts/{w.forcer_sigout}/enables/{fm}", 1)]
+    for ch, g in ((w.rate_auxout, setup.rate), (w.quadrature_auxout, setup.quadrature)):
+        s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/scale", 1.0), (f"auxouts/{ch}/offset", g.center)]
+    s += _pid_nodes(AGC_PID, setup.agc, 2, DRIVE_DEMOD, w.drive_sigout, DRIVE_MIXER_CHANNEL)
+    s += _pid_nodes(RATE_PID, setup.rate, 0, SENSE_DEMOD, 3, w.rate_auxout)
+    s += _pid_nodes(QUAD_PID, setup.quadrature, 1, SENSE_DEMOD, 3, w.quadrature_auxout)
+    # switch on: outputs, PLL, then the loops
+    s += [(f"sigouts/{w.drive_sigout}/on", 1), (f"sigouts/{w.forcer_sigout}/on", 1), ("plls/0/enable", 1),
+          (f"pids/{AGC_PID}/enable", 1), (f"pids/{RATE_PID}/enable", 1), (f"pids/{QUAD_PID}/enable", 1)]
+    return s
+
+
+def safe_nodes(wiring: LockInWiring, output_safe_v: float) -> list[tuple[str, Any]]:
+    """Safe state: every PID off, the loop AuxOuts in manual mode at output_safe_v, forcer carrier amplitude 0,
+    both signal outputs off (the resonator then rings down freely, tau = 2Q/omega). The PLL is left running: it
+    drives nothing but its oscillator."""
+    check_limit("output_safe_v", output_safe_v, -AUXOUT_LIMIT_V, AUXOUT_LIMIT_V, "V")
+    w = wiring
+    fm = forcer_mixer_channel(w)
+    s: list[tuple[str, Any]] = [("pids/*/enable", 0)]
+    for ch in (w.rate_auxout, w.quadrature_auxout):
+        s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/offset", float(output_safe_v))]
+    s += [(f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", 0.0), (f"sigouts/{w.forcer_sigout}/on", 0),
+          (f"sigouts/{w.drive_sigout}/on", 0)]
+    return s

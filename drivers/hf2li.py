@@ -1,0 +1,254 @@
+"""Zurich Instruments HF2LI (PLL + PID options) over zhinst-toolkit: the gyroscope's loops and its data stream.
+
+Transport: a ``zhinst.toolkit.Session`` to an HF2 data server (API level 1, port 8005): hardware with
+``Session(host, port, hf2=True)``, the twin with ``Session(host, hf2=True, connection=twin)``. The same code runs
+on both. Node settings and channel assignment: drivers/hf2_nodes.py and docs/wiring.md.
+
+Stream protocol (reference/hf2li.md): ``session.sync()``, subscribe ``demods/0/sample`` and ``demods/1/sample``,
+then ``session.poll(duration)`` returns every sample since the last poll. The two demods' samples are merged on
+equal timestamps; t = (timestamp - t0_ticks) / clockbase with t0_ticks the first timestamp of the stream.
+Lost samples = sum over timestamp gaps of (gap / ticks_per_sample - 1), ticks_per_sample = clockbase / rate
+(read back), including the gap between the last sample of the previous block and the first of this one; the
+device flag ``status/flags/demodsampleloss`` counts as at least one lost sample when the gaps show none.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from zhinst.toolkit import PollFlags, Session
+
+from drivers.hf2_nodes import (
+    AGC_PID, DRIVE_DEMOD, QUAD_PID, RATE_PID, SENSE_DEMOD, LockInWiring, check_setup, check_wiring,
+    forcer_amplitude, forcer_mixer_channel, safe_nodes, setup_nodes,
+)
+from qmg_lab.instruments import InstrumentError, LimitError, LockIn, LockInBlock, LockInSetup, check_limit
+
+PLL1_LOCKED_BIT = 1 << 20
+DEFAULT_HF2_PORT = 8005
+
+
+class HF2LI(LockIn):
+    """The HF2LI closing the PLL, AGC, rate and quadrature loops and streaming demods 0 (drive) and 1 (sense).
+
+    ``HF2LI(session_or_host, device_id, wiring, output_safe_v=0.0, port=8005)``: pass a toolkit Session
+    (already constructed; the device is connected here) or a host name (a Session is created, hf2=True).
+    ``wiring`` is qmg_lab.config.LockInSection or any object with its cabling fields.
+    """
+
+    def __init__(self, session: Session | str, device_id: str, wiring: LockInWiring,
+                 output_safe_v: float = 0.0, port: int = DEFAULT_HF2_PORT) -> None:
+        check_wiring(wiring)
+        check_limit("output_safe_v", output_safe_v, -10.0, 10.0, "V")
+        self.device_id = device_id.lower()
+        self.wiring = wiring
+        self.output_safe_v = float(output_safe_v)
+        if isinstance(session, Session):
+            self._host, self._port = str(session.server_host), int(session.server_port)
+            self._connection: Any = session.daq_server
+            self._session = session
+        else:
+            self._host, self._port, self._connection = str(session), int(port), None
+            self._session = self._open_session()
+        self._setup: LockInSetup | None = None
+        self._forcer_gain = 1.0
+        self._streaming = False
+        self._attach()
+
+    # ------------------------------------------------------------------ connection
+    def _open_session(self) -> Session:
+        try:
+            if self._connection is not None:
+                return Session(self._host, self._port, hf2=True, connection=self._connection)
+            return Session(self._host, self._port, hf2=True)
+        except Exception as exc:  # toolkit raises RuntimeError/ToolkitError from zhinst.core
+            raise InstrumentError(f"HF2 data server at {self._host}:{self._port}: {exc}") from exc
+
+    def _attach(self) -> None:
+        try:
+            self._device = self._session.connect_device(self.device_id)
+            devtype = self._device.features.devtype()
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: cannot connect: {exc}") from exc
+        if "HF2" not in str(devtype).upper():
+            raise InstrumentError(f"{self.device_id} identifies as {devtype!r}, not an HF2 instrument")
+        self._clockbase = float(self._device.clockbase())
+        self._pll_osc = int(self._device.plls[0].oscselect())
+
+    def _send(self, pairs: list[tuple[str, Any]]) -> None:
+        """All pairs in one transaction: one set([...]) call to the data server."""
+        try:
+            with self._session.set_transaction():
+                for path, value in pairs:
+                    self._device[path](value)
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: setting nodes failed: {exc}") from exc
+
+    def _get(self, path: str) -> Any:
+        try:
+            return self._device[path]()
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: reading {path} failed: {exc}") from exc
+
+    # ------------------------------------------------------------------ Instrument
+    def identify(self) -> str:
+        d = self._device
+        version = self._session.about.version()
+        revision = self._session.about.revision()
+        options = str(d.features.options()).replace("\n", ",").strip(",")
+        return (f"Zurich Instruments {d.features.devtype()} {d.features.serial()} (options {options}); "
+                f"HF2 data server {version} (revision {revision})")
+
+    def state(self) -> dict[str, Any]:
+        g = lambda p: self._get(p)  # noqa: E731
+        w, fm = self.wiring, forcer_mixer_channel(self.wiring)
+        pids = {}
+        for name, n in (("agc", AGC_PID), ("rate", RATE_PID), ("quadrature", QUAD_PID)):
+            pids[name] = {leaf: float(g(f"pids/{n}/{leaf}")) for leaf in
+                          ("p", "i", "setpoint", "center", "range", "error", "shift")}
+            pids[name]["enable"] = int(g(f"pids/{n}/enable"))
+        return {
+            "device": self.device_id, "clockbase_hz": self._clockbase, "streaming": self._streaming,
+            "pll": {"enable": int(g("plls/0/enable")), "locked": int(g("plls/0/locked")),
+                    "freqcenter_hz": float(g("plls/0/freqcenter")), "freqdelta_hz": float(g("plls/0/freqdelta")),
+                    "p": float(g("plls/0/p")), "i": float(g("plls/0/i"))},
+            "pids": pids,
+            "demod_rate_hz": [float(g(f"demods/{d}/rate")) for d in (DRIVE_DEMOD, SENSE_DEMOD)],
+            "auxout_v": {"rate": float(g(f"auxouts/{w.rate_auxout}/value")),
+                         "quadrature": float(g(f"auxouts/{w.quadrature_auxout}/value"))},
+            "sigouts_on": {"drive": int(g(f"sigouts/{w.drive_sigout}/on")),
+                           "forcer": int(g(f"sigouts/{w.forcer_sigout}/on"))},
+            "forcer_amplitude": float(g(f"sigouts/{w.forcer_sigout}/amplitudes/{fm}")),
+            "forcer_gain": self._forcer_gain,
+        }
+
+    def safe_state(self) -> None:
+        """PIDs off, loop AuxOuts at output_safe_v, forcer carrier 0, signal outputs off (idempotent)."""
+        if self._streaming:
+            self.stop_stream()
+        self._send(safe_nodes(self.wiring, self.output_safe_v))
+
+    def close(self) -> None:
+        try:
+            if self._streaming:
+                self.stop_stream()
+        finally:
+            self._streaming = False
+
+    def reconnect(self) -> None:
+        """New session to the same server (same connection object for the twin), re-identify, re-apply the
+        last configuration and forcer gain."""
+        was_streaming = self._streaming
+        self._streaming = False
+        self._session = self._open_session()
+        self._attach()
+        if self._setup is not None:
+            self.configure(self._setup)
+            self.set_forcer_gain(self._forcer_gain)
+        if was_streaming:
+            self.start_stream()
+
+    # ------------------------------------------------------------------ LockIn
+    def configure(self, setup: LockInSetup) -> None:
+        """Oscillator, demods 0/1, PLL 0, PIDs 0-2, outputs and AuxOuts in one transaction (limits first)."""
+        check_setup(setup, self.wiring)
+        self._send(setup_nodes(setup, self.wiring, self._pll_osc))
+        self._setup = setup
+        self._forcer_gain = float(setup.forcer_gain)
+
+    def start_stream(self) -> None:
+        rates = [float(self._get(f"demods/{d}/rate")) for d in (DRIVE_DEMOD, SENSE_DEMOD)]
+        if rates[0] != rates[1]:
+            raise InstrumentError(f"demods 0 and 1 stream at different rates {rates} Sa/s: configure first")
+        self._rate_hz = rates[1]
+        self._ticks_per_sample = self._clockbase / self._rate_hz
+        try:
+            self._session.sync()
+            self._device.demods[DRIVE_DEMOD].sample.subscribe()
+            self._device.demods[SENSE_DEMOD].sample.subscribe()
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: subscribe failed: {exc}") from exc
+        self._t0_ticks: int | None = None
+        self._last_ts: int | None = None
+        self._streaming = True
+
+    def stop_stream(self) -> None:
+        try:
+            self._device.demods[DRIVE_DEMOD].sample.unsubscribe()
+            self._device.demods[SENSE_DEMOD].sample.unsubscribe()
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: unsubscribe failed: {exc}") from exc
+        finally:
+            self._streaming = False
+
+    def poll(self, duration_s: float) -> LockInBlock:
+        if not self._streaming:
+            raise InstrumentError("HF2LI.poll: the stream is not started (call start_stream)")
+        check_limit("poll duration_s", duration_s, 1e-3, 60.0, "s")
+        try:
+            raw = self._session.poll(duration_s, timeout=0.5, flags=PollFlags.DETECT)
+            flag = int(self._device.status.flags.demodsampleloss())
+            locked = int(self._device.plls[0].locked())
+            binary = int(self._device.status.flags.binary())
+        except Exception as exc:
+            raise InstrumentError(f"HF2LI {self.device_id}: poll failed: {exc}") from exc
+        drive = self._samples(raw, DRIVE_DEMOD)
+        sense = self._samples(raw, SENSE_DEMOD)
+        ts, i_d, i_s = np.intersect1d(drive["timestamp"], sense["timestamp"], assume_unique=True,
+                                      return_indices=True)
+        lost = self._count_lost(ts)
+        if flag and lost == 0:
+            lost = 1
+        if len(ts):
+            if self._t0_ticks is None:
+                self._t0_ticks = int(ts[0])
+            self._last_ts = int(ts[-1])
+        t0 = self._t0_ticks if self._t0_ticks is not None else 0
+        w = self.wiring
+        rate_key, dither_key = f"auxin{w.rate_auxin}", f"auxin{w.dither_auxin}"
+        return LockInBlock(
+            time=(ts.astype(np.int64) - t0) / self._clockbase,
+            x_sense=np.asarray(sense["x"])[i_s], y_sense=np.asarray(sense["y"])[i_s],
+            rate_output=np.asarray(sense[rate_key])[i_s],
+            drive_amplitude=np.hypot(np.asarray(drive["x"])[i_d], np.asarray(drive["y"])[i_d]),
+            drive_frequency=np.asarray(drive["frequency"])[i_d],
+            dither=np.asarray(sense[dither_key])[i_s],
+            pll_locked=bool(locked) and bool(binary & PLL1_LOCKED_BIT),
+            samples_lost=int(lost),
+        )
+
+    def _samples(self, raw: Any, demod: int) -> dict[str, np.ndarray]:
+        key = f"/{self.device_id}/demods/{demod}/sample"
+        try:
+            data = raw[key]
+        except KeyError:
+            return {k: np.zeros(0, dtype=np.uint64 if k == "timestamp" else float)
+                    for k in ("timestamp", "x", "y", "frequency", "auxin0", "auxin1")}
+        return {k: np.asarray(v) for k, v in data.items() if k != "time"}
+
+    def _count_lost(self, ts: np.ndarray) -> int:
+        if len(ts) == 0:
+            return 0
+        edges = ts.astype(np.int64)
+        if self._last_ts is not None:
+            edges = np.concatenate(([self._last_ts], edges))
+        if len(edges) < 2:
+            return 0
+        steps = np.rint(np.diff(edges) / self._ticks_per_sample).astype(np.int64)
+        return int(np.sum(np.maximum(steps - 1, 0)))
+
+    def set_forcer_gain(self, gain: float) -> None:
+        """Forcer carrier amplitude = nominal * gain; LimitError for gain outside [0.5, 2] or amplitude > 1."""
+        amplitude = forcer_amplitude(self.wiring, gain)
+        fm = forcer_mixer_channel(self.wiring)
+        self._send([(f"sigouts/{self.wiring.forcer_sigout}/amplitudes/{fm}", amplitude)])
+        self._forcer_gain = float(gain)
+
+    def pll_locked(self) -> bool:
+        locked = int(self._get("plls/0/locked"))
+        binary = int(self._get("status/flags/binary"))
+        return bool(locked) and bool(binary & PLL1_LOCKED_BIT)
+
+
+__all__ = ["HF2LI", "LimitError"]

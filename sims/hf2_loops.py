@@ -1,0 +1,208 @@
+"""Which gyroscope loops the HF2 node settings close, as the physics would see them.
+
+The twin does not trust the driver's intent: it reads the node values and decides, loop by loop, whether the
+cabling of the bench (``HF2Wiring``) and the settings together close the loop. A loop that is not closed runs
+open in the physics (its output sits at the value the output node holds by itself), so a wrong setting shows up
+as a wrong bandwidth or no lock, as on the bench.
+
+Rules (HF2 node semantics from the nodedoc and reference/hf2li.md; the twin's reading of them):
+
+* Reference oscillator. PLL 0 is closed if ``plls/0/enable`` = 1, ``plls/0/adcselect`` = drive_sigin and
+  ``plls/0/harmonic`` = 1; it then owns oscillator ``plls/0/oscselect`` and its frequency follows the PLL
+  (p Hz/deg, i Hz^2/deg, setpoint deg, freqcenter, freqrange). Otherwise the reference is the oscillator of the
+  drive demodulator at ``oscs/n/freq`` (PLL open, frequency fixed).
+* A *drive demod* has adcselect = drive_sigin; a *sense demod* adcselect = sense_sigin; both must use the
+  reference oscillator, harmonic 1 and phaseshift 0 to feed a loop (any rotation would change the loop gain).
+* AGC closed: an enabled PID with input 2 (R), inputchannel = a drive demod, setpointselect 0 (manual), output
+  = drive_sigout (0 = SigOut1 amplitude, 1 = SigOut2 amplitude), outputchannel = a mixer channel m that is
+  enabled on that output, whose demod m uses the reference oscillator, with the output on. Open: the drive
+  voltage is the sum over such channels of amplitudes/m * range (V), times sigouts/<drive>/on.
+* Rate loop closed: an enabled PID with input 0 (X), inputchannel = a sense demod, setpointselect 0, output 3
+  (AuxOut offset), outputchannel = rate_auxout, and that AuxOut in manual mode (outputselect = -1). Quadrature:
+  the same with input 1 (Y) and quadrature_auxout. Open: the AuxOut's own offset in manual mode, else 0 V
+  (the twin does not model an AuxOut showing a demod quantity).
+* Forcer-path gain = sigouts/<forcer_sigout>/amplitudes/m / forcer_carrier_amplitude * on * enables/m, with
+  m = wiring.forcer_mixer_channel (default 1: demod 1's oscillator, which the driver sets to the reference);
+  0 if demod m does not run on the reference oscillator (the carrier would not be coherent with the mode).
+* The demod filter the physics applies (time constant, order) is that of the sense demod used by the rate PID
+  (else the first sense demod, else demod 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from sims.gyro import LoopSettings, PidSettings, PllSettings
+
+N_DEMODS, N_PIDS = 6, 4
+PID_INPUT_X, PID_INPUT_Y, PID_INPUT_R = 0, 1, 2
+PID_OUTPUT_AUXOUT = 3
+
+
+class NodeReader(Protocol):
+    def peek(self, rel_or_abs: str) -> Any: ...
+
+
+@dataclass
+class HF2Wiring:
+    """The cables of the bench (docs/wiring.md); mirrors qmg_lab/config.py LockInSection fields.
+
+    forcer_mixer_channel: the mixer channel of forcer_sigout that carries the forcer carrier (twin addition).
+    """
+
+    drive_sigin: int = 0
+    sense_sigin: int = 1
+    drive_sigout: int = 0
+    forcer_sigout: int = 1
+    forcer_carrier_amplitude: float = 0.5  # nominal carrier amplitude (fraction of range) = forcer-path gain 1.0
+    rate_auxout: int = 0
+    quadrature_auxout: int = 1
+    rate_auxin: int = 0
+    dither_auxin: int = 1
+    forcer_mixer_channel: int = 1
+
+    def __post_init__(self) -> None:
+        for name, hi in (("drive_sigin", 1), ("sense_sigin", 1), ("drive_sigout", 1), ("forcer_sigout", 1),
+                         ("rate_auxout", 3), ("quadrature_auxout", 3), ("rate_auxin", 1), ("dither_auxin", 1),
+                         ("forcer_mixer_channel", 7)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or not 0 <= v <= hi:
+                raise ValueError(f"HF2Wiring.{name} = {v!r} must be an integer in [0, {hi}]")
+        if not 0.0 < self.forcer_carrier_amplitude <= 1.0:
+            raise ValueError(f"HF2Wiring.forcer_carrier_amplitude = {self.forcer_carrier_amplitude!r} "
+                             "must be in (0, 1] (fraction of the output range)")
+        if self.drive_sigin == self.sense_sigin:
+            raise ValueError("HF2Wiring.drive_sigin and sense_sigin must differ")
+        if self.rate_auxin == self.dither_auxin:
+            raise ValueError("HF2Wiring.rate_auxin and dither_auxin must differ")
+        if self.rate_auxout == self.quadrature_auxout:
+            raise ValueError("HF2Wiring.rate_auxout and quadrature_auxout must differ")
+
+
+@dataclass
+class LoopPlan:
+    """The loops as the node settings close them."""
+
+    settings: LoopSettings
+    ref_osc: int
+    pll_closed: bool
+    pid_of: dict[str, int | None]  # "agc"/"rate"/"quadrature" -> the PID index closing it (None = open)
+    open_reasons: dict[str, str] = field(default_factory=dict)
+    sense_demod: int = 1
+    drive_demod: int = 0
+
+
+def _demod_ok(nodes: NodeReader, d: int, sigin: int, ref_osc: int) -> bool:
+    return (0 <= d < N_DEMODS and int(nodes.peek(f"demods/{d}/adcselect")) == sigin
+            and int(nodes.peek(f"demods/{d}/oscselect")) == ref_osc
+            and int(nodes.peek(f"demods/{d}/harmonic")) == 1
+            and abs(float(nodes.peek(f"demods/{d}/phaseshift"))) < 1e-9)
+
+
+def _pid(nodes: NodeReader, n: int, *, enabled: bool | None = None, center: float | None = None) -> PidSettings:
+    g = lambda leaf: float(nodes.peek(f"pids/{n}/{leaf}"))  # noqa: E731
+    return PidSettings(enabled=bool(int(nodes.peek(f"pids/{n}/enable"))) if enabled is None else enabled,
+                       p=g("p"), i=g("i"), d=g("d"), setpoint=g("setpoint"),
+                       center=g("center") if center is None else center, range=g("range"))
+
+
+def _find_pid(nodes: NodeReader, want: dict[str, int], check_in: Any, check_out: Any) -> int | None:
+    for n in range(N_PIDS):
+        if not int(nodes.peek(f"pids/{n}/enable")) or int(nodes.peek(f"pids/{n}/setpointselect")) != 0:
+            continue
+        if int(nodes.peek(f"pids/{n}/input")) != want["input"]:
+            continue
+        if not check_in(int(nodes.peek(f"pids/{n}/inputchannel"))):
+            continue
+        if int(nodes.peek(f"pids/{n}/output")) != want["output"]:
+            continue
+        if check_out(int(nodes.peek(f"pids/{n}/outputchannel"))):
+            return n
+    return None
+
+
+def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
+    """Read the node values and return the LoopSettings the physics runs under (rules in the module doc)."""
+    reasons: dict[str, str] = {}
+    pll_on = bool(int(nodes.peek("plls/0/enable")))
+    pll_closed = (pll_on and int(nodes.peek("plls/0/adcselect")) == wiring.drive_sigin
+                  and int(nodes.peek("plls/0/harmonic")) == 1)
+    drive_candidates = [d for d in range(N_DEMODS) if int(nodes.peek(f"demods/{d}/adcselect")) == wiring.drive_sigin]
+    if pll_closed:
+        ref_osc = int(nodes.peek("plls/0/oscselect"))
+        pll = PllSettings(enabled=True, p=float(nodes.peek("plls/0/p")), i=float(nodes.peek("plls/0/i")),
+                          setpoint_deg=float(nodes.peek("plls/0/setpoint")),
+                          center_hz=float(nodes.peek("plls/0/freqcenter")),
+                          range_hz=float(nodes.peek("plls/0/freqrange")))
+    else:
+        reasons["pll"] = "plls/0 disabled or not on the drive input with harmonic 1"
+        d0 = drive_candidates[0] if drive_candidates else 0
+        ref_osc = int(nodes.peek(f"demods/{d0}/oscselect"))
+        pll = PllSettings(enabled=False, center_hz=float(nodes.peek(f"oscs/{ref_osc}/freq")),
+                          range_hz=float(nodes.peek("plls/0/freqrange")))
+
+    drive_ok = lambda d: _demod_ok(nodes, d, wiring.drive_sigin, ref_osc)  # noqa: E731
+    sense_ok = lambda d: _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)  # noqa: E731
+    dso = wiring.drive_sigout
+
+    def drive_channel_ok(m: int) -> bool:
+        return (0 <= m < 8 and int(nodes.peek(f"sigouts/{dso}/on")) == 1
+                and int(nodes.peek(f"sigouts/{dso}/enables/{m}")) in (1, 3)
+                and m < N_DEMODS and int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc)
+
+    # AGC
+    agc_n = _find_pid(nodes, {"input": PID_INPUT_R, "output": dso}, drive_ok, drive_channel_ok)
+    if agc_n is not None:
+        agc = _pid(nodes, agc_n)
+    else:
+        reasons["agc"] = "no enabled PID on R of a drive demod writing an enabled drive mixer channel"
+        on = int(nodes.peek(f"sigouts/{dso}/on"))
+        rng = float(nodes.peek(f"sigouts/{dso}/range"))
+        v = sum(float(nodes.peek(f"sigouts/{dso}/amplitudes/{m}")) * rng
+                for m in range(min(8, N_DEMODS)) if drive_channel_ok(m)) if on else 0.0
+        agc = PidSettings(enabled=False, center=v)
+
+    def aux_manual(ch: int) -> bool:
+        return int(nodes.peek(f"auxouts/{ch}/outputselect")) == -1
+
+    def aux_open_value(ch: int) -> float:
+        return float(nodes.peek(f"auxouts/{ch}/offset")) if aux_manual(ch) else 0.0
+
+    loops: dict[str, PidSettings] = {}
+    pid_of: dict[str, int | None] = {"agc": agc_n}
+    for name, inp, ch in (("rate", PID_INPUT_X, wiring.rate_auxout),
+                          ("quadrature", PID_INPUT_Y, wiring.quadrature_auxout)):
+        n = _find_pid(nodes, {"input": inp, "output": PID_OUTPUT_AUXOUT}, sense_ok,
+                      lambda c, ch=ch: c == ch and aux_manual(ch))
+        pid_of[name] = n
+        if n is not None:
+            loops[name] = _pid(nodes, n)
+        else:
+            reasons[name] = (f"no enabled PID on {'XY'[inp]} of a sense demod writing AuxOut {ch} "
+                             "in manual mode")
+            loops[name] = PidSettings(enabled=False, center=aux_open_value(ch))
+
+    # demod filter: that of the sense demod the rate PID reads
+    if pid_of["rate"] is not None:
+        sense_demod = int(nodes.peek(f"pids/{pid_of['rate']}/inputchannel"))
+    else:
+        cands = [d for d in range(N_DEMODS) if int(nodes.peek(f"demods/{d}/adcselect")) == wiring.sense_sigin]
+        sense_demod = cands[0] if cands else 1
+    drive_demod = int(nodes.peek(f"pids/{agc_n}/inputchannel")) if agc_n is not None else (
+        drive_candidates[0] if drive_candidates else 0)
+
+    fso, m = wiring.forcer_sigout, wiring.forcer_mixer_channel
+    coherent = m >= N_DEMODS or int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
+    if not coherent:
+        reasons["forcer"] = f"mixer channel {m} of the forcer output does not run on the reference oscillator"
+    gain = (float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}")) / wiring.forcer_carrier_amplitude
+            * int(nodes.peek(f"sigouts/{fso}/on")) * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
+            * coherent)
+
+    settings = LoopSettings(pll=pll, agc=agc, rate=loops["rate"], quadrature=loops["quadrature"],
+                            forcer_gain=float(gain),
+                            demod_timeconstant_s=float(nodes.peek(f"demods/{sense_demod}/timeconstant")),
+                            demod_order=int(nodes.peek(f"demods/{sense_demod}/order")))
+    return LoopPlan(settings=settings, ref_osc=ref_osc, pll_closed=pll_closed, pid_of=pid_of,
+                    open_reasons=reasons, sense_demod=sense_demod, drive_demod=drive_demod)

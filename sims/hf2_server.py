@@ -1,0 +1,446 @@
+"""A duck-typed HF2 data-server connection: the HF2LI twin at zhinst-toolkit's connection boundary.
+
+``zhinst.toolkit.Session(host, hf2=True, connection=HF2DataServerTwin(...))`` runs toolkit's unchanged code path
+against it: ``getString("/zi/about/dataserver")`` answers "HF2DataServer", ``listNodes`` lists the device's leaves
+(toolkit then takes their documentation from its bundled nodedoc_hf2.json, like on a real HF2), ``listNodesJSON``
+raises (API level 1 has none), ``get``/``getInt``/``getDouble``/``getString``/``set`` (single and list form, the
+latter used by ``set_transaction``), ``sync``, ``subscribe``/``unsubscribe`` and ``poll`` behave like
+``zhinst.core.ziDAQServer`` at API level 1.
+
+Physics coupling (protocol of one ``poll(rec_s, ...)``):
+1. n = round(rec_s * rate) steps of dt = 1/rate, rate = ``demods/<sense>/rate`` (rounded at set time to
+   clockbase / integer, so that timestamps are exact). Nothing subscribed -> no data and the world stands still.
+2. ``world.advance(n, dt)`` gives the per-step inputs; ``identify_loops`` reads the node values into
+   LoopSettings (sims/hf2_loops.py); ``GyroSim.run`` integrates the block (re-created when dt changes).
+3. Every subscribed and enabled demod gets n samples: timestamp = clockbase ticks of the world time at the end
+   of each step; x, y from the physics for drive/sense demods (rotated by exp(-i(phi_osc + phaseshift - phi_ref))
+   if the demod's oscillator is not the reference); frequency and phase (rad) of its oscillator;
+   auxin[rate_auxin] = rate PID output (the AuxOut looped to the AuxIn), auxin[dither_auxin] = the DS345 output.
+4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; pids/n/error (= setpoint -
+   input), shift (= output - center); auxouts/n/value; auxins/0/values/k; status/flags/binary bit 20 (PLL 1
+   locked); status/flags/demodsampleloss; status/time. The truth of the block goes to ``world.record_truth``.
+
+Fault hooks: ``drop_samples(n)`` removes n samples from the middle of the next poll (timestamp gap + sample-loss
+flag); ``force_pll_unlock(duration_s)`` opens the PLL (frequency held at its centre) and reports unlock for that
+much world time from now.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
+from sims.hf2_nodetree import HF2NodeTree, NodeError
+from sims.world import BlockInputs, TruthRecord, World
+
+if TYPE_CHECKING:
+    from sims.gyro import GyroBlock, GyroParams
+
+__all__ = ["HF2DataServerTwin", "HF2Wiring", "NodeError"]
+
+DEMOD_FIELDS = ("timestamp", "x", "y", "frequency", "phase", "dio", "trigger", "auxin0", "auxin1")
+PLL_LOCKED_BITS = (1 << 20, 1 << 21)
+SERVER_VERSION = "26.07"
+SERVER_REVISION = 26070250
+
+
+def _zi_nodes(port: int, clockbase_hz: float) -> dict[str, Any]:
+    return {"/zi/about/version": SERVER_VERSION, "/zi/about/revision": SERVER_REVISION,
+            "/zi/about/commit": "twin", "/zi/about/fwrevision": SERVER_REVISION,
+            "/zi/about/copyright": "qmg-lab HF2 twin", "/zi/about/dataserver": "HF2DataServer",
+            "/zi/config/port": port, "/zi/config/open": 0, "/zi/mds/groups/0/devices": "",
+            "/zi/mds/groups/0/status": 0, "/zi/mds/groups/0/locked": 0, "/zi/debug/level": 3,
+            "/zi/debug/logpath": "", "/zi/debug/log": "", "/zi/clockbase": int(round(clockbase_hz))}
+
+
+def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
+    return BlockInputs(t=inp.t[sl], table_rate_dps=inp.table_rate_dps[sl], table_angle_deg=inp.table_angle_deg[sl],
+                       chamber_c=inp.chamber_c[sl], gyro_c=inp.gyro_c[sl], dither_v=inp.dither_v[sl])
+
+
+class HF2DataServerTwin:
+    """HF2 data server + one HF2LI (MF, PLL, PID options) whose loops drive ``sims.gyro.GyroSim``."""
+
+    api_level = 1
+
+    def __init__(self, world: World, gyro_params: GyroParams, seed: int, wiring: HF2Wiring,
+                 device_id: str = "dev1234", clockbase_hz: float = 210e6, host: str = "localhost",
+                 port: int = 8005) -> None:
+        if clockbase_hz <= 0:
+            raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")
+        self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
+        self.host, self.port = host, port
+        self.clockbase_hz = float(clockbase_hz)
+        self.nodes = HF2NodeTree(device_id, clockbase_hz)
+        self.device_id = self.nodes.device_id
+        self._zi = _zi_nodes(port, clockbase_hz)
+        self.connected = False
+        self.subscribed: set[str] = set()
+        self._gyro: Any = None
+        self._gyro_dt: float | None = None
+        self._gyro_count = 0
+        self._ticks: int | None = None
+        self._osc_phase = np.zeros(6)
+        self._drop_next = 0
+        self._unlock_until: float | None = None
+        self._last_sample: dict[str, dict[str, np.ndarray]] = {}
+        self.last_plan: LoopPlan | None = None
+        for d in range(6):  # round the power-on rates like a set would
+            self._round_rate(f"/{self.device_id}/demods/{d}/rate")
+
+    # ================================================================== connection API (ziDAQServer, level 1)
+    def _check_device(self, path: str) -> None:
+        p = path.lower()
+        if p.startswith("/zi/"):
+            return
+        dev = p.split("/")[1] if p.startswith("/") else self.device_id
+        if dev != self.device_id and not any(c in dev for c in "*?["):
+            raise NodeError(f"ZIAPINotFoundException: device {dev} is not connected to this HF2 data server")
+        if not self.connected:
+            raise NodeError(f"ZIAPINotFoundException: device {self.device_id} is not connected (connectDevice)")
+
+    def connectDevice(self, dev: str, interface: str = "USB", params: str = "") -> None:  # noqa: N802
+        if dev.lower() != self.device_id:
+            raise NodeError(f"ZIAPIServerException: device {dev} not found by the HF2 data server")
+        if interface.upper() != "USB":
+            raise NodeError(f"ZIAPIServerException: HF2 devices connect over USB only, not {interface!r}")
+        self.connected = True
+
+    def disconnectDevice(self, dev: str) -> None:  # noqa: N802
+        if dev.lower() == self.device_id:
+            self.connected = False
+            self.subscribed.clear()
+
+    def update(self) -> None:
+        """Device detection on Linux HF2 servers: nothing to do for the twin."""
+
+    def listNodesJSON(self, path: str, *args: Any, **kwargs: Any) -> str:  # noqa: N802
+        raise NodeError("ZIAPINotSupportedException: listNodesJSON is not available on the HF2 data server "
+                        "(API level 1)")
+
+    def listNodes(self, path: str, *args: Any, **kwargs: Any) -> list[str]:  # noqa: N802
+        p = path.lower()
+        if p.startswith("/zi"):
+            pat = p if any(c in p for c in "*?[") else p.rstrip("/") + "/*"
+            return [k.upper() for k in self._zi if fnmatch.fnmatchcase(k, pat)]
+        self._check_device(p)
+        return self.nodes.list(p, settings_only=kwargs.get("settingsonly", False),
+                               streaming_only=kwargs.get("streamingonly", False),
+                               exclude_streaming=kwargs.get("excludestreaming", False))
+
+    def _read(self, path: str) -> Any:
+        p = path.lower()
+        if p.startswith("/zi/"):
+            if p not in self._zi:
+                raise NodeError(f"ZIAPINotFoundException: node {p} does not exist")
+            return self._zi[p]
+        self._check_device(p)
+        return self.nodes.read(p)
+
+    def getInt(self, path: str) -> int:  # noqa: N802
+        v = self._read(path)
+        if isinstance(v, str):
+            raise NodeError(f"ZIAPIException: node {path} holds a string, not an integer")
+        return int(v)
+
+    def getDouble(self, path: str) -> float:  # noqa: N802
+        v = self._read(path)
+        if isinstance(v, str):
+            raise NodeError(f"ZIAPIException: node {path} holds a string, not a number")
+        return float(v)
+
+    def getString(self, path: str) -> str:  # noqa: N802
+        v = self._read(path)
+        if not isinstance(v, str):
+            raise NodeError(f"ZIAPIException: node {path} is numeric, not a string")
+        return v
+
+    def getSample(self, path: str) -> dict[str, np.ndarray]:  # noqa: N802
+        p = self.nodes.absolute(path)
+        self._check_device(p)
+        if not fnmatch.fnmatchcase(p, f"/{self.device_id}/demods/*/sample"):
+            raise NodeError(f"ZIAPIException: node {p} is not a demodulator sample node")
+        if p in self._last_sample:
+            return {k: v.copy() for k, v in self._last_sample[p].items()}
+        return {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
+
+    def get(self, paths: str, *args: Any, flat: bool = False, settingsonly: bool = True, **kwargs: Any) -> dict:
+        """Values of the matching nodes: flat {path: array([v])} or nested {dev: {branch: ...}}. Streams are
+        never returned; settingsonly (default True) filters wildcard/branch matches, not explicit leaves."""
+        flags = args[0] if args else kwargs.get("flags")
+        if flags is not None:
+            settingsonly = bool(int(flags) & 8)
+        out: dict[str, Any] = {}
+        for expr in str(paths).split(","):
+            expr = expr.strip().lower()
+            if expr.startswith("/zi"):
+                pat = expr if any(c in expr for c in "*?[") else expr
+                for k, v in self._zi.items():
+                    if fnmatch.fnmatchcase(k, pat) or k.startswith(pat.rstrip("/") + "/"):
+                        out[k] = [v] if isinstance(v, str) else np.array([v])
+                continue
+            self._check_device(expr)
+            hits = self.nodes.resolve(expr)
+            explicit = len(hits) == 1 and hits[0] == self.nodes.absolute(expr)
+            for p in hits:
+                m = self.nodes.meta[p]
+                if not m.is_value or not m.readable or (settingsonly and not explicit and not m.setting):
+                    continue
+                v = self.nodes.values[p]
+                out[p] = [v] if isinstance(v, str) else np.array([v])
+        if flat:
+            return out
+        nested: dict[str, Any] = {}
+        for p, v in out.items():
+            cur = nested
+            parts = p.strip("/").split("/")
+            for part in parts[:-1]:
+                cur = cur.setdefault(part, {})
+            cur[parts[-1]] = v
+        return nested
+
+    def set(self, path: Any, value: Any = None, **kwargs: Any) -> None:
+        """set(path, value) or set([(path, value), ...]); the list is validated whole before any node changes."""
+        items = [(path, value)] if isinstance(path, str) else list(path)
+        checked = []
+        for p, v in items:
+            p = str(p).lower()
+            if p.startswith("/zi/"):
+                checked.append((p, v))
+                continue
+            self._check_device(p)
+            hits = self.nodes.resolve(p)
+            if not hits:
+                raise NodeError(f"ZIAPINotFoundException: node {p} does not exist")
+            checked.extend(self.nodes.coerce(h, v) for h in hits if len(hits) == 1 or self.nodes.meta[h].writable)
+        for p, v in checked:
+            if p.startswith("/zi/"):
+                if p not in ("/zi/config/open", "/zi/debug/level"):
+                    raise NodeError(f"ZIAPIWriteException: node {p} is read-only")
+                self._zi[p] = int(v)
+                continue
+            self.nodes.values[p] = v
+            if fnmatch.fnmatchcase(p, "/*/demods/*/rate"):
+                self._round_rate(p)
+
+    def setInt(self, path: str, value: int) -> None:  # noqa: N802
+        self.set(path, int(value))
+
+    def setDouble(self, path: str, value: float) -> None:  # noqa: N802
+        self.set(path, float(value))
+
+    def setString(self, path: str, value: str) -> None:  # noqa: N802
+        self.set(path, str(value))
+
+    def syncSetInt(self, path: str, value: int) -> int:  # noqa: N802
+        self.set(path, int(value))
+        return self.getInt(path)
+
+    def syncSetDouble(self, path: str, value: float) -> float:  # noqa: N802
+        self.set(path, float(value))
+        return self.getDouble(path)
+
+    def syncSetString(self, path: str, value: str) -> str:  # noqa: N802
+        self.set(path, str(value))
+        return self.getString(path)
+
+    def sync(self) -> None:
+        """All sets are applied at once and nothing is buffered between polls: nothing to flush."""
+
+    def echoDevice(self, dev: str) -> None:  # noqa: N802
+        self._check_device(f"/{dev}")
+
+    def _stream_paths(self, path: Any) -> list[str]:
+        paths = [path] if isinstance(path, str) else list(path)
+        out = []
+        for p in paths:
+            self._check_device(str(p))
+            hits = [h for h in self.nodes.resolve(str(p)) if self.nodes.meta[h].stream]
+            if not hits:
+                raise NodeError(f"ZIAPINotFoundException: no streaming node matches {p}")
+            out.extend(hits)
+        return out
+
+    def subscribe(self, path: Any, group_id: int = 1) -> None:
+        self.subscribed.update(self._stream_paths(path))
+
+    def unsubscribe(self, path: Any, group_id: int = 1) -> None:
+        self.subscribed.difference_update(self._stream_paths(path))
+
+    def poll(self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False,
+             group_id: int = 1) -> dict:
+        """Advance the world by the recording time and return the subscribed demodulators' samples."""
+        if recording_time_s <= 0:
+            raise NodeError(f"ZIAPIException: poll recording time {recording_time_s!r} s must be positive")
+        demods = sorted(p for p in self.subscribed if p.endswith("/sample") and "/demods/" in p)
+        if not self.subscribed:
+            return {}
+        data = self._advance(recording_time_s, demods)
+        if flat:
+            return data
+        nested: dict[str, Any] = {}
+        for p, v in data.items():
+            _, dev, branch, idx, leaf = p.split("/")
+            nested.setdefault(dev, {}).setdefault(branch, {}).setdefault(idx, {})[leaf] = v
+        return nested
+
+    # ================================================================== fault hooks
+    def drop_samples(self, n: int) -> None:
+        """The next poll loses n samples from the middle of its block (timestamp gap, sample-loss flag)."""
+        if int(n) < 0:
+            raise ValueError(f"drop_samples: n = {n!r} must be >= 0")
+        self._drop_next += int(n)
+
+    def force_pll_unlock(self, duration_s: float) -> None:
+        """The PLL runs open (frequency at its centre) and reports unlock for duration_s of world time from now."""
+        if not duration_s >= 0:
+            raise ValueError(f"force_pll_unlock: duration_s = {duration_s!r} must be >= 0")
+        self._unlock_until = self.world.now() + float(duration_s)
+
+    # ================================================================== physics
+    def _round_rate(self, path: str) -> None:
+        rate = float(self.nodes.values[path])
+        if rate <= 0:
+            raise NodeError(f"node {path}: rate {rate!r} Sa/s must be positive")
+        ticks = max(1, round(self.clockbase_hz / rate))
+        self.nodes.values[path] = self.clockbase_hz / ticks
+
+    def _ensure_gyro(self, dt: float) -> Any:
+        if self._gyro is None or self._gyro_dt != dt:
+            from sims.gyro import GyroSim  # the physics module
+
+            self._gyro = GyroSim(self.gyro_params, dt, self.seed + self._gyro_count)
+            self._gyro.reset(settled=True)
+            self._gyro_dt = dt
+            self._gyro_count += 1
+        return self._gyro
+
+    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, np.ndarray]:
+        """Run the block, split where a forced PLL unlock ends; returns the block and a per-step locked mask."""
+        gyro = self._ensure_gyro(dt)
+        n = len(inputs.t)
+        t_end = inputs.t + dt
+        cut = n  # steps [0, cut) end inside the forced-unlock window
+        if self._unlock_until is not None:
+            cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))
+        segments = [(0, cut, True), (cut, n, False)] if self._unlock_until is not None else [(0, n, False)]
+        blocks, locked = [], np.ones(n, dtype=bool)
+        for a, b, forced in segments:
+            if b <= a:
+                continue
+            s = plan.settings
+            if forced:
+                s = replace(s, pll=replace(s.pll, enabled=False))
+                locked[a:b] = False
+            blk = gyro.run(_slice_inputs(inputs, slice(a, b)), s)
+            if not blk.pll_locked:
+                locked[a:b] = False
+            blocks.append(blk)
+        if self._unlock_until is not None and t_end[-1] >= self._unlock_until:
+            self._unlock_until = None
+        if len(blocks) == 1:
+            return blocks[0], locked
+        merged = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in _ARRAY_FIELDS}
+        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), locked
+
+    def _advance(self, rec_s: float, demods: list[str]) -> dict[str, dict[str, np.ndarray]]:
+        plan = identify_loops(self.nodes, self.wiring)
+        self.last_plan = plan
+        rate = float(self.nodes.peek(f"demods/{plan.sense_demod}/rate"))
+        tps = int(round(self.clockbase_hz / rate))
+        dt = tps / self.clockbase_hz
+        n = int(round(rec_s / dt))
+        if n < 1:
+            return {}
+        world_ticks = int(round(self.world.now() * self.clockbase_hz))
+        if self._ticks is None or abs(world_ticks - self._ticks) > tps // 2:
+            self._ticks = world_ticks
+        inputs = self.world.advance(n, dt)
+        self.world.set_forcer_gain(plan.settings.forcer_gain)
+        blk, locked = self._run_gyro(inputs, plan, dt)
+        timestamps = (self._ticks + tps * np.arange(1, n + 1, dtype=np.int64)).astype(np.uint64)
+        self._ticks += n * tps
+        # oscillator frequencies and phases (rad) at the end of each step
+        freqs = {o: np.full(n, float(self.nodes.peek(f"oscs/{o}/freq"))) for o in range(6)}
+        freqs[plan.ref_osc] = np.asarray(blk.frequency_hz, dtype=float)
+        phases = {}
+        for o, f in freqs.items():
+            ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f) * dt
+            self._osc_phase[o] = float(np.mod(ph[-1], 2 * np.pi))
+            phases[o] = ph
+        if plan.pll_closed:  # the PLL writes its oscillator's frequency
+            self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
+        aux = [np.zeros(n), np.zeros(n)]
+        aux[self.wiring.rate_auxin] = np.asarray(blk.rate_output_v, dtype=float)
+        aux[self.wiring.dither_auxin] = np.asarray(inputs.dither_v, dtype=float)
+        drive = np.asarray(blk.x_drive) + 1j * np.asarray(blk.y_drive)
+        sense = np.asarray(blk.x_sense) + 1j * np.asarray(blk.y_sense)
+        keep = np.ones(n, dtype=bool)
+        dropped = min(self._drop_next, max(0, n - 2))
+        if dropped:
+            i0 = (n - dropped) // 2
+            keep[i0:i0 + dropped] = False
+        self._drop_next = 0
+        out: dict[str, dict[str, np.ndarray]] = {}
+        for path in demods:
+            d = int(path.split("/")[3])
+            if not int(self.nodes.peek(f"demods/{d}/enable")):
+                continue
+            sigin = int(self.nodes.peek(f"demods/{d}/adcselect"))
+            osc = int(self.nodes.peek(f"demods/{d}/oscselect"))
+            harmonic = int(self.nodes.peek(f"demods/{d}/harmonic"))
+            z = drive if sigin == self.wiring.drive_sigin else sense if sigin == self.wiring.sense_sigin else None
+            if z is None or harmonic != 1:
+                z = np.zeros(n, dtype=complex)
+            shift = math.radians(float(self.nodes.peek(f"demods/{d}/phaseshift")))
+            if osc != plan.ref_osc or shift != 0.0:
+                z = z * np.exp(-1j * (phases[osc] + shift - phases[plan.ref_osc]))
+            sample = {"timestamp": timestamps, "x": z.real.copy(), "y": z.imag.copy(),
+                      "frequency": freqs[osc] * harmonic, "phase": np.mod(phases[osc] * harmonic, 2 * np.pi),
+                      "dio": np.zeros(n, dtype=np.uint32), "trigger": np.zeros(n, dtype=np.uint32),
+                      "auxin0": aux[0], "auxin1": aux[1]}
+            sample = {k: v[keep] for k, v in sample.items()}
+            out[path] = sample
+            self._last_sample[path] = {k: v[-1:].copy() for k, v in sample.items()}
+        self._reflect(plan, blk, locked, sense, drive, aux, dropped)
+        self.world.record_truth(TruthRecord(time=timestamps.astype(float) / self.clockbase_hz,
+                                            scale_factor=np.asarray(blk.sf_true_v_per_dps, dtype=float),
+                                            temperature=np.asarray(inputs.gyro_c, dtype=float),
+                                            rate=np.asarray(blk.rate_true_dps, dtype=float)))
+        return out
+
+    def _reflect(self, plan: LoopPlan, blk: GyroBlock, locked: np.ndarray, sense: np.ndarray,
+                 drive: np.ndarray, aux: list[np.ndarray], dropped: int) -> None:
+        """Read-only nodes at the end of the block."""
+        nd = self.nodes
+        pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
+        f_end = float(np.asarray(blk.frequency_hz)[-1])
+        nd.poke("plls/0/locked", int(pll_locked))
+        nd.poke("plls/0/freqdelta", f_end - float(nd.peek("plls/0/freqcenter")) if plan.pll_closed else 0.0)
+        nd.poke("plls/0/error", float(np.asarray(blk.pll_error_deg)[-1]) if plan.pll_closed else 0.0)
+        binary = int(nd.peek("status/flags/binary")) & ~PLL_LOCKED_BITS[0]
+        nd.poke("status/flags/binary", binary | (PLL_LOCKED_BITS[0] if pll_locked else 0))
+        nd.poke("status/flags/demodsampleloss", int(dropped > 0))
+        nd.poke("status/time", self.world.now())
+        ends = {"agc": (abs(drive[-1]), float(np.asarray(blk.drive_output_v)[-1])),
+                "rate": (sense[-1].real, float(np.asarray(blk.rate_output_v)[-1])),
+                "quadrature": (sense[-1].imag, float(np.asarray(blk.quadrature_output_v)[-1]))}
+        for name, n in plan.pid_of.items():
+            if n is None:
+                continue
+            inp, out = ends[name]
+            nd.poke(f"pids/{n}/error", float(nd.peek(f"pids/{n}/setpoint")) - float(inp))
+            nd.poke(f"pids/{n}/shift", out - float(nd.peek(f"pids/{n}/center")))
+        nd.poke(f"auxouts/{self.wiring.rate_auxout}/value", ends["rate"][1])
+        nd.poke(f"auxouts/{self.wiring.quadrature_auxout}/value", ends["quadrature"][1])
+        for k in range(2):
+            nd.poke(f"auxins/0/values/{k}", float(aux[k][-1]))
+
+
+_ARRAY_FIELDS = ("x_drive", "y_drive", "x_sense", "y_sense", "frequency_hz", "drive_output_v", "rate_output_v",
+                 "quadrature_output_v", "pll_error_deg", "sf_true_v_per_dps", "rate_true_dps")
