@@ -74,7 +74,10 @@ class Aerosmith1291BR(RateTable):
             except ValueError as exc:
                 raise InstrumentError(
                     f"{self.NAME}: garbled reply to {cmd.mnemonic!r}: received {line!r} ({exc})") from exc
-            line = self._link.read_line(raw)
+            try:
+                line = self._link.read_line(raw)
+            except InstrumentError as exc:
+                raise InstrumentError(f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: {exc}") from exc
             self._raise_if_error(raw, line)
         if line.encode("ascii") + proto.REPLY_TERMINATOR != proto.PROMPT_LINE:
             raise InstrumentError(

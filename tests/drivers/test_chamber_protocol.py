@@ -1,0 +1,128 @@
+"""EC1x chamber driver, byte for byte against the documented syntax (docs/instruments.md, chamber section).
+
+Commands: text + CR LF (SET=%.2f, RATE=%.3f, LTL=/UTL= %.2f); every reply one line ending CR LF; settings
+answer OK; refusals start with '?'; STATUS? is Y/N flags with char 0 = power, char 8 = ramping.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from drivers.chamber import SunEC1xChamber
+from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError
+from tests.protocol_serial import ProtocolPort, expected_protocol
+
+OK = b"OK\r\n"
+
+
+def chamber(port: ProtocolPort) -> SunEC1xChamber:
+    return SunEC1xChamber(port, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
+
+
+def test_set_setpoint_sends_rate_set_on() -> None:
+    with expected_protocol(chamber, [(b"RATE=2.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)]) as c:
+        c.set_setpoint(30.0, 2.0)
+
+
+def test_set_setpoint_negative_and_fractional() -> None:
+    with expected_protocol(chamber, [(b"RATE=0.250\r\n", OK), (b"SET=-12.35\r\n", OK), (b"ON\r\n", OK)]) as c:
+        c.set_setpoint(-12.345, 0.25)
+
+
+def test_read_parses_c1_set_status() -> None:
+    pairs = [(b"C1?\r\n", b"27.50\r\n"), (b"SET?\r\n", b"28.00\r\n"), (b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n")]
+    with expected_protocol(chamber, pairs) as c:
+        assert c.read() == ChamberReading(temperature_c=27.5, setpoint_c=28.0, ramping=True)
+    pairs[2] = (b"STATUS?\r\n", b"YYYNNNNNNNNNNNNN\r\n")
+    with expected_protocol(chamber, pairs) as c:
+        assert c.read().ramping is False
+
+
+def test_safe_state_sets_safe_setpoint_and_stays_on() -> None:
+    with expected_protocol(chamber, [(b"SET=25.00\r\n", OK), (b"ON\r\n", OK)] * 2) as c:
+        c.safe_state()
+        c.safe_state()
+
+
+def test_write_limits_identify_power() -> None:
+    pairs = [(b"LTL=-40.00\r\n", OK), (b"UTL=85.00\r\n", OK), (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"),
+             (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"), (b"RATE?\r\n", b"2.000\r\n"), (b"OFF\r\n", OK)]
+    with expected_protocol(chamber, pairs) as c:
+        c.write_limits()
+        assert "EC1x" in c.identify()
+        assert c.power_on() is False
+        assert c.ramp_rate() == 2.0
+        c.power_off()
+
+
+def test_refusal_names_the_command() -> None:
+    port = ProtocolPort([(b"RATE=2.000\r\n", OK), (b"SET=30.00\r\n", b"?LIMIT\r\n")])
+    with pytest.raises(InstrumentError, match=r"'SET=30\.00' refused: '\?LIMIT'"):
+        chamber(port).set_setpoint(30.0, 2.0)
+    port.assert_complete()
+
+
+@pytest.mark.parametrize(("reply", "match"), [
+    (b"27.5O\r\n", r"garbled reply to 'C1\?'.*27\.5O"),
+    (b"27.5", r"truncated reply to 'C1\?'.*b'27\.5'"),
+    (b"27.5\r", r"truncated reply to 'C1\?'"),
+    (b"27.5\n", r"truncated reply to 'C1\?'"),
+    (b"2\x007.5\r\n", r"garbled reply to 'C1\?'"),
+    (None, r"timeout: no reply to 'C1\?'"),
+    (b"OK\r\n", r"garbled reply to 'C1\?'.*'OK'"),
+])
+def test_bad_query_replies(reply: bytes | None, match: str) -> None:
+    port = ProtocolPort([(b"C1?\r\n", reply)])
+    with pytest.raises(InstrumentError, match=match):
+        chamber(port).read()
+
+
+@pytest.mark.parametrize(("reply", "match"), [
+    (b"YYY\r\n", r"garbled reply to 'STATUS\?'.*'YYY'"),
+    (b"YYYNNNNNXNNNNNNN\r\n", r"garbled reply to 'STATUS\?'"),
+])
+def test_bad_status(reply: bytes, match: str) -> None:
+    port = ProtocolPort([(b"STATUS?\r\n", reply)])
+    with pytest.raises(InstrumentError, match=match):
+        chamber(port).identify()
+
+
+def test_setting_not_acknowledged_ok() -> None:
+    port = ProtocolPort([(b"SET=25.00\r\n", b"0K\r\n")])
+    with pytest.raises(InstrumentError, match=r"garbled reply to 'SET=25\.00'.*'0K'"):
+        chamber(port).safe_state()
+
+
+@pytest.mark.parametrize(("setpoint", "ramp", "match"), [
+    (90.0, 1.0, r"chamber setpoint = 90 deg C is outside the limit \[-40, 85\]"),
+    (-41.0, 1.0, r"chamber setpoint = -41"),
+    (30.0, 6.0, r"chamber ramp = 6 deg C/min is outside the limit \[0, 5\]"),
+    (30.0, 0.0, r"chamber ramp = 0 deg C/min must be positive"),
+    (30.0, -1.0, r"chamber ramp = -1"),
+    (float("inf"), 1.0, r"chamber setpoint = inf is not a finite number"),
+])
+def test_limits_refused_before_sending(setpoint: float, ramp: float, match: str) -> None:
+    port = ProtocolPort([])
+    with pytest.raises(LimitError, match=match):
+        chamber(port).set_setpoint(setpoint, ramp)
+    assert port.bytes_written == b""
+
+
+def test_constructor_rejects_inconsistent_limits() -> None:
+    with pytest.raises(ValueError, match="min_c"):
+        SunEC1xChamber(ProtocolPort([]), min_c=50, max_c=40, max_ramp_c_per_min=1, safe_setpoint_c=45)
+    with pytest.raises(ValueError, match="safe_setpoint_c"):
+        SunEC1xChamber(ProtocolPort([]), min_c=0, max_c=40, max_ramp_c_per_min=1, safe_setpoint_c=45)
+
+
+def test_reconnect_identifies_and_restores_setpoint() -> None:
+    first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
+    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"RATE=1.000\r\n", OK),
+                           (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
+    c = SunEC1xChamber(first, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0,
+                       port_factory=lambda: second)
+    c.set_setpoint(30.0, 1.0)
+    c.reconnect()
+    assert not first.is_open
+    first.assert_complete()
+    second.assert_complete()
