@@ -90,8 +90,12 @@ STATUS_BYTES = 16
 STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_start": np.float64,
                                 "t_end": np.float64, "table_rate": np.float64, "chamber_setpoint": np.float64,
                                 "status": f"S{STATUS_BYTES}"}
-#: rows per chunk: lock-in ~2.9 s at 1400 Sa/s; the slow groups a few minutes
-CHUNK_ROWS = {"lockin": 4096, "clsf": 1024, "table": 512, "chamber": 512, "truth": 4096, "steps": 128}
+#: rows per chunk. A flush rewrites the last, partial chunk of every dataset; a compressed chunk that grew is
+#: written elsewhere and its old space is not reused, so small chunks keep that waste small (benchmarks/
+#: storage_speed.py: 512 rows = 0.37 s at 1400 Sa/s). Only the fast groups are compressed; the slow ones (a few
+#: rows per second, < 1 MB per hour) are stored plain, where a partial chunk is rewritten in place.
+CHUNK_ROWS = {"lockin": 512, "clsf": 256, "table": 256, "chamber": 256, "truth": 512, "steps": 64}
+COMPRESSED_GROUPS = ("lockin", "truth")
 COMPRESSIONS = ("none", "gzip", "lzf")
 GZIP_LEVEL = 4
 MODES = ("sim", "hardware")
@@ -294,6 +298,7 @@ class RunWriter:
             a["flush_interval_s"] = float(flush_interval_s)
             a["writer_pid"] = os.getpid()
             a["writer_host"] = socket.gethostname()
+            a["clsf_reference"] = np.nan  # set by set_clsf_reference; created now: SWMR cannot add attributes safely
             for k, v in (extra_attrs or {}).items():
                 if k in a:
                     raise StorageError(f"{p}: extra attribute {k!r} clashes with a contract attribute")
@@ -309,7 +314,7 @@ class RunWriter:
                 grp = h5.create_group(g)
                 for col, unit in units.items():
                     ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=np.float64,
-                                            chunks=(CHUNK_ROWS[g],), **filt)
+                                            chunks=(CHUNK_ROWS[g],), **(filt if g in COMPRESSED_GROUPS else {}))
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
             grp = h5.create_group("steps")
