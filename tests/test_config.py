@@ -1,0 +1,52 @@
+"""Configuration validation: every error names the field and what is allowed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from qmg_lab.config import ConfigError, config_fingerprint, load_config, parse_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", ["paper_campaign.toml", "clsf_adev.toml", "station.example.toml"])
+def test_shipped_configs_validate(name):
+    cfg, text = load_config(ROOT / "configs" / name)
+    assert text and cfg.device.f0_hz > 0
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("[loops]\nrate_bandwidth_hz = -1\n", "loops.rate_bandwidth_hz"),
+    ("[loops]\nrate_bandwidth_hz = 8\n", "must be below dither.frequency_hz"),
+    ("[plan]\ndwell_s = 5\nsettle_s = 10\n", "plan.settle_s"),
+    ("[plan]\nbogus = 1\n", "plan.bogus: unknown key"),
+    ("[nosuchsection]\n", "nosuchsection: unknown key"),
+    ("[clsf]\nmode = 'sometimes'\n", "clsf.mode"),
+    ("[lockin]\ndevice = 'hf2'\n", "lockin.device"),
+    ("[lockin]\nrate_auxin = 1\ndither_auxin = 1\n", "must be different AuxIn"),
+    ("[chamber]\nmin_c = 50\nmax_c = 40\n", "chamber.min_c"),
+    ("[device]\nf0_hz = 'fast'\n", "device.f0_hz"),
+    ("[table\n", "not valid TOML"),
+])
+def test_bad_values_name_the_field(text, fragment):
+    with pytest.raises(ConfigError) as err:
+        parse_config(text, "x.toml")
+    assert fragment in str(err.value)
+    assert "x.toml" in str(err.value)
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_with_all_sim_sets_every_instrument():
+    cfg = parse_config("").with_all_sim()
+    assert cfg.all_sim and cfg.lockin.sim and cfg.table.sim
+
+
+def test_fingerprint_changes_with_text():
+    assert config_fingerprint("a") != config_fingerprint("b")
+    assert len(config_fingerprint("a")) == 64
