@@ -4,6 +4,7 @@ Protocol (reference/instruments.md, DS345 section): 4-letter mnemonics, an optio
 message ends with LF. The driver sends one setting per message and follows every setting with `*ESR?`:
 
     set_square(7, 0.6)  ->  "FUNC 1\\n" "*ESR?\\n" "FREQ 7\\n" "*ESR?\\n" "AMPL 0.6VP\\n" "*ESR?\\n" "OFFS 0\\n" "*ESR?\\n"
+    (preceded by one "OFFS?\\n" query while the driver does not yet know the offset, see below)
 
 so a rejected setting is tied to the one command that caused it. Standard event register bits checked:
 bit 2 (4) query error, bit 4 (16) execution/range error, bit 5 (32) command error; any of them raises
@@ -44,10 +45,14 @@ Vpp = k Vrms with k = 2 sqrt(2) (sine), 2 (square), 2 sqrt(3) (triangle, ramp); 
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
+
+from pyvisa.constants import StatusCode
+from pyvisa.errors import VisaIOError
 
 from qmg_lab.instruments import FunctionGenerator, InstrumentError, LimitError, check_limit
 
@@ -153,7 +158,7 @@ class DS345(FunctionGenerator):
 
     def __init__(self, resource: VisaLikeResource, max_amplitude_vpp: float = AMPL_MAX_VPP,
                  reopen: Callable[[], VisaLikeResource] | None = None) -> None:
-        if not (isinstance(max_amplitude_vpp, (int, float)) and math.isfinite(max_amplitude_vpp)
+        if not (isinstance(max_amplitude_vpp, numbers.Real) and math.isfinite(max_amplitude_vpp)
                 and AMPL_MIN_VPP <= max_amplitude_vpp <= AMPL_MAX_VPP):
             raise ValueError(f"max_amplitude_vpp = {max_amplitude_vpp!r} must lie in "
                              f"[{AMPL_MIN_VPP}, {AMPL_MAX_VPP}] Vpp (the DS345's range into 50 ohm)")
@@ -190,8 +195,14 @@ class DS345(FunctionGenerator):
             reply = self.resource.query(command)
         except InstrumentError:
             raise
-        except Exception as exc:
-            raise InstrumentError(f"DS345: no reply to {command!r} ({type(exc).__name__}: {exc})") from exc
+        except UnicodeDecodeError as exc:  # pyvisa decodes replies as ASCII
+            raise InstrumentError(f"DS345: garbled reply to {command!r}: {exc.object!r} (not ASCII)") from exc
+        except VisaIOError as exc:
+            if exc.error_code == StatusCode.error_timeout:
+                raise InstrumentError(f"DS345: no reply to {command!r} within the timeout") from exc
+            raise InstrumentError(f"DS345: I/O error on {command!r}: {exc}") from exc
+        except Exception as exc:  # OSError, serial errors, closed sessions: all are link faults
+            raise InstrumentError(f"DS345: I/O error on {command!r} ({type(exc).__name__}: {exc})") from exc
         if not isinstance(reply, str):
             raise InstrumentError(f"DS345: reply to {command!r} is not text: {reply!r}")
         return reply.strip()
@@ -312,15 +323,17 @@ class DS345(FunctionGenerator):
 
     def set_phase(self, phase_deg: float) -> None:
         """PHSE x (0 <= x <= 7199.999 deg, 0.001 deg resolution) then *ESR?."""
-        phase = round(float(phase_deg), PHSE_DECIMALS) if math.isfinite(phase_deg) else phase_deg
-        check_limit("phase", phase, 0.0, 7199.999, "deg")
+        if not isinstance(phase_deg, numbers.Real) or not math.isfinite(phase_deg):
+            raise LimitError(f"DS345 phase = {phase_deg!r} is not a finite number")
+        phase = round(float(phase_deg), PHSE_DECIMALS)
+        check_limit("DS345 phase", phase, 0.0, 7199.999, "deg")
         self._command(f"PHSE {format_number(phase, PHSE_DECIMALS)}")
 
     # ---------------------------------------------------------------- internals
     def _checked(self, function: int, frequency_hz: float, amplitude_vpp: float, offset_v: float) -> Waveform:
         """Round to the wire resolution, then check every limit (LimitError names the first one violated)."""
         for name, value in (("frequency", frequency_hz), ("amplitude", amplitude_vpp), ("offset", offset_v)):
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
+            if not isinstance(value, numbers.Real) or not math.isfinite(value):
                 raise LimitError(f"DS345 {name} = {value!r} is not a finite number")
         freq = round(float(frequency_hz), FREQ_DECIMALS)
         ampl = round(float(amplitude_vpp), AMPL_DECIMALS)

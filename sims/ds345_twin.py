@@ -388,7 +388,8 @@ class VisaTwinResource:
     (removed); with an empty read_termination, one whole reply message. No reply, or a reply that never
     reaches the terminator, raises pyvisa's VisaIOError(VI_ERROR_TMO) at once: the clock is virtual, the
     timeout (ms) is only recorded. A partial reply stays in the receive buffer, as on a real link, until
-    clear(). A closed resource raises pyvisa's InvalidSession.
+    clear(). A reply that is not ASCII raises UnicodeDecodeError, as pyvisa's read does. A closed resource
+    raises pyvisa's InvalidSession.
     """
 
     def __init__(self, twin: DS345Twin, resource_name: str = "GPIB0::19::INSTR") -> None:
@@ -417,12 +418,12 @@ class VisaTwinResource:
             if term and term in self._rx:
                 head, _, rest = bytes(self._rx).partition(term)
                 self._rx = bytearray(rest)
-                return head.decode("ascii", errors="replace")
+                return head.decode("ascii")  # like pyvisa: non-ASCII raises UnicodeDecodeError
             message = self.twin.read_message()
             if message is None:
                 raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
             if not term:
-                return message.decode("ascii", errors="replace")
+                return message.decode("ascii")
             self._rx.extend(message)
 
     def query(self, message: str) -> str:

@@ -80,7 +80,7 @@ class ProtocolResource:
         if reply is TIMEOUT:
             raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
         assert isinstance(reply, bytes)
-        text = reply.decode("ascii", errors="replace")
+        text = reply.decode("ascii")  # like pyvisa: a non-ASCII reply raises UnicodeDecodeError
         if self.read_termination and text.endswith(self.read_termination):
             text = text[: -len(self.read_termination)]
         return text

@@ -88,6 +88,21 @@ def test_garbled_esr_reply(command: bytes, reply: bytes) -> None:
     assert "*ESR?" in str(err.value) and repr(reply) in str(err.value)
 
 
+def test_non_ascii_reply_is_garbled() -> None:
+    with expected_protocol([(b"AMPL 0VP", None), (b"*ESR?", b"0\x85")]) as res, \
+            pytest.raises(InstrumentError, match=r"garbled reply to '\*ESR\?': b'0\\x85'"):
+        DS345(res).mute()
+
+
+def test_phase_limits() -> None:
+    with expected_protocol([(b"PHSE 7199.999", None), OK]) as res:
+        gen = DS345(res)
+        gen.set_phase(7199.999)
+        for bad in (-0.1, 7200.0, float("nan")):
+            with pytest.raises(LimitError, match="phase"):
+                gen.set_phase(bad)
+
+
 def test_timeout_becomes_instrument_error() -> None:
     with expected_protocol([(b"AMPL 0VP", None), (b"*ESR?", TIMEOUT)]) as res, \
             pytest.raises(InstrumentError, match=r"no reply to '\*ESR\?'"):
