@@ -50,3 +50,10 @@ def test_with_all_sim_sets_every_instrument():
 def test_fingerprint_changes_with_text():
     assert config_fingerprint("a") != config_fingerprint("b")
     assert len(config_fingerprint("a")) == 64
+
+
+def test_configuration_reference_matches_the_schema():
+    from qmg_lab.config import reference_markdown
+
+    doc = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
+    assert doc == reference_markdown(), "regenerate: python -m qmg_lab.config > docs/configuration.md"
