@@ -51,8 +51,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from pyvisa.constants import StatusCode
+from pyvisa.constants import Parity, StatusCode, StopBits
 from pyvisa.errors import VisaIOError
+from pyvisa.resources import SerialInstrument
 
 from qmg_lab.instruments import FunctionGenerator, InstrumentError, LimitError, check_limit
 
@@ -153,7 +154,8 @@ class DS345(FunctionGenerator):
     resource: anything with write/read/query/close/timeout (pyvisa MessageBasedResource or the twin's).
     max_amplitude_vpp: the bench's amplitude limit (<= 10 Vpp, the DS345's own maximum into 50 ohm).
     reopen: a callable returning a freshly opened resource, used by `reconnect` (None: cannot reconnect).
-    The constructor only sets the resource's terminations (LF both ways); it sends nothing.
+    The constructor only sets the resource's terminations (LF both ways) and, on a serial resource, the
+    framing (8N2); it sends nothing.
     """
 
     def __init__(self, resource: VisaLikeResource, max_amplitude_vpp: float = AMPL_MAX_VPP,
@@ -172,8 +174,14 @@ class DS345(FunctionGenerator):
 
     # ---------------------------------------------------------------- transport
     def _attach(self, resource: VisaLikeResource) -> None:
+        """LF terminations; on RS-232 also the DS345's framing: 8 data bits, no parity, 2 stop bits (the baud
+        rate, 300-19200, default 9600, is the resource's: it must match the front-panel setting)."""
         resource.write_termination = TERMINATION
         resource.read_termination = TERMINATION
+        if isinstance(resource, SerialInstrument):
+            resource.data_bits = 8
+            resource.parity = Parity.none
+            resource.stop_bits = StopBits.two
         self._resource = resource
 
     @property

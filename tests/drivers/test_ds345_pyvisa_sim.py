@@ -36,6 +36,14 @@ def test_yaml_ships_with_sims_and_lists_gpib_and_serial(rm: pyvisa.ResourceManag
     assert set(RESOURCES) <= set(rm.list_resources())
 
 
+def test_serial_framing_is_8n2(rm: pyvisa.ResourceManager) -> None:
+    resource = rm.open_resource("ASRL1::INSTR")
+    DS345(resource)
+    assert (resource.data_bits, resource.parity, resource.stop_bits) == \
+        (8, pyvisa.constants.Parity.none, pyvisa.constants.StopBits.two)
+    resource.close()
+
+
 def test_identify(generator: DS345) -> None:
     assert generator.identify().split(",")[:2] == ["StanfordResearchSystems", "DS345"]
 
