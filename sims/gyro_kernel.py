@@ -1,0 +1,408 @@
+"""Compiled (numba) step kernels of the QMG twin: the averaged slow-variable model and the carrier-level model,
+sharing one lock-in controller step (demod low-pass, PLL, AGC, rate and quadrature PIDs).
+
+Slow-variable plant (reference/physics.md section 2), per axis Z = C + iS, reference phase rate omega_r (PLL):
+
+    dZ/dt = -M Z + u,   M = Gamma + i Xi + k Omega J,   u = (-F_s + i F_c) / (2 omega_r)
+    Gamma = (1/tau) I + (Delta(1/tau)/2) [[cos 2t_t, sin 2t_t], [sin 2t_t, -cos 2t_t]]
+    Xi = (K - omega_r^2 I)/(2 omega_r),  K = omega^2 I + omega Delta_omega [[cos 2t_w, sin 2t_w], [., -cos 2t_w]]
+
+Exact zero-order-hold step (inputs held over dt): write M = sigma I + N with N traceless, so N^2 = mu^2 I
+(mu^2 = -det N). Then exp(-M dt) = e^{-sigma dt} (cosh(mu dt) I - sinh(mu dt)/mu N) and the input term is
+M^{-1}(I - exp(-M dt)) u with M^{-1} = (sigma I - N)/(sigma^2 - mu^2). cosh and sinh(x)/x are even in mu, so
+they are evaluated from mu^2 (series for |mu dt|^2 < 1e-2, complex sqrt otherwise): no matrix exponential and
+no numerical integration; omega_r (PLL), Omega (table + bias) and T may change every step.
+
+Carrier-level plant: q'' + D q' + K q + 2 k Omega J q' = f on state [x, y, x'/omega0, y'/omega0], exact ZOH
+step Phi = expm(A dt) and input matrix int_0^dt expm(A s) ds B from their Taylor series (||A dt|| ~ 2 pi / 32,
+16 terms: truncation < 1e-20). The forces f = F_c cos(phi) + F_s sin(phi) are evaluated at mid-sample phase and
+divided by sinc(omega_r dt / 2) (DAC half-sample and sinc compensation); one-cycle boxcar I/Q demodulation
+X + iY = sqrt(2) G mean(q e^{-i phi}) gives the same demod convention X + iY = G (C - iS)/sqrt(2).
+
+Controller (both models, once per demod sample of length dt_c):
+* demod low-pass: `order` first-order sections of time constant tc, exact discretization for an input that is
+  linear between samples (first-order hold): y+ = a y + (1-a) u- + (u+ - u-)(1 - tc (1-a)/dt_c), a = e^{-dt_c/tc};
+  the loop delay is one more such section with tc = loop delay (a lag with the same low-frequency phase).
+* PLL: e = atan2(Y_d, X_d)[deg] - setpoint (wrapped), f = center + p e + i int(e) dt, clamped to center +- range.
+* PIDs: e = setpoint - input, out = center + p e + i int(e) dt + d de/dt, clamped to center +- range; the
+  integrator does not integrate while the output is clamped (anti-windup); disabled: out = center, int = 0.
+  AGC input R_d = |X_d + iY_d|; rate input X_s; quadrature input Y_s.
+Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither) ; F_yc = +K_f G_f(T) V_q; ARW is a white
+force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)).
+Bias: a sum of first-order Gauss-Markov rates x_j <- a_j x_j + b_j w, updated every `gm_steps` steps and held.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# ---- parameter vector P
+P_W0, P_Q, P_DMIS, P_C2T, P_S2T, P_DW, P_C2W, P_S2W, P_K, P_ARW, P_PICK = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
+P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0 = (
+    11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22)
+N_PARAMS = 23
+
+# ---- loop vector L (sims/gyro_params.pack_loops)
+L_PLL = 0  # enabled, p, i, setpoint, center, range
+L_AGC = 6  # enabled, p, i, d, setpoint, center, range
+L_RATE = 13
+L_QUAD = 20
+L_GAIN, L_TC, L_ORDER = 27, 28, 29
+
+# ---- state vector S
+S_CX, S_SX, S_CY, S_SY = 0, 1, 2, 3
+S_FREF, S_PLLI, S_AGCI, S_RATEI, S_QUADI, S_AGCE, S_RATEE, S_QUADE = 4, 5, 6, 7, 8, 9, 10, 11
+S_VD, S_VR, S_VQ, S_GMK, S_BIAS = 12, 13, 14, 15, 16
+N_GM = 16
+S_GM = 17
+S_FILT = S_GM + N_GM  # 4 channels x (previous raw input + up to 9 sections)
+FILT_STRIDE = 10
+S_PLLE = S_FILT + 4 * FILT_STRIDE
+S_QX, S_QY, S_UX, S_UY, S_PHI = S_PLLE + 1, S_PLLE + 2, S_PLLE + 3, S_PLLE + 4, S_PLLE + 5
+N_STATE = S_PHI + 1
+
+# ---- output rows
+O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
+N_OUT = 10
+
+NOISE_PER_STEP = 6  # 2 ARW force components, 4 pickoff noises
+SQRT2 = math.sqrt(2.0)
+TWO_PI = 2.0 * math.pi
+RAD_PER_DEG = math.pi / 180.0
+
+
+@njit(cache=True, inline="always")
+def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba kernel
+    if L[off] == 0.0:
+        S[i_int] = 0.0
+        S[i_eprev] = 0.0
+        return L[off + 5]
+    p, ki, kd, sp, center, rng = L[off + 1], L[off + 2], L[off + 3], L[off + 4], L[off + 5], L[off + 6]
+    e = sp - inp
+    S[i_int] += e * dt
+    de = (e - S[i_eprev]) / dt
+    S[i_eprev] = e
+    out = center + p * e + ki * S[i_int] + kd * de
+    if out > center + rng:
+        out = center + rng
+        if ki * e > 0.0:
+            S[i_int] -= e * dt
+    elif out < center - rng:
+        out = center - rng
+        if ki * e < 0.0:
+            S[i_int] -= e * dt
+    return out
+
+
+@njit(cache=True, inline="always")
+def _control(S, L, raws, dt, a_f, c_f, order, a_d, c_d, sections):  # noqa: ANN001, ANN202
+    """Demod low-pass on the 4 raw demod values, then PLL and the three PIDs. Returns filtered values."""
+    filt = np.empty(4)
+    for ch in range(4):
+        base = S_FILT + FILT_STRIDE * ch
+        u_new = raws[ch]
+        u_old = S[base]
+        S[base] = u_new
+        for j in range(sections):
+            if j < order:
+                a, c = a_f, c_f
+            else:
+                a, c = a_d, c_d
+            y_old = S[base + 1 + j]
+            y_new = a * y_old + (1.0 - a) * u_old + (u_new - u_old) * c
+            S[base + 1 + j] = y_new
+            u_old = y_old
+            u_new = y_new
+        filt[ch] = u_new
+    # PLL on the drive phase
+    theta = math.atan2(filt[1], filt[0]) / RAD_PER_DEG
+    e = theta - L[L_PLL + 3]
+    e = e - 360.0 * math.floor((e + 180.0) / 360.0)
+    S[S_PLLE] = e
+    center, rng = L[L_PLL + 4], L[L_PLL + 5]
+    if L[L_PLL] != 0.0:
+        S[S_PLLI] += e * dt
+        f = center + L[L_PLL + 1] * e + L[L_PLL + 2] * S[S_PLLI]
+        if f > center + rng:
+            f = center + rng
+            if L[L_PLL + 2] * e > 0.0:
+                S[S_PLLI] -= e * dt
+        elif f < center - rng:
+            f = center - rng
+            if L[L_PLL + 2] * e < 0.0:
+                S[S_PLLI] -= e * dt
+    else:
+        S[S_PLLI] = 0.0
+        f = center
+    S[S_FREF] = f
+    r_d = math.sqrt(filt[0] * filt[0] + filt[1] * filt[1])
+    S[S_VD] = _pid(S, L, L_AGC, S_AGCI, S_AGCE, r_d, dt)
+    S[S_VR] = _pid(S, L, L_RATE, S_RATEI, S_RATEE, filt[2], dt)
+    S[S_VQ] = _pid(S, L, L_QUAD, S_QUADI, S_QUADE, filt[3], dt)
+    return filt
+
+
+@njit(cache=True, error_model="numpy")
+def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
+    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
+    n = temp_c.shape[0]
+    dt = P[P_DT]
+    w0, tref = P[P_W0], P[P_TREF]
+    k, a0 = P[P_K], P[P_A0]
+    sig_arw = P[P_ARW] / math.sqrt(dt)
+    sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
+    tc = L[L_TC]
+    order = int(L[L_ORDER])
+    a_f = math.exp(-dt / tc)
+    c_f = 1.0 - tc * (1.0 - a_f) / dt
+    delay = P[P_DELAY]
+    sections = order
+    a_d, c_d = 0.0, 1.0
+    if delay > 0.0:
+        sections = order + 1
+        a_d = math.exp(-dt / delay)
+        c_d = 1.0 - delay * (1.0 - a_d) / dt
+    gain = L[L_GAIN]
+    gm_steps = P[P_GMSTEPS]
+    n_gm = gm_a.shape[0]
+    gi = 0
+    raws = np.empty(4)
+    dw, c2w, s2w = P[P_DW], P[P_C2W], P[P_S2W]
+    c2t, s2t = P[P_C2T], P[P_S2T]
+    for i in range(n):
+        # bias: Gauss-Markov sum, updated every gm_steps steps and held
+        S[S_GMK] += 1.0
+        if S[S_GMK] >= gm_steps:
+            S[S_GMK] = 0.0
+            b = 0.0
+            for j in range(n_gm):
+                x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
+                S[S_GM + j] = x
+                b += x
+            S[S_BIAS] = b
+            gi += 1
+        dtemp = temp_c[i] - tref
+        w = w0 * (1.0 + P[P_AW] * dtemp)
+        inv_tau = w / (2.0 * P[P_Q])
+        g = 0.5 * P[P_DMIS] * inv_tau
+        wr = TWO_PI * S[S_FREF]
+        h = w * dw / (2.0 * wr)
+        delta = (w * w - wr * wr) / (2.0 * wr)
+        k_om = k * (rate_dps[i] * RAD_PER_DEG + S[S_BIAS])
+        n11 = complex(g * c2t, h * c2w)
+        n12 = complex(g * s2t - k_om, h * s2w)
+        n21 = complex(g * s2t + k_om, h * s2w)
+        mu2 = n11 * n11 + n12 * n21
+        x2 = mu2 * (dt * dt)
+        if abs(x2) < 1e-2:
+            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 / 40320.0)))
+            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 / 362880.0))))
+        else:
+            mu = np.sqrt(mu2)
+            ch = np.cosh(mu * dt)
+            sh = np.sinh(mu * dt) / mu
+        sig = complex(inv_tau, delta)
+        ex = np.exp(-sig * dt)
+        p11 = ex * (ch - sh * n11)
+        p12 = -ex * sh * n12
+        p21 = -ex * sh * n21
+        p22 = ex * (ch + sh * n11)
+        # inputs held over the step
+        g_f = 1.0 + P[P_AF] * dtemp
+        ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
+        kf = P[P_KF] * g_f / (2.0 * wr)
+        arw = k * a0 * (w0 / wr) * sig_arw
+        uy = complex(kf * gain * (S[S_VR] + dither_v[i]) - arw * noise[i, 0],
+                     kf * S[S_VQ] - arw * noise[i, 1])
+        # input term M^-1 (I - Phi) u
+        v1 = (1.0 - p11) * ux - p12 * uy
+        v2 = -p21 * ux + (1.0 - p22) * uy
+        den = sig * sig - mu2
+        zx_in = ((sig - n11) * v1 - n12 * v2) / den
+        zy_in = (-n21 * v1 + (sig + n11) * v2) / den
+        zx = complex(S[S_CX], S[S_SX])
+        zy = complex(S[S_CY], S[S_SY])
+        zx_new = p11 * zx + p12 * zy + zx_in
+        zy_new = p21 * zx + p22 * zy + zy_in
+        S[S_CX], S[S_SX] = zx_new.real, zx_new.imag
+        S[S_CY], S[S_SY] = zy_new.real, zy_new.imag
+        g_py = 1.0 + P[P_AP] * dtemp
+        raws[0] = zx_new.real / SQRT2 + sig_pick * noise[i, 2]
+        raws[1] = -zx_new.imag / SQRT2 + sig_pick * noise[i, 3]
+        raws[2] = g_py * zy_new.real / SQRT2 + sig_pick * noise[i, 4]
+        raws[3] = -g_py * zy_new.imag / SQRT2 + sig_pick * noise[i, 5]
+        filt = _control(S, L, raws, dt, a_f, c_f, order, a_d, c_d, sections)
+        out[O_XD, i] = filt[0]
+        out[O_YD, i] = filt[1]
+        out[O_XS, i] = filt[2]
+        out[O_YS, i] = filt[3]
+        out[O_F, i] = S[S_FREF]
+        out[O_VD, i] = S[S_VD]
+        out[O_VR, i] = S[S_VR]
+        out[O_VQ, i] = S[S_VQ]
+        out[O_PLLE, i] = S[S_PLLE]
+        if L[L_AGC] != 0.0:
+            amp = SQRT2 * L[L_AGC + 4]
+        else:
+            amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
+        w_x = math.sqrt(w * w + w * dw * c2w)
+        out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
+    return gi
+
+
+@njit(cache=True, error_model="numpy")
+def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
+    """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT]."""
+    n = temp_c.shape[0]
+    dt = P[P_DT]
+    dtc = dt * m_per
+    w0, tref = P[P_W0], P[P_TREF]
+    k, a0 = P[P_K], P[P_A0]
+    sig_arw = P[P_ARW] / math.sqrt(dtc)
+    sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
+    tc = L[L_TC]
+    order = int(L[L_ORDER])
+    a_f = math.exp(-dtc / tc)
+    c_f = 1.0 - tc * (1.0 - a_f) / dtc
+    delay = P[P_DELAY]
+    sections = order
+    a_d, c_d = 0.0, 1.0
+    if delay > 0.0:
+        sections = order + 1
+        a_d = math.exp(-dtc / delay)
+        c_d = 1.0 - delay * (1.0 - a_d) / dtc
+    gain = L[L_GAIN]
+    gm_steps = P[P_GMSTEPS]
+    n_gm = gm_a.shape[0]
+    gi = 0
+    raws = np.empty(4)
+    dw, c2w, s2w = P[P_DW], P[P_C2W], P[P_S2W]
+    c2t, s2t = P[P_C2T], P[P_S2T]
+    A = np.zeros((4, 4))
+    term = np.empty((4, 4))
+    tmp = np.empty((4, 4))
+    phi_m = np.empty((4, 4))
+    psi = np.empty((4, 4))
+    q = np.empty(4)
+    qn = np.empty(4)
+    for i in range(n):
+        S[S_GMK] += 1.0
+        if S[S_GMK] >= gm_steps:
+            S[S_GMK] = 0.0
+            b = 0.0
+            for j in range(n_gm):
+                x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
+                S[S_GM + j] = x
+                b += x
+            S[S_BIAS] = b
+            gi += 1
+        dtemp = temp_c[i] - tref
+        w = w0 * (1.0 + P[P_AW] * dtemp)
+        inv_tau = w / (2.0 * P[P_Q])
+        dd = P[P_DMIS] * inv_tau
+        om = rate_dps[i] * RAD_PER_DEG + S[S_BIAS]
+        # A on [x, y, x'/w0, y'/w0]
+        kxx = w * w + w * dw * c2w
+        kyy = w * w - w * dw * c2w
+        kxy = w * dw * s2w
+        A[0, 2] = w0
+        A[1, 3] = w0
+        A[2, 0] = -kxx / w0
+        A[2, 1] = -kxy / w0
+        A[3, 0] = -kxy / w0
+        A[3, 1] = -kyy / w0
+        A[2, 2] = -(2.0 * inv_tau + dd * c2t)
+        A[2, 3] = -(dd * s2t - 2.0 * k * om)
+        A[3, 2] = -(dd * s2t + 2.0 * k * om)
+        A[3, 3] = -(2.0 * inv_tau - dd * c2t)
+        # Taylor series of expm(A dt) and int_0^dt expm(A s) ds
+        for r in range(4):
+            for c in range(4):
+                e = 1.0 if r == c else 0.0
+                term[r, c] = e
+                phi_m[r, c] = e
+                psi[r, c] = e * dt
+        for nn in range(1, 17):
+            for r in range(4):
+                for c in range(4):
+                    acc = 0.0
+                    for m in range(4):
+                        acc += term[r, m] * A[m, c]
+                    tmp[r, c] = acc * dt / nn
+            for r in range(4):
+                for c in range(4):
+                    term[r, c] = tmp[r, c]
+                    phi_m[r, c] += tmp[r, c]
+                    psi[r, c] += tmp[r, c] * dt / (nn + 1)
+        # forces (held over the demod sample), sinc-compensated, modulated at mid-sample phase
+        wr = TWO_PI * S[S_FREF]
+        g_f = 1.0 + P[P_AF] * dtemp
+        g_py = 1.0 + P[P_AP] * dtemp
+        fn = 2.0 * w0 * k * a0 * sig_arw
+        fxs = -P[P_KD] * S[S_VD]
+        fys = -P[P_KF] * g_f * gain * (S[S_VR] + dither_v[i]) + fn * noise[i, 0]
+        fyc = P[P_KF] * g_f * S[S_VQ] - fn * noise[i, 1]
+        half = 0.5 * wr * dt
+        inv_sinc = half / math.sin(half)
+        fxs *= inv_sinc / w0
+        fys *= inv_sinc / w0
+        fyc *= inv_sinc / w0
+        cr, sr = math.cos(wr * dt), math.sin(wr * dt)
+        phi0 = S[S_PHI]
+        cm, sm = math.cos(phi0 + half), math.sin(phi0 + half)
+        ce, se = math.cos(phi0 + 2.0 * half), math.sin(phi0 + 2.0 * half)
+        q[0], q[1], q[2], q[3] = S[S_QX], S[S_QY], S[S_UX], S[S_UY]
+        sxc = 0.0
+        sxs = 0.0
+        syc = 0.0
+        sys_ = 0.0
+        for j in range(m_per):
+            fx = fxs * sm
+            fy = fyc * cm + fys * sm
+            for r in range(4):
+                qn[r] = (phi_m[r, 0] * q[0] + phi_m[r, 1] * q[1] + phi_m[r, 2] * q[2] + phi_m[r, 3] * q[3]
+                         + psi[r, 2] * fx + psi[r, 3] * fy)
+            for r in range(4):
+                q[r] = qn[r]
+            sxc += q[0] * ce
+            sxs += q[0] * se
+            syc += q[1] * ce
+            sys_ += q[1] * se
+            t1 = cm * cr - sm * sr
+            sm = sm * cr + cm * sr
+            cm = t1
+            t2 = ce * cr - se * sr
+            se = se * cr + ce * sr
+            ce = t2
+        S[S_QX], S[S_QY], S[S_UX], S[S_UY] = q[0], q[1], q[2], q[3]
+        ph = phi0 + m_per * wr * dt
+        S[S_PHI] = ph - TWO_PI * math.floor(ph / TWO_PI)
+        scale = SQRT2 / m_per  # demod: X + iY = sqrt(2) mean(q e^{-i phi}); C + iS = 2 mean(q e^{+i phi})
+        S[S_CX] = 2.0 * sxc / m_per
+        S[S_SX] = 2.0 * sxs / m_per
+        S[S_CY] = 2.0 * syc / m_per
+        S[S_SY] = 2.0 * sys_ / m_per
+        raws[0] = scale * sxc + sig_pick * noise[i, 2]
+        raws[1] = -scale * sxs + sig_pick * noise[i, 3]
+        raws[2] = g_py * scale * syc + sig_pick * noise[i, 4]
+        raws[3] = -g_py * scale * sys_ + sig_pick * noise[i, 5]
+        filt = _control(S, L, raws, dtc, a_f, c_f, order, a_d, c_d, sections)
+        out[O_XD, i] = filt[0]
+        out[O_YD, i] = filt[1]
+        out[O_XS, i] = filt[2]
+        out[O_YS, i] = filt[3]
+        out[O_F, i] = S[S_FREF]
+        out[O_VD, i] = S[S_VD]
+        out[O_VR, i] = S[S_VR]
+        out[O_VQ, i] = S[S_VQ]
+        out[O_PLLE, i] = S[S_PLLE]
+        if L[L_AGC] != 0.0:
+            amp = SQRT2 * L[L_AGC + 4]
+        else:
+            amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
+        w_x = math.sqrt(kxx)
+        out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
+    return gi

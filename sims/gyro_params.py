@@ -1,0 +1,232 @@
+"""Parameters, loop settings and output block of the QMG physics twin (the GyroSim contract types).
+
+Units are in the names. Defaults are the paper's QMG (reference/paper-trusov-2013.md, reference/physics.md
+section 1); the names mirror qmg_lab/config.py SimSection so a config section can be passed to
+`GyroParams.from_mapping`.
+
+Derived constants (`Derived`), with omega0 = 2 pi f0, tau = 2Q/omega (amplitude decay time of the slow
+variables, physics.md section 2), a0 = sqrt(2) drive_amplitude_vrms (G_px = 1 V/unit at T_ref):
+
+    K_dx = 2 omega0 a0 / (tau0 V_d0)            drive force per drive volt (F_xs = -K_dx V_d)
+    K_f  = 2 omega0 k a0 / SF_rad               forcer force per volt, SF_rad = sf_true_v_per_dps * 180/pi
+    SF_true(T, g) = sf_true (omega_x/omega0)(a/a0) / (G_f(T) g)     V per deg/s
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+DEG_PER_RAD = 180.0 / math.pi
+RAD_PER_DEG = math.pi / 180.0
+
+
+@dataclass
+class GyroParams:
+    """Physical parameters of the simulated QMG (defaults: the paper's device)."""
+
+    f0_hz: float = 2200.0
+    q_factor: float = 1.2e6
+    damping_mismatch: float = 0.01  # Delta(1/tau) / (1/tau)
+    damping_axis_deg: float = 5.0
+    freq_mismatch_hz: float = 0.0
+    stiffness_axis_deg: float = 0.0
+    angular_gain: float = 0.8
+    arw_dps_per_rt_hz: float | None = None  # if None: arw_deg_per_rt_h / 60
+    arw_deg_per_rt_h: float = 0.02
+    bias_instability_deg_per_h: float = 0.2  # IEEE 952 B: overlapping-ADEV floor / 0.664
+    pickoff_noise_vrms_per_rt_hz: float = 1e-7
+    forcer_tempco_ppm_per_c: float = -1000.0
+    frequency_tempco_ppm_per_c: float = -30.0
+    pickoff_ratio_tempco_ppm_per_c: float = 60.0
+    reference_temperature_c: float = 25.0
+    loop_delay_us: float = 0.0
+    drive_voltage_v: float = 0.05  # sustains drive_amplitude_vrms at T_ref
+    sf_true_v_per_dps: float = 0.06  # true FTR SF at T_ref, drive_amplitude_vrms, forcer gain 1
+    drive_amplitude_vrms: float = 0.5  # the drive amplitude at which sf_true applies
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @classmethod
+    def from_mapping(cls, d: Mapping[str, Any]) -> GyroParams:
+        """Build from a mapping (e.g. SimSection.model_dump()); keys this class does not know are ignored."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first parameter that cannot be simulated."""
+        positive = ("f0_hz", "q_factor", "angular_gain", "drive_voltage_v", "sf_true_v_per_dps",
+                    "drive_amplitude_vrms")
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"GyroParams.{name} must be a finite number > 0, got {v!r}")
+        non_negative = ("arw_deg_per_rt_h", "bias_instability_deg_per_h", "pickoff_noise_vrms_per_rt_hz",
+                        "loop_delay_us", "freq_mismatch_hz")
+        for name in non_negative:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"GyroParams.{name} must be a finite number >= 0, got {v!r}")
+        if self.arw_dps_per_rt_hz is not None and not (math.isfinite(self.arw_dps_per_rt_hz)
+                                                       and self.arw_dps_per_rt_hz >= 0):
+            raise ValueError(f"GyroParams.arw_dps_per_rt_hz must be None or >= 0, got {self.arw_dps_per_rt_hz!r}")
+        if not 0.0 <= self.damping_mismatch < 1.0:
+            raise ValueError(f"GyroParams.damping_mismatch must lie in [0, 1), got {self.damping_mismatch!r}")
+        for name in ("damping_axis_deg", "stiffness_axis_deg", "forcer_tempco_ppm_per_c",
+                     "frequency_tempco_ppm_per_c", "pickoff_ratio_tempco_ppm_per_c", "reference_temperature_c"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise ValueError(f"GyroParams.{name} must be a finite number, got {v!r}")
+        if self.freq_mismatch_hz >= 0.1 * self.f0_hz:
+            raise ValueError("GyroParams.freq_mismatch_hz must be well below f0_hz (averaged model)")
+
+    @property
+    def arw_rad_per_rt_s(self) -> float:
+        """ARW N in rad/s/sqrt(Hz): per-sample rate sigma is N/sqrt(dt); ADEV(tau) = N/sqrt(tau)."""
+        n_dps = self.arw_dps_per_rt_hz if self.arw_dps_per_rt_hz is not None else self.arw_deg_per_rt_h / 60.0
+        return n_dps * RAD_PER_DEG
+
+    @property
+    def omega0_rad_s(self) -> float:
+        return 2.0 * math.pi * self.f0_hz
+
+    @property
+    def tau_s(self) -> float:
+        """tau = 2Q/omega0 at T_ref (173.6 s for the paper's device)."""
+        return 2.0 * self.q_factor / self.omega0_rad_s
+
+    @property
+    def a0(self) -> float:
+        """Nominal drive displacement amplitude, pickoff units (G_px = 1 V/unit): sqrt(2) R_d0."""
+        return math.sqrt(2.0) * self.drive_amplitude_vrms
+
+    @property
+    def k_drive(self) -> float:
+        """K_dx = 2 omega0 a0 / (tau0 V_d0): V_d0 sustains a0 at T_ref."""
+        return 2.0 * self.omega0_rad_s * self.a0 / (self.tau_s * self.drive_voltage_v)
+
+    @property
+    def k_forcer(self) -> float:
+        """K_f = 2 omega0 k a0 / SF_rad (SF in V per rad/s)."""
+        return 2.0 * self.omega0_rad_s * self.angular_gain * self.a0 / (self.sf_true_v_per_dps * DEG_PER_RAD)
+
+    def omega_rad_s(self, temperature_c: float) -> float:
+        """Mean resonance omega(T) = omega0 (1 + alpha_w (T - T_ref))."""
+        return self.omega0_rad_s * (1.0 + self.frequency_tempco_ppm_per_c * 1e-6
+                                    * (temperature_c - self.reference_temperature_c))
+
+    def omega_x_rad_s(self, temperature_c: float) -> float:
+        """Drive-mode resonance sqrt(K_xx) = sqrt(omega^2 + omega Delta_omega cos 2 theta_omega)."""
+        w = self.omega_rad_s(temperature_c)
+        dw = 2.0 * math.pi * self.freq_mismatch_hz
+        return math.sqrt(w * w + w * dw * math.cos(2.0 * self.stiffness_axis_deg * RAD_PER_DEG))
+
+    def forcer_gain_factor(self, temperature_c: float) -> float:
+        """G_f(T) = 1 + alpha_f (T - T_ref)."""
+        return 1.0 + self.forcer_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
+
+    def sense_pickoff_gain(self, temperature_c: float) -> float:
+        """G_py(T) = 1 + alpha_p (T - T_ref) (G_px = 1)."""
+        return 1.0 + self.pickoff_ratio_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
+
+    def true_scale_factor(self, temperature_c: float, forcer_gain: float = 1.0,
+                          drive_amplitude_vrms: float | None = None) -> float:
+        """SF_true(T) = sf_true (omega_x/omega0) (a/a0) / (G_f(T) g), V per deg/s; a = sqrt2 R_sp / G_px."""
+        r = self.drive_amplitude_vrms if drive_amplitude_vrms is None else drive_amplitude_vrms
+        return (self.sf_true_v_per_dps * self.omega_x_rad_s(temperature_c) / self.omega0_rad_s
+                * (r / self.drive_amplitude_vrms) / (self.forcer_gain_factor(temperature_c) * forcer_gain))
+
+
+@dataclass
+class PidSettings:
+    """One HF2 PID in lock-in units: e = setpoint - input; out = center + p e + i int(e) dt + d de/dt,
+    clamped to center +- range (integration stops while clamped); when disabled out = center."""
+
+    enabled: bool = False
+    p: float = 0.0
+    i: float = 0.0
+    d: float = 0.0
+    setpoint: float = 0.0
+    center: float = 0.0
+    range: float = 10.0
+
+
+@dataclass
+class PllSettings:
+    """HF2 PLL: e = phase - setpoint (deg); f = center + p e + i int(e) dt, clamped to center +- range (Hz)."""
+
+    enabled: bool = False
+    p: float = 0.0
+    i: float = 0.0
+    setpoint_deg: float = 0.0
+    center_hz: float = 2200.0
+    range_hz: float = 22.0
+
+
+@dataclass
+class LoopSettings:
+    """Everything the lock-in closes around the gyro, as the physics sees it."""
+
+    pll: PllSettings = field(default_factory=PllSettings)
+    agc: PidSettings = field(default_factory=PidSettings)
+    rate: PidSettings = field(default_factory=PidSettings)
+    quadrature: PidSettings = field(default_factory=PidSettings)
+    forcer_gain: float = 1.0  # forcer-path gain (HF2 forcer carrier amplitude / nominal)
+    demod_timeconstant_s: float = 1e-4
+    demod_order: int = 1
+
+
+MAX_DEMOD_ORDER = 8
+
+
+def pack_loops(loops: LoopSettings) -> np.ndarray:
+    """LoopSettings as the float64 vector the kernels read (layout: sims/gyro_kernel.py L_* indices)."""
+    if not 1 <= int(loops.demod_order) <= MAX_DEMOD_ORDER:
+        raise ValueError(f"LoopSettings.demod_order must be 1..{MAX_DEMOD_ORDER}, got {loops.demod_order!r}")
+    if not (math.isfinite(loops.demod_timeconstant_s) and loops.demod_timeconstant_s > 0):
+        raise ValueError(f"LoopSettings.demod_timeconstant_s must be > 0, got {loops.demod_timeconstant_s!r}")
+    if not math.isfinite(loops.forcer_gain):
+        raise ValueError(f"LoopSettings.forcer_gain must be finite, got {loops.forcer_gain!r}")
+    pl = loops.pll
+    vals = [float(pl.enabled), pl.p, pl.i, pl.setpoint_deg, pl.center_hz, pl.range_hz]
+    for name in ("agc", "rate", "quadrature"):
+        s: PidSettings = getattr(loops, name)
+        vals += [float(s.enabled), s.p, s.i, s.d, s.setpoint, s.center, s.range]
+    vals += [loops.forcer_gain, loops.demod_timeconstant_s, float(int(loops.demod_order))]
+    arr = np.array(vals, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("LoopSettings contain a non-finite number")
+    if pl.range_hz < 0 or any(getattr(loops, n).range < 0 for n in ("agc", "rate", "quadrature")):
+        raise ValueError("LoopSettings: PID/PLL ranges must be >= 0")
+    return arr
+
+
+@dataclass
+class GyroBlock:
+    """One block of simulated demod samples; every array has one entry per step, the value at the END of
+    the step (what a demod sample reports). Demod outputs in Vrms: X + iY = G (C - iS)/sqrt(2)."""
+
+    x_drive: np.ndarray
+    y_drive: np.ndarray
+    x_sense: np.ndarray
+    y_sense: np.ndarray
+    frequency_hz: np.ndarray  # PLL oscillator frequency
+    drive_output_v: np.ndarray  # AGC PID output
+    rate_output_v: np.ndarray  # rate PID output: the FTR rebalance command f_y
+    quadrature_output_v: np.ndarray
+    pll_error_deg: np.ndarray
+    sf_true_v_per_dps: np.ndarray  # the instantaneous true FTR scale factor
+    rate_true_dps: np.ndarray  # the true input rate (table, without gyro bias)
+    pll_locked: bool  # PLL enabled and |pll_error| < PLL_LOCK_DEG over the whole block
+
+    def __len__(self) -> int:
+        return int(self.x_drive.shape[0])
+
+
+PLL_LOCK_DEG = 5.0
