@@ -139,13 +139,13 @@ class HF2LI(LockIn):
     def reconnect(self) -> None:
         """New session to the same server (same connection object for the twin), re-identify, re-apply the
         last configuration and forcer gain."""
-        was_streaming = self._streaming
+        was_streaming, gain = self._streaming, self._forcer_gain
         self._streaming = False
         self._session = self._open_session()
         self._attach()
         if self._setup is not None:
             self.configure(self._setup)
-            self.set_forcer_gain(self._forcer_gain)
+            self.set_forcer_gain(gain)
         if was_streaming:
             self.start_stream()
 

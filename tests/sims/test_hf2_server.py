@@ -1,0 +1,184 @@
+"""The HF2 data-server twin at its connection boundary (the ziDAQServer API level 1 that toolkit uses).
+
+Expected values come from the HF2 node documentation (zhinst-toolkit's nodedoc_hf2.json), the HF2 manual's
+instance counts, and the twin's documented protocol (sims/hf2_server.py module docstring).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sims.gyro import GyroParams
+from sims.hf2_server import HF2DataServerTwin, HF2Wiring, NodeError
+from sims.world import DITHER_SQUARE, World
+
+DEV = "/dev1234"
+
+
+def make_twin(**wiring: int) -> tuple[World, HF2DataServerTwin]:
+    world = World()
+    twin = HF2DataServerTwin(world, GyroParams(), seed=3, wiring=HF2Wiring(**wiring))
+    twin.connectDevice("dev1234", "USB")
+    return world, twin
+
+
+def stream_demods(twin: HF2DataServerTwin, rate_hz: float = 1400.0) -> None:
+    twin.set([(f"{DEV}/demods/0/rate", rate_hz), (f"{DEV}/demods/1/rate", rate_hz), (f"{DEV}/demods/1/adcselect", 1),
+              (f"{DEV}/demods/0/enable", 1), (f"{DEV}/demods/1/enable", 1)])
+    twin.subscribe([f"{DEV}/demods/0/sample", f"{DEV}/demods/1/sample"])
+
+
+# ------------------------------------------------------------------ identity and node tree
+
+
+def test_identifies_as_hf2_data_server_and_hf2li() -> None:
+    _, twin = make_twin()
+    assert twin.getString("/zi/about/dataserver") == "HF2DataServer"
+    assert twin.getString(f"{DEV}/features/devtype") == "HF2LI"
+    assert set(twin.getString(f"{DEV}/features/options").split("\n")) == {"MF", "PLL", "PID"}
+    assert twin.getInt(f"{DEV}/clockbase") == 210_000_000
+    assert twin.api_level == 1 and twin.port == 8005
+
+
+def test_list_nodes_has_the_hf2li_instances() -> None:
+    _, twin = make_twin()
+    nodes = twin.listNodes(f"{DEV}/*", recursive=True, leavesonly=True)
+    assert all(n == n.upper() for n in nodes)
+    samples = sorted(n for n in nodes if n.endswith("/SAMPLE") and "/DEMODS/" in n)
+    assert samples == [f"/DEV1234/DEMODS/{d}/SAMPLE" for d in range(6)]
+    assert sorted({n.split("/")[3] for n in nodes if "/PIDS/" in n}) == ["0", "1", "2", "3"]
+    assert sorted({n.split("/")[3] for n in nodes if "/PLLS/" in n}) == ["0", "1"]
+    assert sum(1 for n in nodes if "/SIGOUTS/0/AMPLITUDES/" in n) == 8
+    assert f"{DEV.upper()}/AUXINS/0/VALUES/1" in nodes
+
+
+def test_list_nodes_json_is_not_available_like_hf2() -> None:
+    _, twin = make_twin()
+    with pytest.raises(RuntimeError, match="listNodesJSON"):
+        twin.listNodesJSON(f"{DEV}/*")
+
+
+def test_unknown_device_and_node_are_refused() -> None:
+    _, twin = make_twin()
+    with pytest.raises(RuntimeError, match="not found"):
+        twin.connectDevice("dev9", "USB")
+    with pytest.raises(RuntimeError, match="ZIAPINotFoundException"):
+        twin.getDouble(f"{DEV}/demods/9/rate")
+    with pytest.raises(RuntimeError, match="ZIAPINotFoundException"):
+        twin.set(f"{DEV}/nosuch/node", 1)
+
+
+def test_read_only_and_enumerated_nodes_are_enforced() -> None:
+    _, twin = make_twin()
+    with pytest.raises(RuntimeError, match="read-only"):
+        twin.set(f"{DEV}/plls/0/locked", 1)
+    with pytest.raises(RuntimeError, match="0.01, 0.1, 1, 10"):
+        twin.set(f"{DEV}/sigouts/0/range", 5)
+    twin.set(f"{DEV}/sigouts/0/range", 10)
+    assert twin.getDouble(f"{DEV}/sigouts/0/range") == 10.0
+
+
+def test_list_set_is_validated_before_any_node_changes() -> None:
+    _, twin = make_twin()
+    with pytest.raises(RuntimeError):
+        twin.set([(f"{DEV}/pids/0/p", 3.0), (f"{DEV}/pids/0/input", 99)])
+    assert twin.getDouble(f"{DEV}/pids/0/p") == 0.0
+
+
+@pytest.mark.parametrize("asked, ticks", [(1400.0, 150_000), (1000.0, 210_000), (1234.5, 170_109)])
+def test_demod_rate_is_rounded_to_whole_clock_ticks(asked: float, ticks: int) -> None:
+    # rate = clockbase / round(clockbase / asked): 210e6/1234.5 = 170109.35 -> 170109 ticks
+    _, twin = make_twin()
+    twin.set(f"{DEV}/demods/1/rate", asked)
+    assert twin.getDouble(f"{DEV}/demods/1/rate") == pytest.approx(210e6 / ticks, rel=1e-15)
+
+
+def test_get_flat_wildcard_and_nested_forms() -> None:
+    _, twin = make_twin()
+    twin.set(f"{DEV}/pids/2/p", -4.5)
+    flat = twin.get(f"{DEV}/pids/*/p", flat=True, settingsonly=False)
+    assert sorted(flat) == [f"{DEV}/pids/{n}/p" for n in range(4)]
+    assert flat[f"{DEV}/pids/2/p"][0] == -4.5
+    nested = twin.get(f"{DEV}/pids/2/p")
+    assert nested["dev1234"]["pids"]["2"]["p"][0] == -4.5
+    # settings-only (the default) drops read-only nodes of a branch, never an explicit leaf
+    assert f"{DEV}/plls/0/locked" not in twin.get(f"{DEV}/plls/0", flat=True)
+    assert f"{DEV}/plls/0/locked" in twin.get(f"{DEV}/plls/0/locked", flat=True)
+    assert not any(p.endswith("/sample") for p in twin.get(f"{DEV}/demods/*", flat=True, settingsonly=False))
+
+
+# ------------------------------------------------------------------ streaming protocol
+
+
+def test_nothing_subscribed_no_data_and_world_stands_still() -> None:
+    world, twin = make_twin()
+    assert twin.poll(0.5, 500, 0, True) == {}
+    assert world.t == 0.0
+
+
+def test_poll_returns_samples_at_the_rate_with_exact_timestamps() -> None:
+    world, twin = make_twin()
+    stream_demods(twin)
+    data = twin.poll(0.5, 500, 0, True)
+    assert sorted(data) == [f"{DEV}/demods/0/sample", f"{DEV}/demods/1/sample"]
+    s = data[f"{DEV}/demods/1/sample"]
+    assert set(s) == {"timestamp", "x", "y", "frequency", "phase", "dio", "trigger", "auxin0", "auxin1"}
+    assert s["timestamp"].dtype == np.uint64
+    assert len(s["x"]) == 700  # round(0.5 s * 1400 Sa/s)
+    assert np.all(np.diff(s["timestamp"].astype(np.int64)) == 150_000)  # 210 MHz / 1400 Sa/s
+    assert int(s["timestamp"][-1]) == 105_000_000  # end of the last step = 0.5 s * 210 MHz
+    assert world.t == pytest.approx(0.5, abs=1e-12)
+    s2 = twin.poll(0.5, 500, 0, True)[f"{DEV}/demods/1/sample"]
+    assert int(s2["timestamp"][0]) - int(s["timestamp"][-1]) == 150_000
+    nested = twin.poll(0.1, 500)
+    assert len(nested["dev1234"]["demods"]["0"]["sample"]["x"]) == 140
+
+
+def test_disabled_demod_delivers_nothing() -> None:
+    _, twin = make_twin()
+    stream_demods(twin)
+    twin.set(f"{DEV}/demods/0/enable", 0)
+    assert list(twin.poll(0.1, 500, 0, True)) == [f"{DEV}/demods/1/sample"]
+
+
+def test_auxins_carry_the_dither_and_truth_is_recorded() -> None:
+    world, twin = make_twin(rate_auxin=0, dither_auxin=1)
+    world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+    stream_demods(twin)
+    s = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]
+    # 7 Hz square of 0.6 Vpp sampled mid-step: +0.3 V on the first half period, -0.3 V on the second
+    assert s["auxin1"][0] == pytest.approx(0.3) and s["auxin1"][110] == pytest.approx(-0.3)
+    assert set(np.round(s["auxin1"], 12)) == {0.3, -0.3}
+    truth = world.drain_truth()
+    assert truth is not None and len(truth.time) == 1400
+    assert truth.time[-1] == pytest.approx(1.0)
+    assert np.all(truth.scale_factor > 0)
+
+
+def test_drop_samples_leaves_a_gap_and_sets_the_flag() -> None:
+    _, twin = make_twin()
+    stream_demods(twin)
+    twin.drop_samples(25)
+    s = twin.poll(0.5, 500, 0, True)[f"{DEV}/demods/0/sample"]
+    assert len(s["x"]) == 700 - 25
+    gaps = np.diff(s["timestamp"].astype(np.int64)) // 150_000
+    assert sorted(set(gaps)) == [1, 26] and int(np.sum(gaps - 1)) == 25
+    assert twin.getInt(f"{DEV}/status/flags/demodsampleloss") == 1
+    twin.poll(0.5, 500, 0, True)
+    assert twin.getInt(f"{DEV}/status/flags/demodsampleloss") == 0
+
+
+def test_fault_hooks_reject_bad_arguments() -> None:
+    _, twin = make_twin()
+    with pytest.raises(ValueError, match="drop_samples"):
+        twin.drop_samples(-1)
+    with pytest.raises(ValueError, match="force_pll_unlock"):
+        twin.force_pll_unlock(-2.0)
+
+
+def test_wiring_is_validated() -> None:
+    with pytest.raises(ValueError, match="rate_auxin and dither_auxin"):
+        HF2Wiring(rate_auxin=1, dither_auxin=1)
+    with pytest.raises(ValueError, match="forcer_carrier_amplitude"):
+        HF2Wiring(forcer_carrier_amplitude=1.5)
