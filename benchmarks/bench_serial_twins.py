@@ -1,0 +1,73 @@
+"""Transaction cost of the 1291BR and EC1x drivers against their twins, per transport; prints JSON.
+
+For each transport (in-process, pty, loopback socket) it times `table.read()` (3 transactions: PVE, PPO, STA)
+and `chamber.read()` (C1?, SET?, STATUS?) and reports the mean time per read and per transaction.
+
+    python benchmarks/bench_serial_twins.py [--reads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections.abc import Callable
+from typing import Any
+
+import serial
+
+from drivers.aerosmith import Aerosmith1291BR
+from drivers.chamber import SunEC1xChamber
+from sims.chamber_twin import ChamberTwin
+from sims.serial_twin import InProcessSerial, LineTwin, serve_pty, serve_socket
+from sims.table_twin import RateTableTwin
+from sims.world import World
+
+
+def open_port(twin: LineTwin, transport: str) -> tuple[Any, Callable[[], None]]:
+    if transport == "inprocess":
+        return InProcessSerial(twin), lambda: None
+    if transport == "pty":
+        path, stop = serve_pty(twin)
+        return serial.Serial(path, 9600, timeout=2.0), stop
+    url, stop = serve_socket(twin)
+    return serial.serial_for_url(url, timeout=2.0), stop
+
+
+def time_reads(read: Callable[[], object], n: int) -> float:
+    read()
+    t0 = time.perf_counter()
+    for _ in range(n):
+        read()
+    return (time.perf_counter() - t0) / n
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--reads", type=int, default=2000)
+    n = ap.parse_args().reads
+    out: dict[str, Any] = {"reads": n, "transactions_per_read": 3}
+    for transport in ("inprocess", "pty", "socket"):
+        world = World()
+        tport, tstop = open_port(RateTableTwin(world), transport)
+        cport, cstop = open_port(ChamberTwin(world), transport)
+        table = Aerosmith1291BR(tport, max_rate_dps=100.0, max_accel_dps2=500.0)
+        chamber = SunEC1xChamber(cport, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
+        table.set_rate(5.0, 300.0)
+        t_table = time_reads(table.read, n)
+        t_chamber = time_reads(chamber.read, n)
+        out[transport] = {
+            "table_read_us": round(t_table * 1e6, 1),
+            "table_transaction_us": round(t_table / 3 * 1e6, 1),
+            "chamber_read_us": round(t_chamber * 1e6, 1),
+            "chamber_transaction_us": round(t_chamber / 3 * 1e6, 1),
+        }
+        table.close()
+        chamber.close()
+        tstop()
+        cstop()
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
