@@ -107,6 +107,7 @@ class Aerosmith1291BR(RateTable):
     # ------------------------------------------------------------------ RateTable
     def set_rate(self, rate_dps: float, accel_dps2: float) -> None:
         """ACL accel, JOG rate, STA. |rate| <= max_rate_dps, 0 < accel <= max_accel_dps2."""
+        rate_dps, accel_dps2 = self._sent("jog", rate_dps), self._sent("accel", accel_dps2)
         check_limit("table rate", rate_dps, -self.max_rate_dps, self.max_rate_dps, "deg/s")
         self._check_accel(accel_dps2)
         self._transact("accel", accel_dps2)
@@ -116,7 +117,11 @@ class Aerosmith1291BR(RateTable):
         self._check_interlock(self._transact("status"), "JOG")
 
     def set_sinusoid(self, amplitude_dps: float, frequency_hz: float, accel_dps2: float) -> None:
-        """ACL, AMP, FRQ, SGO, STA for rate(t) = A sin(2 pi f t); needs A * 2 pi f <= accel <= max_accel."""
+        """ACL, AMP, FRQ, SGO, STA for rate(t) = A sin(2 pi f t); needs A * 2 pi f <= accel <= max_accel,
+        checked on the values as sent (rounded to the command formats), as the controller will check them."""
+        amplitude_dps = self._sent("sine_amplitude", amplitude_dps)
+        frequency_hz = self._sent("sine_frequency", frequency_hz)
+        accel_dps2 = self._sent("accel", accel_dps2)
         check_limit("sinusoid amplitude", amplitude_dps, 0.0, self.max_rate_dps, "deg/s")
         check_limit("sinusoid frequency", frequency_hz, 0.0, MAX_SINE_FREQUENCY_HZ, "Hz")
         if frequency_hz <= 0.0 or amplitude_dps <= 0.0:
@@ -201,6 +206,14 @@ class Aerosmith1291BR(RateTable):
         self.identify()
 
     # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _sent(key: str, value: float) -> float:
+        """`value` as the command `key` will carry it (limits are checked on what the table receives)."""
+        try:
+            return proto.COMMANDS[key].quantize(float(value))
+        except (TypeError, ValueError) as exc:
+            raise LimitError(f"{proto.COMMANDS[key].mnemonic} value {value!r} is not a number") from exc
+
     def _check_accel(self, accel_dps2: float) -> None:
         check_limit("table acceleration", accel_dps2, 0.0, self.max_accel_dps2, "deg/s^2")
         if accel_dps2 <= 0.0:

@@ -18,6 +18,7 @@ Framing (assumed):
 from __future__ import annotations
 
 import enum
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -92,6 +93,12 @@ class TableCommand:
     reply: Callable[[str], Any] | None
     unit: str
     assumption: str
+
+    def quantize(self, value: float) -> float:
+        """The value the table receives: `value` rounded as `arg_format` writes it (limits are checked on it)."""
+        if self.arg_format is None:
+            raise ValueError(f"{self.mnemonic} takes no value")
+        return float(self.arg_format.format(value)) if math.isfinite(value) else value
 
     def encode(self, value: float | None = None) -> bytes:
         """The bytes sent: mnemonic, formatted value, CR LF."""

@@ -54,6 +54,16 @@ def parse_status(text: str) -> str:
     return text
 
 
+def _as_sent(fmt: str, value: float) -> float:
+    """`value` rounded as the command format `fmt` ("NAME={:.Nf}") writes it; non-finite values pass through
+    (check_limit names them)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise LimitError(f"{fmt.split('=')[0]} value {value!r} is not a number") from exc
+    return float(fmt.format(v).split("=", 1)[1]) if math.isfinite(v) else v
+
+
 class SunEC1xChamber(ThermalChamber):
     """The thermal chamber.
 
@@ -108,7 +118,9 @@ class SunEC1xChamber(ThermalChamber):
 
     # ------------------------------------------------------------------ ThermalChamber
     def set_setpoint(self, setpoint_c: float, ramp_c_per_min: float) -> None:
-        """RATE=ramp, SET=setpoint, ON. min_c <= setpoint <= max_c, 0 < ramp <= max_ramp_c_per_min."""
+        """RATE=ramp, SET=setpoint, ON. min_c <= setpoint <= max_c, 0 < ramp <= max_ramp_c_per_min, checked on
+        the values as sent (SET= 2 decimals, RATE= 3 decimals)."""
+        setpoint_c, ramp_c_per_min = _as_sent(SETPOINT_FORMAT, setpoint_c), _as_sent(RATE_FORMAT, ramp_c_per_min)
         check_limit("chamber setpoint", setpoint_c, self.min_c, self.max_c, "deg C")
         self._check_ramp(ramp_c_per_min)
         self._command(RATE_FORMAT.format(ramp_c_per_min))

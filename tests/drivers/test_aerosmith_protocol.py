@@ -158,6 +158,7 @@ def test_stale_bytes_are_discarded_before_the_next_command() -> None:
     (-101.0, 300.0, r"table rate = -101"),
     (5.0, 600.0, r"table acceleration = 600 deg/s\^2 is outside the limit \[0, 500\]"),
     (5.0, 0.0, r"table acceleration = 0 deg/s\^2 must be positive"),
+    (5.0, 0.0004, r"table acceleration = 0 deg/s\^2 must be positive"),  # ACL 3 decimals would send 0.000
     (float("nan"), 300.0, r"table rate = nan is not a finite number"),
 ])
 def test_set_rate_outside_limits_sends_nothing(rate: float, accel: float, match: str) -> None:

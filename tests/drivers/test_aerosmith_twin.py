@@ -13,6 +13,8 @@ from collections.abc import Iterator
 
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.aerosmith import Aerosmith1291BR
 from qmg_lab.instruments import InstrumentError, InterlockError, LimitError
@@ -199,3 +201,33 @@ def test_reconnect_over_socket_keeps_the_motion() -> None:
         table.close()
     finally:
         stop()
+
+
+# ------------------------------------------------------------------------------------------ driver <-> twin syntax
+
+
+@settings(max_examples=80, deadline=None)
+@given(rate=st.floats(-100.0, 100.0), accel=st.floats(1e-4, 500.0), amp=st.floats(1e-4, 100.0),
+       headroom=st.floats(0.0, 1.2))
+def test_every_command_the_driver_accepts_is_understood_by_the_twin(rate: float, accel: float, amp: float,
+                                                                    headroom: float) -> None:
+    """Two independent implementations of the documented syntax agree. The table receives the values rounded
+    to the documented formats (JOG/AMP/FRQ %.6f, ACL %.3f); the driver refuses exactly what the controller
+    would refuse on those values (ACL must stay > 0, AMP * 2 pi * FRQ <= ACL), and whatever it sends is
+    accepted and reaches the world as the rounded value."""
+    freq = min(headroom * accel / (2.0 * math.pi * amp), 100.0)  # around the peak-acceleration boundary
+    world, _, table = _inprocess()
+    r_q, a_q, amp_q, f_q = float(f"{rate:.6f}"), float(f"{accel:.3f}"), float(f"{amp:.6f}"), float(f"{freq:.6f}")
+    if a_q <= 0.0:
+        with pytest.raises(LimitError, match="must be positive"):
+            table.set_rate(rate, accel)
+        return
+    table.set_rate(rate, accel)
+    assert (world.table.rate_command_dps, world.table.accel_dps2) == (r_q, a_q)
+    if amp_q <= 0.0 or f_q <= 0.0 or amp_q * 2.0 * math.pi * f_q > a_q:
+        with pytest.raises(LimitError):
+            table.set_sinusoid(amp, freq, accel)
+        assert world.table.mode == "rate"
+        return
+    table.set_sinusoid(amp, freq, accel)
+    assert (world.table.mode, world.table.sine_amplitude_dps, world.table.sine_frequency_hz) == ("sine", amp_q, f_q)

@@ -99,6 +99,8 @@ def test_setting_not_acknowledged_ok() -> None:
     (30.0, 6.0, r"chamber ramp = 6 deg C/min is outside the limit \[0, 5\]"),
     (30.0, 0.0, r"chamber ramp = 0 deg C/min must be positive"),
     (30.0, -1.0, r"chamber ramp = -1"),
+    (30.0, 0.0004, r"chamber ramp = 0 deg C/min must be positive"),  # RATE= 3 decimals would send 0.000
+    (85.006, 1.0, r"chamber setpoint = 85.01 deg C is outside"),  # SET= 2 decimals would send 85.01
     (float("inf"), 1.0, r"chamber setpoint = inf is not a finite number"),
 ])
 def test_limits_refused_before_sending(setpoint: float, ramp: float, match: str) -> None:
