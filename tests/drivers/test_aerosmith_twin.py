@@ -231,3 +231,18 @@ def test_every_command_the_driver_accepts_is_understood_by_the_twin(rate: float,
         return
     table.set_sinusoid(amp, freq, accel)
     assert (world.table.mode, world.table.sine_amplitude_dps, world.table.sine_frequency_hz) == ("sine", amp_q, f_q)
+
+
+def test_reconnect_over_pty_reopens_the_same_device() -> None:
+    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM))
+    path, stop = serve_pty(RateTableTwin(world))
+    try:
+        table = Aerosmith1291BR(serial.Serial(path, 9600, timeout=2.0), max_rate_dps=100.0, max_accel_dps2=500.0,
+                                port_factory=lambda: serial.Serial(path, 9600, timeout=2.0))
+        table.set_rate(-2.0, 100.0)
+        world.advance(100, 1e-3)
+        table.reconnect()
+        assert table.read().rate_dps == pytest.approx(-2.0 * SCALE, abs=PVE_RES)
+        table.close()
+    finally:
+        stop()
