@@ -127,6 +127,7 @@ class HF2NodeTree:
         if not re.fullmatch(r"dev\d+", device_id.lower()):
             raise ValueError(f"device_id {device_id!r} must look like 'dev1234'")
         self.device_id = device_id.lower()
+        self._prefix = f"/{self.device_id}/"
         doc = json.loads(nodedoc_path().read_text(encoding="utf-8"))
         self.meta: dict[str, NodeMeta] = {}
         self.values: dict[str, Any] = {}
@@ -210,12 +211,12 @@ class HF2NodeTree:
         return meta.path, stored
 
     def poke(self, rel_or_abs: str, value: Any) -> None:
-        """Twin-internal write (read-only nodes included, no validation)."""
-        self.values[self.absolute(rel_or_abs)] = value
+        """Twin-internal write (read-only nodes included, no validation). Paths in lower case."""
+        self.values[rel_or_abs if rel_or_abs[0] == "/" else self._prefix + rel_or_abs] = value
 
     def peek(self, rel_or_abs: str) -> Any:
-        """Twin-internal read."""
-        return self.values[self.absolute(rel_or_abs)]
+        """Twin-internal read. Paths in lower case."""
+        return self.values[rel_or_abs if rel_or_abs[0] == "/" else self._prefix + rel_or_abs]
 
     def list(self, pattern: str, *, settings_only: bool = False, streaming_only: bool = False, exclude_streaming: bool = False) -> list[str]:
         """Upper-case leaf paths like the server's listNodes(recursive, leavesonly), optionally filtered."""

@@ -90,6 +90,8 @@ class HF2DataServerTwin:
         self._unlock_until: float | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
         self.last_plan: LoopPlan | None = None
+        self._settings_version = 0  # bumped by every client set: the loop plan is re-read only then
+        self._plan_version = -1
         for d in range(6):  # round the power-on rates like a set would
             self._round_rate(f"/{self.device_id}/demods/{d}/rate")
 
@@ -218,6 +220,7 @@ class HF2DataServerTwin:
             if not hits:
                 raise NodeError(f"ZIAPINotFoundException: node {p} does not exist")
             checked.extend(self.nodes.coerce(h, v) for h in hits if len(hits) == 1 or self.nodes.meta[h].writable)
+        self._settings_version += 1
         for p, v in checked:
             if p.startswith("/zi/"):
                 if p not in ("/zi/config/open", "/zi/debug/level"):
@@ -349,8 +352,10 @@ class HF2DataServerTwin:
         return type(blocks[0])(**merged, pll_locked=bool(locked.all())), locked
 
     def _advance(self, rec_s: float, demods: list[str]) -> dict[str, dict[str, np.ndarray]]:
-        plan = identify_loops(self.nodes, self.wiring)
-        self.last_plan = plan
+        if self.last_plan is None or self._plan_version != self._settings_version:
+            self.last_plan = identify_loops(self.nodes, self.wiring)
+            self._plan_version = self._settings_version
+        plan = self.last_plan
         rate = float(self.nodes.peek(f"demods/{plan.sense_demod}/rate"))
         tps = int(round(self.clockbase_hz / rate))
         dt = tps / self.clockbase_hz
@@ -366,13 +371,19 @@ class HF2DataServerTwin:
         timestamps = (self._ticks + tps * np.arange(1, n + 1, dtype=np.int64)).astype(np.uint64)
         self._ticks += n * tps
         # oscillator frequencies and phases (rad) at the end of each step
-        freqs = {o: np.full(n, float(self.nodes.peek(f"oscs/{o}/freq"))) for o in range(6)}
-        freqs[plan.ref_osc] = np.asarray(blk.frequency_hz, dtype=float)
-        phases = {}
-        for o, f in freqs.items():
-            ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f) * dt
+        used = {plan.ref_osc} | {int(self.nodes.peek(f"demods/{p.split('/')[3]}/oscselect")) for p in demods}
+        freqs: dict[int, np.ndarray] = {}
+        phases: dict[int, np.ndarray] = {}
+        for o in range(6):
+            if o not in used:  # keep its phase running without building arrays
+                f_fixed = float(self.nodes.peek(f"oscs/{o}/freq"))
+                self._osc_phase[o] = float(np.mod(self._osc_phase[o] + 2 * np.pi * f_fixed * n * dt, 2 * np.pi))
+                continue
+            f_o = (np.asarray(blk.frequency_hz, dtype=float) if o == plan.ref_osc
+                   else np.full(n, float(self.nodes.peek(f"oscs/{o}/freq"))))
+            ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f_o) * dt
+            freqs[o], phases[o] = f_o, ph
             self._osc_phase[o] = float(np.mod(ph[-1], 2 * np.pi))
-            phases[o] = ph
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
         aux = [np.zeros(n), np.zeros(n)]
