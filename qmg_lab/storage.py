@@ -676,3 +676,44 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
         steps[c] = np.array([s.decode("utf-8", "replace") for s in steps[c]], dtype=str)
     return RunData(path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open,
                    rows_cut=rows_cut)
+
+
+def read_window(path: str | Path, group: str, t_start: float, t_end: float,
+                columns: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """Rows of one group with t_start <= time <= t_end, read by bisection (no full-column read).
+
+    For figures and spot checks on long files. Opens the file like `read_run` (SWMR, partial files allowed).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise StorageError(f"{p}: no such run file")
+    try:
+        h5 = h5py.File(p, "r", swmr=True, libver="latest")
+    except OSError as exc:
+        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
+    with h5:
+        if group not in h5 or "time" not in h5[group]:
+            raise StorageError(f"{p}: has no /{group}/time")
+        grp = h5[group]
+        cols = list(columns) if columns is not None else list(grp)
+        unknown = [c for c in cols if c not in grp]
+        if unknown:
+            raise StorageError(f"{p}: /{group} has no columns {unknown}")
+        n = min(grp[c].shape[0] for c in set(cols) | {"time"})
+        t = grp["time"]
+
+        def bisect(x: float, right: bool) -> int:
+            lo, hi = 0, n
+            while lo < hi:
+                mid = (lo + hi) // 2
+                v = float(t[mid])
+                if v < x or (right and v == x):
+                    lo = mid + 1
+                else:
+                    hi = mid
+            return lo
+
+        i0, i1 = bisect(t_start, False), bisect(t_end, True)
+        out = {c: grp[c][i0:i1] for c in cols}
+        out.setdefault("time", t[i0:i1])
+        return out

@@ -1,0 +1,488 @@
+"""The paper's results from any run file: true vs CLSF scale factor, CLSF precision, gyro noise, FTR figures.
+
+Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
+
+* Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
+  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods.
+  Means of the rate output are taken over a whole number of dither periods (round(fs/f_d) samples each), so the
+  dither leaking through the rate loop (|T(7 Hz)| = 0.276 of the virtual rate) cancels exactly.
+* True SF from a step pair (a completed "rate" step with Omega > 0 followed by the next-index "rate" step with
+  Omega < 0): SF = (O+ - O-)/(Omega+ - Omega-), bias = (O+ + O-)/2; O = mean /lockin/rate_output (V), Omega =
+  mean /table/rate_command over the window (deg/s; the step's table_rate if no table row falls inside).
+* Relative changes against the first pair (SF_ref = SF of pair 0): true e_i = SF_i/SF_ref - 1; CLSF
+  c_i = (1 + s_i)/(1 + s_0) - 1 with s_i the mean /clsf/sf_change_estimate over the same two windows; twin truth
+  t_i = mean /truth/scale_factor re-referenced the same way. CLSF accuracy = RMS(c_i - e_i) over pairs 1..n-1
+  (pair 0 is zero by construction), reported with and without the mean of (c - e) removed.
+  truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin.
+* CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
+  closed up), in ppm, with 68 % confidence bounds (qmg_lab/adev.py). In correct mode the same series is the
+  residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
+* Gyro noise: the longest run of consecutive completed "hold" steps (else "soak"): the dither-free
+  per-period rate output (/clsf/rate_output_mean, else /lockin/rate_output averaged per dither period) / SF in
+  deg/h; ARW = sigma(1 s)/60 deg/sqrt(h), bias instability = min sigma / 0.664 deg/h.
+* Bandwidth, settling, linearity: qmg_lab/analysis_char.py.
+* Completeness: planned steps (root attr planned_steps / planned_step_kinds) minus completed steps = missing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from qmg_lab.adev import (AllanResult, arw_deg_per_rt_h, bias_instability_deg_per_h, overlapping_adev)
+from qmg_lab.analysis_char import (BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average,
+                                   settling_time_s)
+from qmg_lab.config import Config, ConfigError, parse_config
+from qmg_lab.storage import RunData, read_run
+
+_SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
+PPM = 1e6
+
+
+@dataclass
+class StepPair:
+    """One +/- rate step pair: times in s since t0, SF in V per deg/s, changes in ppm (NaN if unavailable)."""
+
+    index_plus: int
+    index_minus: int
+    t_mid_s: float
+    temperature_c: float
+    sf_v_per_dps: float
+    bias_v: float
+    true_change_ppm: float = float("nan")
+    clsf_change_ppm: float = float("nan")
+    truth_change_ppm: float = float("nan")
+    gyro_temperature_c: float = float("nan")
+
+
+@dataclass
+class AnalysisResult:
+    """Everything `analyze` found; `to_json` gives the stable JSON (NaN -> null)."""
+
+    file: str
+    status: str
+    abort_reason: str
+    mode: str
+    campaign_kind: str
+    clsf_mode: str
+    steps_planned: int | None
+    steps_completed: int
+    missing_steps: list[dict[str, Any]]
+    sf_nominal_v_per_dps: float
+    sf_measured_v_per_dps: float = float("nan")
+    n_step_pairs: int = 0
+    pairs: list[StepPair] = field(default_factory=list)
+    sf_true_change_ppm: float = float("nan")
+    clsf_accuracy_rms_ppm: float = float("nan")
+    clsf_accuracy_rms_ppm_mean_removed: float = float("nan")
+    sf_tempco_ppm_per_c: float = float("nan")
+    clsf_tempco_ppm_per_c: float = float("nan")
+    truth_check_rms_ppm: float | None = None
+    adev: list[dict[str, float]] = field(default_factory=list)
+    adev_at_60s_ppm: float = float("nan")
+    adev_gain_correction: list[dict[str, float]] = field(default_factory=list)
+    gyro_adev_deg_per_h: list[dict[str, float]] = field(default_factory=list)
+    arw_deg_per_rt_h: float = float("nan")
+    bias_instability_deg_per_h: float = float("nan")
+    bode: list[BodePoint] = field(default_factory=list)
+    bandwidth_hz: float = float("nan")
+    phase_reference: str = ""
+    settling_time_s: float = float("nan")
+    linearity: dict[str, Any] = field(default_factory=dict)
+    levels: list[dict[str, float]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["adev"] = [{"tau_s": r["tau_s"], "ppm": r["value"], "ppm_low": r["low"], "ppm_high": r["high"]}
+                     for r in self.adev]
+        return _clean(d)
+
+
+def _clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    return x
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Ctx:
+    run: RunData
+    cfg: Config
+    fs_hz: float
+    period_samples: int  # whole dither period in lock-in samples (1 if no dither)
+    settle_s: float
+    steps: dict[int, dict[str, Any]]  # completed steps by index
+    notes: list[str]
+
+
+def _load(path: str | Path) -> _Ctx:
+    run = read_run(path, select=["lockin/rate_output", "clsf", "table", "chamber", "truth"])
+    notes: list[str] = []
+    try:
+        cfg = parse_config(str(run.attrs.get("config_toml", "")), f"{run.path}:config_toml")
+    except ConfigError as exc:
+        cfg = Config()
+        notes.append(f"stored configuration not usable ({exc}); defaults assumed")
+    t = run.groups["lockin"]["time"]
+    fs = 1.0 / float(np.median(np.diff(t))) if t.shape[0] > 2 else cfg.lockin.demod_rate_hz
+    period = 1
+    if cfg.clsf.mode != "off":
+        period = max(1, int(round(fs / cfg.dither.frequency_hz)))
+    settle = max(cfg.plan.settle_s, 5.0 / (2 * math.pi * cfg.loops.rate_bandwidth_hz))
+    steps: dict[int, dict[str, Any]] = {}
+    s = run.steps
+    for i in range(s["index"].shape[0]):
+        if s["status"][i] == "completed":
+            steps[int(s["index"][i])] = {k: s[k][i] for k in s}
+    return _Ctx(run, cfg, fs, period, settle, steps, notes)
+
+
+def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple[float, float]:
+    return float(step["t_start"]) + ctx.settle_s + extra_settle, float(step["t_end"])
+
+
+def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
+    """Mean rate output over [t0, t1] cut to a whole number of dither periods: (V, samples used)."""
+    lk = ctx.run.groups["lockin"]
+    i0, i1 = np.searchsorted(lk["time"], [t0, t1])
+    n = int(i1 - i0)
+    if ctx.period_samples > 1 and n >= ctx.period_samples:
+        n = (n // ctx.period_samples) * ctx.period_samples
+    if n <= 0:
+        return float("nan"), 0
+    return float(np.mean(lk["rate_output"][i0:i0 + n])), n
+
+
+def _mean_in(group: dict[str, np.ndarray] | None, col: str, windows: list[tuple[float, float]]) -> float:
+    if group is None or group["time"].shape[0] == 0:
+        return float("nan")
+    t = group["time"]
+    mask = np.zeros(t.shape[0], bool)
+    for a, b in windows:
+        mask |= (t >= a) & (t <= b)
+    return float(np.mean(group[col][mask])) if mask.any() else float("nan")
+
+
+def _commanded(ctx: _Ctx, step: dict[str, Any], win: tuple[float, float]) -> float:
+    """Median /table/rate_command in the window (robust to a reading taken on the step boundary)."""
+    tab = ctx.run.groups.get("table")
+    if tab is not None:
+        m = (tab["time"] >= win[0]) & (tab["time"] <= win[1])
+        if m.any():
+            return float(np.median(tab["rate_command"][m]))
+    return float(step["table_rate"])
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
+    g = ctx.run.groups
+    clsf, truth, chamber = g.get("clsf"), g.get("truth"), g.get("chamber")
+    for idx in sorted(ctx.steps):
+        sp, sm = ctx.steps[idx], ctx.steps.get(idx + 1)
+        if sp["kind"] != "rate" or sm is None or sm["kind"] != "rate":
+            continue
+        if not (sp["table_rate"] > 0 > sm["table_rate"]):
+            continue
+        wp, wm = _window(ctx, sp), _window(ctx, sm)
+        op, np_ = _mean_whole_periods(ctx, *wp)
+        om, nm = _mean_whole_periods(ctx, *wm)
+        if np_ == 0 or nm == 0:
+            res.notes.append(f"steps {idx}/{idx + 1}: no samples after the settle time; pair skipped")
+            continue
+        rp, rm = _commanded(ctx, sp, wp), _commanded(ctx, sm, wm)
+        pair = StepPair(index_plus=idx, index_minus=idx + 1, t_mid_s=0.5 * (wp[0] + wm[1]),
+                        temperature_c=_mean_in(chamber, "temperature", [wp, wm]),
+                        sf_v_per_dps=(op - om) / (rp - rm), bias_v=0.5 * (op + om))
+        pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
+        pair.truth_change_ppm = _mean_in(truth, "scale_factor", [wp, wm])  # raw SF for now
+        pair.gyro_temperature_c = _mean_in(truth, "temperature", [wp, wm])
+        res.pairs.append(pair)
+    res.n_step_pairs = len(res.pairs)
+    if not res.pairs:
+        return
+    ref = res.pairs[0]
+    sf_ref, s_ref, tr_ref = ref.sf_v_per_dps, ref.clsf_change_ppm, ref.truth_change_ppm
+    for p in res.pairs:
+        p.true_change_ppm = (p.sf_v_per_dps / sf_ref - 1) * PPM
+        p.clsf_change_ppm = ((1 + p.clsf_change_ppm) / (1 + s_ref) - 1) * PPM
+        p.truth_change_ppm = (p.truth_change_ppm / tr_ref - 1) * PPM
+    res.sf_measured_v_per_dps = sf_ref
+    e = np.array([p.true_change_ppm for p in res.pairs])
+    c = np.array([p.clsf_change_ppm for p in res.pairs])
+    tr = np.array([p.truth_change_ppm for p in res.pairs])
+    res.sf_true_change_ppm = float(np.ptp(e))
+    res.notes.append("relative SF changes are referred to the first step pair (SF_ref = pair 0)")
+    d = (c - e)[1:]
+    d = d[np.isfinite(d)]
+    if d.size:
+        res.clsf_accuracy_rms_ppm = _rms(d)
+        res.clsf_accuracy_rms_ppm_mean_removed = _rms(d - d.mean())
+    if ctx.run.has_truth and np.all(np.isfinite(tr)):
+        res.truth_check_rms_ppm = _rms(e - tr)
+    temps = np.array([p.temperature_c for p in res.pairs])
+    ok = np.isfinite(temps)
+    if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:
+        res.sf_tempco_ppm_per_c = float(np.polyfit(temps[ok], e[ok], 1)[0])
+        okc = ok & np.isfinite(c)
+        if okc.sum() >= 3:
+            res.clsf_tempco_ppm_per_c = float(np.polyfit(temps[okc], c[okc], 1)[0])
+
+
+def _clsf_adev(ctx: _Ctx, res: AnalysisResult) -> None:
+    clsf = ctx.run.groups.get("clsf")
+    if clsf is None or clsf["time"].shape[0] < 6:
+        res.notes.append("CLSF ADEV: fewer than 6 CLSF periods in the file")
+        return
+    rate = 1.0 / float(np.median(np.diff(clsf["time"])))
+    r = overlapping_adev(clsf["sf_change_estimate"], rate)
+    res.adev = r.rows(PPM)
+    res.adev_at_60s_ppm = r.at(60.0) * PPM
+    if ctx.cfg.clsf.mode == "correct":
+        g = clsf["gain_correction"]
+        if np.all(g > 0):
+            res.adev_gain_correction = overlapping_adev(np.log(g), rate).rows(PPM)
+
+
+def _static_runs(ctx: _Ctx) -> list[tuple[float, float]]:
+    for kind in ("hold", "soak"):
+        runs: list[tuple[float, float]] = []
+        prev = None
+        for idx in sorted(ctx.steps):
+            s = ctx.steps[idx]
+            if s["kind"] != kind:
+                prev = None
+                continue
+            a, b = _window(ctx, s)
+            if prev is not None and prev == idx - 1 and runs:
+                runs[-1] = (runs[-1][0], b)
+            else:
+                runs.append((a, b))
+            prev = idx
+        runs = [r for r in runs if r[1] > r[0]]
+        if runs:
+            return runs
+    return []
+
+
+def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
+    runs = _static_runs(ctx)
+    if not runs:
+        res.notes.append("gyro ARW/bias instability: no completed hold or soak step")
+        return
+    a, b = max(runs, key=lambda r: r[1] - r[0])
+    clsf = ctx.run.groups.get("clsf")
+    y: np.ndarray
+    if clsf is not None and "rate_output_mean" in clsf and clsf["time"].shape[0]:
+        m = (clsf["time"] >= a) & (clsf["time"] <= b)
+        y, rate = clsf["rate_output_mean"][m], 0.0
+        if m.sum() > 2:
+            rate = 1.0 / float(np.median(np.diff(clsf["time"][m])))
+    else:
+        y, rate = np.empty(0), 0.0
+    if y.shape[0] < 6:
+        lk = ctx.run.groups["lockin"]
+        i0, i1 = np.searchsorted(lk["time"], [a, b])
+        per = ctx.period_samples if ctx.period_samples > 1 else max(1, int(round(ctx.fs_hz / 10)))
+        n = (int(i1 - i0) // per) * per
+        y = lk["rate_output"][i0:i0 + n].reshape(-1, per).mean(axis=1)
+        rate = ctx.fs_hz / per
+    if y.shape[0] < 6 or not rate > 0:
+        res.notes.append("gyro ARW/bias instability: static segment too short")
+        return
+    r: AllanResult = overlapping_adev(y / sf * 3600.0, rate)
+    res.gyro_adev_deg_per_h = r.rows()
+    res.arw_deg_per_rt_h = arw_deg_per_rt_h(r)
+    res.bias_instability_deg_per_h = bias_instability_deg_per_h(r)
+    res.notes.append(f"gyro noise from the static segment {a:.1f}-{b:.1f} s")
+
+
+def _dc_sf(ctx: _Ctx, res: AnalysisResult) -> float:
+    """SF for scaling: measured pair SF, else the first rate step against the following rest, else nominal."""
+    if math.isfinite(res.sf_measured_v_per_dps):
+        return res.sf_measured_v_per_dps
+    for idx in sorted(ctx.steps):
+        s, nxt = ctx.steps[idx], ctx.steps.get(idx + 1)
+        if s["kind"] == "rate" and s["table_rate"] != 0 and nxt is not None and nxt["table_rate"] == 0:
+            w1, w0 = _window(ctx, s), _window(ctx, nxt)
+            o1, n1 = _mean_whole_periods(ctx, *w1)
+            o0, n0 = _mean_whole_periods(ctx, *w0)
+            if n1 and n0:
+                return (o1 - o0) / (_commanded(ctx, s, w1) - _commanded(ctx, nxt, w0))
+    return res.sf_nominal_v_per_dps
+
+
+def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
+    sines = [(idx, s) for idx, s in sorted(ctx.steps.items()) if _SINE.match(str(s["kind"]))]
+    if not sines:
+        return
+    lk, truth = ctx.run.groups["lockin"], ctx.run.groups.get("truth")
+    f_d = ctx.cfg.dither.frequency_hz
+    nuisance = (f_d, 3 * f_d, 5 * f_d) if ctx.cfg.clsf.mode != "off" else ()
+    res.phase_reference = ("twin /truth/rate" if truth is not None and truth["time"].shape[0]
+                           else "command A sin(2 pi f (t - t_start)): phase zero assumed at the step start")
+    for idx, s in sines:
+        f = float(_SINE.match(str(s["kind"])).group(1))  # type: ignore[union-attr]
+        t0, t1 = _window(ctx, s, extra_settle=2.0 / f)
+        n_cyc = math.floor((t1 - t0) * f)
+        if n_cyc < 1:
+            res.notes.append(f"step {idx} ({s['kind']}): shorter than one period after settling; skipped")
+            continue
+        t1 = t0 + n_cyc / f
+        i0, i1 = np.searchsorted(lk["time"], [t0, t1])
+        t = lk["time"][i0:i1]
+        out = fit_sinusoid(t, lk["rate_output"][i0:i1], f, nuisance) / sf
+        if truth is not None and truth["time"].shape[0]:
+            j0, j1 = np.searchsorted(truth["time"], [t0, t1])
+            ref = fit_sinusoid(truth["time"][j0:j1], truth["rate"][j0:j1], f)
+        else:
+            ts = float(s["t_start"])
+            ref = complex(float(s["table_rate"]) * np.exp(-0.5j * np.pi - 2j * np.pi * f * ts))
+        h = out / ref
+        res.bode.append(BodePoint(frequency_hz=f, amplitude_ratio=abs(h), gain_db=20 * math.log10(abs(h)),
+                                  phase_deg=math.degrees(math.atan2(h.imag, h.real))))
+    res.bandwidth_hz = bandwidth_3db(res.bode)
+
+
+def _settling(ctx: _Ctx, res: AnalysisResult) -> None:
+    lk = ctx.run.groups["lockin"]
+    for idx in sorted(ctx.steps):
+        s, prev = ctx.steps[idx], ctx.steps.get(idx - 1)
+        if prev is None and idx == min(ctx.steps):
+            prev = {"table_rate": 0.0, "kind": "rest"}  # the first step starts from rest
+        if s["kind"] in ("rate", "level") and prev is not None and s["table_rate"] != prev["table_rate"] \
+                and not _SINE.match(str(prev["kind"])):
+            a, b = float(s["t_start"]), float(s["t_end"])
+            per = ctx.period_samples
+            i0, i1 = np.searchsorted(lk["time"], [a - 1.0, b])
+            i0 = max(0, i0 - per)
+            y = moving_average(lk["rate_output"][i0:i1], per)
+            ok = slice(per // 2, y.shape[0] - (per - per // 2)) if per > 1 else slice(None)  # full boxcars only
+            t = lk["time"][i0:i1][ok]
+            res.settling_time_s = settling_time_s(t, y[ok], a, min(b, float(t[-1])) if t.size else b)
+            res.notes.append(f"settling time from step {idx} ({prev['table_rate']:g} -> {s['table_rate']:g} deg/s)")
+            return
+
+
+def _linearity(ctx: _Ctx, res: AnalysisResult) -> None:
+    levels = [(idx, s) for idx, s in sorted(ctx.steps.items()) if s["kind"] == "level"]
+    rates, outs = [], []
+    for idx, s in levels:
+        w = _window(ctx, s)
+        o, n = _mean_whole_periods(ctx, *w)
+        if n:
+            rates.append(_commanded(ctx, s, w))
+            outs.append(o)
+            res.levels.append({"index": idx, "rate_dps": rates[-1], "output_v": o})
+    if len(set(rates)) >= 2:
+        lin = linearity(np.array(rates), np.array(outs))
+        res.linearity = {k: v for k, v in asdict(lin).items() if k != "residuals_v"}
+        for row, r in zip(res.levels, lin.residuals_v, strict=True):
+            row["residual_v"] = float(r)
+
+
+def _completeness(ctx: _Ctx, res: AnalysisResult) -> None:
+    planned = int(ctx.run.attrs.get("planned_steps", -1))
+    kinds = ctx.run.planned_step_kinds
+    if planned < 0:
+        res.notes.append("the file does not record the planned steps; missing steps unknown")
+        return
+    res.steps_planned = planned
+    res.missing_steps = [{"index": i, "kind": kinds[i] if i < len(kinds) else ""}
+                         for i in range(planned) if i not in ctx.steps]
+
+
+def analyze(path: str | Path) -> AnalysisResult:
+    """Analyse a run file (complete, aborted or killed; simulated or hardware). See the module docstring."""
+    ctx = _load(path)
+    a, cfg = ctx.run.attrs, ctx.cfg
+    res = AnalysisResult(file=str(ctx.run.path), status=str(a.get("status", "")),
+                         abort_reason=str(a.get("abort_reason", "")), mode=str(a.get("mode", "")),
+                         campaign_kind=cfg.campaign.kind, clsf_mode=cfg.clsf.mode, steps_planned=None,
+                         steps_completed=len(ctx.steps), missing_steps=[],
+                         sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps)
+    res.notes.extend(ctx.notes)
+    if ctx.run.writer_open:
+        res.notes.append("the file was not closed by its writer (killed, or still being written)")
+    _completeness(ctx, res)
+    if ctx.run.groups["lockin"]["time"].shape[0] == 0:
+        res.notes.append("no lock-in samples in the file")
+        return res
+    _pairs(ctx, res)
+    _clsf_adev(ctx, res)
+    sf = _dc_sf(ctx, res)
+    _gyro_noise(ctx, res, sf)
+    _bandwidth(ctx, res, sf)
+    _settling(ctx, res)
+    _linearity(ctx, res)
+    return res
+
+
+def render_table(result: AnalysisResult) -> Any:
+    """A rich Table of the headline figures (missing values shown as '-')."""
+    from rich.table import Table
+
+    def f(v: Any, fmt: str = "{:.4g}") -> str:
+        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+            return "-"
+        return fmt.format(v) if isinstance(v, (int, float)) else str(v)
+
+    r = result
+    tab = Table(title=f"qmg-lab analysis: {Path(r.file).name} ({r.status})", show_header=True)
+    tab.add_column("quantity")
+    tab.add_column("value", justify="right")
+    tab.add_column("unit")
+    rows: list[tuple[str, str, str]] = [
+        ("campaign / CLSF mode", f"{r.campaign_kind} / {r.clsf_mode}", ""),
+        ("steps completed / planned", f"{r.steps_completed} / {f(r.steps_planned)}", ""),
+        ("missing steps", ", ".join(f"{m['index']}:{m['kind']}" for m in r.missing_steps[:8])
+         + (" ..." if len(r.missing_steps) > 8 else "") or "none", ""),
+        ("SF nominal / measured", f"{f(r.sf_nominal_v_per_dps)} / {f(r.sf_measured_v_per_dps, '{:.6g}')}", "V/(deg/s)"),
+        ("step pairs", f(r.n_step_pairs), ""),
+        ("true SF change (p-p)", f(r.sf_true_change_ppm, "{:.1f}"), "ppm"),
+        ("SF tempco true / CLSF", f"{f(r.sf_tempco_ppm_per_c, '{:.1f}')} / {f(r.clsf_tempco_ppm_per_c, '{:.1f}')}",
+         "ppm/degC"),
+        ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}"), "ppm"),
+        ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}"), "ppm"),
+        ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}"), "ppm"),
+        ("CLSF ADEV at 60 s", f(r.adev_at_60s_ppm, "{:.2f}"), "ppm"),
+        ("CLSF ADEV minimum", f(min((x["value"] for x in r.adev), default=None), "{:.2f}"), "ppm"),
+        ("ARW", f(r.arw_deg_per_rt_h, "{:.4f}"), "deg/sqrt(h)"),
+        ("bias instability", f(r.bias_instability_deg_per_h, "{:.3f}"), "deg/h"),
+        ("FTR bandwidth (-3 dB)", f(r.bandwidth_hz, "{:.3f}"), "Hz"),
+        ("2 % settling time", f(r.settling_time_s, "{:.3f}"), "s"),
+        ("nonlinearity max / RMS", f"{f(r.linearity.get('nonlinearity_max_pct_fs'), '{:.3f}')} / "
+         f"{f(r.linearity.get('nonlinearity_rms_pct_fs'), '{:.3f}')}", "% FS"),
+        ("asymmetry", f(r.linearity.get("asymmetry_ppm"), "{:.0f}"), "ppm"),
+    ]
+    for row in rows:
+        tab.add_row(*row)
+    return tab
+
+
+def result_json_text(result: AnalysisResult) -> str:
+    """The JSON text `qmg-lab analyze --json` prints."""
+    return json.dumps(result.to_json(), indent=2)

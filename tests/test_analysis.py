@@ -1,0 +1,298 @@
+"""analyze() on synthetic run files with known answers (equations in each test), written with RunWriter."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from qmg_lab.analysis import analyze, render_table
+from qmg_lab.storage import RunWriter
+
+FS = 1400.0
+F_D = 7.0
+SF0 = 0.06  # V per deg/s
+DITHER_LEAK_V = 0.08  # square wave at 7 Hz leaking into the rate output (removed by whole-period means)
+
+
+def _config(kind: str, dwell: float, settle: float, mode: str = "observe", rate_hz: float = FS,
+            dither_hz: float = F_D, extra: str = "") -> str:
+    return textwrap.dedent(f"""
+        [campaign]
+        kind = "{kind}"
+        [clsf]
+        mode = "{mode}"
+        [dither]
+        frequency_hz = {dither_hz}
+        [lockin]
+        demod_rate_hz = {rate_hz}
+        [plan]
+        dwell_s = {dwell}
+        settle_s = {settle}
+        {extra}
+    """)
+
+
+def _writer(path: Path, config: str, planned_kinds: list[str], truth: bool, mode: str = "sim") -> RunWriter:
+    return RunWriter.create(path, config_text=config, config_sha256=hashlib.sha256(config.encode()).hexdigest(),
+                            mode=mode, software_version="test", t0_unix=1.7e9, truth=truth,
+                            planned_steps=len(planned_kinds), planned_step_kinds=planned_kinds)
+
+
+def square(t: np.ndarray, f_hz: float = F_D, fs: float = FS) -> np.ndarray:
+    """+-1 square wave of frequency f_hz sampled at sample index k = t fs (exact integer arithmetic at the edges)."""
+    k = np.round(np.asarray(t) * fs)
+    return np.where(np.floor(k * 2 * f_hz / fs) % 2 == 0, 1.0, -1.0)
+
+
+def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: float = F_D) -> None:
+    sq = square(t, dither_hz, 1.0 / float(np.median(np.diff(t))) if t.shape[0] > 1 else FS)
+    z = np.zeros_like(t)
+    w.append("lockin", time=t, x_sense=z, y_sense=z, rate_output=rate_output, drive_amplitude=z + 0.5,
+             drive_frequency=z + 2200.0, dither=0.6 * sq)
+
+
+# ---- the temperature sweep --------------------------------------------------------------------------------------
+
+DWELL, SETTLE, N_PAIRS, RATE = 20.0, 2.0, 8, 5.0
+ALPHA = -1000e-6  # true SF tempco, 1/degC
+BETA = 50e-6  # what the (synthetic) CLSF gets wrong, 1/degC: its estimate follows (ALPHA + BETA)
+SIGMA_O = 1e-4  # V per sample
+T_PRE = 4.0  # lock + dither steps before the pairs
+
+
+def temperature(t: np.ndarray | float) -> np.ndarray | float:
+    """Chamber ramp 25 -> 35 degC over the pairs."""
+    return 25.0 + 10.0 * np.clip((np.asarray(t) - T_PRE) / (2 * N_PAIRS * DWELL), 0.0, 1.0)
+
+
+def write_sweep(path: Path, pairs_written: int = N_PAIRS, truth: bool = True, kill: bool = False) -> None:
+    rng = np.random.default_rng(7)
+    kinds = ["lock", "dither"] + ["rate"] * (2 * N_PAIRS) + ["return"]
+    w = _writer(path, _config("temperature_sweep", DWELL, SETTLE), kinds, truth, "sim" if truth else "hardware")
+    steps = [(0, "lock", 0.0, 2.0, 0.0), (1, "dither", 2.0, 4.0, 0.0)]
+    for k in range(2 * pairs_written):
+        steps.append((2 + k, "rate", T_PRE + k * DWELL, T_PRE + (k + 1) * DWELL, RATE if k % 2 == 0 else -RATE))
+    prev_rate = 0.0
+    for index, kind, a, b, rate in steps:
+        t = np.arange(round(a * FS), round(b * FS)) / FS
+        temp = temperature(t)
+        sf = SF0 * (1 + ALPHA * (temp - 25.0))
+        omega = rate + (prev_rate - rate) * np.exp(-(t - a) / 0.08)  # the rate loop's first-order response
+        out = sf * omega + 2e-3 + DITHER_LEAK_V * square(t) \
+            + SIGMA_O * rng.standard_normal(t.shape[0])
+        _lockin(w, t, out)
+        tc = np.arange(math.ceil(a * F_D), math.floor(b * F_D)) / F_D + 1 / F_D
+        tc = tc[tc <= b]
+        s = (ALPHA + BETA) * (temperature(tc) - 25.0) + 20e-6 * rng.standard_normal(tc.shape[0])
+        w.append("clsf", time=tc, eta=1 / (1 + s) - 1, sf_change_estimate=s, gain_correction=np.ones_like(tc),
+                 rate_output_mean=SF0 * rate + 0 * tc)
+        tt = np.arange(a + 0.5, b + 1e-9, 0.5)
+        w.append("table", time=tt, rate_command=rate + 0 * tt, rate_measured=rate + 0 * tt, position=0 * tt)
+        w.append("chamber", time=tt, setpoint=35.0 + 0 * tt, temperature=temperature(tt))
+        if truth:
+            w.append("truth", time=t, scale_factor=sf, temperature=temp, rate=omega)
+        w.append_step(index=index, kind=kind, t_start=a, t_end=b, table_rate=rate, chamber_setpoint=35.0,
+                      status="completed")
+        prev_rate = rate
+    if kill:
+        w.flush()
+        os.kill(os.getpid(), signal.SIGKILL)
+    w.set_status("completed")
+    w.close()
+
+
+def expected_pairs() -> tuple[np.ndarray, np.ndarray]:
+    """Pair-mean temperatures and the true relative SF change vs pair 0 (SF linear in T, T linear in t)."""
+    temps = []
+    for k in range(N_PAIRS):
+        a = T_PRE + 2 * k * DWELL
+        wp = (a + SETTLE, a + DWELL)
+        wm = (a + DWELL + SETTLE, a + 2 * DWELL)
+        temps.append(0.5 * (temperature(sum(wp) / 2) + temperature(sum(wm) / 2)))
+    temps = np.array(temps)
+    sf = 1 + ALPHA * (temps - 25)
+    return temps, (sf / sf[0] - 1) * 1e6
+
+
+def test_sweep_recovers_sf_changes_tempco_and_clsf_accuracy(tmp_path: Path) -> None:
+    p = tmp_path / "sweep.h5"
+    write_sweep(p)
+    r = analyze(p)
+    temps, e = expected_pairs()
+    assert r.n_step_pairs == N_PAIRS and r.status == "completed"
+    assert r.missing_steps == [{"index": 2 + 2 * N_PAIRS, "kind": "return"}]  # the writer skips the return step
+    # noise: mean of 25200 samples of 1e-4 V -> 6.3e-7 V; SF difference / 10 deg/s / 0.06 -> 1.5 ppm per pair
+    tol_ppm = 6 * math.sqrt(2) * SIGMA_O / math.sqrt((DWELL - SETTLE) * FS) / (2 * RATE) / SF0 * 1e6
+    got = np.array([q.true_change_ppm for q in r.pairs])
+    np.testing.assert_allclose(got, e, atol=tol_ppm)
+    assert r.sf_true_change_ppm == pytest.approx(np.ptp(e), abs=2 * tol_ppm)
+    assert r.sf_measured_v_per_dps == pytest.approx(SF0 * (1 + ALPHA * (temps[0] - 25)), rel=tol_ppm * 1e-6)
+    assert r.sf_tempco_ppm_per_c == pytest.approx(ALPHA * 1e6 / (1 + ALPHA * (temps[0] - 25)), abs=1.0)
+    # CLSF estimate (ALPHA + BETA) dT re-referenced to pair 0; its error vs the true change:
+    s = (ALPHA + BETA) * (temps - 25)
+    c = ((1 + s) / (1 + s[0]) - 1) * 1e6
+    d = (c - e)[1:]
+    assert r.clsf_accuracy_rms_ppm == pytest.approx(np.sqrt(np.mean(d**2)), abs=tol_ppm + 1.0)
+    assert r.clsf_accuracy_rms_ppm_mean_removed == pytest.approx(np.sqrt(np.mean((d - d.mean())**2)),
+                                                                 abs=tol_ppm + 1.0)
+    assert r.truth_check_rms_ppm is not None and r.truth_check_rms_ppm < tol_ppm
+    js = r.to_json()
+    json.dumps(js)  # valid JSON (no NaN)
+    for key in ("sf_nominal_v_per_dps", "n_step_pairs", "sf_true_change_ppm", "clsf_accuracy_rms_ppm",
+                "clsf_accuracy_rms_ppm_mean_removed", "adev", "truth_check_rms_ppm"):
+        assert key in js
+    assert js["sf_nominal_v_per_dps"] == 0.06
+    assert {"tau_s", "ppm", "ppm_low", "ppm_high"} <= set(js["adev"][0])
+    render_table(r)
+
+
+def test_hardware_file_without_truth(tmp_path: Path) -> None:
+    p = tmp_path / "hw.h5"
+    write_sweep(p, pairs_written=3, truth=False)
+    r = analyze(p)
+    assert r.mode == "hardware" and r.truth_check_rms_ppm is None and r.n_step_pairs == 3
+    assert r.to_json()["truth_check_rms_ppm"] is None
+
+
+def test_killed_file_is_analysed_and_names_missing_steps(tmp_path: Path) -> None:
+    p = tmp_path / "killed.h5"
+    code = (f"import sys; sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]\n"
+            f"from pathlib import Path\nfrom test_analysis import write_sweep\n"
+            f"write_sweep(Path({str(p)!r}), pairs_written=3, kill=True)\n")
+    proc = subprocess.run([sys.executable, "-c", code], timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    r = analyze(p)
+    assert r.status == "running" and r.steps_planned == 2 + 2 * N_PAIRS + 1
+    assert r.steps_completed == 2 + 6 and r.n_step_pairs == 3
+    assert [m["index"] for m in r.missing_steps] == list(range(8, 2 + 2 * N_PAIRS + 1))
+    assert r.missing_steps[-1]["kind"] == "return" and r.missing_steps[0]["kind"] == "rate"
+    assert any("not closed" in n for n in r.notes)
+
+
+# ---- Allan deviation and gyro noise -----------------------------------------------------------------------------
+
+
+def test_adev_of_white_clsf_and_rate_noise(tmp_path: Path) -> None:
+    """White noise of per-sample sigma at rate fs: sigma(tau) = sigma / sqrt(tau fs)."""
+    rng = np.random.default_rng(3)
+    fs_l, fd, dur = 200.0, 5.0, 1600.0
+    sig_c = 300e-6  # CLSF per-period sigma (dimensionless)
+    sig_r = 0.01  # per-period rate-output sigma, deg/s
+    p = tmp_path / "allan.h5"
+    w = _writer(p, _config("allan", 60.0, 1.0, "correct", fs_l, fd), ["hold"], truth=False)
+    t = np.arange(int(dur * fs_l)) / fs_l
+    _lockin(w, t, SF0 * 0.01 * rng.standard_normal(t.shape[0]), fd)
+    tc = np.arange(1, int(dur * fd) + 1) / fd
+    s = sig_c * rng.standard_normal(tc.shape[0])
+    g = np.exp(1e-4 * np.cumsum(rng.standard_normal(tc.shape[0])) * 0 + 0.01 * tc / dur)
+    w.append("clsf", time=tc, eta=1 / (1 + s) - 1, sf_change_estimate=s, gain_correction=g,
+             rate_output_mean=SF0 * sig_r * rng.standard_normal(tc.shape[0]))
+    w.append_step(index=0, kind="hold", t_start=0.0, t_end=dur, table_rate=0.0, chamber_setpoint=25.0,
+                  status="completed")
+    w.set_status("completed")
+    w.close()
+    r = analyze(p)
+    taus = np.array([a["tau_s"] for a in r.adev])
+    dev = np.array([a["value"] for a in r.adev])
+    expect = sig_c * 1e6 / np.sqrt(taus * fd)
+    half_width = np.array([(a["high"] - a["low"]) / 2 for a in r.adev])  # 68 % interval: ~1 sigma
+    assert np.all(np.abs(dev - expect) <= 3 * half_width)
+    assert np.all(half_width[1:] >= half_width[:-1] * dev[1:] / dev[:-1] * 0.99)  # fewer clusters, wider
+    np.testing.assert_allclose(dev[:6], expect[:6], rtol=0.1)
+    assert r.adev_at_60s_ppm == pytest.approx(sig_c * 1e6 / math.sqrt(60 * fd), rel=0.35)  # edf ~ 27
+    assert r.adev_gain_correction  # correct mode: drift removed by g_c analysed too
+    # ARW: sigma(1 s) = sig_r / sqrt(fd) deg/s -> x 3600 deg/h -> / 60 deg/sqrt(h)
+    assert r.arw_deg_per_rt_h == pytest.approx(sig_r / math.sqrt(fd) * 3600 / 60, rel=0.1)
+    gy = r.gyro_adev_deg_per_h
+    assert r.bias_instability_deg_per_h == pytest.approx(min(x["value"] for x in gy) / 0.664)
+
+
+# ---- FTR characterization ---------------------------------------------------------------------------------------
+
+FB = 2.0  # first-order FTR bandwidth, Hz
+
+
+@pytest.mark.parametrize("truth", [True, False])
+def test_bandwidth_phase_and_settling_of_a_first_order_loop(tmp_path: Path, truth: bool) -> None:
+    rng = np.random.default_rng(5)
+    freqs = [0.5, 1.0, 1.5, 2.0, 3.0, 5.0]
+    amp, settle, dwell = 5.0, 1.0, 6.0
+    kinds = ["rate", "return"] + [f"sine:{f:.3f}Hz" for f in freqs]
+    extra = f"bandwidth_frequencies_hz = {freqs}\nbandwidth_amplitude_dps = {amp}"
+    p = tmp_path / "bw.h5"
+    w = _writer(p, _config("bandwidth", dwell, settle, extra=extra), kinds, truth)
+    tau = 1 / (2 * math.pi * FB)
+    t_now, idx = 0.0, 0
+    # a quiet second, then the rate step 0 -> 5 deg/s and the return to rest
+    t = np.arange(0, round(FS)) / FS
+    _lockin(w, t, 0 * t)
+    t_now = 1.0
+    for rate_from, rate_to in ((0.0, amp), (amp, 0.0)):
+        t = np.arange(round(t_now * FS), round((t_now + dwell) * FS)) / FS
+        y = rate_to + (rate_from - rate_to) * np.exp(-(t - t_now) / tau)
+        _lockin(w, t, SF0 * y + DITHER_LEAK_V * square(t))
+        if truth:
+            w.append("truth", time=t, scale_factor=SF0 + 0 * t, temperature=25 + 0 * t, rate=rate_to + 0 * t)
+        w.append_step(index=idx, kind=kinds[idx], t_start=t_now, t_end=t_now + dwell, table_rate=rate_to,
+                      chamber_setpoint=25.0, status="completed")
+        idx, t_now = idx + 1, t_now + dwell
+    for f in freqs:
+        dur = 10 / f + max(settle, 2 / f) + 2 / f
+        t = np.arange(round(t_now * FS), round((t_now + dur) * FS)) / FS
+        h = 1 / (1 + 1j * f / FB)
+        omega = amp * np.sin(2 * np.pi * f * (t - t_now))
+        y = amp * abs(h) * np.sin(2 * np.pi * f * (t - t_now) + np.angle(h))
+        _lockin(w, t, SF0 * y + DITHER_LEAK_V * square(t)
+                + 1e-4 * rng.standard_normal(t.shape[0]))
+        if truth:
+            w.append("truth", time=t, scale_factor=SF0 + 0 * t, temperature=25 + 0 * t, rate=omega)
+        w.append_step(index=idx, kind=kinds[idx], t_start=t_now, t_end=t_now + dur, table_rate=amp,
+                      chamber_setpoint=25.0, status="completed")
+        idx, t_now = idx + 1, t_now + dur
+    w.set_status("completed")
+    w.close()
+    r = analyze(p)
+    assert len(r.bode) == len(freqs)
+    for b in r.bode:
+        h = 1 / (1 + 1j * b.frequency_hz / FB)
+        assert b.amplitude_ratio == pytest.approx(abs(h), rel=0.01)
+        assert b.phase_deg == pytest.approx(math.degrees(np.angle(h)), abs=1.0)
+    # -3.01 dB of a first-order loop is FB; linear interpolation in (log f, dB) between 1.5 and 2 Hz
+    assert r.bandwidth_hz == pytest.approx(FB, rel=0.02)
+    # 2 % settling of exp(-t/tau) seen through a centred one-dither-period boxcar (width W):
+    # the boxcar scales the tail by sinh(x)/x, x = W/(2 tau) -> t_s = tau ln(50 sinh(x)/x)
+    x = (1 / F_D) / (2 * tau)
+    assert r.settling_time_s == pytest.approx(tau * math.log(50 * math.sinh(x) / x), abs=2 / FS)
+
+
+def test_linearity_of_a_quadratic_response(tmp_path: Path) -> None:
+    """O = SF r + B + k r^2 on r = -5..5 deg/s: residual max 15 k (at +-5, mean r^2 = 10), asymmetry 10 k / SF."""
+    k = 2e-5  # V/(deg/s)^2
+    rates = [float(r) for r in range(-5, 6)]
+    p = tmp_path / "lin.h5"
+    dwell, settle = 4.0, 1.0
+    w = _writer(p, _config("linearity", dwell, settle, extra=f"linearity_rates_dps = {rates}"),
+                ["level"] * len(rates), truth=False, mode="hardware")
+    for i, r in enumerate(rates):
+        t = np.arange(round(i * dwell * FS), round((i + 1) * dwell * FS)) / FS
+        _lockin(w, t, SF0 * r + 1e-3 + k * r * r + DITHER_LEAK_V * square(t))
+        w.append("table", time=t[::700], rate_command=r + 0 * t[::700], rate_measured=r + 0 * t[::700],
+                 position=0 * t[::700])
+        w.append_step(index=i, kind="level", t_start=i * dwell, t_end=(i + 1) * dwell, table_rate=r,
+                      chamber_setpoint=25.0, status="completed")
+    w.close()
+    lin = analyze(p).linearity
+    assert lin["sf_v_per_dps"] == pytest.approx(SF0, rel=1e-9)
+    assert lin["bias_v"] == pytest.approx(1e-3 + 10 * k, rel=1e-6)
+    assert lin["nonlinearity_max_pct_fs"] == pytest.approx(100 * 15 * k / (SF0 * 5), rel=1e-6)
+    assert lin["asymmetry_ppm"] == pytest.approx(10 * k / SF0 * 1e6, rel=1e-6)
