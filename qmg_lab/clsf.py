@@ -106,7 +106,12 @@ class ClsfEstimator:
     # ------------------------------------------------------------------ processing
     def process(self, time: np.ndarray, x_sense: np.ndarray, rate_output: np.ndarray,
                 dither: np.ndarray) -> ClsfPeriods:
-        """Add a block of samples; return the estimates of every dither period completed by it."""
+        """Add a block of samples; return the estimates of every dither period completed by it.
+
+        All periods of the block are evaluated at once. The gain correction recorded for them is the one in force
+        while the block was taken (the lock-in's gain changes between blocks); correct mode then integrates
+        their eta into the gain for the next block.
+        """
         if self.mode == "off":
             return ClsfPeriods.empty()
         t = np.concatenate((self._buf_t, time))
@@ -118,37 +123,33 @@ class ClsfEstimator:
             keep = edges[0] if len(edges) else max(0, len(t) - 100000)
             self._buf_t, self._buf_x, self._buf_u, self._buf_d = t[keep:], x[keep:], u[keep:], d[keep:]
             return ClsfPeriods.empty()
-        out: dict[str, list[float]] = {k: [] for k in ("time", "eta", "sf", "gain", "rate")}
-        dt = float(np.median(np.diff(t[edges[0]:edges[1] + 1])))
-        for i0, i1 in zip(edges[:-1], edges[1:]):
-            t0, t1 = t[i0], t[i1 - 1] + dt
-            if self._held(t0, t1):
-                continue
-            rho = _period_gain(x[i0:i1], u[i0:i1], d[i0:i1], dt)
-            if not np.isfinite(rho):
-                continue
-            gain_used = self.gain_correction
-            if self.rho_ref is None:
-                self._ref_acc.append(rho)
-                if len(self._ref_acc) >= self.reference_periods:
-                    self.rho_ref = float(np.mean(self._ref_acc))
-                continue
-            eta = rho / self.rho_ref - 1.0
-            out["time"].append(t1)
-            out["eta"].append(eta)
-            out["sf"].append(1.0 / (1.0 + eta) - 1.0)
-            out["gain"].append(gain_used)
-            out["rate"].append(float(np.mean(u[i0:i1] - d[i0:i1])))
-            if self.mode == "correct":
-                k_i = (t1 - t0) / self.time_constant_s
-                self.gain_correction *= math.exp(-k_i * eta)
-        last = edges[-1]
+        first, last = int(edges[0]), int(edges[-1])
+        dt = float(np.median(np.diff(t[first:last + 1])))
+        rho, rate = _period_gains(x[first:last], u[first:last], d[first:last], edges[:-1] - first, dt)
+        t0, t1 = t[edges[:-1]], t[edges[1:] - 1] + dt
+        ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
+        rho, rate, t1, t0 = rho[ok], rate[ok], t1[ok], t0[ok]
         self._buf_t, self._buf_x, self._buf_u, self._buf_d = t[last:], x[last:], u[last:], d[last:]
         self._holds = [h for h in self._holds if h[1] >= t[last]]
-        return ClsfPeriods(*(np.asarray(out[k], dtype=np.float64) for k in ("time", "eta", "sf", "gain", "rate")))
+        if self.rho_ref is None:
+            need = self.reference_periods - len(self._ref_acc)
+            self._ref_acc.extend(rho[:need].tolist())
+            rho, rate, t1, t0 = rho[need:], rate[need:], t1[need:], t0[need:]
+            if len(self._ref_acc) < self.reference_periods:
+                return ClsfPeriods.empty()
+            self.rho_ref = float(np.mean(self._ref_acc))
+        eta = rho / self.rho_ref - 1.0
+        gain = np.full(eta.shape, self.gain_correction)
+        if self.mode == "correct" and eta.size:
+            self.gain_correction *= math.exp(-float(np.sum((t1 - t0) * eta)) / self.time_constant_s)
+        return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain,
+                           rate_output_mean=rate)
 
-    def _held(self, t0: float, t1: float) -> bool:
-        return any(h0 <= t1 and t0 <= h1 for h0, h1 in self._holds)
+    def _held_mask(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+        held = np.zeros(t0.shape, dtype=bool)
+        for h0, h1 in self._holds:
+            held |= (h0 <= t1) & (t0 <= h1)
+        return held
 
 
 def _rising_edges(d: np.ndarray) -> np.ndarray:
@@ -163,22 +164,34 @@ def _rising_edges(d: np.ndarray) -> np.ndarray:
     return np.flatnonzero(above[1:] & ~above[:-1]) + 1
 
 
-def _period_gain(x: np.ndarray, u: np.ndarray, d: np.ndarray, dt: float) -> float:
-    """rho = D_x / D_m over one whole period (see the module docstring)."""
+def _segment_mean(v: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    return np.add.reduceat(v, starts) / lengths
+
+
+def _period_gains(x: np.ndarray, u: np.ndarray, d: np.ndarray, starts: np.ndarray,
+                  dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """rho = D_x / D_m and the mean rate output of each period [starts[j], starts[j+1]) (the last to the end).
+
+    Per period: r = midpoint-rule integral of the zero-mean recorded square wave, made zero-mean (symmetric about
+    the period's centre); m = running integral of the forcer input u = V_r + V_d; D_x = sum x r, D_m = sum m r
+    (r is zero-mean, so x's and m's means drop out). Segmented cumulative sums make it one pass for all periods.
+    """
     n = x.size
-    if n < 8:
-        return float("nan")
-    dz = d - d.mean()
-    r = (np.cumsum(dz) - 0.5 * dz) * dt  # midpoint rule: symmetric about the period's centre
-    r -= r.mean()
-    m = np.empty(n)
-    m[0] = 0.0
-    np.cumsum(u[:-1] * dt, out=m[1:])
-    m -= m.mean()
-    d_m = float(np.dot(m, r))
-    if d_m == 0.0:
-        return float("nan")
-    return float(np.dot(x - x.mean(), r)) / d_m
+    lengths = np.diff(np.append(starts, n)).astype(np.float64)
+    seg = np.repeat(np.arange(starts.size), np.diff(np.append(starts, n)))
+    dz = d - _segment_mean(d, starts, lengths)[seg]
+    c = np.cumsum(dz)
+    r = c - (c[starts] - dz[starts])[seg] - 0.5 * dz
+    r -= _segment_mean(r, starts, lengths)[seg]
+    udt = u * dt
+    mc = np.cumsum(udt)
+    m = mc - udt - (mc[starts] - udt[starts])[seg]
+    d_x = np.add.reduceat(x * r, starts)
+    d_m = np.add.reduceat(m * r, starts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where((lengths >= 8) & (d_m != 0.0), d_x / d_m, np.nan)
+    rate = _segment_mean(u - d, starts, lengths)
+    return rho, rate
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

@@ -150,6 +150,9 @@ class LockInSection(_Section):
     demod_timeconstant_s: float = Field(1e-4, gt=0.0, le=10.0, description="demodulator filter time constant, s")
     demod_order: int = Field(1, ge=1, le=8)
     poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
+    sim_poll_interval_s: float = Field(
+        2.0, ge=0.05, le=10.0, description="twin only: block length (the twin needs no real-time buffer), s"
+    )
     drive_sigin: int = Field(0, ge=0, le=1, description="signal input of the drive pickoff (0 = SigIn1)")
     sense_sigin: int = Field(1, ge=0, le=1, description="signal input of the sense pickoff")
     drive_sigout: int = Field(0, ge=0, le=1, description="signal output driving the drive electrodes")

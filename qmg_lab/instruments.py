@@ -255,6 +255,10 @@ class Station:
     truth: TruthSource | None = None
     # Twins only: told where the physical world was when a resumed run's process died (last time, temperatures)
     restore: Callable[[dict[str, Any]], None] | None = None
+    # length of each lock-in poll, s (the station knows whether the lock-in is a twin or real)
+    poll_interval_s: float = 0.5
+    # called by close() after the instruments (e.g. stopping a twin's pty or socket server)
+    on_close: list[Callable[[], None]] = field(default_factory=list)
 
     def instruments(self) -> dict[str, Instrument]:
         return {"lockin": self.lockin, "generator": self.generator, "table": self.table, "chamber": self.chamber}
@@ -273,5 +277,11 @@ class Station:
         for inst in self.instruments().values():
             try:
                 inst.close()
+            except Exception:  # noqa: BLE001 - close everything even if one fails
+                pass
+        for fn in self.on_close:
+            try:
+                fn()
             except Exception:  # noqa: BLE001
                 pass
+        self.on_close.clear()

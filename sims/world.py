@@ -12,7 +12,7 @@ Dynamics (all exact for inputs held over a step, evaluated vectorised per block)
   Position is the integral of the rate.
 * Chamber: the controller setpoint s(t) ramps to the target at the ramp rate (deg C/min); the air follows s with
   a first-order lag tau_air; the gyro follows the air with a first-order lag tau_gyro. Exact ZOH recursion
-  y[k+1] = a y[k] + (1 - a) u[k], a = exp(-dt/tau), run with scipy.signal.lfilter.
+  y[k+1] = a y[k] + (1 - a) u[k], a = exp(-dt/tau), evaluated in closed form (`first_order_lag`).
 * Dither (DS345 output): v(t) = offset + (Vpp/2) w(f (t - t_origin) + phase/360), w the unit waveform (square:
   +1 on the first half period, -1 on the second; sine: sin 2 pi u). Evaluated at mid-step, so square-wave edges
   that fall on step boundaries are exact.
@@ -30,7 +30,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
 
@@ -97,6 +96,29 @@ class TruthRecord:
     scale_factor: np.ndarray
     temperature: np.ndarray
     rate: np.ndarray
+
+
+def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
+    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1, in closed form:
+    y[k] = a^k (y0 + (1 - a) sum_{j<k} a^-(j+1) u[j]), in chunks short enough that a^-n stays finite."""
+    n = u.shape[0]
+    y = np.empty(n)
+    if a <= 0.0:
+        y[0] = y0
+        y[1:] = u[:-1]
+        return y
+    chunk = n if a >= 1.0 else max(1, min(n, int(200.0 / -math.log(a))))
+    k0 = 0
+    while k0 < n:
+        k1 = min(n, k0 + chunk)
+        m = k1 - k0
+        j = np.arange(m, dtype=np.float64)
+        grow = a ** -(j + 1.0)
+        acc = np.concatenate(([0.0], np.cumsum(grow[:-1] * u[k0:k1 - 1])))
+        y[k0:k1] = a ** j * (y0 + (1.0 - a) * acc)
+        y0 = a * y[k1 - 1] + (1.0 - a) * u[k1 - 1] if k1 < n else y0
+        k0 = k1
+    return y
 
 
 class World:
@@ -280,9 +302,9 @@ class World:
             sp = self._chamber_setpoint(tau_start)
             a_air = math.exp(-dt / self.params.chamber_time_constant_s)
             a_gyro = math.exp(-dt / self.params.thermal_lag_s)
-            air, _ = lfilter([0.0, 1.0 - a_air], [1.0, -a_air], sp, zi=[c.air_c])
+            air = first_order_lag(sp, c.air_c, a_air)
             air_meas = air + c.disturbance_c
-            gyro, _ = lfilter([0.0, 1.0 - a_gyro], [1.0, -a_gyro], air_meas, zi=[c.gyro_c])
+            gyro = first_order_lag(air_meas, c.gyro_c, a_gyro)
             # state at the end of the block
             end = float(n * dt)
             self.table.rate_dps = float(self._table_profile(np.array([end]))[0])

@@ -1,0 +1,363 @@
+"""The campaign sequencer: plan -> steps -> checkpoints, with suspenders, safe state and resume.
+
+The lock-in stream is the heartbeat: the runner never sleeps, it polls the lock-in for the next block of
+demodulator samples (on hardware the poll waits for real time; on the twin it advances the simulated world by
+that block) and, between blocks, reads the table and the chamber, feeds the CLSF estimator, writes the file and
+checks the suspenders. A step's clock only runs while no suspender holds: while the PLL is unlocked, the chamber
+is out of its band or an instrument is being recovered, the campaign keeps logging but the step waits.
+
+Every exit path ends in the safe state (table stopped, chamber to its safe setpoint, dither muted, lock-in outputs
+safe) and with the file's status set: "completed", or "aborted" with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from qmg_lab.clsf import ClsfEstimator
+from qmg_lab.config import Config
+from qmg_lab.instruments import InstrumentError, LockInBlock, Station
+from qmg_lab.interrupts import InterruptGuard
+from qmg_lab.loops import lockin_setup
+from qmg_lab.plan import Step, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.storage import RunWriter
+
+MAX_RECOVERY_ATTEMPTS = 3
+
+
+class CampaignAborted(RuntimeError):
+    """The campaign stopped on an instrument fault; the station reached its safe state (exit code 3)."""
+
+
+class CampaignInterrupted(RuntimeError):
+    """Ctrl-C: the station reached its safe state (exit code 130)."""
+
+
+@dataclass
+class Progress:
+    """What the CLI shows while a campaign runs."""
+
+    step: Step
+    n_steps: int
+    step_elapsed_s: float
+    run_time_s: float
+    planned_s: float
+    done_s: float
+    chamber_c: float
+    chamber_setpoint_c: float
+    table_rate_dps: float
+    sf_change_ppm: float
+    gain_correction: float
+    suspended: str
+    wall_s: float
+
+
+@dataclass
+class RunSummary:
+    path: str
+    status: str
+    steps_completed: int
+    steps_planned: int
+    simulated_s: float
+    wall_s: float
+    blocks: int
+    samples: int
+    samples_lost: int
+    suspensions: int
+    recoveries: int
+    last_sf_change_ppm: float
+    gain_correction: float
+    abort_reason: str = ""
+    resumed: bool = False
+
+    def as_dict(self) -> dict[str, object]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Readings:
+    table_cmd: float = 0.0
+    table_rate: float = float("nan")
+    chamber_c: float = float("nan")
+    chamber_sp: float = float("nan")
+    sf_change: float = float("nan")
+
+
+@dataclass
+class CampaignRunner:
+    """Runs a configuration's plan on a station, writing the run file."""
+
+    cfg: Config
+    station: Station
+    writer: RunWriter
+    progress: Callable[[Progress], None] | None = None
+    resume: bool = False
+    steps: list[Step] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.steps = self.steps or build_plan(self.cfg)
+        assert_within_limits(self.cfg, self.steps)
+        self.clsf = ClsfEstimator(tau_s=self.cfg.device.tau_s, mode=self.cfg.clsf.mode,
+                                  time_constant_s=self.cfg.clsf.time_constant_s,
+                                  reference_periods=self.cfg.clsf.reference_periods)
+        self._offset = 0.0
+        self._t = 0.0  # file time of the last sample, s
+        self._dt = 1.0 / self.cfg.lockin.demod_rate_hz
+        self._read = _Readings()
+        self._wall0 = time.monotonic()
+        self._blocks = self._samples = self._lost = self._suspensions = self._recoveries = 0
+        self._suspended = ""
+        self._done_s = 0.0
+        self._guard: InterruptGuard | None = None
+
+    # ================================================================== public
+    def run(self) -> RunSummary:
+        """Execute every step not yet completed; always leave the station safe and the file's status set."""
+        status, reason = "aborted", ""
+        with InterruptGuard() as guard:
+            self._guard = guard
+            try:
+                self._prepare()
+                done = self.writer.completed_steps()
+                for step in self.steps:
+                    if step.index in done:
+                        self._done_s += step.duration_s
+                        continue
+                    self._run_step(step)
+                status = "completed"
+            except KeyboardInterrupt:
+                reason = "interrupted by the operator (Ctrl-C)"
+                raise CampaignInterrupted(reason) from None
+            except CampaignInterrupted as exc:
+                reason = str(exc)
+                raise
+            except InstrumentError as exc:
+                reason = f"instrument fault: {exc}"
+                raise CampaignAborted(reason) from exc
+            except CampaignAborted as exc:
+                reason = str(exc)
+                raise
+            except Exception as exc:
+                reason = f"internal error: {type(exc).__name__}: {exc}"
+                raise
+            finally:
+                failures = self._finish(status, reason)
+                if failures and status == "completed":
+                    raise CampaignAborted("safe state not confirmed: " + "; ".join(failures))
+        return self.summary(status, reason)
+
+    def summary(self, status: str, reason: str = "") -> RunSummary:
+        return RunSummary(
+            path=str(self.writer.path), status=status, steps_completed=len(self.writer.completed_steps()),
+            steps_planned=len(self.steps), simulated_s=self._t, wall_s=time.monotonic() - self._wall0,
+            blocks=self._blocks, samples=self._samples, samples_lost=self._lost, suspensions=self._suspensions,
+            recoveries=self._recoveries, last_sf_change_ppm=self._read.sf_change * 1e6,
+            gain_correction=self.clsf.gain_correction, abort_reason=reason, resumed=self.resume)
+
+    # ================================================================== set-up and tear-down
+    def _prepare(self) -> None:
+        self.writer.set_plan(len(self.steps), [s.kind for s in self.steps])
+        if self.resume:
+            state = self.writer.resume_state()
+            self._offset_target = state.last_time
+            if state.rho_ref is not None:
+                self.clsf.rho_ref = state.rho_ref
+            if state.gain_correction is not None:
+                self.clsf.gain_correction = state.gain_correction
+            if self.station.restore is not None:
+                self.station.restore(state.as_dict())
+        setup = lockin_setup(self.cfg, forcer_gain=self.clsf.gain_correction)
+        self._call("lockin", lambda: self.station.lockin.configure(setup))
+        self._call("lockin", self.station.lockin.start_stream)
+        if self.resume:
+            # the loops were re-closed in a new process: wait for lock again, then restart the dither
+            self._wait_for_lock(Step(-1, "lock", self.cfg.loops.lock_settle_s, self.cfg.plan.chamber_start_c,
+                                     self.cfg.plan.chamber_ramp_c_per_min))
+            if self.clsf.mode != "off" and self.clsf.rho_ref is not None:
+                self._start_dither()
+
+    def _finish(self, status: str, reason: str) -> list[str]:
+        failures = self.station.safe_state()
+        try:
+            self.station.lockin.stop_stream()
+        except Exception as exc:  # noqa: BLE001 - the stream may be the thing that failed
+            failures.append(f"lockin stream: {exc}")
+        if failures and not reason:
+            reason = "safe state not confirmed: " + "; ".join(failures)
+            status = "aborted"
+        elif failures:
+            reason = reason + " (safe state not confirmed: " + "; ".join(failures) + ")"
+        self.writer.set_status(status, reason)
+        self.writer.flush()
+        return failures
+
+    # ================================================================== steps
+    def _run_step(self, step: Step) -> None:
+        t_start = self._t
+        if step.kind == "lock":
+            self._wait_for_lock(step)
+        else:
+            self._apply(step)
+            self._dwell(step)
+        self.writer.append_step(index=step.index, kind=step.kind, t_start=t_start, t_end=self._t,
+                                table_rate=step.table_rate_dps, chamber_setpoint=step.chamber_target_c,
+                                status="completed")
+        self._done_s += step.duration_s
+        self.writer.flush()
+
+    def _apply(self, step: Step) -> None:
+        """Commands at the start of a step (idempotent, so a resumed step can re-apply them)."""
+        st, p = self.station, self.cfg.plan
+        self._call("chamber", lambda: st.chamber.set_setpoint(step.chamber_target_c, step.chamber_ramp_c_per_min))
+        if step.kind == "dither":
+            self._start_dither()
+        previous = self._read.table_cmd
+        if step.kind in ("rate", "level"):
+            self._call("table", lambda: st.table.set_rate(step.table_rate_dps, p.table_accel_dps2))
+            self._read.table_cmd = step.table_rate_dps
+        elif step.kind.startswith("sine"):
+            self._call("table", lambda: st.table.set_sinusoid(step.table_rate_dps, step.sine_frequency_hz,
+                                                                p.table_accel_dps2))
+            self._read.table_cmd = 0.0
+            self.clsf.hold(self._t, self._t + step.duration_s)
+        elif step.kind in ("return", "hold", "soak") and previous != 0.0:
+            self._call("table", st.table.stop)
+            self._read.table_cmd = 0.0
+        if step.moves_table or previous != self._read.table_cmd:
+            move_s = abs(self._read.table_cmd - previous) / p.table_accel_dps2
+            self.clsf.hold(self._t, self._t + move_s + self.cfg.clsf.hold_s)
+
+    def _start_dither(self) -> None:
+        vpp = dither_amplitude_vpp(self.cfg)
+        self._call("generator", lambda: self.station.generator.set_square(self.cfg.dither.frequency_hz, vpp, 0.0))
+
+    def _dwell(self, step: Step) -> None:
+        elapsed = 0.0
+        while step.duration_s - elapsed > 0.5 * self._dt:
+            want = min(self.station.poll_interval_s, step.duration_s - elapsed)
+            block_s = self._block(step, elapsed, want)
+            if not self._suspended:
+                elapsed += block_s
+
+    def _wait_for_lock(self, step: Step) -> None:
+        """Poll until the PLL is locked and the loops have stayed settled for lock_settle_s."""
+        lp = self.cfg.loops
+        locked_for, waited = 0.0, 0.0
+        while locked_for < max(step.duration_s, self._dt):
+            block_s = self._block(step, locked_for, min(self.station.poll_interval_s, lp.lock_timeout_s))
+            waited += block_s
+            locked_for = locked_for + block_s if self._last_locked else 0.0
+            if waited > lp.lock_timeout_s + step.duration_s:
+                raise CampaignAborted(
+                    f"the PLL did not lock within loops.lock_timeout_s = {lp.lock_timeout_s:g} s "
+                    "(check the drive wiring and loops.pll_bandwidth_hz)")
+
+    # ================================================================== one block
+    def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
+        """Poll one block, log it, run CLSF and the suspenders. Returns the block's duration (s)."""
+        if self._guard is not None and self._guard.requested:
+            raise CampaignInterrupted("interrupted by the operator (Ctrl-C)")
+        block = self._call("lockin", lambda: self.station.lockin.poll(want_s))
+        n = len(block)
+        if n == 0:
+            return 0.0
+        if self._blocks == 0 and self.resume:
+            self._offset = max(0.0, self._offset_target + self._dt - float(block.time[0]))
+        t = block.time + self._offset
+        self._blocks += 1
+        self._samples += n
+        self._lost += block.samples_lost
+        if block.samples_lost:
+            self.clsf.reset_buffer()
+        self._last_locked = bool(block.pll_locked)
+        periods = self.clsf.process(t, block.x_sense, block.rate_output, block.dither)
+        if self.clsf.mode == "correct" and len(periods):
+            self._call("lockin", lambda: self.station.lockin.set_forcer_gain(self.clsf.gain_correction))
+        tab = self._call("table", self.station.table.read)
+        cham = self._call("chamber", self.station.chamber.read)
+        t_end = float(t[-1])
+        truth = self.station.truth.drain() if self.station.truth is not None else None
+        guard = self._guard
+        with guard.protect() if guard is not None else _null():
+            self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
+            if len(periods):
+                self.writer.append("clsf", time=periods.time, eta=periods.eta,
+                                   sf_change_estimate=periods.sf_change_estimate,
+                                   gain_correction=periods.gain_correction,
+                                   rate_output_mean=periods.rate_output_mean)
+                self._read.sf_change = float(periods.sf_change_estimate[-1])
+            if self.clsf.rho_ref is not None and self.clsf.rho_ref != self._stored_ref:
+                self.writer.set_clsf_reference(self.clsf.rho_ref)
+                self._stored_ref = self.clsf.rho_ref
+            self.writer.append("table", time=np.array([t_end]), rate_command=np.array([self._read.table_cmd]),
+                               rate_measured=np.array([tab.rate_dps]), position=np.array([tab.position_deg]))
+            self.writer.append("chamber", time=np.array([t_end]), setpoint=np.array([cham.setpoint_c]),
+                               temperature=np.array([cham.temperature_c]))
+            if truth is not None and len(truth.time):
+                self.writer.append("truth", time=truth.time + self._offset, scale_factor=truth.scale_factor,
+                                   temperature=truth.temperature, rate=truth.rate)
+            self.writer.maybe_flush()
+        self._t = t_end
+        self._read.table_rate, self._read.chamber_c, self._read.chamber_sp = (
+            tab.rate_dps, cham.temperature_c, cham.setpoint_c)
+        if tab.interlock:
+            raise CampaignAborted("rate-table interlock tripped")
+        self._update_suspenders(step, cham.temperature_c, cham.setpoint_c)
+        block_s = n * self._dt
+        if self.progress is not None:
+            self.progress(Progress(
+                step=step, n_steps=len(self.steps), step_elapsed_s=step_elapsed, run_time_s=self._t,
+                planned_s=plan_duration_s(self.steps), done_s=self._done_s + step_elapsed, chamber_c=cham.temperature_c,
+                chamber_setpoint_c=cham.setpoint_c, table_rate_dps=tab.rate_dps,
+                sf_change_ppm=self._read.sf_change * 1e6, gain_correction=self.clsf.gain_correction,
+                suspended=self._suspended, wall_s=time.monotonic() - self._wall0))
+        return block_s
+
+    _last_locked: bool = True
+    _offset_target: float = 0.0
+    _stored_ref: float | None = None
+
+    def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
+        """Pause the step's clock while the PLL is unlocked or the chamber is out of its band."""
+        reasons = []
+        if step.kind != "lock" and not self._last_locked:
+            reasons.append("PLL unlocked")
+        band = self.cfg.plan.chamber_band_c
+        if step.kind != "lock" and math.isfinite(chamber_c) and abs(chamber_c - chamber_sp) > band:
+            reasons.append(f"chamber {chamber_c:.2f} degC outside {chamber_sp:.2f} +- {band:g} degC")
+        new = "; ".join(reasons)
+        if new and not self._suspended:
+            self._suspensions += 1
+            self.clsf.hold(self._t - 1.0, math.inf)
+        if not new and self._suspended:
+            self.clsf.release_hold(self._t + self.cfg.clsf.hold_s)
+        self._suspended = new
+
+    # ================================================================== faults
+    def _call(self, name: str, fn: Callable[[], object]) -> object:
+        """Call an instrument; on InstrumentError reconnect it (bounded), retry, else raise."""
+        for attempt in range(MAX_RECOVERY_ATTEMPTS + 1):
+            try:
+                return fn()
+            except InstrumentError as exc:
+                if attempt == MAX_RECOVERY_ATTEMPTS:
+                    raise InstrumentError(f"{name}: {exc} (gave up after {attempt} reconnections)") from exc
+                self._recoveries += 1
+                try:
+                    self.station.instruments()[name].reconnect()
+                except InstrumentError:
+                    continue
+        raise AssertionError("unreachable")
+
+
+class _null:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc: object) -> None:
+        return None

@@ -1,0 +1,417 @@
+"""The `qmg-lab` command line (DESIGN.md section 4).
+
+Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message naming what is wrong, no traceback);
+3 instrument fault (safe state reached); 130 interrupted (safe state reached).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from qmg_lab import __version__
+from qmg_lab.config import Config, ConfigError, config_fingerprint, load_config
+from qmg_lab.instruments import InstrumentError, LimitError, Station
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
+                       "1291BR), on the bench or on simulated twins.")
+characterize_app = typer.Typer(no_args_is_help=True, help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2)")
+table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
+chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
+generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
+app.add_typer(characterize_app, name="characterize")
+app.add_typer(table_app, name="table")
+app.add_typer(chamber_app, name="chamber")
+app.add_typer(generator_app, name="generator")
+
+console = Console(stderr=True)
+out = Console()
+
+EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
+
+ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
+SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+
+
+def _fail(code: int, message: str) -> NoReturn:
+    console.print(f"[bold red]error:[/] {message}", highlight=False, markup=True)
+    raise typer.Exit(code)
+
+
+def _load(path: Path, sim: bool) -> tuple[Config, str]:
+    try:
+        cfg, text = load_config(path)
+    except ConfigError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    return (cfg.with_all_sim() if sim else cfg), text
+
+
+@contextmanager
+def _station(cfg: Config) -> Iterator[Station]:
+    """Build the station; on the way out every instrument is made safe and closed."""
+    from qmg_lab.station import build_station
+
+    try:
+        station = build_station(cfg)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not connect the station: {exc}")
+    try:
+        yield station
+    finally:
+        station.close()
+
+
+@contextmanager
+def _bring_up(config: Path, sim: bool) -> Iterator[Station]:
+    cfg, _ = _load(config, sim)
+    with _station(cfg) as st:
+        try:
+            yield st
+        except LimitError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        except InstrumentError as exc:
+            st.safe_state()
+            _fail(EXIT_FAULT, str(exc))
+
+
+# ====================================================================================== check
+@app.command()
+def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
+    """Validate a configuration, show the plan, its duration and every command against the limits."""
+    from qmg_lab.plan import build_plan, limit_checks, plan_duration_s
+
+    cfg, text = _load(config, False)
+    steps = build_plan(cfg)
+    checks = limit_checks(cfg, steps)
+    bad = [c for c in checks if not c.ok]
+    if json_out:
+        out.print_json(json.dumps({
+            "config": str(config), "config_sha256": config_fingerprint(text), "kind": cfg.campaign.kind,
+            "steps": [s.__dict__ for s in steps], "duration_s": plan_duration_s(steps),
+            "limits": [dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok)
+                       for c in checks]}))
+    else:
+        tbl = Table(title=f"{cfg.campaign.name}: {cfg.campaign.kind}, {len(steps)} steps, "
+                          f"{plan_duration_s(steps) / 3600:.2f} h")
+        for col in ("#", "kind", "duration", "table rate", "chamber target"):
+            tbl.add_column(col, justify="right" if col != "kind" else "left")
+        for s in _summarise_steps(steps):
+            tbl.add_row(*s)
+        out.print(tbl)
+        lim = Table(title="limits")
+        for col in ("check", "value", "allowed", "ok"):
+            lim.add_column(col)
+        for c in checks:
+            lim.add_row(c.what, f"{c.value:g} {c.unit}", f"[{c.low:g}, {c.high:g}] {c.unit}",
+                        "[green]ok[/]" if c.ok else "[bold red]REFUSED[/]")
+        out.print(lim)
+        instruments = ", ".join(f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}"
+                                for n in ("lockin", "generator", "table", "chamber"))
+        out.print(f"instruments: {instruments}")
+    if bad:
+        _fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
+
+
+def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
+    """Rows for the plan table; long runs of alternating rate steps are folded into one row."""
+    rows: list[tuple[str, ...]] = []
+    i = 0
+    while i < len(steps):
+        s = steps[i]
+        j = i
+        while (j + 1 < len(steps) and steps[j + 1].kind == s.kind and s.kind in ("rate", "hold")
+               and abs(steps[j + 1].table_rate_dps) == abs(s.table_rate_dps)
+               and steps[j + 1].chamber_target_c == s.chamber_target_c):
+            j += 1
+        n = j - i + 1
+        rate = f"{s.table_rate_dps:+g} deg/s" if n == 1 else f"+-{abs(s.table_rate_dps):g} deg/s"
+        dur = f"{s.duration_s:g} s" if n == 1 else f"{n} x {s.duration_s:g} s"
+        rows.append((f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}", s.kind, dur, rate,
+                     f"{s.chamber_target_c:g} degC"))
+        i = j + 1
+    return rows
+
+
+# ====================================================================================== run
+def _default_output(cfg: Config) -> Path:
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in cfg.campaign.name)
+    return Path("runs") / f"{safe}-{stamp}.h5"
+
+
+@app.command()
+def run(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")] = None,
+    resume: Annotated[Path | None, typer.Option("--resume", help="continue this run file")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
+) -> None:
+    """Run a campaign, with live progress and a summary at the end."""
+    cfg, text = _load(config, sim)
+    summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+    _print_summary(summary)
+
+
+def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool,
+             overwrite: bool = False) -> Any:
+    from qmg_lab.campaign import CampaignAborted, CampaignInterrupted, CampaignRunner
+    from qmg_lab.plan import assert_within_limits, build_plan
+    from qmg_lab.progress import ProgressView
+    from qmg_lab.storage import RunWriter, StorageError
+
+    try:
+        steps = build_plan(cfg)
+        assert_within_limits(cfg, steps)
+    except LimitError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    sha = config_fingerprint(text)
+    mode = "sim" if cfg.all_sim else ("hardware" if not cfg.any_sim else "mixed")
+    try:
+        if resume is not None:
+            if output is not None and output.resolve() != resume.resolve():
+                _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+            writer = RunWriter.reopen(resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s)
+        else:
+            path = output or _default_output(cfg)
+            if path.exists() and overwrite and path.is_file():
+                path.unlink()
+            if path.exists():
+                _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            writer = RunWriter.create(path, config_text=text, config_sha256=sha, mode=mode,
+                                      software_version=__version__,
+                                      t0_unix=datetime.now(UTC).timestamp(),
+                                      flush_interval_s=cfg.storage.flush_interval_s,
+                                      compression=cfg.storage.compression, truth=cfg.lockin.sim)
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    except OSError as exc:
+        _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+    view = ProgressView(console, enabled=not quiet)
+    try:
+        with _station(cfg) as station, view:
+            runner = CampaignRunner(cfg, station, writer, progress=view.update, resume=resume is not None,
+                                    steps=steps)
+            return runner.run()
+    except CampaignInterrupted as exc:
+        _fail(EXIT_INTERRUPTED, f"{exc}; instruments in their safe state; file {writer.path} (status aborted; "
+                                f"continue with --resume {writer.path})")
+    except (CampaignAborted, InstrumentError) as exc:
+        _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
+    except LimitError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    finally:
+        writer.close()
+
+
+def _print_summary(summary: Any) -> None:
+    tbl = Table(title=f"run {summary.status}", show_header=False)
+    tbl.add_column("what")
+    tbl.add_column("value", justify="right")
+    rows = [
+        ("file", summary.path),
+        ("steps", f"{summary.steps_completed} / {summary.steps_planned}"),
+        ("simulated / run time", f"{summary.simulated_s:.1f} s"),
+        ("wall time", f"{summary.wall_s:.1f} s ({summary.simulated_s / max(summary.wall_s, 1e-9):.0f}x real time)"),
+        ("samples", f"{summary.samples} ({summary.samples_lost} lost)"),
+        ("suspensions / recoveries", f"{summary.suspensions} / {summary.recoveries}"),
+        ("last CLSF SF change", f"{summary.last_sf_change_ppm:.1f} ppm"),
+        ("CLSF gain correction", f"{summary.gain_correction:.6f}"),
+    ]
+    for r in rows:
+        tbl.add_row(*r)
+    out.print(tbl)
+
+
+# ====================================================================================== instruments
+@app.command()
+def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
+    """Connect every instrument, identify it and show its state."""
+    cfg, _ = _load(config, sim)
+    report: dict[str, dict[str, Any]] = {}
+    with _station(cfg) as st:
+        for name, inst in st.instruments().items():
+            entry: dict[str, Any] = {"simulated": bool(st.simulated.get(name, False))}
+            try:
+                entry["identity"] = inst.identify()
+                entry["state"] = inst.state()
+                entry["ok"] = True
+            except InstrumentError as exc:
+                entry.update(identity=None, ok=False, error=str(exc))
+            report[name] = entry
+    if json_out:
+        out.print_json(json.dumps(report, default=str))
+    else:
+        tbl = Table(title="instruments")
+        for col in ("instrument", "simulated", "identity", "state"):
+            tbl.add_column(col)
+        for name, e in report.items():
+            state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
+            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
+        out.print(tbl)
+    if not all(e["ok"] for e in report.values()):
+        raise typer.Exit(EXIT_FAULT)
+
+
+# ====================================================================================== characterize
+def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Path | None, quiet: bool) -> None:
+    from qmg_lab.analysis import analyze
+
+    cfg, text = _load(config, sim)
+    cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
+    text = text + f"\n# qmg-lab characterize {kind}: campaign.kind overridden to {kind!r}\n"
+    tmp = None
+    if output is None:
+        tmp = tempfile.TemporaryDirectory(prefix="qmg-lab-")
+        output = Path(tmp.name) / f"{kind}.h5"
+    try:
+        _execute(cfg, text, output=output, resume=None, quiet=quiet or json_out)
+        result = analyze(output).to_json()
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    keys = {"bandwidth": ("bandwidth_hz", "settling_time_s", "phase_at_bandwidth_deg", "bode"),
+            "linearity": ("sf_v_per_dps", "bias_v", "nonlinearity_fs", "asymmetry", "levels")}[kind]
+    picked = {k: result.get(k) for k in keys if k in result}
+    picked["file"] = None if tmp is not None else str(output)
+    if json_out:
+        out.print_json(json.dumps(picked, default=float))
+    else:
+        for k, v in picked.items():
+            if not isinstance(v, list):
+                out.print(f"{k}: {v}")
+
+
+@characterize_app.command("bandwidth")
+def characterize_bandwidth(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
+                           output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
+                           quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False) -> None:
+    """Sinusoidal table rates: closed-loop FTR response, -3 dB bandwidth and settling time (paper Fig. 3)."""
+    _characterize("bandwidth", config, sim, json_out, output, quiet)
+
+
+@characterize_app.command("linearity")
+def characterize_linearity(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
+                           output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
+                           quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False) -> None:
+    """Constant table rates: scale factor, nonlinearity and asymmetry (paper Fig. 2)."""
+    _characterize("linearity", config, sim, json_out, output, quiet)
+
+
+# ====================================================================================== analyze
+@app.command()
+def analyze(
+    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1)", show_default=False)],
+    json_out: JsonOpt = False,
+    figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
+) -> None:
+    """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
+    from qmg_lab.analysis import analyze as run_analysis
+    from qmg_lab.analysis import render_table
+    from qmg_lab.storage import StorageError
+
+    if not run_file.exists():
+        _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
+    try:
+        result = run_analysis(run_file)
+        written = []
+        if figures is not None:
+            from qmg_lab.report import write_figures
+
+            written = write_figures(run_file, figures)
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    if json_out:
+        data = result.to_json()
+        if figures is not None:
+            data["figures"] = [str(p) for p in written]
+        out.print_json(json.dumps(data, default=float))
+    else:
+        out.print(render_table(result))
+        for p in written:
+            out.print(f"figure: {p}")
+
+
+# ====================================================================================== bring-up
+def _manual(config: Path, sim: bool, action: Callable[[Station], str]) -> None:
+    with _bring_up(config, sim) as st:
+        out.print(action(st))
+
+
+@table_app.command("rate")
+def table_rate(config: ConfigArg, rate_dps: Annotated[float, typer.Argument(help="deg/s")],
+               accel_dps2: Annotated[float, typer.Option("--accel", help="deg/s^2")] = 100.0,
+               sim: SimOpt = False) -> None:
+    """Rate mode: ramp to RATE_DPS."""
+    def act(st: Station) -> str:
+        st.table.set_rate(rate_dps, accel_dps2)
+        r = st.table.read()
+        return f"table commanded to {rate_dps:g} deg/s at {accel_dps2:g} deg/s^2; now {r.rate_dps:.4f} deg/s"
+    _manual(config, sim, act)
+
+
+@table_app.command("stop")
+def table_stop(config: ConfigArg, sim: SimOpt = False) -> None:
+    """Decelerate the table to rest."""
+    def act(st: Station) -> str:
+        st.table.stop()
+        return "table stopping"
+    _manual(config, sim, act)
+
+
+@chamber_app.command("setpoint")
+def chamber_setpoint(config: ConfigArg, setpoint_c: Annotated[float, typer.Argument(help="deg C")],
+                     ramp_c_per_min: Annotated[float, typer.Option("--ramp", help="deg C/min")] = 1.0,
+                     sim: SimOpt = False) -> None:
+    """Ramp the chamber to SETPOINT_C."""
+    def act(st: Station) -> str:
+        st.chamber.set_setpoint(setpoint_c, ramp_c_per_min)
+        r = st.chamber.read()
+        return f"chamber setpoint {setpoint_c:g} degC at {ramp_c_per_min:g} degC/min; air {r.temperature_c:.2f} degC"
+    _manual(config, sim, act)
+
+
+@generator_app.command("square")
+def generator_square(config: ConfigArg, frequency_hz: Annotated[float, typer.Argument(help="Hz")],
+                     amplitude_vpp: Annotated[float, typer.Argument(help="Vpp")], sim: SimOpt = False) -> None:
+    """DS345 square wave."""
+    def act(st: Station) -> str:
+        st.generator.set_square(frequency_hz, amplitude_vpp, 0.0)
+        return f"DS345 square {frequency_hz:g} Hz {amplitude_vpp:g} Vpp"
+    _manual(config, sim, act)
+
+
+@generator_app.command("mute")
+def generator_mute(config: ConfigArg, sim: SimOpt = False) -> None:
+    """DS345 amplitude to zero (AMPL 0VP: it has no output switch)."""
+    def act(st: Station) -> str:
+        st.generator.mute()
+        return "DS345 muted"
+    _manual(config, sim, act)
+
+
+@app.command()
+def version() -> None:
+    """Print the version."""
+    out.print(f"qmg-lab {__version__}")
+
+
+def main() -> None:  # pragma: no cover - console entry
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.exit(EXIT_INTERRUPTED)
