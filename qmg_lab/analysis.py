@@ -59,6 +59,10 @@ class StepPair:
     clsf_change_ppm: float = float("nan")
     truth_change_ppm: float = float("nan")
     gyro_temperature_c: float = float("nan")
+    rate_plus_dps: float = float("nan")
+    rate_minus_dps: float = float("nan")
+    output_plus_v: float = float("nan")
+    output_minus_v: float = float("nan")
 
 
 @dataclass
@@ -216,7 +220,8 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
         rp, rm = _commanded(ctx, sp, wp), _commanded(ctx, sm, wm)
         pair = StepPair(index_plus=idx, index_minus=idx + 1, t_mid_s=0.5 * (wp[0] + wm[1]),
                         temperature_c=_mean_in(chamber, "temperature", [wp, wm]),
-                        sf_v_per_dps=(op - om) / (rp - rm), bias_v=0.5 * (op + om))
+                        sf_v_per_dps=(op - om) / (rp - rm), bias_v=0.5 * (op + om),
+                        rate_plus_dps=rp, rate_minus_dps=rm, output_plus_v=op, output_minus_v=om)
         pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
         pair.truth_change_ppm = _mean_in(truth, "scale_factor", [wp, wm])  # raw SF for now
         pair.gyro_temperature_c = _mean_in(truth, "temperature", [wp, wm])
