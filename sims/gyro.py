@@ -37,7 +37,7 @@ from sims.gyro_params import (
 from sims.noise import NoiseStream, gm_coefficients, gm_sigmas_rad_s, gm_steps
 from sims.world import BlockInputs
 
-__all__ = ["GyroBlock", "GyroParams", "GyroSim", "LoopSettings", "PidSettings", "PllSettings"]
+__all__ = ["GyroBlock", "GyroParams", "GyroSim", "LoopSettings", "PidSettings", "PllSettings", "held_inputs"]
 
 CHUNK_STEPS = 1 << 16
 
@@ -88,6 +88,19 @@ def _as_inputs(inputs: BlockInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         raise ValueError("BlockInputs arrays must all have the same length "
                          f"(gyro_c {n}, table_rate_dps {arrays[1].shape[0]}, dither_v {arrays[2].shape[0]})")
     return arrays[0], arrays[1], arrays[2]
+
+
+def held_inputs(n: int, dt_s: float, *, rate_dps: float | np.ndarray = 0.0, temperature_c: float | np.ndarray = 25.0,
+                dither_v: float | np.ndarray = 0.0, t0_s: float = 0.0) -> BlockInputs:
+    """BlockInputs for n steps of dt_s without a World (tests, benchmarks): scalars are held, arrays used as is."""
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n!r}")
+    z = np.zeros(n)
+    rate = z + rate_dps
+    temp = z + temperature_c
+    return BlockInputs(t=t0_s + dt_s * np.arange(n), table_rate_dps=rate,
+                       table_angle_deg=np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt_s)),
+                       chamber_c=temp, gyro_c=temp, dither_v=z + dither_v)
 
 
 class _TwinBase:

@@ -29,6 +29,9 @@ Controller (both models, once per demod sample of length dt_c):
   AGC input R_d = |X_d + iY_d|; rate input X_s; quadrature input Y_s.
 Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither) ; F_yc = +K_f G_f(T) V_q; ARW is a white
 force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)).
+True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| the drive amplitude of the step
+(equal to sqrt2 R_setpoint once the AGC has settled; during the slow AGC transient after a rate step, caused by
+the Coriolis load k Omega c_y on the drive, the rate output follows the actual amplitude).
 Bias: a sum of first-order Gauss-Markov rates x_j <- a_j x_j + b_j w, updated every `gm_steps` steps and held.
 """
 
@@ -244,10 +247,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
-        if L[L_AGC] != 0.0:
-            amp = SQRT2 * L[L_AGC + 4]
-        else:
-            amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
+        amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
     return gi
@@ -399,10 +399,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
-        if L[L_AGC] != 0.0:
-            amp = SQRT2 * L[L_AGC + 4]
-        else:
-            amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
+        amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
         w_x = math.sqrt(kxx)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
     return gi

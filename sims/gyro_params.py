@@ -156,6 +156,12 @@ class PidSettings:
     center: float = 0.0
     range: float = 10.0
 
+    @classmethod
+    def from_gains(cls, gains: Any, enabled: bool = True) -> PidSettings:
+        """From any object with p, i, d, setpoint, center, range attributes (e.g. qmg_lab PidGains)."""
+        return cls(enabled=enabled, p=float(gains.p), i=float(gains.i), d=float(getattr(gains, "d", 0.0)),
+                   setpoint=float(gains.setpoint), center=float(gains.center), range=float(gains.range))
+
 
 @dataclass
 class PllSettings:
@@ -167,6 +173,12 @@ class PllSettings:
     setpoint_deg: float = 0.0
     center_hz: float = 2200.0
     range_hz: float = 22.0
+
+    @classmethod
+    def from_gains(cls, gains: Any, enabled: bool = True) -> PllSettings:
+        """From any object with p, i, setpoint (deg), center (Hz), range (Hz) attributes (qmg_lab PidGains)."""
+        return cls(enabled=enabled, p=float(gains.p), i=float(gains.i), setpoint_deg=float(gains.setpoint),
+                   center_hz=float(gains.center), range_hz=float(gains.range))
 
 
 @dataclass
