@@ -196,7 +196,8 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
                                       software_version=__version__,
                                       t0_unix=datetime.now(UTC).timestamp(),
                                       flush_interval_s=cfg.storage.flush_interval_s,
-                                      compression=cfg.storage.compression, truth=cfg.lockin.sim)
+                                      compression=cfg.storage.resolved_compression(cfg.lockin.sim),
+                                      truth=cfg.lockin.sim)
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:

@@ -97,7 +97,7 @@ STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_
 CHUNK_ROWS = {"lockin": 512, "clsf": 256, "table": 256, "chamber": 256, "truth": 512, "steps": 64}
 COMPRESSED_GROUPS = ("lockin", "truth")
 COMPRESSIONS = ("none", "gzip", "lzf")
-GZIP_LEVEL = 4
+GZIP_LEVEL = 1
 MODES = ("sim", "hardware")
 STATUSES = ("running", "completed", "aborted")
 
