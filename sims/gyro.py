@@ -78,8 +78,8 @@ def _as_inputs(inputs: BlockInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         a = np.ascontiguousarray(getattr(inputs, name), dtype=np.float64)
         if a.ndim != 1:
             raise ValueError(f"BlockInputs.{name} must be 1-D, got shape {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"BlockInputs.{name} contains a non-finite value")
+        if not math.isfinite(float(a.sum())):  # a NaN or inf anywhere makes the sum non-finite
+            raise ValueError(f"BlockInputs.{name} contains a non-finite value (or values near the float limit)")
         arrays.append(a)
     n = arrays[0].shape[0]
     if n == 0:
@@ -259,13 +259,14 @@ class _TwinBase:
             noise = self._noise.steps(m, self._step_noise_on)
             n_upd = (int(self._S[gk.S_GMK]) + m) // self.gm_steps
             gm = self._noise.gm(n_upd, self._bias_on)
-            buf = np.empty((gk.N_OUT, m))
+            buf = out if m == n else np.empty((gk.N_OUT, m))
             used = self._kernel(temp[a:b], rate[a:b], dither[a:b], noise, gm, buf, lvec)
             if used != n_upd:
                 raise RuntimeError(f"bias update count mismatch ({used} != {n_upd}): kernel and planner disagree")
-            out[:, a:b] = buf
+            if buf is not out:
+                out[:, a:b] = buf
         err = out[gk.O_PLLE]
-        locked = bool(loops.pll.enabled and np.all(np.abs(err) < PLL_LOCK_DEG))
+        locked = bool(loops.pll.enabled and float(np.abs(err).max()) < PLL_LOCK_DEG)
         return GyroBlock(
             x_drive=out[gk.O_XD], y_drive=out[gk.O_YD], x_sense=out[gk.O_XS], y_sense=out[gk.O_YS],
             frequency_hz=out[gk.O_F], drive_output_v=out[gk.O_VD], rate_output_v=out[gk.O_VR],

@@ -1,0 +1,152 @@
+"""Speed, memory and compile time of the QMG twin (sims/gyro.py, sims/carrier.py); prints figures, --json: one object.
+
+Every loop (PLL, AGC, rate, quadrature) and every noise source (ARW, bias instability, pickoff) is on, with the
+7 Hz square-wave dither and a slow temperature ramp, so every per-step term is exercised.
+
+* averaged: dt = 1/1400 s, blocks of 0.5 s (what the HF2 twin polls) and of 60 s; real-time factor = simulated
+  seconds per wall second.
+* carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
+* memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
+  HF2 twin would after converting them), peak RSS from resource.getrusage(RUSAGE_SELF).ru_maxrss.
+* compile: a fresh process with an empty NUMBA_CACHE_DIR (cold: compile both kernels and run one block each),
+  then another with the cache just written (warm).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+DT = 1.0 / 1400.0
+
+
+def _loops():  # noqa: ANN202 - LoopSettings, imported lazily so the compile probe times the import too
+    from qmg_lab.config import Config
+    from qmg_lab.loops import lockin_setup
+    from sims.gyro import LoopSettings, PidSettings, PllSettings
+
+    su = lockin_setup(Config())
+    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
+                        rate=PidSettings.from_gains(su.rate), quadrature=PidSettings.from_gains(su.quadrature))
+
+
+def _inputs(n: int, dt: float, t0: float):  # noqa: ANN202 - BlockInputs
+    """Square-wave dither (7 Hz, 0.3 V = 5 deg/s virtual rate), temperature ramping 1 deg C per hour."""
+    from sims.gyro import held_inputs
+
+    t = t0 + dt * np.arange(n)
+    square = np.where(np.floor(7.0 * t * 2.0) % 2 == 0, 0.3, -0.3)
+    return held_inputs(n, dt, dither_v=square, temperature_c=25.0 + t / 3600.0, t0_s=t0)
+
+
+def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> float:  # noqa: ANN001
+    loops = _loops()
+    n = int(round(block_s / dt))
+    blocks = max(1, int(sim_seconds / block_s))
+    pre = [_inputs(n, dt, k * block_s) for k in range(min(blocks, 8))]
+    sim.run(pre[0], loops)  # compile / warm up
+    t0 = time.perf_counter()
+    for k in range(blocks):
+        sim.run(pre[k % len(pre)], loops)
+    return blocks * n * dt / (time.perf_counter() - t0)
+
+
+def _child_memory(hours: float) -> None:
+    from sims.gyro import GyroParams, GyroSim
+
+    loops = _loops()
+    sim = GyroSim(GyroParams(), DT, seed=1)
+    n = int(round(0.5 / DT))
+    acc = 0.0
+    for k in range(int(hours * 3600 / 0.5)):
+        b = sim.run(_inputs(n, DT, k * 0.5), loops)
+        acc += float(b.rate_output_v[-1])
+    print(json.dumps({"maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "check": acc}))
+
+
+def _child_compile() -> None:
+    t0 = time.perf_counter()
+    from sims.carrier import CarrierGyroSim
+    from sims.gyro import GyroParams, GyroSim
+
+    loops = _loops()
+    GyroSim(GyroParams(), DT, seed=1).run(_inputs(10, DT, 0.0), loops)
+    c = CarrierGyroSim(GyroParams(), 1.0 / (32 * 2200.0), seed=1)
+    c.run(_inputs(10, c.demod_interval_s, 0.0), loops)
+    print(json.dumps({"seconds": time.perf_counter() - t0}))
+
+
+def _run_child(args: list[str], env: dict[str, str] | None = None) -> dict[str, float]:
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args], capture_output=True, text=True,
+                         env=env, check=True, cwd=str(ROOT))
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float | int | str]:
+    from sims.carrier import CarrierGyroSim
+    from sims.gyro import GyroParams, GyroSim
+
+    res: dict[str, float | int | str] = {}
+    env = dict(os.environ)
+    with tempfile.TemporaryDirectory() as cache:
+        env["NUMBA_CACHE_DIR"] = cache
+        res["compile_cold_s"] = _run_child(["--child-compile"], env)["seconds"]
+        res["compile_warm_s"] = _run_child(["--child-compile"], env)["seconds"]
+
+    rt_avg = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
+    res["averaged_realtime_factor"] = rt_avg
+    res["averaged_steps_per_s"] = rt_avg / DT
+    res["averaged_ns_per_step"] = 1e9 * DT / rt_avg
+    res["averaged_realtime_factor_60s_blocks"] = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 60.0, 1200.0)
+    car = CarrierGyroSim(GyroParams(), 1.0 / (32 * 2200.0), seed=1)
+    rt_car = _rt_factor(car, car.demod_interval_s, 0.5, 20.0)
+    res["carrier_realtime_factor"] = rt_car
+    res["carrier_samples_per_s"] = rt_car * 32 * 2200.0
+
+    short, long_ = memory_hours
+    m1 = _run_child(["--child-memory", str(short)])["maxrss_kb"]
+    m4 = _run_child(["--child-memory", str(long_)])["maxrss_kb"]
+    res[f"peak_rss_{short:g}h_mb"] = m1 / 1024.0
+    res[f"peak_rss_{long_:g}h_mb"] = m4 / 1024.0
+    res["peak_rss_ratio_long_over_short"] = m4 / m1
+    res["cpu_count"] = os.cpu_count() or 0
+    res["load_average_1min"] = os.getloadavg()[0]
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--child-memory", type=float, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--child-compile", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.child_memory is not None:
+        _child_memory(a.child_memory)
+        return 0
+    if a.child_compile:
+        _child_compile()
+        return 0
+    res = measure()
+    if a.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:40s} {v:.4g}" if isinstance(v, float) else f"{k:40s} {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
