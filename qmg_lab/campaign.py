@@ -8,6 +8,17 @@ is out of its band or an instrument is being recovered, the campaign keeps loggi
 
 Every exit path ends in the safe state (table stopped, chamber to its safe setpoint, dither muted, lock-in outputs
 safe) and with the file's status set: "completed", or "aborted" with the reason.
+
+Fault handling (docs/reliability.md):
+1. A call that raises InstrumentError is retried after `reconnect()` (close, reopen, re-verify the identity,
+   re-apply the settings), up to recovery.reconnect_attempts times at once.
+2. If it still fails (and the instrument is not the lock-in, whose stream is the clock), the campaign suspends:
+   it keeps polling and logging the lock-in, skips the failed instrument's readings and tries reconnect + the
+   call again after every block, for up to recovery.timeout_s of run time. The step's clock does not run.
+3. Still failing, or an interlock (never retried: the hardware protected itself): CampaignAborted with the
+   reason. The safe state is then commanded to every instrument; one that refuses is reconnected and retried
+   between lock-in blocks for up to recovery.safe_state_timeout_s. The file gets status "aborted" and the
+   abort_reason, and the CLI exits with code 3.
 """
 
 from __future__ import annotations
@@ -21,13 +32,20 @@ import numpy as np
 
 from qmg_lab.clsf import ClsfEstimator
 from qmg_lab.config import Config
-from qmg_lab.instruments import InstrumentError, LockInBlock, Station
+from qmg_lab.instruments import (
+    ChamberReading,
+    InstrumentError,
+    InterlockError,
+    LockInBlock,
+    Station,
+    TableReading,
+)
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import Step, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
 from qmg_lab.storage import RunWriter
 
-MAX_RECOVERY_ATTEMPTS = 3
+SAFE_STATE_ORDER = ("table", "generator", "chamber")  # the lock-in last: its stream keeps time meanwhile
 
 
 class CampaignAborted(RuntimeError):
@@ -74,6 +92,9 @@ class RunSummary:
     gain_correction: float
     abort_reason: str = ""
     resumed: bool = False
+    reconnects: int = 0
+    safe_state_confirmed: bool = True
+    faults_injected: list[dict[str, object]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, object]:
         return dict(self.__dict__)
@@ -114,6 +135,13 @@ class CampaignRunner:
         self._suspended = ""
         self._done_s = 0.0
         self._guard: InterruptGuard | None = None
+        self._reconnects = 0
+        self._recovering: dict[str, str] = {}  # instrument -> why it is being recovered (a suspender)
+        self._failed: dict[str, tuple[Callable[[], object], InstrumentError]] = {}  # failed reads of a block
+        self._finishing = False
+        self._safe_confirmed = True
+        self._step = Step(-1, "lock", 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
+        self._step_elapsed = 0.0
 
     # ================================================================== public
     def run(self) -> RunSummary:
@@ -146,7 +174,7 @@ class CampaignRunner:
                 reason = f"internal error: {type(exc).__name__}: {exc}"
                 raise
             finally:
-                failures = self._finish(status, reason)
+                failures = self._finish_protected(status, reason)
                 if failures and status == "completed":
                     raise CampaignAborted("safe state not confirmed: " + "; ".join(failures))
         return self.summary(status, reason)
@@ -157,7 +185,9 @@ class CampaignRunner:
             steps_planned=len(self.steps), simulated_s=self._t, wall_s=time.monotonic() - self._wall0,
             blocks=self._blocks, samples=self._samples, samples_lost=self._lost, suspensions=self._suspensions,
             recoveries=self._recoveries, last_sf_change_ppm=self._read.sf_change * 1e6,
-            gain_correction=self.clsf.gain_correction, abort_reason=reason, resumed=self.resume)
+            gain_correction=self.clsf.gain_correction, abort_reason=reason, resumed=self.resume,
+            reconnects=self._reconnects, safe_state_confirmed=self._safe_confirmed,
+            faults_injected=list(self.station.injected_faults()) if self.station.injected_faults else [])
 
     # ================================================================== set-up and tear-down
     def _prepare(self) -> None:
@@ -176,17 +206,34 @@ class CampaignRunner:
         self._call("lockin", self.station.lockin.start_stream)
         if self.resume:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
-            self._wait_for_lock(Step(-1, "lock", self.cfg.loops.lock_settle_s, self.cfg.plan.chamber_start_c,
-                                     self.cfg.plan.chamber_ramp_c_per_min))
+            self._step = Step(-1, "lock", self.cfg.loops.lock_settle_s, self.cfg.plan.chamber_start_c,
+                              self.cfg.plan.chamber_ramp_c_per_min)
+            self._wait_for_lock(self._step)
             if self.clsf.mode != "off" and self.clsf.rho_ref is not None:
                 self._start_dither()
 
+    def _finish_protected(self, status: str, reason: str) -> list[str]:
+        """_finish with Ctrl-C deferred for its whole length: a second Ctrl-C cannot cut the safe state or the
+        file's last writes; one that arrives meanwhile is dropped (the campaign is stopping anyway)."""
+        self._finishing = True
+        guard = self._guard
+        if guard is None:
+            return self._finish(status, reason)
+        failures: list[str] = []
+        try:
+            with guard.protect():
+                failures = self._finish(status, reason)
+        except KeyboardInterrupt:
+            pass
+        return failures
+
     def _finish(self, status: str, reason: str) -> list[str]:
-        failures = self.station.safe_state()
+        failures = self._safe_state()
         try:
             self.station.lockin.stop_stream()
         except Exception as exc:  # noqa: BLE001 - the stream may be the thing that failed
             failures.append(f"lockin stream: {exc}")
+        self._safe_confirmed = not failures
         if failures and not reason:
             reason = "safe state not confirmed: " + "; ".join(failures)
             status = "aborted"
@@ -196,9 +243,47 @@ class CampaignRunner:
         self.writer.flush()
         return failures
 
+    def _safe_state(self) -> list[str]:
+        """Safe state of every instrument, the lock-in last. An instrument that refuses is reconnected and
+        retried between lock-in blocks (the stream keeps the clock and the log running) for up to
+        recovery.safe_state_timeout_s of run time. Returns what is still not confirmed."""
+        insts = self.station.instruments()
+        pending: dict[str, str] = {}
+        for name in SAFE_STATE_ORDER:
+            try:
+                insts[name].safe_state()
+            except Exception as exc:  # noqa: BLE001 - every instrument must be tried
+                pending[name] = str(exc)
+        t0, budget = self._t, self.cfg.recovery.safe_state_timeout_s
+        max_blocks = math.ceil(budget / max(self.station.poll_interval_s, 1e-3)) + 1
+        blocks = 0
+        while pending and self._t - t0 < budget and blocks < max_blocks:
+            try:
+                self._recovering.update({n: f"{n} safe state pending" for n in pending})
+                self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
+            except Exception:  # noqa: BLE001 - no clock left: try once more below, then report
+                blocks = max_blocks
+            blocks += 1
+            for name in list(pending):
+                self._reconnects += 1
+                try:
+                    insts[name].reconnect()
+                    insts[name].safe_state()
+                    del pending[name]
+                except Exception as exc:  # noqa: BLE001
+                    pending[name] = str(exc)
+        self._recovering.clear()
+        failures = [f"{n}: {e}" for n, e in pending.items()]
+        try:
+            insts["lockin"].safe_state()
+        except Exception as exc:  # noqa: BLE001
+            failures.append(f"lockin: {exc}")
+        return failures
+
     # ================================================================== steps
     def _run_step(self, step: Step) -> None:
         t_start = self._t
+        self._step, self._step_elapsed = step, 0.0
         if step.kind == "lock":
             self._wait_for_lock(step)
         else:
@@ -243,6 +328,7 @@ class CampaignRunner:
             block_s = self._block(step, elapsed, want)
             if not self._suspended:
                 elapsed += block_s
+            self._step_elapsed = elapsed
 
     def _wait_for_lock(self, step: Step) -> None:
         """Poll until the PLL is locked and the loops have stayed settled for lock_settle_s."""
@@ -260,7 +346,7 @@ class CampaignRunner:
     # ================================================================== one block
     def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
         """Poll one block, log it, run CLSF and the suspenders. Returns the block's duration (s)."""
-        if self._guard is not None and self._guard.requested:
+        if self._guard is not None and self._guard.requested and not self._finishing:
             raise CampaignInterrupted("interrupted by the operator (Ctrl-C)")
         block = self._call("lockin", lambda: self.station.lockin.poll(want_s))
         n = len(block)
@@ -278,8 +364,8 @@ class CampaignRunner:
         periods = self.clsf.process(t, block.x_sense, block.rate_output, block.dither)
         if self.clsf.mode == "correct" and len(periods):
             self._call("lockin", lambda: self.station.lockin.set_forcer_gain(self.clsf.gain_correction))
-        tab = self._call("table", self.station.table.read)
-        cham = self._call("chamber", self.station.chamber.read)
+        tab = self._read_instrument("table", self.station.table.read)
+        cham = self._read_instrument("chamber", self.station.chamber.read)
         t_end = float(t[-1])
         truth = self.station.truth.drain() if self.station.truth is not None else None
         guard = self._guard
@@ -294,28 +380,40 @@ class CampaignRunner:
             if self.clsf.rho_ref is not None and self.clsf.rho_ref != self._stored_ref:
                 self.writer.set_clsf_reference(self.clsf.rho_ref)
                 self._stored_ref = self.clsf.rho_ref
-            self.writer.append("table", time=np.array([t_end]), rate_command=np.array([self._read.table_cmd]),
-                               rate_measured=np.array([tab.rate_dps]), position=np.array([tab.position_deg]))
-            self.writer.append("chamber", time=np.array([t_end]), setpoint=np.array([cham.setpoint_c]),
-                               temperature=np.array([cham.temperature_c]))
+            if tab is not None:
+                self.writer.append("table", time=np.array([t_end]), rate_command=np.array([self._read.table_cmd]),
+                                   rate_measured=np.array([tab.rate_dps]), position=np.array([tab.position_deg]))
+            if cham is not None:
+                self.writer.append("chamber", time=np.array([t_end]), setpoint=np.array([cham.setpoint_c]),
+                                   temperature=np.array([cham.temperature_c]))
             if truth is not None and len(truth.time):
                 self.writer.append("truth", time=truth.time + self._offset, scale_factor=truth.scale_factor,
                                    temperature=truth.temperature, rate=truth.rate)
             self.writer.maybe_flush()
         self._t = t_end
-        self._read.table_rate, self._read.chamber_c, self._read.chamber_sp = (
-            tab.rate_dps, cham.temperature_c, cham.setpoint_c)
-        if tab.interlock:
-            raise CampaignAborted("rate-table interlock tripped")
-        self._update_suspenders(step, cham.temperature_c, cham.setpoint_c)
+        if tab is not None:
+            self._read.table_rate = tab.rate_dps
+        if cham is not None:
+            self._read.chamber_c, self._read.chamber_sp = cham.temperature_c, cham.setpoint_c
+        if tab is not None and tab.interlock and not self._finishing:
+            raise CampaignAborted(f"rate-table interlock tripped (table status {tab.status}); the table braked "
+                                  "to rest; reset the interlock at the controller before resuming")
+        self._update_suspenders(step, self._read.chamber_c if cham is not None else math.nan,
+                                self._read.chamber_sp)
         block_s = n * self._dt
         if self.progress is not None:
             self.progress(Progress(
                 step=step, n_steps=len(self.steps), step_elapsed_s=step_elapsed, run_time_s=self._t,
-                planned_s=plan_duration_s(self.steps), done_s=self._done_s + step_elapsed, chamber_c=cham.temperature_c,
-                chamber_setpoint_c=cham.setpoint_c, table_rate_dps=tab.rate_dps,
-                sf_change_ppm=self._read.sf_change * 1e6, gain_correction=self.clsf.gain_correction,
-                suspended=self._suspended, wall_s=time.monotonic() - self._wall0))
+                planned_s=plan_duration_s(self.steps), done_s=self._done_s + step_elapsed,
+                chamber_c=self._read.chamber_c, chamber_setpoint_c=self._read.chamber_sp,
+                table_rate_dps=self._read.table_rate, sf_change_ppm=self._read.sf_change * 1e6,
+                gain_correction=self.clsf.gain_correction, suspended=self._suspended,
+                wall_s=time.monotonic() - self._wall0))
+        if self._failed and not self._finishing:
+            # a reading failed even after reconnecting: recover it now that this block is logged
+            failed, self._failed = self._failed, {}
+            for name, (fn, exc) in failed.items():
+                self._recover(name, fn, exc)
         return block_s
 
     _last_locked: bool = True
@@ -324,7 +422,7 @@ class CampaignRunner:
 
     def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
         """Pause the step's clock while the PLL is unlocked or the chamber is out of its band."""
-        reasons = []
+        reasons = list(self._recovering.values())
         if step.kind != "lock" and not self._last_locked:
             reasons.append("PLL unlocked")
         band = self.cfg.plan.chamber_band_c
@@ -340,19 +438,79 @@ class CampaignRunner:
 
     # ================================================================== faults
     def _call(self, name: str, fn: Callable[[], object]) -> object:
-        """Call an instrument; on InstrumentError reconnect it (bounded), retry, else raise."""
-        for attempt in range(MAX_RECOVERY_ATTEMPTS + 1):
+        """Call an instrument: on InstrumentError reconnect and retry (bounded); if it still fails, suspend and
+        recover while logging (not the lock-in: its stream is the clock); else raise CampaignAborted."""
+        ok, result, exc = self._attempt(name, fn)
+        if ok:
+            return result
+        assert exc is not None
+        if name == "lockin" or self._finishing:
+            raise InstrumentError(f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} "
+                                  "reconnections)") from exc
+        return self._recover(name, fn, exc)
+
+    def _attempt(self, name: str, fn: Callable[[], object]) -> tuple[bool, object, InstrumentError | None]:
+        """fn(); on InstrumentError (not an interlock) up to recovery.reconnect_attempts x (reconnect, fn())."""
+        try:
+            return True, fn(), None
+        except InterlockError:
+            raise
+        except InstrumentError as exc:
+            last = exc
+        for _ in range(self.cfg.recovery.reconnect_attempts):
+            self._reconnects += 1
             try:
-                return fn()
+                self.station.instruments()[name].reconnect()
+                result = fn()
+            except InterlockError:
+                raise
             except InstrumentError as exc:
-                if attempt == MAX_RECOVERY_ATTEMPTS:
-                    raise InstrumentError(f"{name}: {exc} (gave up after {attempt} reconnections)") from exc
-                self._recoveries += 1
+                last = exc
+                continue
+            self._recoveries += 1
+            return True, result, None
+        return False, None, last
+
+    def _read_instrument(self, name: str, fn: Callable[[], object]) -> TableReading | ChamberReading | None:
+        """A reading inside a block: None while `name` is being recovered, or if it failed after reconnecting
+        (then recovered once the block is logged)."""
+        if name in self._recovering:
+            return None
+        ok, result, exc = self._attempt(name, fn)
+        if ok:
+            return result  # type: ignore[return-value]
+        assert exc is not None
+        if not self._finishing:
+            self._failed[name] = (fn, exc)
+        return None
+
+    def _recover(self, name: str, fn: Callable[[], object], exc: InstrumentError) -> object:
+        """Suspend the campaign while `name` is recovered: keep polling and logging the lock-in; after each
+        block reconnect and call fn() again. Abort after recovery.timeout_s of run time."""
+        timeout = self.cfg.recovery.timeout_s
+        t0, blocks = self._t, 0
+        max_blocks = math.ceil(timeout / max(self.station.poll_interval_s, 1e-3)) + 1
+        self._recovering[name] = f"{name} being recovered ({exc})"
+        try:
+            while True:
+                if self._t - t0 >= timeout or blocks >= max_blocks:
+                    raise CampaignAborted(f"{name} not recovered within recovery.timeout_s = {timeout:g} s: {exc}")
+                self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
+                blocks += 1
+                self._reconnects += 1
                 try:
                     self.station.instruments()[name].reconnect()
-                except InstrumentError:
+                    result = fn()
+                except InterlockError:
+                    raise
+                except InstrumentError as again:
+                    exc = again
+                    self._recovering[name] = f"{name} being recovered ({exc})"
                     continue
-        raise AssertionError("unreachable")
+                self._recoveries += 1
+                return result
+        finally:
+            self._recovering.pop(name, None)
 
 
 class _null:

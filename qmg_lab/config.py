@@ -72,7 +72,13 @@ class LoopsSection(_Section):
     quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
     rate_zero_offset_hz: float = Field(
         0.0, ge=0.0, le=5.0,
-        description="move the rate PI zero above 1/tau by this much (hides the slow mode when modes are mismatched)",
+        description="rate PI zero this far above 1/tau, Hz (physics.md: hides the slow mode of a mode mismatch, "
+                    "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
+    )
+    agc_zero_offset_hz: float = Field(
+        0.05, ge=0.0, le=5.0,
+        description="AGC PI zero this far above 1/tau, Hz: on the pole, the drive amplitude (and the SF) would "
+                    "recover from each table step's Coriolis disturbance with tau = 174 s",
     )
     lock_timeout_s: float = Field(60.0, gt=0.0, le=3600.0, description="how long to wait for PLL lock and settling")
     lock_settle_s: float = Field(10.0, ge=0.0, le=3600.0, description="time all loops must stay locked before the run")
@@ -239,20 +245,54 @@ class StorageSection(_Section):
 
 
 class SimFaultsSection(_Section):
-    """Faults the twins inject (reliability testing). Probabilities are per transaction; times in sim s."""
+    """Faults the twins inject (reliability testing; docs/reliability.md). Probabilities are per transaction,
+    drawn from a generator seeded by sim.seed (the same seed gives the same faults); times are simulated
+    seconds of the twins' world clock (a resumed run's world continues where the file ends)."""
 
-    serial_timeout_prob: float = Field(0.0, ge=0.0, le=1.0)
-    serial_garble_prob: float = Field(0.0, ge=0.0, le=1.0)
-    visa_timeout_prob: float = Field(0.0, ge=0.0, le=1.0)
-    disconnect_at_s: list[FiniteFloat] = Field(default_factory=list, description="table link drops at these times")
-    disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0)
-    interlock_trip_at_s: float | None = Field(None, ge=0.0)
-    chamber_overshoot_at_s: float | None = Field(None, ge=0.0)
-    chamber_overshoot_c: float = Field(5.0, ge=0.0, le=50.0)
-    chamber_dropout_at_s: float | None = Field(None, ge=0.0)
-    sample_loss_at_s: list[FiniteFloat] = Field(default_factory=list)
-    pll_unlock_at_s: float | None = Field(None, ge=0.0)
+    serial_timeout_prob: float = Field(0.0, ge=0.0, le=1.0, description="table/chamber: reply lost (timeout)")
+    serial_garble_prob: float = Field(
+        0.0, ge=0.0, le=1.0, description="table/chamber: reply garbled (a non-ASCII byte) or truncated (no terminator)"
+    )
+    visa_timeout_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply lost (VISA timeout)")
+    visa_garble_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply garbled or truncated")
+    disconnect_at_s: list[FiniteFloat] = Field(
+        default_factory=list, description="the disconnect_instrument's link drops at these times, s"
+    )
+    disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0, description="how long each drop lasts, s")
+    disconnect_instrument: Literal["table", "chamber", "generator"] = Field(
+        "table", description="whose link drops (nothing reaches the instrument, nothing comes back)"
+    )
+    interlock_trip_at_s: float | None = Field(None, ge=0.0, description="the rate table's interlock trips, s")
+    chamber_overshoot_at_s: float | None = Field(None, ge=0.0, description="the chamber air overshoots, s")
+    chamber_overshoot_c: float = Field(5.0, ge=0.0, le=50.0, description="overshoot peak, deg C")
+    chamber_overshoot_decay_s: float = Field(
+        30.0, gt=0.0, le=3600.0, description="overshoot decays as exp(-t/this), s"
+    )
+    chamber_dropout_at_s: float | None = Field(
+        None, ge=0.0, description="the chamber's air sensor drops out (C1? answers ?SENSOR), s"
+    )
+    chamber_dropout_duration_s: float = Field(5.0, ge=0.0, le=3600.0)
+    sample_loss_at_s: list[FiniteFloat] = Field(
+        default_factory=list, description="the HF2 stream loses samples in the block at these times, s"
+    )
+    sample_loss_count: int = Field(100, ge=1, le=100000, description="samples lost at each sample_loss_at_s")
+    pll_unlock_at_s: float | None = Field(None, ge=0.0, description="the HF2 PLL is forced open, s")
     pll_unlock_duration_s: float = Field(3.0, ge=0.0, le=3600.0)
+
+
+class RecoverySection(_Section):
+    """What the campaign does when an instrument fails (docs/reliability.md)."""
+
+    reconnect_attempts: int = Field(
+        3, ge=0, le=20, description="immediate close/reopen/re-verify attempts before the campaign suspends"
+    )
+    timeout_s: float = Field(
+        30.0, ge=0.0, le=3600.0,
+        description="the campaign keeps logging, suspended, and retries a failed instrument this long, s; then aborts",
+    )
+    safe_state_timeout_s: float = Field(
+        30.0, ge=0.0, le=3600.0, description="on abort, keep retrying an instrument's safe state this long, s"
+    )
 
 
 class SimSection(_Section):
@@ -302,6 +342,7 @@ class Config(_Section):
     table: TableSection = Field(default_factory=TableSection)
     chamber: ChamberSection = Field(default_factory=ChamberSection)
     storage: StorageSection = Field(default_factory=StorageSection)
+    recovery: RecoverySection = Field(default_factory=RecoverySection)
     sim: SimSection = Field(default_factory=SimSection)
 
     @model_validator(mode="after")

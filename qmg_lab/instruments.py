@@ -259,6 +259,8 @@ class Station:
     poll_interval_s: float = 0.5
     # called by close() after the instruments (e.g. stopping a twin's pty or socket server)
     on_close: list[Callable[[], None]] = field(default_factory=list)
+    # Twins only: the faults injected so far ([sim.faults]), as dicts time_s/kind/instrument/detail
+    injected_faults: Callable[[], list[dict[str, Any]]] | None = None
 
     def instruments(self) -> dict[str, Instrument]:
         return {"lockin": self.lockin, "generator": self.generator, "table": self.table, "chamber": self.chamber}

@@ -27,6 +27,7 @@ from qmg_lab.config import Config
 from qmg_lab.instruments import InstrumentError, Station, TruthBlock, TruthSource
 from sims.chamber_twin import ChamberTwin
 from sims.ds345_twin import DS345Twin
+from sims.faults import FaultInjector, FaultPlan
 from sims.gyro_params import GyroParams
 from sims.hf2_loops import HF2Wiring
 from sims.hf2_server import HF2DataServerTwin
@@ -63,6 +64,15 @@ def gyro_params(cfg: Config) -> GyroParams:
     values = cfg.sim.model_dump(exclude={"seed", "faults"})
     values["drive_amplitude_vrms"] = cfg.device.drive_amplitude_vrms
     return GyroParams.from_mapping(values)
+
+
+def fault_plan(cfg: Config) -> FaultPlan:
+    """[sim.faults] as the plain values sims/faults.py takes (seeded by sim.seed)."""
+    f = cfg.sim.faults
+    values = f.model_dump()
+    values["disconnect_at_s"] = tuple(f.disconnect_at_s)
+    values["sample_loss_at_s"] = tuple(f.sample_loss_at_s)
+    return FaultPlan(seed=cfg.sim.seed, **values)
 
 
 def hf2_wiring(cfg: Config) -> HF2Wiring:
@@ -108,10 +118,14 @@ def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], A
     return open_resource
 
 
-def build_station(cfg: Config) -> Station:
-    """Connect every instrument of the configuration (twins where `sim = true`)."""
-    world = make_world(cfg) if cfg.any_sim else None
+def build_station(cfg: Config, world: World | None = None) -> Station:
+    """Connect every instrument of the configuration (twins where `sim = true`). `world`: the twins' shared
+    world (default: a new one from [sim]; tests pass their own to look at the physical state)."""
+    if world is None and cfg.any_sim:
+        world = make_world(cfg)
     closers: list[Callable[[], None]] = []
+    plan = fault_plan(cfg)
+    faults = FaultInjector(world, plan) if world is not None and plan.any else None
 
     # lock-in
     lk = cfg.lockin
@@ -119,6 +133,8 @@ def build_station(cfg: Config) -> Station:
         assert world is not None
         twin = HF2DataServerTwin(world, gyro_params(cfg), cfg.sim.seed, hf2_wiring(cfg), device_id=SIM_DEVICE_ID,
                                  host=lk.host, port=lk.port)
+        if faults is not None:
+            faults.attach_hf2(twin)
         session = Session(lk.host, lk.port, hf2=True, connection=twin)
         device_id = SIM_DEVICE_ID
     else:
@@ -135,6 +151,9 @@ def build_station(cfg: Config) -> Station:
         assert world is not None
         ds_twin = DS345Twin(world)
         open_gen: Callable[[], Any] = lambda: ds_twin.resource(g.resource)  # noqa: E731
+        if faults is not None:
+            faults.attach_ds345(ds_twin)
+            open_gen = faults.visa_link("generator", open_gen)
     else:
         open_gen = _visa_opener(g.resource, g.visa_backend, g.timeout_ms)
     generator = DS345(open_gen(), max_amplitude_vpp=g.max_amplitude_vpp, reopen=open_gen)
@@ -143,7 +162,8 @@ def build_station(cfg: Config) -> Station:
     t = cfg.table
     if t.sim:
         assert world is not None
-        open_table = _twin_port(RateTableTwin(world), t.sim_transport, t.baudrate, t.timeout_s, closers)
+        open_table = _twin_port(_faulty(faults, "table", RateTableTwin(world)), t.sim_transport, t.baudrate,
+                                t.timeout_s, closers)
     else:
         open_table = _serial_port(t.port, t.baudrate, t.timeout_s)
     table = Aerosmith1291BR(open_table(), max_rate_dps=t.max_rate_dps, max_accel_dps2=t.max_accel_dps2,
@@ -153,7 +173,8 @@ def build_station(cfg: Config) -> Station:
     c = cfg.chamber
     if c.sim:
         assert world is not None
-        open_chamber = _twin_port(ChamberTwin(world), c.sim_transport, c.baudrate, c.timeout_s, closers)
+        open_chamber = _twin_port(_faulty(faults, "chamber", ChamberTwin(world)), c.sim_transport, c.baudrate,
+                                  c.timeout_s, closers)
     else:
         open_chamber = _serial_port(c.port, c.baudrate, c.timeout_s)
     chamber = SunEC1xChamber(open_chamber(), min_c=c.min_c, max_c=c.max_c, max_ramp_c_per_min=c.max_ramp_c_per_min,
@@ -165,7 +186,17 @@ def build_station(cfg: Config) -> Station:
                       restore=(lambda state: restore_world(world, state)) if world is not None else None)
     station.poll_interval_s = lk.sim_poll_interval_s if lk.sim else lk.poll_interval_s
     station.on_close.extend(closers)
+    if faults is not None:
+        station.injected_faults = lambda: [e.as_dict() for e in faults.events]
     return station
+
+
+def _faulty(faults: FaultInjector | None, name: str, twin: Any) -> Any:
+    """The twin as its port reaches it: through the fault injector's link gate when faults are configured."""
+    if faults is None:
+        return twin
+    faults.attach_serial(name, twin)
+    return faults.serial_link(name, twin)
 
 
 def restore_world(world: World, state: dict[str, Any]) -> None:

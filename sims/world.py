@@ -27,6 +27,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,6 +139,8 @@ class World:
         self.chamber = ChamberState(target_c=t0, controller_setpoint_c=t0, air_c=t0, gyro_c=t0)
         self._truth: deque[TruthRecord] = deque()
         self.forcer_gain = 1.0  # forcer-path gain set through the lock-in (CLSF correct mode)
+        # called as fn(t_start_s, t_end_s) at the start of every advance, under the lock (fault injection)
+        self.on_advance: list[Callable[[float, float], None]] = []
 
     # ------------------------------------------------------------------ clock
     def now(self) -> float:
@@ -288,6 +291,8 @@ class World:
         if n <= 0:
             raise ValueError("advance needs n >= 1")
         with self.lock:
+            for fn in self.on_advance:
+                fn(self.t, self.t + n * dt)
             k = np.arange(n, dtype=np.float64)
             tau_start = k * dt
             tau_mid = tau_start + 0.5 * dt
