@@ -273,8 +273,8 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
     from qmg_lab.analysis import analyze
 
     cfg, text = _load(config, sim)
+    text = with_campaign_kind(text, kind)
     cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
-    text = text + f"\n# qmg-lab characterize {kind}: campaign.kind overridden to {kind!r}\n"
     tmp = None
     if output is None:
         tmp = tempfile.TemporaryDirectory(prefix="qmg-lab-")
@@ -285,9 +285,11 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
     finally:
         if tmp is not None:
             tmp.cleanup()
-    keys = {"bandwidth": ("bandwidth_hz", "settling_time_s", "phase_at_bandwidth_deg", "bode"),
-            "linearity": ("sf_v_per_dps", "bias_v", "nonlinearity_fs", "asymmetry", "levels")}[kind]
-    picked = {k: result.get(k) for k in keys if k in result}
+    if kind == "bandwidth":
+        picked = {k: result.get(k) for k in ("bandwidth_hz", "settling_time_s", "phase_reference", "bode")}
+    else:
+        picked = dict(result.get("linearity") or {})
+        picked["levels"] = result.get("levels")
     picked["file"] = None if tmp is not None else str(output)
     if json_out:
         out.print_json(json.dumps(picked, default=float))
@@ -295,6 +297,29 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
         for k, v in picked.items():
             if not isinstance(v, list):
                 out.print(f"{k}: {v}")
+
+
+def with_campaign_kind(text: str, kind: str) -> str:
+    """The configuration text with [campaign] kind set to `kind` (what the run file stores as config_toml)."""
+    lines = text.splitlines()
+    out_lines: list[str] = []
+    section, done = "", False
+    for line in lines:
+        stripped = line.strip()
+        if stripped.startswith("[") and not stripped.startswith("[["):
+            if section == "campaign" and not done:
+                out_lines.append(f'kind = "{kind}"')
+                done = True
+            section = stripped.strip("[]").strip()
+        elif section == "campaign" and stripped.split("=")[0].strip() == "kind":
+            continue
+        out_lines.append(line)
+    if section == "campaign" and not done:
+        out_lines.append(f'kind = "{kind}"')
+        done = True
+    if not done:
+        out_lines = ["[campaign]", f'kind = "{kind}"', ""] + out_lines
+    return "\n".join(out_lines) + "\n"
 
 
 @characterize_app.command("bandwidth")

@@ -19,7 +19,7 @@ Plants (slow-variable model, reference/physics.md section 2):
   optional zero offset f_z (physics.md section 4: hides the slow mode of a mode mismatch).
 * Quadrature loop: dY_s/dt = -Y_s/tau - (k R_d / SF) V_q: same magnitude, opposite sign.
 * AGC: dR_d/dt = -R_d/tau + b_d V_d with b_d = R_d0 / (tau V_d0), V_d0 the drive voltage that sustains the
-  nominal amplitude. P = 2 pi f_agc / b_d, I = P / tau.
+  nominal amplitude. P = 2 pi f_agc / b_d, I = P (1/tau + 2 pi f_z,agc).
 * PLL: second order, d(theta)/dt = 360 (f_x - f_ref): omega_n = 2 pi f_pll / 2 (15 Hz bandwidth ~ omega_n =
   2 pi 7.5), p = 2 zeta omega_n / 360 Hz/deg, i = omega_n^2 / 360 Hz^2/deg.
 """
@@ -70,12 +70,18 @@ def quadrature_pi(device: DeviceSection, bandwidth_hz: float) -> PidGains:
     return PidGains(p=p, i=p / plant.tau_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
 
 
-def agc_pi(device: DeviceSection, bandwidth_hz: float) -> PidGains:
-    """AGC PI on R of the drive demod -> drive amplitude (V)."""
+def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
+    """AGC PI on R of the drive demod -> drive amplitude (V): P = 2 pi f_agc / b_d, I = P (1/tau + 2 pi f_z).
+
+    With the zero exactly on the envelope pole (f_z = 0) a step disturbance of the drive (the Coriolis term
+    k Omega c_y after a table step) is rejected with the resonator's own time constant tau; a zero f_z above it
+    makes the slow closed-loop pole about -(1/tau + 2 pi f_z).
+    """
     b_d = device.drive_amplitude_vrms / (device.tau_s * device.drive_voltage_v)
     p = 2.0 * math.pi * bandwidth_hz / b_d
+    i = p * (1.0 / device.tau_s + 2.0 * math.pi * zero_offset_hz)
     # The drive output sits at its sustaining value; centre the PID there so the integrator starts near it.
-    return PidGains(p=p, i=p / device.tau_s, setpoint=device.drive_amplitude_vrms,
+    return PidGains(p=p, i=i, setpoint=device.drive_amplitude_vrms,
                     center=device.drive_voltage_v, range=min(device.max_forcer_v, 100 * device.drive_voltage_v))
 
 
@@ -99,7 +105,7 @@ def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
         f0_hz=dev.f0_hz,
         pll=pll,
         pll_range_hz=pll.range,
-        agc=agc_pi(dev, lp.agc_bandwidth_hz),
+        agc=agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
         rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
         quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz),
         demod_rate_hz=cfg.lockin.demod_rate_hz,
