@@ -67,7 +67,7 @@ def test_configure_writes_the_loop_gains_in_one_transaction() -> None:
     li.configure(lockin_setup(cfg))
     assert len(twin.set_calls) == 1 and len(twin.set_calls[0]) > 50
     dev, lp = cfg.device, cfg.loops
-    expected = {0: agc_pi(dev, lp.agc_bandwidth_hz), 1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
+    expected = {0: agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz), 1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
                 2: quadrature_pi(dev, lp.quadrature_bandwidth_hz)}
     for n, g in expected.items():
         got = pid_nodes(twin, n)
