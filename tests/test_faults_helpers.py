@@ -1,0 +1,105 @@
+"""Shared helpers for the reliability tests (faults, resume, interrupt): a short campaign run in-process on the
+twins, with the test holding the World so it can look at the physical state afterwards.
+
+The short plan (qmg_lab.plan.build_plan of SHORT_TOML): lock 2 s, dither 21/7 + 2 = 5 s, soak 20 s, 4 pairs of
+10 s table steps at +-5 deg/s, return 2.0167 s (5/300 + 2): 12 steps, 109.0167 s. The twins' blocks are 2 s long
+(lockin.sim_poll_interval_s), so block edges fall at 0, 2, 4, 6, 7, 9, ..., 27, 29, ... (odd seconds from 7 s on).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from qmg_lab.campaign import CampaignRunner, RunSummary
+from qmg_lab.config import Config, config_fingerprint, parse_config
+from qmg_lab.instruments import Station
+from qmg_lab.station import build_station, make_world
+from qmg_lab.storage import RunData, RunWriter, read_run
+from sims.world import World
+
+SAFE_SETPOINT_C = 20.0
+SHORT_TOML = f"""
+[campaign]
+name = "short"
+[loops]
+lock_settle_s = 2.0
+[clsf]
+reference_periods = 21
+[plan]
+chamber_start_c = 25.0
+chamber_end_c = 26.0
+chamber_ramp_c_per_min = 2.0
+chamber_soak_s = 20.0
+chamber_end_hold_s = 50.0
+dwell_s = 10.0
+settle_s = 2.0
+[chamber]
+sim = true
+safe_setpoint_c = {SAFE_SETPOINT_C}
+[lockin]
+sim = true
+[generator]
+sim = true
+[table]
+sim = true
+"""
+SHORT_STEPS = 12
+SHORT_DURATION_S = 2.0 + 5.0 + 20.0 + 8 * 10.0 + (5.0 / 300.0 + 2.0)
+
+
+def config_text(faults: str = "", extra: str = "", seed: int = 3) -> str:
+    """SHORT_TOML with every instrument a twin, `extra` TOML sections and a [sim.faults] section."""
+    text = SHORT_TOML + extra
+    return text + f"\n[sim]\nseed = {seed}\n[sim.faults]\n{faults}\n"
+
+
+@dataclass
+class Outcome:
+    cfg: Config
+    world: World
+    station: Station
+    path: Path
+    summary: RunSummary
+    error: BaseException | None
+    lockin_state: dict[str, Any]
+
+    def run(self) -> RunData:
+        return read_run(self.path)
+
+    def world_is_safe(self) -> bool:
+        """Safe state on the twins: table commanded to 0, DS345 muted, chamber at its safe setpoint, HF2
+        signal outputs off."""
+        return (self.world.table.rate_command_dps == 0.0 and self.world.dither.amplitude_vpp == 0.0
+                and self.world.chamber.target_c == SAFE_SETPOINT_C
+                and self.lockin_state["sigouts_on"] == {"drive": 0, "forcer": 0})
+
+
+def run_inprocess(tmp_path: Path, text: str, *, name: str = "run.h5", resume: bool = False,
+                  progress: Any = None, writer_cls: type[RunWriter] = RunWriter) -> Outcome:
+    """Run the campaign of `text` on the twins in this process; never raises (the error is returned)."""
+    cfg = parse_config(text)
+    world = make_world(cfg)
+    station = build_station(cfg, world)
+    path = tmp_path / name
+    sha = config_fingerprint(text)
+    if resume:
+        writer = writer_cls.reopen(path, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s)
+    else:
+        writer = writer_cls.create(path, config_text=text, config_sha256=sha, mode="sim", software_version="test",
+                                   t0_unix=0.0, flush_interval_s=cfg.storage.flush_interval_s,
+                                   compression="none", truth=True)
+    runner = CampaignRunner(cfg, station, writer, progress=progress, resume=resume)
+    error: BaseException | None = None
+    try:
+        summary = runner.run()
+    except Exception as exc:  # noqa: BLE001 - the tests look at it
+        error = exc
+        summary = runner.summary("aborted", str(exc))
+    try:
+        lockin_state = station.lockin.state()
+    finally:
+        station.close()
+        writer.close()
+    return Outcome(cfg, world, station, path, summary, error, lockin_state)
