@@ -7,6 +7,8 @@ fig4_clsf_io         CLSF input (recorded dither) and output (c_y) over 4 dither
 fig5_rate_steps      rate output (dither-free, per dither period) over the +-rate steps, chamber temperature
 fig6_sf_true_vs_clsf (a) true, CLSF (and twin truth) SF change vs temperature; (b) CLSF minus true
 fig7_allan           Allan deviation of the CLSF SF estimate with 68 % confidence intervals
+fig8_gyro_allan      Allan deviation of the gyro rate in a static segment, with the ARW (-1/2) line read at
+                     tau = 1 s and the bias-instability floor 0.664 B (IEEE 952)
 
 A figure whose data the file lacks is skipped with a reason (`FigureSet.skipped`), never an error.
 """
@@ -196,6 +198,32 @@ def _fig7(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     _save(fig, outdir, "fig7_allan", out)
 
 
+def _fig8(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
+    if not r.gyro_adev_deg_per_h:
+        out.skipped["fig8_gyro_allan"] = "no static segment long enough for the gyro's Allan deviation"
+        return
+    tau = np.array([a["tau_s"] for a in r.gyro_adev_deg_per_h])
+    dev = np.array([a["value"] for a in r.gyro_adev_deg_per_h])
+    lo = np.array([a["low"] for a in r.gyro_adev_deg_per_h])
+    hi = np.array([a["high"] for a in r.gyro_adev_deg_per_h])
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.errorbar(tau, dev, yerr=[dev - lo, hi - dev], fmt="o-", capsize=2, label="gyro rate, 68 % CI")
+    if math.isfinite(r.arw_deg_per_rt_h):
+        # sigma(tau) = N / sqrt(tau), N in deg/h/sqrt(Hz) = 60 x ARW in deg/sqrt(h)
+        ax.loglog(tau, 60.0 * r.arw_deg_per_rt_h / np.sqrt(tau), "k:",
+                  label=f"ARW {r.arw_deg_per_rt_h:.4f} deg/sqrt(h)")
+    if math.isfinite(r.bias_instability_deg_per_h):
+        ax.axhline(0.664 * r.bias_instability_deg_per_h, color="r", ls="--",
+                   label=f"0.664 B, B = {r.bias_instability_deg_per_h:.3f} deg/h")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("averaging time tau [s]")
+    ax.set_ylabel("Allan deviation of rate [deg/h]")
+    ax.grid(True, which="both")
+    ax.legend()
+    _save(fig, outdir, "fig8_gyro_allan", out)
+
+
 def make_figures(path: str | Path, outdir: str | Path, result: AnalysisResult | None = None) -> FigureSet:
     """Write every figure the file has data for; return what was written and why others were skipped."""
     p, od = Path(path), Path(outdir)
@@ -223,6 +251,7 @@ def make_figures(path: str | Path, outdir: str | Path, result: AnalysisResult | 
     _fig5(run.groups.get("clsf"), run.groups.get("chamber"), od, out, r)
     _fig6(r, od, out)
     _fig7(r, od, out)
+    _fig8(r, od, out)
     return out
 
 
