@@ -16,7 +16,9 @@ def test_sweep_file_gives_figures_and_names_what_it_skips(tmp_path: Path) -> Non
     out = make_figures(p, tmp_path / "fig")
     names = {x.stem for x in out.written}
     assert names == {"fig2_rate_response", "fig4_clsf_io", "fig5_rate_steps", "fig6_sf_true_vs_clsf", "fig7_allan"}
-    assert set(out.skipped) == {"fig3_bandwidth"} and "sine" in out.skipped["fig3_bandwidth"]
+    # the synthetic sweep has no static segment: the gyro's Allan deviation is skipped with its reason
+    assert set(out.skipped) == {"fig3_bandwidth", "fig8_gyro_allan"} and "sine" in out.skipped["fig3_bandwidth"]
+    assert "static" in out.skipped["fig8_gyro_allan"]
     for path in out.written:
         img = mpimg.imread(path)
         assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 300
