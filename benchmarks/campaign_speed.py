@@ -1,0 +1,103 @@
+"""Speed and memory of a whole simulated campaign, as a user runs it.
+
+Runs `python -m qmg_lab run configs/paper_campaign.toml --sim -o <tmp> -q` in a fresh process several times and
+reports the median real-time factor (simulated seconds per wall second of the whole process: start-up, physics,
+driver and twin code, CLSF, logging) and the process's peak resident memory (from wait4's rusage). Then runs
+the same campaign with a chamber ramp three times slower (about three times longer) and reports its peak
+memory: a campaign's memory must not grow with its length.
+
+    python benchmarks/campaign_speed.py [--json] [--runs N]
+
+Targets (issue 4): realtime_factor >= 500 on a 2-core machine; peak memory independent of campaign length.
+These machines are shared and noisy: quote the median and the ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import h5py
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "configs" / "paper_campaign.toml"
+
+
+def run_once(config: Path, out: Path) -> tuple[float, float, float]:
+    """(wall s, peak RSS MB, simulated s) of one whole `qmg-lab run` process."""
+    if out.exists():
+        out.unlink()
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "qmg_lab", "run", str(config), "--sim", "-o", str(out), "-q"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        err = proc.stderr.read().decode() if proc.stderr else ""
+        raise SystemExit(f"qmg-lab run {config} failed ({proc.returncode}):\n{err}")
+    with h5py.File(out, "r") as f:
+        t = f["lockin/time"]
+        simulated = float(t[t.shape[0] - 1])
+    return wall, usage.ru_maxrss / 1024.0, simulated
+
+
+def slower_ramp(tmp: Path, factor: float) -> Path:
+    """The paper campaign with its chamber ramp `factor` times slower (so about that much longer)."""
+    lines = PAPER.read_text(encoding="utf-8").splitlines()
+    out = []
+    for line in lines:
+        key = line.split("=")[0].strip()
+        if key == "chamber_ramp_c_per_min":
+            value = float(line.split("=")[1].split("#")[0])
+            line = f"chamber_ramp_c_per_min = {value / factor!r}"
+        out.append(line)
+    path = tmp / "paper_slow.toml"
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--runs", type=int, default=3, help="runs of the paper campaign (median quoted)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="qmg-bench-") as d:
+        tmp = Path(d)
+        run_once(PAPER, tmp / "warm.h5")  # numba cache, file-system caches
+        runs = [run_once(PAPER, tmp / "paper.h5") for _ in range(args.runs)]
+        walls = [r[0] for r in runs]
+        simulated = runs[0][2]
+        rss = max(r[1] for r in runs)
+        long_wall, long_rss, long_sim = run_once(slower_ramp(tmp, 3.0), tmp / "long.h5")
+    result = {
+        "config": str(PAPER.relative_to(ROOT)),
+        "runs": args.runs,
+        "simulated_s": simulated,
+        "wall_s_median": statistics.median(walls),
+        "wall_s_min": min(walls),
+        "wall_s_max": max(walls),
+        "realtime_factor": simulated / statistics.median(walls),
+        "peak_rss_mb": rss,
+        "long_simulated_s": long_sim,
+        "long_realtime_factor": long_sim / long_wall,
+        "long_peak_rss_mb": long_rss,
+        "peak_rss_ratio_long_vs_paper": long_rss / rss,
+        "cpu_count": os.cpu_count(),
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for k, v in result.items():
+            print(f"{k:32s} {v:.3f}" if isinstance(v, float) else f"{k:32s} {v}")
+
+
+if __name__ == "__main__":
+    main()
