@@ -17,6 +17,7 @@ from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
@@ -46,7 +47,8 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on 
 
 
 def _fail(code: int, message: str) -> NoReturn:
-    console.print(f"[bold red]error:[/] {message}", highlight=False, markup=True)
+    # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
     raise typer.Exit(code)
 
 

@@ -22,7 +22,9 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # strict: a TOML string or boolean is not silently taken for a number ("10", true), nor a number or a string
+    # for a boolean (1, "yes"); integers are accepted where a float is expected
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True)
 
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -374,20 +376,65 @@ class Config(_Section):
         return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
 
 
+def _field_at(loc: tuple[Any, ...]) -> tuple[type[BaseModel] | None, Any]:
+    """The model owning the field at `loc` (list indices skipped) and the field's FieldInfo (None if unknown)."""
+    model: Any = Config
+    owner, info = None, None
+    for part in loc:
+        if isinstance(part, int):
+            break
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            return owner, None
+        owner, info = model, model.model_fields.get(str(part))
+        if info is None:
+            return owner, None
+        model = info.annotation
+    return owner, info
+
+
+def _allowed(info: Any) -> str:
+    """What a field accepts, in words: its type and bounds (e.g. "a number > 0 and <= 86400")."""
+    ann = info.annotation
+    args = [a for a in getattr(ann, "__args__", ()) if a is not type(None)]
+    if getattr(ann, "__origin__", None) is Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
+        ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None), "")
+    if getattr(ann, "__origin__", None) is list:
+        kind = "a list of numbers"
+    bounds = []
+    for m in info.metadata:
+        for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+            v = getattr(m, attr, None)
+            if v is not None:
+                bounds.append(f"{sym} {v:g}")
+        if getattr(m, "pattern", None):
+            bounds.append(f"matching {m.pattern}")
+        if getattr(m, "min_length", None):
+            bounds.append("not empty")
+    text = " and ".join(bounds)
+    if type(None) in getattr(ann, "__args__", ()):
+        kind = kind + " (or absent)" if kind else kind
+    return f"{kind} {text}".strip() if kind or text else ""
+
+
 def _describe(error: dict[str, Any]) -> str:
-    loc = ".".join(str(p) for p in error.get("loc", ())) or "(top level)"
+    loc_parts = tuple(error.get("loc", ()))
+    loc = ".".join(str(p) for p in loc_parts) or "(top level)"
     kind = error.get("type", "")
     ctx = error.get("ctx") or {}
     msg = error.get("msg", "invalid")
+    owner, info = _field_at(loc_parts)
     if kind == "extra_forbidden":
-        return f"{loc}: unknown key (check the spelling; see docs/configuration.md)"
-    if kind in {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}:
-        return f"{loc}: {msg} (got {error.get('input')!r})"
-    if kind == "literal_error":
-        return f"{loc}: {msg} (got {error.get('input')!r})"
+        known = f"; known keys: {', '.join(owner.model_fields)}" if owner is not None and info is None else ""
+        return f"{loc}: unknown key (check the spelling; see docs/configuration.md{known})"
     if ctx.get("error") is not None and kind == "value_error":
         return f"{ctx['error']}" if str(ctx["error"]).startswith(loc.split(".")[0]) else f"{loc}: {ctx['error']}"
-    return f"{loc}: {msg} (got {error.get('input')!r})"
+    allowed = _allowed(info) if info is not None else ""
+    if info is not None and isinstance(info.annotation, type) and issubclass(info.annotation, BaseModel):
+        allowed = f"a [{loc}] section (a TOML table)"
+    suffix = f"; allowed: {allowed}" if allowed else ""
+    return f"{loc}: {msg} (got {error.get('input')!r}){suffix}"
 
 
 def parse_config(text: str, source: str = "<string>") -> Config:
