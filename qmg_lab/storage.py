@@ -336,8 +336,8 @@ class RunWriter:
         """Reopen a run file to resume it (after a crash or an abort).
 
         Refuses a file of another configuration (StorageError naming both fingerprints) and a file whose
-        writer process is still alive. Then: clears the crash flags, cuts every group to its shortest column,
-        drops /steps rows whose status is not "completed", sets status "running" (abort_reason ""),
+        writer process is still alive. Then: clears the crash flags, cuts every group to its shortest column
+        and every group to the last /lockin time (the resumed run continues after it), drops /steps rows whose status is not "completed", sets status "running" (abort_reason ""),
         increments resume_count and restarts SWMR.
         """
         p = Path(path)
@@ -362,6 +362,16 @@ class RunWriter:
                 n = min(h5[g][c].shape[0] for c in h5[g])
                 for c in h5[g]:
                     if h5[g][c].shape[0] != n:
+                        h5[g][c].resize((n,))
+            # The lock-in stream is the heartbeat and the resumed run continues after its last sample: a kill
+            # between two groups' writes may leave another group ending later; cut it back to that time.
+            lt = h5["lockin"]["time"]
+            t_end = float(lt[lt.shape[0] - 1]) if lt.shape[0] else -np.inf
+            for g in [g for g in GROUP_UNITS if g in h5 and g != "lockin"]:
+                t = h5[g]["time"][:]
+                n = int(np.searchsorted(t, t_end, side="right"))
+                if n < t.shape[0]:
+                    for c in h5[g]:
                         h5[g][c].resize((n,))
             steps = h5["steps"]
             keep = steps["status"][:] == b"completed"

@@ -346,3 +346,20 @@ def test_sigkill_mid_write_leaves_a_readable_file_then_resumes(tmp_path: Path, f
     run = read_run(path)
     assert not run.writer_open and run.attrs["resume_count"] == 1 and run.status == "completed"
     np.testing.assert_allclose(np.diff(run.groups["lockin"]["time"]), 1 / FS, rtol=1e-9)
+
+
+def test_reopen_cuts_groups_that_end_after_the_lockin(tmp_path: Path) -> None:
+    """A kill between two groups' writes can leave /truth ending after /lockin; the resumed run continues after
+    the last lock-in sample, so reopen cuts the other groups back to that time."""
+    p = tmp_path / "run.h5"
+    w = new_writer(p)
+    w.append("lockin", **lockin_block(0))  # ends at 699/1400 s
+    t = np.arange(0, 1400) / FS  # truth one block further
+    w.append("truth", time=t, scale_factor=0.06 + 0 * t, temperature=25 + 0 * t, rate=0 * t)
+    w.close()
+    w = RunWriter.reopen(p, config_sha256=SHA)
+    assert w.resume_state().last_time == pytest.approx(699 / FS)
+    w.close()
+    with h5py.File(p, "r") as f:
+        assert f["truth/time"][-1] == pytest.approx(699 / FS)
+        assert all(f["truth"][c].shape == (700,) for c in f["truth"])
