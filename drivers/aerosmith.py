@@ -195,14 +195,7 @@ class Aerosmith1291BR(RateTable):
     def reconnect(self) -> None:
         """Close the port, open a new one with the factory, identify. Motion is not re-commanded: the
         controller keeps running its last command across a host link drop (assumed)."""
-        if self._factory is None:
-            raise InstrumentError(f"{self.NAME}: cannot reconnect: no port_factory was given")
-        self._link.close()
-        try:
-            port = self._factory()
-        except (OSError, ValueError) as exc:
-            raise InstrumentError(f"{self.NAME}: reopening the port failed: {exc}") from exc
-        self._link.replace_port(port)
+        self._link.reopen(self._factory)
         self.identify()
 
     # ------------------------------------------------------------------ helpers

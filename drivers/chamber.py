@@ -183,14 +183,7 @@ class SunEC1xChamber(ThermalChamber):
     def reconnect(self) -> None:
         """Close, reopen with the factory, identify, and re-send the last setpoint and ramp (harmless: the
         controller holds them anyway)."""
-        if self._factory is None:
-            raise InstrumentError(f"{self.NAME}: cannot reconnect: no port_factory was given")
-        self._link.close()
-        try:
-            port = self._factory()
-        except (OSError, ValueError) as exc:
-            raise InstrumentError(f"{self.NAME}: reopening the port failed: {exc}") from exc
-        self._link.replace_port(port)
+        self._link.reopen(self._factory)
         self.identify()
         if self._target_c is not None and self._ramp_c_per_min is not None:
             self.set_setpoint(self._target_c, self._ramp_c_per_min)

@@ -9,6 +9,8 @@ the bytes received, and turns transport exceptions (SerialException, OSError) in
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from typing import Protocol
 
 from qmg_lab.instruments import InstrumentError
@@ -83,6 +85,17 @@ class SerialLink:
     def replace_port(self, port: SerialPort) -> None:
         """Use a newly opened port (reconnect)."""
         self.port = port
+
+    def reopen(self, factory: Callable[[], SerialPort] | None) -> None:
+        """Close the port and open a new one with `factory` (a driver's reconnect, before it re-identifies)."""
+        if factory is None:
+            raise InstrumentError(f"{self.name}: cannot reconnect: no port_factory was given")
+        self.close()
+        try:
+            port = factory()
+        except (OSError, ValueError) as exc:
+            raise InstrumentError(f"{self.name}: reopening the port failed: {exc}") from exc
+        self.replace_port(port)
 
     def close(self) -> None:
         """Close the port; errors on closing an already dead link are ignored."""
