@@ -165,15 +165,14 @@ def _exp_neg_i(x):  # noqa: ANN001, ANN202
     return complex(math.cos(x), -math.sin(x))
 
 
-@njit(cache=True, error_model="numpy")
-def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
-    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
-    n = temp_c.shape[0]
-    dt = P[P_DT]
-    w0, tref = P[P_W0], P[P_TREF]
-    k, a0 = P[P_K], P[P_A0]
-    sig_arw = P[P_ARW] / math.sqrt(dt)
-    sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
+@njit(cache=True, inline="always")
+def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
+    """The demodulator low-pass and the loop delay as first-order sections, exact for inputs held over dt.
+
+    Each section y <- a y + (1 - a) x with a = exp(-dt/tc) and the ZOH output correction c = 1 - tc (1 - a)/dt;
+    `order` sections of the demod time constant, plus one of the loop delay when it is > 0.
+    Returns (a_f, c_f, order, a_d, c_d, sections).
+    """
     tc = L[L_TC]
     order = int(L[L_ORDER])
     a_f = math.exp(-dt / tc)
@@ -185,6 +184,19 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         sections = order + 1
         a_d = math.exp(-dt / delay)
         c_d = 1.0 - delay * (1.0 - a_d) / dt
+    return a_f, c_f, order, a_d, c_d, sections
+
+
+@njit(cache=True, error_model="numpy")
+def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
+    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
+    n = temp_c.shape[0]
+    dt = P[P_DT]
+    w0, tref = P[P_W0], P[P_TREF]
+    k, a0 = P[P_K], P[P_A0]
+    sig_arw = P[P_ARW] / math.sqrt(dt)
+    sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
+    a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     n_gm = gm_a.shape[0]
@@ -304,17 +316,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dtc)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
-    tc = L[L_TC]
-    order = int(L[L_ORDER])
-    a_f = math.exp(-dtc / tc)
-    c_f = 1.0 - tc * (1.0 - a_f) / dtc
-    delay = P[P_DELAY]
-    sections = order
-    a_d, c_d = 0.0, 1.0
-    if delay > 0.0:
-        sections = order + 1
-        a_d = math.exp(-dtc / delay)
-        c_d = 1.0 - delay * (1.0 - a_d) / dtc
+    a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     n_gm = gm_a.shape[0]
