@@ -8,6 +8,7 @@ waits on the process itself.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -78,6 +79,16 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
         assert len(t) and np.all(np.diff(t) > 0)
         steps_before = h5["steps/index"][:]
         assert len(steps_before) < len(planned)  # killed in the middle
+
+    # the analysis reads the killed file and names exactly the steps the plan has and the file lacks
+    an = subprocess.run(qmg("analyze", str(path), "--json"), capture_output=True, text=True, cwd=tmp_path,
+                        timeout=120)
+    assert an.returncode == 0, an.stderr
+    res = json.loads(an.stdout)
+    assert res["status"] == "running"
+    missing = sorted(set(range(len(planned))) - set(steps_before.tolist()))
+    assert [m["index"] for m in res["missing_steps"]] == missing
+    assert [m["kind"] for m in res["missing_steps"]] == [planned[i].kind for i in missing]
 
     done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
                           cwd=tmp_path, timeout=120)
