@@ -166,6 +166,23 @@ def _exp_neg_i(x):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True, inline="always")
+def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):  # noqa: ANN001, ANN202 - numba kernel
+    """Bias instability: the Gauss-Markov sum x_j <- a_j x_j + b_j n_j, updated every gm_steps steps and held in
+    S[S_BIAS] (rad/s) between updates. Returns the next row of gm_noise to use."""
+    S[S_GMK] += 1.0
+    if S[S_GMK] >= gm_steps:
+        S[S_GMK] = 0.0
+        b = 0.0
+        for j in range(gm_a.shape[0]):
+            x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
+            S[S_GM + j] = x
+            b += x
+        S[S_BIAS] = b
+        gi += 1
+    return gi
+
+
+@njit(cache=True, inline="always")
 def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
     """The demodulator low-pass and the loop delay as first-order sections, exact for inputs held over dt.
 
@@ -199,24 +216,13 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
-    n_gm = gm_a.shape[0]
     gi = 0
     raws = np.empty(4)
     filt = np.empty(4)
     dw, c2w, s2w = P[P_DW], P[P_C2W], P[P_S2W]
     c2t, s2t = P[P_C2T], P[P_S2T]
     for i in range(n):
-        # bias: Gauss-Markov sum, updated every gm_steps steps and held
-        S[S_GMK] += 1.0
-        if S[S_GMK] >= gm_steps:
-            S[S_GMK] = 0.0
-            b = 0.0
-            for j in range(n_gm):
-                x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
-                S[S_GM + j] = x
-                b += x
-            S[S_BIAS] = b
-            gi += 1
+        gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
         dtemp = temp_c[i] - tref
         w = w0 * (1.0 + P[P_AW] * dtemp)
         inv_tau = w / (2.0 * P[P_Q])
@@ -319,7 +325,6 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
-    n_gm = gm_a.shape[0]
     gi = 0
     raws = np.empty(4)
     filt = np.empty(4)
@@ -335,16 +340,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     last_t = 0.0
     last_om = 0.0
     for i in range(n):
-        S[S_GMK] += 1.0
-        if S[S_GMK] >= gm_steps:
-            S[S_GMK] = 0.0
-            b = 0.0
-            for j in range(n_gm):
-                x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
-                S[S_GM + j] = x
-                b += x
-            S[S_BIAS] = b
-            gi += 1
+        gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
         dtemp = temp_c[i] - tref
         w = w0 * (1.0 + P[P_AW] * dtemp)
         inv_tau = w / (2.0 * P[P_Q])
