@@ -458,18 +458,21 @@ class CampaignRunner:
         except InstrumentError as exc:
             last = exc
         for _ in range(self.cfg.recovery.reconnect_attempts):
-            self._reconnects += 1
             try:
-                self.station.instruments()[name].reconnect()
-                result = fn()
+                return True, self._reconnect_and_call(name, fn), None
             except InterlockError:
                 raise
             except InstrumentError as exc:
                 last = exc
-                continue
-            self._recoveries += 1
-            return True, result, None
         return False, None, last
+
+    def _reconnect_and_call(self, name: str, fn: Callable[[], object]) -> object:
+        """One recovery try: close, reopen and re-verify `name` (its driver's reconnect), then fn() again."""
+        self._reconnects += 1
+        self.station.instruments()[name].reconnect()
+        result = fn()
+        self._recoveries += 1
+        return result
 
     def _read_instrument(self, name: str, fn: Callable[[], object]) -> TableReading | ChamberReading | None:
         """A reading inside a block: None while `name` is being recovered, or if it failed after reconnecting
@@ -497,18 +500,13 @@ class CampaignRunner:
                     raise CampaignAborted(f"{name} not recovered within recovery.timeout_s = {timeout:g} s: {exc}")
                 self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
                 blocks += 1
-                self._reconnects += 1
                 try:
-                    self.station.instruments()[name].reconnect()
-                    result = fn()
+                    return self._reconnect_and_call(name, fn)
                 except InterlockError:
                     raise
                 except InstrumentError as again:
                     exc = again
                     self._recovering[name] = f"{name} being recovered ({exc})"
-                    continue
-                self._recoveries += 1
-                return result
         finally:
             self._recovering.pop(name, None)
 
