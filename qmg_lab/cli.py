@@ -139,7 +139,7 @@ def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
             j += 1
         n = j - i + 1
         rate = f"{s.table_rate_dps:+g} deg/s" if n == 1 else f"+-{abs(s.table_rate_dps):g} deg/s"
-        dur = f"{s.duration_s:g} s" if n == 1 else f"{n} x {s.duration_s:g} s"
+        dur = f"{s.duration_s:.4g} s" if n == 1 else f"{n} x {s.duration_s:.4g} s"
         rows.append((f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}", s.kind, dur, rate,
                      f"{s.chamber_target_c:g} degC"))
         i = j + 1
