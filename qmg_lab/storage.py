@@ -16,7 +16,7 @@ Protocol (docs/hdf5.md):
   `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
 * HDF5 marks a file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags
   stay set and HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
-  (`_clear_superblock_flags`, the equivalent of `h5clear -s`) after checking that the file's writer is gone.
+  (`qmg_lab.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`) after checking that the file's writer is gone.
 """
 
 from __future__ import annotations
@@ -25,10 +25,9 @@ import datetime as _dt
 import json
 import os
 import socket
-import struct
 import time as _time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -36,166 +35,34 @@ from typing import Any
 import h5py
 import numpy as np
 
-FORMAT = "qmg-lab/1"
+from qmg_lab.h5clear import clear_superblock_flags, writer_flags_set
+from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part of the API
+    CHAMBER_UNITS,
+    CHUNK_ROWS,
+    CLSF_UNITS,
+    COMPRESSED_GROUPS,
+    COMPRESSIONS,
+    DESCRIPTIONS,
+    FORMAT,
+    GROUP_UNITS,
+    GZIP_LEVEL,
+    KIND_BYTES,
+    LOCKIN_UNITS,
+    MODES,
+    STATUS_BYTES,
+    STATUSES,
+    STEPS_DTYPES,
+    STEPS_UNITS,
+    TABLE_UNITS,
+    TRUTH_UNITS,
+    StorageError,
+    _text,
+)
+from qmg_lab.runfile_reader import RunData, read_run, read_window
 
-LOCKIN_UNITS = {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
-                "drive_frequency": "Hz", "dither": "V"}
-CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
-TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
-CHAMBER_UNITS = {"time": "s", "setpoint": "degC", "temperature": "degC"}
-TRUTH_UNITS = {"time": "s", "scale_factor": "V/(deg/s)", "temperature": "degC", "rate": "deg/s"}
-STEPS_UNITS = {"index": "1", "kind": "text", "t_start": "s", "t_end": "s", "table_rate": "deg/s",
-               "chamber_setpoint": "degC", "status": "text"}
-
-#: group name -> column name -> units (the order is the column order in the file)
-GROUP_UNITS: dict[str, dict[str, str]] = {"lockin": LOCKIN_UNITS, "clsf": CLSF_UNITS, "table": TABLE_UNITS,
-                                          "chamber": CHAMBER_UNITS, "truth": TRUTH_UNITS}
-
-DESCRIPTIONS: dict[str, str] = {
-    "lockin/time": "sample time, s since the root attribute t0_unix",
-    "lockin/x_sense": "sense demodulator in-phase component c_y (X), Vrms",
-    "lockin/y_sense": "sense demodulator quadrature component s_y (Y), Vrms",
-    "lockin/rate_output": "FTR rebalance command f_y (rate PID output, recorded on an AuxIn), V",
-    "lockin/drive_amplitude": "drive pickoff amplitude R of the drive demodulator, Vrms",
-    "lockin/drive_frequency": "PLL oscillator frequency, Hz",
-    "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
-    "clsf/time": "end of the dither period the row describes, s since t0_unix",
-    "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
-                "change seen by the dither)",
-    "clsf/sf_change_estimate": "CLSF estimate of the scale-factor change SF/SF0 - 1 = 1/(1 + eta) - 1",
-    "clsf/gain_correction": "CLSF gain correction g_c in force during the period (1.0 = none; correct mode only)",
-    "clsf/rate_output_mean": "rate output averaged over the whole dither period (the dither cancels), V",
-    "table/time": "reading time, s since t0_unix",
-    "table/rate_command": "commanded table rate, deg/s",
-    "table/rate_measured": "table rate reported by the controller, deg/s",
-    "table/position": "table position, deg",
-    "chamber/time": "reading time, s since t0_unix",
-    "chamber/setpoint": "chamber controller setpoint, degC",
-    "chamber/temperature": "chamber air temperature, degC",
-    "truth/time": "sample time, s since t0_unix (twins only)",
-    "truth/scale_factor": "true FTR scale factor of the simulated gyro, V per deg/s",
-    "truth/temperature": "true gyro temperature, degC",
-    "truth/rate": "true input rate (table rate seen by the gyro), deg/s",
-    "steps/index": "step number in the plan, from 0",
-    "steps/kind": "step kind: lock, dither, soak, rate, hold, sine:<f>Hz, level, return",
-    "steps/t_start": "step start, s since t0_unix",
-    "steps/t_end": "step end, s since t0_unix",
-    "steps/table_rate": "table rate of the step (sine steps: amplitude), deg/s",
-    "steps/chamber_setpoint": "chamber setpoint during the step, degC",
-    "steps/status": "completed | aborted | started | skipped; only completed rows are checkpoints",
-}
-
-KIND_BYTES = 48
-STATUS_BYTES = 16
-STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_start": np.float64,
-                                "t_end": np.float64, "table_rate": np.float64, "chamber_setpoint": np.float64,
-                                "status": f"S{STATUS_BYTES}"}
-#: rows per chunk. A flush rewrites the last, partial chunk of every dataset; a compressed chunk that grew is
-#: written elsewhere and its old space is not reused, so small chunks keep that waste small (benchmarks/
-#: storage_speed.py: 512 rows = 0.37 s at 1400 Sa/s). Only the fast groups are compressed; the slow ones (a few
-#: rows per second, < 1 MB per hour) are stored plain, where a partial chunk is rewritten in place.
-CHUNK_ROWS = {"lockin": 512, "clsf": 256, "table": 256, "chamber": 256, "truth": 512, "steps": 64}
-COMPRESSED_GROUPS = ("lockin", "truth")
-COMPRESSIONS = ("none", "gzip", "lzf")
-GZIP_LEVEL = 1
-MODES = ("sim", "hardware")
-STATUSES = ("running", "completed", "aborted")
-
-
-class StorageError(Exception):
-    """A run file that cannot be created, read or resumed; the message names the file and what is wrong."""
-
-
-# --------------------------------------------------------------------------------------------------------------
-# HDF5 superblock consistency flags (what `h5clear -s` does)
-
-
-def _lookup3(data: bytes, initval: int = 0) -> int:
-    """Bob Jenkins' lookup3 `hashlittle` (public domain), the checksum HDF5 puts on superblock v2/v3.
-
-    Three 32-bit lanes a, b, c start at 0xdeadbeef + len + initval; each 12-byte block is added little-endian
-    and mixed, the last (1..12 byte, zero-padded) block is added and put through the final avalanche; the hash
-    is c. A zero-length key returns c unmixed.
-    """
-    m = 0xFFFFFFFF
-
-    def rot(x: int, k: int) -> int:
-        return ((x << k) | (x >> (32 - k))) & m
-
-    n = len(data)
-    a = b = c = (0xDEADBEEF + n + initval) & m
-    if n == 0:
-        return c
-    pos = 0
-    while n - pos > 12:
-        x, y, z = struct.unpack_from("<III", data, pos)
-        a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
-        a = ((a - c) & m) ^ rot(c, 4); c = (c + b) & m
-        b = ((b - a) & m) ^ rot(a, 6); a = (a + c) & m
-        c = ((c - b) & m) ^ rot(b, 8); b = (b + a) & m
-        a = ((a - c) & m) ^ rot(c, 16); c = (c + b) & m
-        b = ((b - a) & m) ^ rot(a, 19); a = (a + c) & m
-        c = ((c - b) & m) ^ rot(b, 4); b = (b + a) & m
-        pos += 12
-    x, y, z = struct.unpack("<III", data[pos:].ljust(12, b"\0"))
-    a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
-    c = (c ^ b) - rot(b, 14) & m
-    a = (a ^ c) - rot(c, 11) & m
-    b = (b ^ a) - rot(a, 25) & m
-    c = (c ^ b) - rot(b, 16) & m
-    a = (a ^ c) - rot(c, 4) & m
-    b = (b ^ a) - rot(a, 14) & m
-    c = (c ^ b) - rot(b, 24) & m
-    return c
-
-
-_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-
-
-def _superblock(path: Path) -> tuple[bytes, int]:
-    """Read a v2/v3 superblock at offset 0: (its bytes without the checksum, its length with the checksum)."""
-    with open(path, "rb") as fh:
-        head = fh.read(64)
-    if head[:8] != _SIGNATURE:
-        raise StorageError(f"{path}: not an HDF5 file (no HDF5 signature at offset 0)")
-    version = head[8]
-    if version not in (2, 3):
-        raise StorageError(f"{path}: HDF5 superblock version {version}; qmg-lab files use version 3 "
-                           f"(libver='latest'); this file was not written by qmg-lab")
-    size_offsets = head[9]
-    length = 12 + 4 * size_offsets + 4  # signature..flags, 4 addresses, checksum
-    body = head[: length - 4]
-    (stored,) = struct.unpack_from("<I", head, length - 4)
-    if _lookup3(body) != stored:
-        raise StorageError(f"{path}: HDF5 superblock checksum mismatch: the file is damaged")
-    return body, length
-
-
-def writer_flags_set(path: str | Path) -> bool:
-    """True if the superblock says a writer opened the file and never closed it (killed, or still running)."""
-    body, _ = _superblock(Path(path))
-    return body[11] != 0
-
-
-def _clear_superblock_flags(path: Path) -> None:
-    """Zero the superblock's file-consistency flags and rewrite its checksum (h5clear -s)."""
-    body, _ = _superblock(path)
-    if body[11] == 0:
-        return
-    new = body[:11] + b"\0" + body[12:]
-    with open(path, "r+b") as fh:
-        fh.seek(0)
-        fh.write(new + struct.pack("<I", _lookup3(new)))
-        fh.flush()
-        os.fsync(fh.fileno())
-
-
-# --------------------------------------------------------------------------------------------------------------
-# writer
-
-
-def _text(value: Any) -> str:
-    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+__all__ = ["RunWriter", "ResumeState", "StorageError", "RunData", "read_run", "read_window", "writer_flags_set",
+           "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
+           "STEPS_UNITS"]
 
 
 def _pid_alive(pid: int) -> bool:
@@ -352,7 +219,7 @@ class RunWriter:
             pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
             if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
                 raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
-            _clear_superblock_flags(p)
+            clear_superblock_flags(p)
         try:
             h5 = h5py.File(p, "r+", libver="latest")
         except OSError as exc:
@@ -575,155 +442,3 @@ class RunWriter:
         self._h5.flush()
         self._last_flush = self._clock()
 
-
-# --------------------------------------------------------------------------------------------------------------
-# reader
-
-
-@dataclass
-class RunData:
-    """A run file read into memory.
-
-    attrs: root attributes (strings decoded, numbers as Python scalars); groups: group -> column -> array, each
-    group cut to its shortest column (whole rows only); steps: /steps columns (kind and status as str arrays);
-    units: "group/column" -> units; writer_open: the superblock says a writer never closed the file (it was
-    killed, or is still writing); rows_cut: "group" -> rows dropped to make the columns equal.
-    """
-
-    path: Path
-    attrs: dict[str, Any]
-    groups: dict[str, dict[str, np.ndarray]]
-    steps: dict[str, np.ndarray]
-    units: dict[str, str] = field(default_factory=dict)
-    writer_open: bool = False
-    rows_cut: dict[str, int] = field(default_factory=dict)
-
-    @property
-    def status(self) -> str:
-        return str(self.attrs.get("status", ""))
-
-    @property
-    def has_truth(self) -> bool:
-        return "truth" in self.groups
-
-    @property
-    def planned_step_kinds(self) -> list[str]:
-        try:
-            return [str(k) for k in json.loads(self.attrs.get("planned_step_kinds", "[]"))]
-        except (TypeError, ValueError):
-            return []
-
-
-def _py(value: Any) -> Any:
-    if isinstance(value, bytes):
-        return value.decode("utf-8", "replace")
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
-    """Read a qmg-lab/1 run file — complete, still being written, or left by a killed process.
-
-    select: what to load, as group names ("lockin") or columns ("lockin/rate_output"); default everything.
-    /steps is always loaded. Raises StorageError naming the file and the problem for anything else.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise StorageError(f"{p}: no such run file")
-    writer_open = writer_flags_set(p)
-    try:
-        h5 = h5py.File(p, "r", swmr=True, libver="latest")
-    except OSError as exc:
-        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
-    wanted: dict[str, set[str] | None] | None = None
-    if select is not None:
-        wanted = {}
-        for item in select:
-            g, _, c = str(item).strip("/").partition("/")
-            if c:
-                cols = wanted.get(g, set())
-                if cols is not None:
-                    cols.add(c)
-                    wanted[g] = cols
-            else:
-                wanted[g] = None
-    with h5:
-        attrs = {k: _py(v) for k, v in h5.attrs.items()}
-        if attrs.get("format") != FORMAT:
-            raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
-        if "steps" not in h5:
-            raise StorageError(f"{p}: the /steps group is missing")
-        units: dict[str, str] = {}
-        groups: dict[str, dict[str, np.ndarray]] = {}
-        rows_cut: dict[str, int] = {}
-        for g in [*GROUP_UNITS, "steps"]:
-            if g not in h5:
-                if g != "truth":
-                    raise StorageError(f"{p}: the /{g} group is missing")
-                continue
-            grp = h5[g]
-            cols = list(GROUP_UNITS.get(g, STEPS_UNITS))
-            absent = [c for c in cols if c not in grp]
-            if absent:
-                raise StorageError(f"{p}: /{g} lacks the datasets {absent}")
-            for c in cols:
-                units[f"{g}/{c}"] = _py(grp[c].attrs.get("units", ""))
-            n = min(grp[c].shape[0] for c in cols)
-            rows_cut[g] = max(grp[c].shape[0] for c in cols) - n
-            if g != "steps" and wanted is not None:
-                if g not in wanted:
-                    continue
-                sel = wanted[g]
-                if sel is not None:
-                    unknown = sorted(sel - set(cols))
-                    if unknown:
-                        raise StorageError(f"{p}: /{g} has no columns {unknown}")
-                    cols = [c for c in cols if c in sel or c == "time"]
-            groups[g] = {c: grp[c][:n] for c in cols}
-    steps = groups.pop("steps")
-    for c in ("kind", "status"):
-        steps[c] = np.array([s.decode("utf-8", "replace") for s in steps[c]], dtype=str)
-    return RunData(path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open,
-                   rows_cut=rows_cut)
-
-
-def read_window(path: str | Path, group: str, t_start: float, t_end: float,
-                columns: Iterable[str] | None = None) -> dict[str, np.ndarray]:
-    """Rows of one group with t_start <= time <= t_end, read by bisection (no full-column read).
-
-    For figures and spot checks on long files. Opens the file like `read_run` (SWMR, partial files allowed).
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise StorageError(f"{p}: no such run file")
-    try:
-        h5 = h5py.File(p, "r", swmr=True, libver="latest")
-    except OSError as exc:
-        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
-    with h5:
-        if group not in h5 or "time" not in h5[group]:
-            raise StorageError(f"{p}: has no /{group}/time")
-        grp = h5[group]
-        cols = list(columns) if columns is not None else list(grp)
-        unknown = [c for c in cols if c not in grp]
-        if unknown:
-            raise StorageError(f"{p}: /{group} has no columns {unknown}")
-        n = min(grp[c].shape[0] for c in set(cols) | {"time"})
-        t = grp["time"]
-
-        def bisect(x: float, right: bool) -> int:
-            lo, hi = 0, n
-            while lo < hi:
-                mid = (lo + hi) // 2
-                v = float(t[mid])
-                if v < x or (right and v == x):
-                    lo = mid + 1
-                else:
-                    hi = mid
-            return lo
-
-        i0, i1 = bisect(t_start, False), bisect(t_end, True)
-        out = {c: grp[c][i0:i1] for c in cols}
-        out.setdefault("time", t[i0:i1])
-        return out
