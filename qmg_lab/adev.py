@@ -72,5 +72,15 @@ def arw_deg_per_rt_h(result_dph: AllanResult) -> float:
 
 
 def bias_instability_deg_per_h(result_dph: AllanResult) -> float:
-    """Bias instability B = min(sigma) / 0.664, deg/h (from an ADEV of rate in deg/h)."""
-    return float(np.min(result_dph.dev)) / BI_FACTOR if result_dph.dev.size else float("nan")
+    """Bias instability B = min(sigma) / 0.664, deg/h (from an ADEV of rate in deg/h), IEEE 952.
+
+    NaN when the data do not resolve the floor: if the smallest deviation is at the longest averaging time the
+    curve is still falling (the static segment is too short) and its minimum would understate B.
+    """
+    dev = result_dph.dev
+    if dev.size < 3:
+        return float("nan")
+    i = int(np.argmin(dev))
+    if i == dev.size - 1:
+        return float("nan")
+    return float(dev[i]) / BI_FACTOR

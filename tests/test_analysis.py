@@ -213,8 +213,27 @@ def test_adev_of_white_clsf_and_rate_noise(tmp_path: Path) -> None:
     assert r.adev_gain_correction  # correct mode: drift removed by g_c analysed too
     # ARW: sigma(1 s) = sig_r / sqrt(fd) deg/s -> x 3600 deg/h -> / 60 deg/sqrt(h)
     assert r.arw_deg_per_rt_h == pytest.approx(sig_r / math.sqrt(fd) * 3600 / 60, rel=0.1)
+    # white rate noise alone has no flat part: its Allan deviation still falls at the longest tau, so the
+    # bias-instability floor is not resolved (IEEE 952 reads B on the flat part, min / 0.664)
     gy = r.gyro_adev_deg_per_h
-    assert r.bias_instability_deg_per_h == pytest.approx(min(x["value"] for x in gy) / 0.664)
+    assert np.argmin([x["value"] for x in gy]) == len(gy) - 1
+    assert math.isnan(r.bias_instability_deg_per_h)
+
+
+def test_bias_instability_is_read_at_the_floor_when_the_curve_turns_up() -> None:
+    """White rate noise sigma_w plus a rate random walk K: sigma(tau)^2 = sigma_w^2/tau + K^2 tau/3, a minimum
+    at tau* = sqrt(3) sigma_w / K inside the record; B = sigma_min / 0.664 is read there."""
+    from qmg_lab.adev import bias_instability_deg_per_h, overlapping_adev
+
+    rng = np.random.default_rng(11)
+    fs, n = 10.0, 200_000  # 20000 s at 10 Hz
+    sigma_w, k = 1.0, 0.01  # deg/h/sqrt(Hz), deg/h/sqrt(s)
+    y = sigma_w * math.sqrt(fs) * rng.standard_normal(n) + k * np.cumsum(rng.standard_normal(n)) / math.sqrt(fs)
+    res = overlapping_adev(y, fs)
+    b = bias_instability_deg_per_h(res)
+    floor = math.sqrt(2 * sigma_w * k / math.sqrt(3))  # sigma at tau*: sigma_w^2/tau* + K^2 tau*/3
+    assert b == pytest.approx(floor / 0.664, rel=0.25)
+    assert b == pytest.approx(float(np.min(res.dev)) / 0.664)
 
 
 # ---- FTR characterization ---------------------------------------------------------------------------------------
