@@ -454,7 +454,7 @@ def load_config(path: str | Path) -> tuple[Config, str]:
     """Read and validate a configuration file. Returns the model and the file's text (stored in run files)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_bytes().decode("utf-8")  # no newline translation: TOML allows LF and CRLF only
     except FileNotFoundError:
         raise ConfigError(f"{p}: configuration file not found") from None
     except IsADirectoryError:

@@ -57,3 +57,14 @@ def test_configuration_reference_matches_the_schema():
 
     doc = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
     assert doc == reference_markdown(), "regenerate: python -m qmg_lab.config > docs/configuration.md"
+
+
+def test_line_endings_follow_toml(tmp_path):
+    """TOML allows LF and CRLF; a bare CR is not a newline (found by the bad-input property test)."""
+    crlf = tmp_path / "crlf.toml"
+    crlf.write_bytes(b"[plan]\r\ndwell_s = 60\r\n")
+    assert load_config(crlf)[0].plan.dwell_s == 60
+    cr = tmp_path / "cr.toml"
+    cr.write_bytes(b"x=1\r")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(cr)
