@@ -174,27 +174,36 @@ def _fig6(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     _save(fig, outdir, "fig6_sf_true_vs_clsf", out)
 
 
+def _allan_plot(rows: list[dict[str, float]], label: str) -> tuple[plt.Figure, plt.Axes, np.ndarray, np.ndarray]:
+    """A log-log Allan-deviation figure of rows {tau_s, value, low, high} with their 68 % intervals."""
+    tau = np.array([a["tau_s"] for a in rows])
+    dev = np.array([a["value"] for a in rows])
+    lo = np.array([a["low"] for a in rows])
+    hi = np.array([a["high"] for a in rows])
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.errorbar(tau, dev, yerr=[dev - lo, hi - dev], fmt="o-", capsize=2, label=label)
+    return fig, ax, tau, dev
+
+
+def _finish_allan(ax: plt.Axes, ylabel: str) -> None:
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("averaging time tau [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both")
+    ax.legend()
+
+
 def _fig7(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     if not r.adev:
         out.skipped["fig7_allan"] = "not enough CLSF periods for an Allan deviation"
         return
-    tau = np.array([a["tau_s"] for a in r.adev])
-    dev = np.array([a["value"] for a in r.adev])
-    lo = np.array([a["low"] for a in r.adev])
-    hi = np.array([a["high"] for a in r.adev])
-    fig, ax = plt.subplots(figsize=(6, 4.5))
-    ax.errorbar(tau, dev, yerr=[dev - lo, hi - dev], fmt="o-", capsize=2,
-                label=f"CLSF SF estimate ({r.clsf_mode} mode), 68 % CI")
+    fig, ax, tau, dev = _allan_plot(r.adev, f"CLSF SF estimate ({r.clsf_mode} mode), 68 % CI")
     if r.adev_gain_correction:
         ax.loglog([a["tau_s"] for a in r.adev_gain_correction], [a["value"] for a in r.adev_gain_correction],
                   "s--", label="gain correction ln g_c")
     ax.loglog(tau, dev[0] * np.sqrt(tau[0] / tau), "k:", label="slope -1/2 (white)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("averaging time tau [s]")
-    ax.set_ylabel("Allan deviation [ppm]")
-    ax.grid(True, which="both")
-    ax.legend()
+    _finish_allan(ax, "Allan deviation [ppm]")
     _save(fig, outdir, "fig7_allan", out)
 
 
@@ -202,12 +211,7 @@ def _fig8(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     if not r.gyro_adev_deg_per_h:
         out.skipped["fig8_gyro_allan"] = "no static segment long enough for the gyro's Allan deviation"
         return
-    tau = np.array([a["tau_s"] for a in r.gyro_adev_deg_per_h])
-    dev = np.array([a["value"] for a in r.gyro_adev_deg_per_h])
-    lo = np.array([a["low"] for a in r.gyro_adev_deg_per_h])
-    hi = np.array([a["high"] for a in r.gyro_adev_deg_per_h])
-    fig, ax = plt.subplots(figsize=(6, 4.5))
-    ax.errorbar(tau, dev, yerr=[dev - lo, hi - dev], fmt="o-", capsize=2, label="gyro rate, 68 % CI")
+    fig, ax, tau, _ = _allan_plot(r.gyro_adev_deg_per_h, "gyro rate, 68 % CI")
     if math.isfinite(r.arw_deg_per_rt_h):
         # sigma(tau) = N / sqrt(tau), N in deg/h/sqrt(Hz) = 60 x ARW in deg/sqrt(h)
         ax.loglog(tau, 60.0 * r.arw_deg_per_rt_h / np.sqrt(tau), "k:",
@@ -215,12 +219,7 @@ def _fig8(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     if math.isfinite(r.bias_instability_deg_per_h):
         ax.axhline(0.664 * r.bias_instability_deg_per_h, color="r", ls="--",
                    label=f"0.664 B, B = {r.bias_instability_deg_per_h:.3f} deg/h")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("averaging time tau [s]")
-    ax.set_ylabel("Allan deviation of rate [deg/h]")
-    ax.grid(True, which="both")
-    ax.legend()
+    _finish_allan(ax, "Allan deviation of rate [deg/h]")
     _save(fig, outdir, "fig8_gyro_allan", out)
 
 
