@@ -210,8 +210,10 @@ class _TwinBase:
             vr = min(max(vr, rate.center - rate.range), rate.center + rate.range)
             s[gk.S_RATEI] = (vr - rate.center) / rate.i if rate.i != 0.0 else 0.0
             s[gk.S_VR] = vr
+            s[gk.S_VRP] = vr
         else:
             s[gk.S_VR] = rate.center
+            s[gk.S_VRP] = rate.center
         quad = loops.quadrature
         if quad.enabled:
             xi_yx = w * dw * math.sin(two_w) / (2.0 * wr)
@@ -271,7 +273,7 @@ class _TwinBase:
             x_drive=out[gk.O_XD], y_drive=out[gk.O_YD], x_sense=out[gk.O_XS], y_sense=out[gk.O_YS],
             frequency_hz=out[gk.O_F], drive_output_v=out[gk.O_VD], rate_output_v=out[gk.O_VR],
             quadrature_output_v=out[gk.O_VQ], pll_error_deg=out[gk.O_PLLE], sf_true_v_per_dps=out[gk.O_SF],
-            rate_true_dps=rate.copy(), pll_locked=locked,
+            rate_true_dps=rate.copy(), pll_locked=locked, rate_auxout_v=out[gk.O_AUX],
         )
 
 

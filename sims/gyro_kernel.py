@@ -20,9 +20,19 @@ divided by sinc(omega_r dt / 2) (DAC half-sample and sinc compensation); one-cyc
 X + iY = sqrt(2) G mean(q e^{-i phi}) gives the same demod convention X + iY = G (C - iS)/sqrt(2).
 
 Controller (both models, once per demod sample of length dt_c):
-* demod low-pass: `order` first-order sections of time constant tc, exact discretization for an input that is
-  linear between samples (first-order hold): y+ = a y + (1-a) u- + (u+ - u-)(1 - tc (1-a)/dt_c), a = e^{-dt_c/tc};
-  the loop delay is one more such section with tc = loop delay (a lag with the same low-frequency phase).
+* demod low-pass: the HF2's cascade of `order` identical first-order sections, H(s) = 1/(1 + s tc)^order,
+  discretized exactly for a raw demod value that is linear between samples (first-order hold). With x = dt_c/tc,
+  the chain's state y_1..y_n (a Jordan block) advances as
+      y_m+ = sum_{j<=m} e^-x x^(m-j)/(m-j)! y_j + u- S_m + (u+ - u-) R_m,
+      S_m = 1 - e^-x sum_{i<m} x^i/i!,   R_m = 1 - m/x + (e^-x/x) sum_{i<m} (m-i) x^i/i!
+  (S_m: the m-th section's step response, R_m: its ramp response / dt_c). For one section this is the familiar
+  y+ = a y + (1-a) u- + (u+ - u-)(1 - tc (1-a)/dt_c), a = e^-x. The loop delay is one more first-order section
+  with tc = loop delay (a lag with the same low-frequency phase).
+* Rate output: the HF2's PID updates far faster than the demod stream, so the AuxOut voltage V_r(t) is
+  continuous. The twin makes it piecewise linear between its sample instants: V_r(t_i) = v_(i-1) (the PID value
+  computed at the previous sample), and the forcer sees its exact mean over each step, (v_(i-2) + v_(i-1))/2.
+  (The slow-variable plant only integrates the input over a step: the shape within the step enters as
+  |M| dt / 12 ~ 1e-7 of it.)
 * PLL: e = atan2(Y_d, X_d)[deg] - setpoint (wrapped), f = center + p e + i int(e) dt, clamped to center +- range.
 * PIDs: e = setpoint - input, out = center + p e + i int(e) dt + d de/dt, clamped to center +- range; the
   integrator does not integrate while the output is clamped (anti-windup); disabled: out = center, int = 0.
@@ -65,11 +75,12 @@ S_FILT = S_GM + N_GM  # 4 channels x (previous raw input + up to 9 sections)
 FILT_STRIDE = 10
 S_PLLE = S_FILT + 4 * FILT_STRIDE
 S_QX, S_QY, S_UX, S_UY, S_PHI = S_PLLE + 1, S_PLLE + 2, S_PLLE + 3, S_PLLE + 4, S_PLLE + 5
-N_STATE = S_PHI + 1
+S_VRP = S_PHI + 1  # the rate PID value of the sample before (the AuxOut ramps from it to S_VR)
+N_STATE = S_VRP + 1
 
 # ---- output rows
-O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
-N_OUT = 10
+O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF, O_AUX = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
+N_OUT = 11
 
 NOISE_PER_STEP = 6  # 2 ARW force components, 4 pickoff noises
 SQRT2 = math.sqrt(2.0)
@@ -101,24 +112,30 @@ def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba ke
 
 
 @njit(cache=True, inline="always")
-def _control(S, L, raws, filt, dt, a_f, c_f, order, a_d, c_d, sections):  # noqa: ANN001, ANN202
+def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):  # noqa: ANN001, ANN202
     """Demod low-pass on the 4 raw demod values (into `filt`), then PLL and the three PIDs."""
+    ynew = np.empty(order)
     for ch in range(4):
         base = S_FILT + FILT_STRIDE * ch
         u_new = raws[ch]
         u_old = S[base]
         S[base] = u_new
-        for j in range(sections):
-            if j < order:
-                a, c = a_f, c_f
-            else:
-                a, c = a_d, c_d
-            y_old = S[base + 1 + j]
-            y_new = a * y_old + (1.0 - a) * u_old + (u_new - u_old) * c
-            S[base + 1 + j] = y_new
-            u_old = y_old
-            u_new = y_new
-        filt[ch] = u_new
+        du = u_new - u_old
+        for m in range(order):  # the exact Jordan-chain step (module docstring)
+            acc = u_old * fs[m] + du * fr[m]
+            for j in range(m + 1):
+                acc += fj[m - j] * S[base + 1 + j]
+            ynew[m] = acc
+        y_last_old = S[base + order]
+        for m in range(order):
+            S[base + 1 + m] = ynew[m]
+        out = ynew[order - 1]
+        if sections > order:  # loop delay: one first-order section on the filter output
+            y_old = S[base + 1 + order]
+            y_new = a_d * y_old + (1.0 - a_d) * y_last_old + (out - y_last_old) * c_d
+            S[base + 1 + order] = y_new
+            out = y_new
+        filt[ch] = out
     # PLL on the drive phase
     theta = math.atan2(filt[1], filt[0]) / RAD_PER_DEG
     e = theta - L[L_PLL + 3]
@@ -142,6 +159,7 @@ def _control(S, L, raws, filt, dt, a_f, c_f, order, a_d, c_d, sections):  # noqa
     S[S_FREF] = f
     r_d = math.sqrt(filt[0] * filt[0] + filt[1] * filt[1])
     S[S_VD] = _pid(S, L, L_AGC, S_AGCI, S_AGCE, r_d, dt)
+    S[S_VRP] = S[S_VR]
     S[S_VR] = _pid(S, L, L_RATE, S_RATEI, S_RATEE, filt[2], dt)
     S[S_VQ] = _pid(S, L, L_QUAD, S_QUADI, S_QUADE, filt[3], dt)
 
@@ -182,18 +200,38 @@ def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):  # noqa: ANN001, ANN202
     return gi
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
-    """The demodulator low-pass and the loop delay as first-order sections, exact for inputs held over dt.
+    """The demodulator low-pass (exact Jordan-chain coefficients) and the loop delay section.
 
-    Each section y <- a y + (1 - a) x with a = exp(-dt/tc) and the ZOH output correction c = 1 - tc (1 - a)/dt;
-    `order` sections of the demod time constant, plus one of the loop delay when it is > 0.
-    Returns (a_f, c_f, order, a_d, c_d, sections).
+    fj[i] = e^-x x^i / i!, fs[m] = S_(m+1), fr[m] = R_(m+1) of the module docstring (x = dt/tc); the loop delay
+    is one first-order section y <- a y + (1 - a) u- + (u+ - u-) c, a = exp(-dt/delay), c = 1 - delay (1 - a)/dt.
+    Returns (fj, fs, fr, order, a_d, c_d, sections).
     """
     tc = L[L_TC]
     order = int(L[L_ORDER])
-    a_f = math.exp(-dt / tc)
-    c_f = 1.0 - tc * (1.0 - a_f) / dt
+    x = dt / tc
+    ex = math.exp(-x)
+    fj = np.empty(order)
+    fs = np.empty(order)
+    fr = np.empty(order)
+    term = 1.0  # x^i / i!
+    for i in range(order):
+        fj[i] = ex * term
+        term *= x / (i + 1)
+    for m in range(1, order + 1):
+        s_sum = 0.0
+        r_sum = 0.0
+        term = 1.0
+        for i in range(m):
+            s_sum += term
+            r_sum += (m - i) * term
+            term *= x / (i + 1)
+        fs[m - 1] = 1.0 - ex * s_sum
+        if x > 1e-3:
+            fr[m - 1] = 1.0 - m / x + ex * r_sum / x
+        else:  # series of the ramp response for a slow filter: x^m / (m + 1)! (1 - (m + 1) x / (m + 2) ...)
+            fr[m - 1] = x ** m / math.gamma(m + 2.0) * (1.0 - (m + 1.0) * x / (m + 2.0))
     delay = P[P_DELAY]
     sections = order
     a_d, c_d = 0.0, 1.0
@@ -201,7 +239,7 @@ def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
         sections = order + 1
         a_d = math.exp(-dt / delay)
         c_d = 1.0 - delay * (1.0 - a_d) / dt
-    return a_f, c_f, order, a_d, c_d, sections
+    return fj, fs, fr, order, a_d, c_d, sections
 
 
 @njit(cache=True, error_model="numpy")
@@ -213,7 +251,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dt)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
-    a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
+    fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
@@ -254,7 +292,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
         kf = P[P_KF] * g_f / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
-        uy = complex(kf * gain * (S[S_VR] + dither_v[i]) - arw * noise[i, 0],
+        uy = complex(kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - arw * noise[i, 0],
                      kf * S[S_VQ] - arw * noise[i, 1])
         # input term M^-1 (I - Phi) u
         v1 = (1.0 - p11) * ux - p12 * uy
@@ -273,7 +311,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         raws[1] = -zx_new.imag / SQRT2 + sig_pick * noise[i, 3]
         raws[2] = g_py * zy_new.real / SQRT2 + sig_pick * noise[i, 4]
         raws[3] = -g_py * zy_new.imag / SQRT2 + sig_pick * noise[i, 5]
-        _control(S, L, raws, filt, dt, a_f, c_f, order, a_d, c_d, sections)
+        _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
@@ -286,6 +324,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
+        out[O_AUX, i] = S[S_VRP]
     return gi
 
 
@@ -322,7 +361,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dtc)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
-    a_f, c_f, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
+    fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
@@ -371,7 +410,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         g_py = 1.0 + P[P_AP] * dtemp
         fn = 2.0 * w0 * k * a0 * sig_arw
         fxs = -P[P_KD] * S[S_VD]
-        fys = -P[P_KF] * g_f * gain * (S[S_VR] + dither_v[i]) + fn * noise[i, 0]
+        fys = -P[P_KF] * g_f * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) + fn * noise[i, 0]
         fyc = P[P_KF] * g_f * S[S_VQ] - fn * noise[i, 1]
         half = 0.5 * wr * dt
         inv_sinc = half / math.sin(half)
@@ -417,7 +456,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         raws[1] = -scale * sxs + sig_pick * noise[i, 3]
         raws[2] = g_py * scale * syc + sig_pick * noise[i, 4]
         raws[3] = -g_py * scale * sys_ + sig_pick * noise[i, 5]
-        _control(S, L, raws, filt, dtc, a_f, c_f, order, a_d, c_d, sections)
+        _control(S, L, raws, filt, dtc, fj, fs, fr, order, a_d, c_d, sections)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
@@ -430,4 +469,5 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
         w_x = math.sqrt(kxx)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
+        out[O_AUX, i] = S[S_VRP]
     return gi

@@ -236,6 +236,9 @@ class GyroBlock:
     sf_true_v_per_dps: np.ndarray  # the instantaneous true FTR scale factor
     rate_true_dps: np.ndarray  # the true input rate (table, without gyro bias)
     pll_locked: bool  # PLL enabled and |pll_error| < PLL_LOCK_DEG over the whole block
+    # the rate AuxOut voltage AT the sample instant (piecewise linear between instants, sims/gyro_kernel.py):
+    # the PID value of the sample before; what a cable from the AuxOut to an AuxIn carries
+    rate_auxout_v: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.x_drive.shape[0])

@@ -8,14 +8,27 @@ latter used by ``set_transaction``), ``sync``, ``subscribe``/``unsubscribe`` and
 ``zhinst.core.ziDAQServer`` at API level 1.
 
 Physics coupling (protocol of one ``poll(rec_s, ...)``):
-1. n = round(rec_s * rate) steps of dt = 1/rate, rate = ``demods/<sense>/rate`` (rounded at set time to
-   clockbase / integer, so that timestamps are exact). Nothing subscribed -> no data and the world stands still.
+1. n = round(rec_s * rate) steps of dt = 1/rate, rate = ``demods/<sense>/rate``. A requested rate is rounded
+   at set time to a rate the instrument offers (``rate_set``): "hf2", the HF2's binary ladder
+   HF2_RATE_BASE_HZ / 2^k (1800, 3600, 7200, ... and 900, 450, 225 Sa/s; the power-on 1800 Sa/s is one of
+   them), each then an integer number of clockbase ticks so that timestamps are exact; or "ticks", any
+   clockbase / integer rate (a test stand for rates no HF2 offers). Nothing subscribed -> no data and the world
+   stands still.
+   *Assumed*: the HF2 documentation says a requested rate "may be approximated to the nearest value supported"
+   without listing them; the binary ladder through the power-on 1800 Sa/s is what the twin offers, and the
+   driver always reads the applied rate back, so the application never depends on this list.
 2. ``world.advance(n, dt)`` gives the per-step inputs; ``identify_loops`` reads the node values into
    LoopSettings (sims/hf2_loops.py); ``GyroSim.run`` integrates the block (re-created when dt changes).
 3. Every subscribed and enabled demod gets n samples: timestamp = clockbase ticks of the world time at the end
    of each step; x, y from the physics for drive/sense demods (rotated by exp(-i(phi_osc + phaseshift - phi_ref))
    if the demod's oscillator is not the reference); frequency and phase (rad) of its oscillator;
-   auxin[rate_auxin] = rate PID output (the AuxOut looped to the AuxIn), auxin[dither_auxin] = the DS345 output.
+   auxin[rate_auxin] = the rate AuxOut looped to the AuxIn, auxin[dither_auxin] = the DS345 output, each as the
+   AuxIn reports it: the mean of the input over the AuxIn averaging window W = 2^auxins/0/averaging /
+   AUXIN_ADC_RATE_HZ that ends at the sample's timestamp (the HF2 averages 1..32768 AuxIn ADC samples and aligns
+   the result with the demodulator sample by timestamp). The AuxOut voltage is piecewise linear between sample
+   instants (sims/gyro_kernel.py), so its window mean is exact; the dither's is the exact integral of the
+   square wave (sims/world.py), edges between samples included. *Assumed*: AUXIN_ADC_RATE_HZ (not found in the
+   HF2 documentation); with the default averaging 0 the window is one ADC sample and its value hardly matters.
 4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; pids/n/error (= setpoint -
    input), shift (= output - center); auxouts/n/value; auxins/0/values/k; status/flags/binary bit 20 (PLL 1
    locked); status/flags/demodsampleloss; status/time. The truth of the block goes to ``world.record_truth``.
@@ -45,6 +58,9 @@ __all__ = ["HF2DataServerTwin", "HF2Wiring", "NodeError"]
 
 DEMOD_FIELDS = ("timestamp", "x", "y", "frequency", "phase", "dio", "trigger", "auxin0", "auxin1")
 PLL_LOCKED_BITS = (1 << 20, 1 << 21)
+HF2_RATE_BASE_HZ = 921.6e3  # the binary ladder of demodulator rates: 921.6 kSa/s / 2^k (assumed, see above)
+AUXIN_ADC_RATE_HZ = 400e3   # AuxIn ADC sample rate (assumed, see above)
+RATE_SETS = ("hf2", "ticks")
 SERVER_VERSION = "26.07"
 SERVER_REVISION = 26070250
 
@@ -70,9 +86,13 @@ class HF2DataServerTwin:
 
     def __init__(self, world: World, gyro_params: GyroParams, seed: int, wiring: HF2Wiring,
                  device_id: str = "dev1234", clockbase_hz: float = 210e6, host: str = "localhost",
-                 port: int = 8005) -> None:
+                 port: int = 8005, rate_set: str = "hf2") -> None:
         if clockbase_hz <= 0:
             raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")
+        if rate_set not in RATE_SETS:
+            raise ValueError(f"rate_set = {rate_set!r} must be one of {RATE_SETS}")
+        self.rate_set = rate_set
+        self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
@@ -310,8 +330,29 @@ class HF2DataServerTwin:
         rate = float(self.nodes.values[path])
         if rate <= 0:
             raise NodeError(f"node {path}: rate {rate!r} Sa/s must be positive")
+        if self.rate_set == "hf2":  # nearest rung of the binary ladder (in log scale), at most the base rate
+            k = max(1, round(math.log2(HF2_RATE_BASE_HZ / rate)))
+            rate = HF2_RATE_BASE_HZ / 2.0**k
         ticks = max(1, round(self.clockbase_hz / rate))
         self.nodes.values[path] = self.clockbase_hz / ticks
+
+    def auxin_window_s(self) -> float:
+        """The AuxIn averaging window: 2^averaging ADC samples, s."""
+        avg = int(self.nodes.peek("auxins/0/averaging"))
+        return float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ
+
+    def _auxin_records(self, blk: GyroBlock, t_end: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(rate AuxOut, dither) as the AuxIns report them at the sample instants t_end (module docstring).
+
+        The AuxOut voltage V is linear between instants, V(t_i) = rate_auxout_v[i]; its mean over
+        [t_i - W, t_i] (W <= dt) is V(t_i) - (V(t_i) - V(t_(i-1))) W / (2 dt)."""
+        w = min(self.auxin_window_s(), dt)
+        v = np.asarray(blk.rate_auxout_v if blk.rate_auxout_v is not None else blk.rate_output_v, dtype=float)
+        prev = np.concatenate(([v[0] if self._auxout_prev is None else self._auxout_prev], v[:-1]))
+        self._auxout_prev = float(v[-1])
+        rate = v - (v - prev) * (w / (2.0 * dt))
+        dither = self.world.dither_mean(t_end - w, t_end)
+        return rate, dither
 
     def _ensure_gyro(self, dt: float) -> Any:
         if self._gyro is None or self._gyro_dt != dt:
@@ -387,8 +428,7 @@ class HF2DataServerTwin:
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
         aux = [np.zeros(n), np.zeros(n)]
-        aux[self.wiring.rate_auxin] = np.asarray(blk.rate_output_v, dtype=float)
-        aux[self.wiring.dither_auxin] = np.asarray(inputs.dither_v, dtype=float)
+        aux[self.wiring.rate_auxin], aux[self.wiring.dither_auxin] = self._auxin_records(blk, inputs.t + dt, dt)
         drive = np.asarray(blk.x_drive) + 1j * np.asarray(blk.y_drive)
         sense = np.asarray(blk.x_sense) + 1j * np.asarray(blk.y_sense)
         keep = np.ones(n, dtype=bool)
@@ -454,4 +494,5 @@ class HF2DataServerTwin:
 
 
 _ARRAY_FIELDS = ("x_drive", "y_drive", "x_sense", "y_sense", "frequency_hz", "drive_output_v", "rate_output_v",
+                 "rate_auxout_v",
                  "quadrature_output_v", "pll_error_deg", "sf_true_v_per_dps", "rate_true_dps")

@@ -13,12 +13,21 @@ Dynamics (all exact for inputs held over a step, evaluated vectorised per block)
 * Chamber: the controller setpoint s(t) ramps to the target at the ramp rate (deg C/min); the air follows s with
   a first-order lag tau_air; the gyro follows the air with a first-order lag tau_gyro. Exact ZOH recursion
   y[k+1] = a y[k] + (1 - a) u[k], a = exp(-dt/tau), evaluated in closed form (`first_order_lag`).
-* Dither (DS345 output): v(t) = offset + (Vpp/2) w(f (t - t_origin) + phase/360), w the unit waveform (square:
-  +1 on the first half period, -1 on the second; sine: sin 2 pi u). Evaluated at mid-step, so square-wave edges
-  that fall on step boundaries are exact.
+* Dither (DS345 output): v(t) = offset + (Vpp/2) w(u(t)), w the unit waveform of the phase u in cycles
+  (square: +1 on the first half cycle, -1 on the second; sine: sin 2 pi u; triangle; ramp), with
+  u(t) = f (tau(t) - tau(t_origin)) + phase/360. tau is the DS345's own timebase, which is not the HF2's clock
+  (the World's time t): tau(t) = t (1 + e0) + e_w P/(2 pi) (1 - cos(2 pi t / P)), i.e. a rate error
+  e(t) = e0 + e_w sin(2 pi t / P) of e0 = `ds345_timebase_offset_ppm` plus a slow wander. A command takes
+  effect `ds345_command_latency_s` after it arrives (t_origin = t_command + latency), so the dither's phase is
+  not tied to the lock-in's sample grid either. The dither's edges therefore fall anywhere between samples.
+* Exact dither integrals: every dither value the World hands out is the mean of v over an interval,
+  (W(u1) - W(u0)) / (u1 - u0) with W the antiderivative of w (square: W = frac(u) for frac < 1/2, else
+  1 - frac(u)), so a step or a sampling window that contains an edge gets the exact fraction of each level.
+  (The local frequency is taken as constant within one interval: the wander changes it by e_w 2 pi dt/P, a
+  1e-12 effect over a 1 ms step.)
 
-Every input returned for step k is its mean over [t_k, t_k + dt) (mid-step value), the ZOH convention of the
-gyro kernel.
+Every input returned for step k is its mean over [t_k, t_k + dt) (for the dither, the exact mean above), the
+ZOH convention of the gyro kernel.
 """
 
 from __future__ import annotations
@@ -43,6 +52,12 @@ class WorldParams:
     thermal_lag_s: float = 600.0
     initial_temperature_c: float = 25.0
     table_rate_scale_error_ppm: float = 60.0
+    # the DS345's own timebase against the HF2's clock (assumed values: the DS345 specification was not at
+    # hand; a crystal timebase of a few ppm is typical of such generators). See docs/simulation.md.
+    ds345_timebase_offset_ppm: float = 3.0
+    ds345_timebase_wander_ppm: float = 0.5
+    ds345_timebase_wander_period_s: float = 3600.0
+    ds345_command_latency_s: float = 0.37e-3
 
 
 @dataclass
@@ -168,7 +183,7 @@ class World:
                 d.function = int(function)
             if frequency_hz is not None and frequency_hz != d.frequency_hz:
                 d.frequency_hz = float(frequency_hz)
-                d.origin_s = self.t
+                d.origin_s = self.t + self.params.ds345_command_latency_s
             if amplitude_vpp is not None:
                 d.amplitude_vpp = float(amplitude_vpp)
             if offset_v is not None:
@@ -262,11 +277,25 @@ class World:
             return np.full_like(tau, r0)
         return r0 + math.copysign(1.0, r1 - r0) * np.minimum(a * tau, abs(r1 - r0))
 
-    def _dither_wave(self, t_mid: np.ndarray) -> np.ndarray:
+    def ds345_time(self, t: np.ndarray | float) -> np.ndarray:
+        """tau(t): the DS345 timebase's reading at World (HF2) time t, s (module docstring)."""
+        p = self.params
+        e0, ew, per = p.ds345_timebase_offset_ppm * 1e-6, p.ds345_timebase_wander_ppm * 1e-6, \
+            p.ds345_timebase_wander_period_s
+        tt = np.asarray(t, dtype=np.float64)
+        return tt * (1.0 + e0) + (ew * per / (2 * np.pi)) * (1.0 - np.cos(2 * np.pi * tt / per))
+
+    def _dither_phase(self, t: np.ndarray) -> np.ndarray:
+        """u(t): the generator's phase in cycles at World times t."""
+        d = self.dither
+        return d.frequency_hz * (self.ds345_time(t) - self.ds345_time(d.origin_s)) + d.phase_deg / 360.0
+
+    def _dither_wave(self, t: np.ndarray) -> np.ndarray:
+        """The generator's output at the instants t, V."""
         d = self.dither
         if d.amplitude_vpp == 0.0:
-            return np.full_like(t_mid, d.offset_v)
-        u = d.frequency_hz * (t_mid - d.origin_s) + d.phase_deg / 360.0
+            return np.full(np.shape(t), d.offset_v)
+        u = self._dither_phase(np.asarray(t, dtype=np.float64))
         frac = u - np.floor(u)
         if d.function == DITHER_SQUARE:
             w = np.where(frac < 0.5, 1.0, -1.0)
@@ -276,6 +305,36 @@ class World:
             w = 2.0 * frac - 1.0
         else:
             w = np.sin(2 * np.pi * u)
+        return d.offset_v + 0.5 * d.amplitude_vpp * w
+
+    def _wave_integral(self, u: np.ndarray) -> np.ndarray:
+        """W(u) = integral of the unit waveform from 0 to u, in cycles (periodic: each waveform has zero mean)."""
+        fn = self.dither.function
+        if fn == DITHER_SQUARE:
+            frac = u - np.floor(u)
+            return np.where(frac < 0.5, frac, 1.0 - frac)
+        if fn == DITHER_TRIANGLE:
+            f = u - np.floor(u)
+            return np.where(f < 0.5, -f + 2 * f * f, 3 * (f - 0.5) - 2 * (f * f - 0.25))
+        if fn == DITHER_RAMP:
+            f = u - np.floor(u)
+            return f * f - f
+        return (1.0 - np.cos(2 * np.pi * u)) / (2 * np.pi)
+
+    def dither_mean(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+        """The exact mean of the generator's output over each interval [t0, t1], V (t1 == t0: the value)."""
+        d = self.dither
+        t0 = np.asarray(t0, dtype=np.float64)
+        t1 = np.asarray(t1, dtype=np.float64)
+        if d.amplitude_vpp == 0.0:
+            return np.full(t0.shape, d.offset_v)
+        u0, u1 = self._dither_phase(t0), self._dither_phase(t1)
+        du = u1 - u0
+        point = np.abs(du) < 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = (self._wave_integral(u1) - self._wave_integral(u0)) / np.where(point, 1.0, du)
+        if point.any():
+            w = np.where(point, (self._dither_wave(t1) - d.offset_v) / (0.5 * d.amplitude_vpp), w)
         return d.offset_v + 0.5 * d.amplitude_vpp * w
 
     def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
@@ -318,7 +377,7 @@ class World:
             c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
             c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
             c.controller_setpoint_c = sp_end
-            dither = self._dither_wave(t + 0.5 * dt)
+            dither = self.dither_mean(t, t + dt)
             self.t = self.t + end
             return BlockInputs(t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas,
                                gyro_c=gyro, dither_v=dither)

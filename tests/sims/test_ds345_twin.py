@@ -17,13 +17,16 @@ import drivers.ds345
 from drivers.ds345 import DS345
 from qmg_lab.instruments import InstrumentError
 from sims.ds345_twin import DS345Twin, VisaTwinResource
-from sims.world import DITHER_SQUARE, World
+from sims.world import DITHER_SQUARE, World, WorldParams
 
 DT = 1.0 / 1400.0  # 200 steps per 7 Hz period
+# The protocol tests look at what the twin tells the World; the DS345's own timebase (offset, wander, command
+# latency: tests/sims/test_world.py) is set ideal here so that levels and periods land on the step grid.
+IDEAL = WorldParams(ds345_timebase_offset_ppm=0.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
 
 
 def bench() -> tuple[World, DS345Twin, VisaTwinResource]:
-    world = World()
+    world = World(IDEAL)
     twin = DS345Twin(world)
     res = twin.resource()
     res.write_termination = res.read_termination = "\n"
@@ -35,24 +38,24 @@ def bench() -> tuple[World, DS345Twin, VisaTwinResource]:
 
 
 def test_set_square_7hz_makes_the_world_dither() -> None:
-    world = World()
+    world = World(IDEAL)
     gen = DS345(DS345Twin(world).resource())
     gen.set_square(7.0, 0.6)
     v = world.advance(2800, DT).dither_v  # 2 s = 14 periods
-    assert set(np.unique(v)) == {-0.3, 0.3}  # levels +-Vpp/2
+    assert set(np.unique(np.round(v, 9))) == {-0.3, 0.3}  # levels +-Vpp/2 (step means, exact to rounding)
     # first half period high, then low: 100 steps each
-    assert np.all(v[:100] == 0.3) and np.all(v[100:200] == -0.3)
+    assert np.allclose(v[:100], 0.3, atol=1e-9) and np.allclose(v[100:200], -0.3, atol=1e-9)
     rising = np.flatnonzero((v[1:] > 0) & (v[:-1] < 0)) + 1
     assert np.all(np.diff(rising) == 200)  # period = 200 steps = 1/7 s
     assert v.mean() == pytest.approx(0.0, abs=1e-12)
 
 
 def test_offset_and_mute() -> None:
-    world = World()
+    world = World(IDEAL)
     gen = DS345(DS345Twin(world).resource())
     gen.set_square(7.0, 2.0, 1.0)
     v = world.advance(200, DT).dither_v
-    assert set(np.unique(v)) == {0.0, 2.0}  # 1 V +- 1 V
+    assert set(np.unique(np.round(v, 9))) == {0.0, 2.0}  # 1 V +- 1 V
     gen.set_square(7.0, 2.0)
     gen.mute()
     assert np.all(world.advance(400, DT).dither_v == 0.0)
@@ -61,16 +64,18 @@ def test_offset_and_mute() -> None:
 
 
 def test_sine_follows_the_equation() -> None:
-    world = World()
+    world = World(IDEAL)
     gen = DS345(DS345Twin(world).resource())
     gen.set_sine(7.0, 2.0)
     v = world.advance(400, DT).dither_v
     t_mid = (np.arange(400) + 0.5) * DT
-    np.testing.assert_allclose(v, np.sin(2 * np.pi * 7.0 * t_mid), atol=1e-12)
+    # each step's mean of sin(2 pi f t): sin(2 pi f t_mid) sin(pi f dt) / (pi f dt)
+    x = np.pi * 7.0 * DT
+    np.testing.assert_allclose(v, np.sin(2 * np.pi * 7.0 * t_mid) * np.sin(x) / x, atol=1e-9)
 
 
 def test_driver_identify_and_state_against_twin() -> None:
-    world = World()
+    world = World(IDEAL)
     gen = DS345(DS345Twin(world, serial="77777").resource())
     assert gen.identify() == "StanfordResearchSystems,DS345,77777,1.04"
     gen.set_square(7.0, 0.6)
@@ -80,7 +85,7 @@ def test_driver_identify_and_state_against_twin() -> None:
 
 
 def test_reconnect_restores_the_dither_after_a_reset() -> None:
-    world = World()
+    world = World(IDEAL)
     twin = DS345Twin(world)
     gen = DS345(twin.resource(), reopen=twin.resource)
     gen.identify()
@@ -94,7 +99,7 @@ def test_reconnect_restores_the_dither_after_a_reset() -> None:
 
 
 def test_dropped_garbled_and_truncated_replies_are_instrument_errors() -> None:
-    world = World()
+    world = World(IDEAL)
     twin = DS345Twin(world)
     gen = DS345(twin.resource(), reopen=twin.resource)
     twin.reply_hook = lambda framed: None  # dropped
@@ -113,7 +118,7 @@ def test_dropped_garbled_and_truncated_replies_are_instrument_errors() -> None:
 
 
 def test_driver_surfaces_twin_range_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    world = World()
+    world = World(IDEAL)
     gen = DS345(DS345Twin(world).resource())
     gen.set_square(7.0, 0.6)
     monkeypatch.setattr(drivers.ds345, "FREQ_MAX_HZ", 1e9)  # relax the driver: the twin must refuse
@@ -136,7 +141,7 @@ def test_device_clear_flushes_a_partial_reply() -> None:
 
 
 def test_power_on_bit_then_esr_reads_and_clears() -> None:
-    world = World()
+    world = World(IDEAL)
     res = DS345Twin(world).resource()
     res.write_termination = "\n"
     assert res.query("*ESR?") == "128"
@@ -144,7 +149,7 @@ def test_power_on_bit_then_esr_reads_and_clears() -> None:
 
 
 def test_twin_creation_keeps_the_world_dither() -> None:
-    world = World()
+    world = World(IDEAL)
     world.set_dither(function=1, frequency_hz=7.0, amplitude_vpp=0.6)
     twin = DS345Twin(world)
     d = world.dither
@@ -230,7 +235,7 @@ def test_invert_and_phase() -> None:
     world, twin, res = bench()
     res.write("FUNC 1;FREQ 7;AMPL 2VP;INVT 1")
     v = world.advance(200, DT).dither_v
-    assert np.all(v[:100] == -1.0) and np.all(v[100:] == 1.0)  # inverted square: low first
+    assert np.allclose(v[:100], -1.0, atol=1e-9) and np.allclose(v[100:], 1.0, atol=1e-9)  # inverted: low first
     res.write("INVT 0;PHSE 90")
     assert world.dither.phase_deg == 90.0
     res.write("PCLR")  # present phase becomes 0: output unchanged

@@ -10,15 +10,17 @@ import numpy as np
 import pytest
 
 from sims.gyro import GyroParams
-from sims.hf2_server import HF2DataServerTwin, HF2Wiring, NodeError
+from sims.hf2_server import AUXIN_ADC_RATE_HZ, HF2DataServerTwin, HF2Wiring, NodeError
 from sims.world import DITHER_SQUARE, World
 
 DEV = "/dev1234"
 
 
-def make_twin(**wiring: int) -> tuple[World, HF2DataServerTwin]:
+def make_twin(rate_set: str = "ticks", **wiring: int) -> tuple[World, HF2DataServerTwin]:
+    """The protocol tests stream at 1400 Sa/s (whole clock ticks): rate_set "ticks" offers any clockbase/integer
+    rate; the HF2's own rate ladder is tested on its own."""
     world = World()
-    twin = HF2DataServerTwin(world, GyroParams(), seed=3, wiring=HF2Wiring(**wiring))
+    twin = HF2DataServerTwin(world, GyroParams(), seed=3, wiring=HF2Wiring(**wiring), rate_set=rate_set)
     twin.connectDevice("dev1234", "USB")
     return world, twin
 
@@ -94,6 +96,15 @@ def test_demod_rate_is_rounded_to_whole_clock_ticks(asked: float, ticks: int) ->
     assert twin.getDouble(f"{DEV}/demods/1/rate") == pytest.approx(210e6 / ticks, rel=1e-15)
 
 
+@pytest.mark.parametrize("asked, rung", [(1800.0, 1800.0), (1400.0, 1800.0), (1000.0, 900.0), (3000.0, 3600.0),
+                                         (28800.0, 28800.0), (2e6, 460800.0)])
+def test_hf2_rate_ladder(asked: float, rung: float) -> None:
+    # the HF2 twin offers 921.6 kSa/s / 2^k (k >= 1), the nearest in ratio, each a whole number of 210 MHz ticks
+    _, twin = make_twin(rate_set="hf2")
+    twin.set(f"{DEV}/demods/1/rate", asked)
+    assert twin.getDouble(f"{DEV}/demods/1/rate") == pytest.approx(210e6 / round(210e6 / rung), rel=1e-15)
+
+
 def test_get_flat_wildcard_and_nested_forms() -> None:
     _, twin = make_twin()
     twin.set(f"{DEV}/pids/2/p", -4.5)
@@ -147,9 +158,15 @@ def test_auxins_carry_the_dither_and_truth_is_recorded() -> None:
     world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
     stream_demods(twin)
     s = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]
-    # 7 Hz square of 0.6 Vpp sampled mid-step: +0.3 V on the first half period, -0.3 V on the second
-    assert s["auxin1"][0] == pytest.approx(0.3) and s["auxin1"][110] == pytest.approx(-0.3)
-    assert set(np.round(s["auxin1"], 12)) == {0.3, -0.3}
+    # each AuxIn reading is the mean over 2^averaging ADC samples ending at the timestamp; averaging 0 reads one
+    # sample, so the dither reads +-0.3 V: high where the DS345's phase (its own timebase, started 0.37 ms after
+    # the command) is in the first half cycle
+    t = s["timestamp"].astype(float) / 210e6 - 0.5 / AUXIN_ADC_RATE_HZ
+    p = world.params
+    u = 7.0 * ((t - p.ds345_command_latency_s) * (1 + p.ds345_timebase_offset_ppm * 1e-6))
+    expected = np.where((u - np.floor(u)) < 0.5, 0.3, -0.3)
+    assert np.mean(np.abs(s["auxin1"] - expected) < 1e-6) > 0.99
+    assert set(np.round(s["auxin1"], 9)) <= {0.3, -0.3} | set(np.round(s["auxin1"][np.abs(s["auxin1"]) < 0.3], 9))
     truth = world.drain_truth()
     assert truth is not None and len(truth.time) == 1400
     assert truth.time[-1] == pytest.approx(1.0)

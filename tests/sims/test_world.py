@@ -66,22 +66,55 @@ def test_chamber_setpoint_ramps_and_air_lags_first_order():
     assert 25.0 < w.chamber.gyro_c < w.chamber_air_c()
 
 
-def test_square_dither_has_exact_edges_levels_and_period():
-    w = World()
+def _ds345_phase_cycles(t: np.ndarray, f: float, p: WorldParams, t_cmd: float = 0.0) -> np.ndarray:
+    """u(t) from the DS345 timebase equation, written out here: rate error e0 + e_w sin(2 pi t/P)."""
+    e0, ew, per = p.ds345_timebase_offset_ppm * 1e-6, p.ds345_timebase_wander_ppm * 1e-6, \
+        p.ds345_timebase_wander_period_s
+
+    def tau(x: np.ndarray | float) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return x * (1 + e0) + ew * per / (2 * math.pi) * (1 - np.cos(2 * math.pi * x / per))
+    return f * (tau(t) - tau(t_cmd + p.ds345_command_latency_s))
+
+
+def test_square_dither_runs_on_the_ds345_timebase_with_exact_step_means():
+    # a fast crystal (+50 ppm) and a large wander, so that edges drift through the step grid measurably
+    p = WorldParams(ds345_timebase_offset_ppm=50.0, ds345_timebase_wander_ppm=20.0,
+                    ds345_timebase_wander_period_s=30.0, ds345_command_latency_s=0.37e-3)
+    w = World(p)
     w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6, offset_v=0.0, phase_deg=0.0)
-    b = w.advance(1400, DT)
-    d = b.dither_v.reshape(7, 200)  # 200 steps per period at 1400 steps/s
-    assert np.all(d[:, :100] == 0.3) and np.all(d[:, 100:] == -0.3)
+    b = w.advance(1400 * 20, DT)
+    # expected: on a fine grid (1000 points per step) the fraction of each step spent high, from u(t) directly
+    fine = (b.t[:, None] + DT * (np.arange(1000) + 0.5)[None, :] / 1000)
+    u = _ds345_phase_cycles(fine, 7.0, p)
+    high = ((u - np.floor(u)) < 0.5).mean(axis=1)
+    np.testing.assert_allclose(b.dither_v, 0.3 * (2 * high - 1), atol=0.6 / 1000)
+    levels = np.unique(np.round(b.dither_v, 12))
+    assert 0.3 in levels and -0.3 in levels and levels.size > 20  # steps that hold an edge read in between
+    # the period the HF2 sees is the DS345's 1/7 s divided by (1 + 50 ppm) on average
+    edges = b.t[1:][(b.dither_v[1:] > 0) & (b.dither_v[:-1] <= 0)]
+    period = (edges[-1] - edges[0]) / (edges.size - 1)
+    assert period == pytest.approx(1 / 7.0 / (1 + 50e-6), abs=DT / edges.size * 2)
 
 
-def test_sine_dither_and_mute():
-    w = World()
+def test_sine_dither_step_means_and_mute():
+    p = WorldParams()
+    w = World(p)
     w.set_dither(function=DITHER_SINE, frequency_hz=10.0, amplitude_vpp=2.0, offset_v=0.5)
     b = w.advance(700, DT)
-    t_mid = b.t + DT / 2
-    assert b.dither_v == pytest.approx(0.5 + np.sin(2 * np.pi * 10.0 * t_mid), abs=1e-12)
+    u0 = _ds345_phase_cycles(b.t, 10.0, p)
+    u1 = _ds345_phase_cycles(b.t + DT, 10.0, p)
+    expected = 0.5 + (np.cos(2 * np.pi * u0) - np.cos(2 * np.pi * u1)) / (2 * np.pi * (u1 - u0))
+    assert b.dither_v == pytest.approx(expected, abs=1e-9)
     w.set_dither(amplitude_vpp=0.0)
     assert np.all(w.advance(10, DT).dither_v == 0.5)
+
+
+def test_dither_window_mean_reads_a_point_value_for_a_zero_window():
+    w = World()
+    w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+    t = np.linspace(0.01, 1.0, 50)
+    assert np.all(np.isin(np.round(w.dither_mean(t, t), 12), [-0.3, 0.3]))
 
 
 def test_interlock_brakes_the_table_to_rest():
