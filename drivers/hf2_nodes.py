@@ -22,6 +22,10 @@ from qmg_lab.instruments import LimitError, LockInSetup, PidGains, check_limit
 
 DRIVE_DEMOD, SENSE_DEMOD = 0, 1
 AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
+# AuxIn ADC sample rate, Sa/s. *Assumed*: the HF2 documentation says the AuxIns average 2^n (1..32768) ADC
+# samples and align the result by timestamp with the demodulator sample, but the ADC rate was not found. With the
+# default averaging 0 the window is a single ADC sample and this value hardly matters (docs/wiring.md).
+AUXIN_ADC_RATE_HZ = 400e3
 DRIVE_MIXER_CHANNEL = 0  # uses demod 0's oscillator = the PLL oscillator
 DEFAULT_FORCER_MIXER_CHANNEL = 1  # uses demod 1's oscillator = the PLL oscillator
 SIGOUT_RANGES_V = (0.01, 0.1, 1.0, 10.0)
@@ -111,6 +115,9 @@ def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
     check_limit("demod_order", setup.demod_order, 1, 8, "")
     if int(setup.demod_order) != setup.demod_order:
         raise LimitError(f"demod_order = {setup.demod_order!r} must be an integer 1..8")
+    if int(setup.auxin_averaging) != setup.auxin_averaging or not 0 <= setup.auxin_averaging <= 15:
+        raise LimitError(f"auxin_averaging = {setup.auxin_averaging!r} must be an integer 0..15 "
+                         "(the AuxIns average 2^n = 1..32768 ADC samples)")
     _check_pid("pll", setup.pll, None)
     _check_pid("agc", setup.agc, None)
     drive_output_range(setup.agc)
@@ -144,6 +151,7 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
               (b + "sinc", 0), (b + "trigger", 0), (b + "rate", setup.demod_rate_hz), (b + "enable", 1)]
     if fm not in (DRIVE_DEMOD, SENSE_DEMOD):  # the forcer channel's oscillator must be the PLL's too
         s += [(f"demods/{fm}/oscselect", pll_osc), (f"demods/{fm}/harmonic", 1), (f"demods/{fm}/phaseshift", 0.0)]
+    s += [("auxins/0/averaging", int(setup.auxin_averaging))]
     b = "plls/0/"
     s += [(b + "adcselect", w.drive_sigin), (b + "harmonic", 1), (b + "freqcenter", setup.f0_hz),
           (b + "freqrange", setup.pll_range_hz), (b + "setpoint", setup.pll.setpoint), (b + "p", setup.pll.p),

@@ -20,10 +20,18 @@ import numpy as np
 from zhinst.toolkit import PollFlags, Session
 
 from drivers.hf2_nodes import (
-    AGC_PID, DRIVE_DEMOD, QUAD_PID, RATE_PID, SENSE_DEMOD, LockInWiring, check_setup, check_wiring,
+    AGC_PID, AUXIN_ADC_RATE_HZ, DRIVE_DEMOD, QUAD_PID, RATE_PID, SENSE_DEMOD, LockInWiring, check_setup, check_wiring,
     forcer_amplitude, forcer_mixer_channel, safe_nodes, setup_nodes,
 )
-from qmg_lab.instruments import InstrumentError, LimitError, LockIn, LockInBlock, LockInSetup, check_limit
+from qmg_lab.instruments import (
+    InstrumentError,
+    LimitError,
+    LockIn,
+    LockInBlock,
+    LockInSetup,
+    StreamTiming,
+    check_limit,
+)
 
 PLL1_LOCKED_BIT = 1 << 20
 DEFAULT_HF2_PORT = 8005
@@ -245,6 +253,16 @@ class HF2LI(LockIn):
         fm = forcer_mixer_channel(self.wiring)
         self._send([(f"sigouts/{self.wiring.forcer_sigout}/amplitudes/{fm}", amplitude)])
         self._forcer_gain = float(gain)
+
+    def stream_timing(self) -> StreamTiming:
+        """Read back what the HF2 applies: the sense demod's rate (the device rounds a requested rate), filter
+        order and time constant, and the AuxIn averaging (window = 2^averaging / AUXIN_ADC_RATE_HZ)."""
+        d = SENSE_DEMOD
+        avg = int(self._get("auxins/0/averaging"))
+        return StreamTiming(rate_hz=float(self._get(f"demods/{d}/rate")),
+                            filter_order=int(self._get(f"demods/{d}/order")),
+                            filter_tc_s=float(self._get(f"demods/{d}/timeconstant")),
+                            auxin_window_s=float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ)
 
     def pll_locked(self) -> bool:
         locked = int(self._get("plls/0/locked"))

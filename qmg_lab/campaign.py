@@ -27,17 +27,20 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
 from qmg_lab.clsf import ClsfEstimator
 from qmg_lab.config import Config
+from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.instruments import (
     ChamberReading,
     InstrumentError,
     InterlockError,
     LockInBlock,
     Station,
+    StreamTiming,
     TableReading,
 )
 from qmg_lab.interrupts import InterruptGuard
@@ -203,6 +206,9 @@ class CampaignRunner:
                 self.station.restore(state.as_dict())
         setup = lockin_setup(self.cfg, forcer_gain=self.clsf.gain_correction)
         self._call("lockin", lambda: self.station.lockin.configure(setup))
+        timing = cast(StreamTiming, self._call("lockin", self.station.lockin.stream_timing))
+        self.clsf.set_stream_timing(DemodFilter(timing.filter_order, timing.filter_tc_s), timing.auxin_window_s)
+        self._dt = 1.0 / timing.rate_hz
         self._call("lockin", self.station.lockin.start_stream)
         if self.resume:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
@@ -324,7 +330,9 @@ class CampaignRunner:
     def _dwell(self, step: Step) -> None:
         elapsed = 0.0
         while step.duration_s - elapsed > 0.5 * self._dt:
-            want = min(self.station.poll_interval_s, step.duration_s - elapsed)
+            # a block is a whole number of samples, so a step's last block may be a fraction of a sample short of
+            # its end: never ask for less than the lock-in's shortest poll (1 ms) or two samples
+            want = max(min(self.station.poll_interval_s, step.duration_s - elapsed), 2 * self._dt, 1e-3)
             block_s = self._block(step, elapsed, want)
             if not self._suspended:
                 elapsed += block_s

@@ -1,26 +1,51 @@
 """Closed-loop scale factor (CLSF): the host-side estimator and gain controller.
 
 The DS345's square wave V_d is added to the FTR command V_r in front of the forcer, so the sense mode sees the
-forcer input u = V_r + V_d through the forcer-path gain G (forcer gain x CLSF gain correction x pickoff gain /
-frequency). Under FTR the sense demodulator obeys (reference/physics.md section 2, qmg_lab/loops.py)
+forcer input u = V_r + V_d through the forcer-path gain beta (forcer gain x CLSF gain correction x pickoff gain
+/ frequency). Under FTR the sense demodulator's in-phase value X (before the lock-in's filter) obeys
+(docs/physics.md)
 
-    dX/dt = -X/tau + b G u - k R_d Omega,
+    dX/dt = -X/tau + beta u - kappa Omega,                                                          (1)
 
-and the scale factor is SF = SF0 G0/G times the pickoff-ratio drift CLSF cannot see.
+and the scale factor is SF = SF0 beta0/beta times the pickoff-ratio drift CLSF cannot see. Integrating (1) from
+any origin, with m(t) = integral of u and Y = X + (1/tau) integral of X:
 
-Per whole dither period (rising edge to rising edge of the *recorded* dither) the estimator forms
+    Y(t) = beta m(t) + c - kappa integral(Omega),                                                   (2)
 
-    r   = zero-mean triangle: the integral of the zero-mean recorded square wave (paper eq. 8: Theta_r-mod),
-    D_x = sum (X - mean X) r              the raw c_y demodulated against the triangle (the paper's CLSF output),
-    m   = the plant's response to the recorded u over the period: m[k+1] = m[k] + dt u[k] (the decay 1/tau
-          is left out: over one period it changes rho by a constant ~T/tau that rho_0 cancels, whereas a leaky
-          integral restarted each period would give a steady rate output a curvature the triangle sees),
-    D_m = sum (m - mean m) r              the same demodulation of what a plant of gain 1 would have done,
+exactly, whatever the loops do. The lock-in's filter H(s) = 1/(1 + s tc)^n is linear and commutes with the
+integrals, so the recorded, filtered x_s obeys (2) with Y -> y = x_s + (1/tau) integral(x_s) and m -> H m.
+Over one dither period the table rate (held steady: periods near table moves are not used) and the gyro bias are
+constant to a very good approximation, so the last term of (2) is a straight line a + b t.
 
-and rho = D_x / D_m estimates b G. Because D_m contains the rate loop's own reaction to the dither (the rate
-output is recorded), rho is exactly proportional to G: an estimator that used the dither alone (D_x against a
-fixed level) under-reads a gain change by 14 % with a 2 Hz loop and a 7 Hz dither (physics.md section 3). Slow
-rates (a linear ramp in m and X over one period) are orthogonal to the symmetric triangle and drop out.
+The estimator (one value per dither period, between two rising edges of the recorded dither):
+
+* m = m_d + m_r. m_d, the integral of the square wave, is piecewise linear with its kinks at the dither's edges,
+  which the host locates from the recorded dither to a fraction of a sample (qmg_lab/dither_edges.py); H m_d is
+  evaluated exactly at the sample instants from the filter's ramp response (qmg_lab/demod_filter.py), wherever
+  the edges fall. m_r, the integral of the rate output, comes from the AuxIn record of the AuxOut (each value the
+  mean over the AuxIn window W that ends at its timestamp, i.e. the value at t_k - W/2), integrated with the
+  trapezoid rule through those points, and filtered with the exact first-order-hold discretization of H.
+* r = the filtered triangle H m_d, made orthogonal to 1 and t over the period's own samples (least squares).
+* rho = sum_k y_k r_k / sum_k (H m)_k r_k.
+
+Sensitivity 1 by construction. Insert (2) into rho: y_k = beta (H m)_k + a + b t_k + n_k, and r is orthogonal to
+1 and t on exactly the samples summed, so rho = beta + sum n r / sum (H m) r. r is built from the dither alone,
+which no noise source of the loop reaches, so E[rho] = beta and d ln E[rho] / d ln beta = 1 exactly: for any
+loop bandwidth (the recorded V_r carries the loop's reaction to the dither, and to a gain change), any filter
+(H is applied to m as it was to x_s), any table rate (the ramp it puts into m and y is projected out instead of
+being left to cancel against a symmetric triangle), and any number of samples per period, integer or not, on
+clocks that share nothing. What remains is the model's own approximation: V_r linear between its recorded
+points (the AuxOut is smooth at the scale of a sample interval) and Omega constant over a period.
+
+How this differs from the paper. The paper keeps the dither out of the FTR loop with a notch at the dither
+frequency in the FTR path, so the rate output carries no dither and X responds to V_d open loop; it then
+demodulates the raw c_y against the triangle (its eq. 8). That needs a notch (and its odd harmonics) in the
+lock-in's PID path, which the HF2's PIDs do not offer, and a notch adds phase to the 2 Hz loop. Here the loop is
+left alone, the dither is partly rebalanced (27.6 % at 7 Hz with 2 Hz), and the host divides by the response of
+a plant of gain 1 to the recorded forcer input instead. The cost: the estimate needs the rate output recorded
+(an AuxOut looped into an AuxIn) and modelled between samples; its noise includes the rate output's, which is the
+loop's own noise, correlated with x_s, so the ratio is a little noisier than a demodulation of c_y alone
+(`qmg_lab.clsf.observe_sensitivity` gives the plain demodulation's 14 % under-reading for comparison).
 
     eta = rho / rho_0 - 1                  (rho_0: mean over the first `reference_periods` periods)
     sf_change_estimate = 1 / (1 + eta) - 1  (SF/SF0 - 1, exact to all orders in the gain change)
@@ -29,7 +54,7 @@ Correct mode closes a loop on the forcer-path gain through the lock-in (LockIn.s
 g_c <- g_c exp(-K_i eta) once per period with K_i = T_d / tau_c (an integrating loop of time constant tau_c);
 eta then converges to zero and the FTR scale factor is held at SF0 up to the pickoff-ratio drift.
 
-Periods that overlap a hold window (around commanded table moves) or contain lost samples are not used.
+Periods that overlap a hold window (around commanded table moves) or a gap in the stream are not used.
 """
 
 from __future__ import annotations
@@ -38,6 +63,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import signal
+
+from qmg_lab.demod_filter import DemodFilter
+from qmg_lab.dither_edges import EdgeTracker
 
 
 @dataclass
@@ -65,6 +94,8 @@ class ClsfEstimator:
 
     tau_s: the sense mode's decay time (2Q/omega). mode: "observe" | "correct" | "off".
     time_constant_s: correct mode's loop time constant. reference_periods: periods averaged for rho_0.
+    demod_filter: the lock-in's filter on x_s (order, time constant), as applied (read back from the lock-in).
+    auxin_window_s: the AuxIn averaging window W that ends at each sample's timestamp.
     """
 
     tau_s: float
@@ -73,11 +104,9 @@ class ClsfEstimator:
     reference_periods: int = 50
     gain_correction: float = 1.0
     rho_ref: float | None = None
+    demod_filter: DemodFilter = field(default_factory=DemodFilter)
+    auxin_window_s: float = 0.0
     _ref_acc: list[float] = field(default_factory=list)
-    _buf_t: np.ndarray = field(default_factory=lambda: np.empty(0))
-    _buf_x: np.ndarray = field(default_factory=lambda: np.empty(0))
-    _buf_u: np.ndarray = field(default_factory=lambda: np.empty(0))
-    _buf_d: np.ndarray = field(default_factory=lambda: np.empty(0))
     _holds: list[tuple[float, float]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -85,6 +114,12 @@ class ClsfEstimator:
             raise ValueError(f"clsf.mode must be observe, correct or off, not {self.mode!r}")
         if self.tau_s <= 0 or self.time_constant_s <= 0:
             raise ValueError("tau_s and time_constant_s must be positive")
+        if not (math.isfinite(self.auxin_window_s) and self.auxin_window_s >= 0.0):
+            raise ValueError(f"auxin_window_s {self.auxin_window_s!r} must be >= 0")
+        self._edges = EdgeTracker(window_s=self.auxin_window_s)
+        self._sos: np.ndarray | None = None
+        self._sos_dt = 0.0
+        self.reset_buffer()
 
     # ------------------------------------------------------------------ control from the campaign
     def hold(self, t_start: float, t_end: float) -> None:
@@ -96,8 +131,25 @@ class ClsfEstimator:
         self._holds = [(h0, t_end if math.isinf(h1) else h1) for h0, h1 in self._holds]
 
     def reset_buffer(self) -> None:
-        """Forget partial-period samples (after a gap in the stream)."""
-        self._buf_t = self._buf_x = self._buf_u = self._buf_d = np.empty(0)
+        """Forget the stream's history (after a gap): integrals, filter state, edges and partial periods."""
+        e = np.empty(0)
+        self._t, self._y, self._mf, self._mr = e, e.copy(), e.copy(), e.copy()
+        self._last: tuple[float, float, float, float, float] | None = None  # t, x, aux, int x, m_r
+        self._zi: np.ndarray | None = None
+        self._rising: list[float] = []
+        self._falling: list[float] = []
+        self._edges.reset()
+
+    def set_stream_timing(self, demod_filter: DemodFilter, auxin_window_s: float) -> None:
+        """The lock-in's filter and AuxIn window as applied (LockIn.stream_timing); forgets the stream history."""
+        if not (math.isfinite(auxin_window_s) and auxin_window_s >= 0.0):
+            raise ValueError(f"auxin_window_s {auxin_window_s!r} must be >= 0")
+        self.demod_filter = demod_filter
+        self.auxin_window_s = float(auxin_window_s)
+        self._edges = EdgeTracker(window_s=self.auxin_window_s)
+        self._sos = None
+        self._sos_dt = 0.0
+        self.reset_buffer()
 
     @property
     def referenced(self) -> bool:
@@ -108,29 +160,112 @@ class ClsfEstimator:
                 dither: np.ndarray) -> ClsfPeriods:
         """Add a block of samples; return the estimates of every dither period completed by it.
 
-        All periods of the block are evaluated at once. The gain correction recorded for them is the one in force
-        while the block was taken (the lock-in's gain changes between blocks); correct mode then integrates
-        their eta into the gain for the next block.
+        The gain correction recorded for a period is the one in force while the block was taken (the lock-in's
+        gain changes between blocks); correct mode then integrates their eta into the gain for the next block.
         """
-        if self.mode == "off":
+        if self.mode == "off" or len(time) == 0:
             return ClsfPeriods.empty()
-        t = np.concatenate((self._buf_t, time))
-        x = np.concatenate((self._buf_x, x_sense))
-        u = np.concatenate((self._buf_u, rate_output + dither))
-        d = np.concatenate((self._buf_d, dither))
-        edges = _rising_edges(d)
-        if len(edges) < 2:
-            keep = edges[0] if len(edges) else max(0, len(t) - 100000)
-            self._buf_t, self._buf_x, self._buf_u, self._buf_d = t[keep:], x[keep:], u[keep:], d[keep:]
+        t = np.asarray(time, dtype=float)
+        if self._last is not None and len(t) and t[0] - self._last[0] > 1.5 * self._sample_dt(t):
+            self.reset_buffer()  # a gap the caller did not report
+        self._append(t, np.asarray(x_sense, dtype=float), np.asarray(rate_output, dtype=float))
+        rising, falling = self._edges.process(t, np.asarray(dither, dtype=float))
+        self._rising.extend(rising.tolist())
+        self._falling.extend(falling.tolist())
+        return self._periods()
+
+    def _sample_dt(self, t: np.ndarray) -> float:
+        """The sample interval: the median spacing of (at most) the first 65 samples, s."""
+        if len(t) >= 2:
+            return float(np.median(np.diff(t[:65])))
+        return self._sos_dt if self._sos_dt > 0 else 1.0
+
+    def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
+        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2)."""
+        if self._last is None:
+            t0, x0, a0, ix0, mr0 = float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0
+        else:
+            t0, x0, a0, ix0, mr0 = self._last
+        tt = np.concatenate(([t0], t))
+        xx = np.concatenate(([x0], x))
+        aa = np.concatenate(([a0], aux))
+        h = np.diff(tt)
+        ix = ix0 + np.cumsum(0.5 * h * (xx[1:] + xx[:-1]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shift = np.where(h > 0, 0.5 * self.auxin_window_s / np.where(h > 0, h, 1.0), 0.0)
+        mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
+        dt = self._sample_dt(tt)
+        if self._sos is None and self.demod_filter.tc_s > 0.0 or (self._sos is not None and
+                                                                   abs(dt - self._sos_dt) > 1e-9 * dt):
+            self._sos = self.demod_filter.foh_sos(dt)
+            self._sos_dt = dt
+            self._zi = None
+        if self._sos is not None:
+            if self._zi is None:
+                self._zi = signal.sosfilt_zi(self._sos) * mr[0]
+            mf, self._zi = signal.sosfilt(self._sos, mr, zi=self._zi)
+        else:
+            mf = mr
+        self._t = np.concatenate((self._t, t))
+        self._y = np.concatenate((self._y, x + ix / self.tau_s))
+        self._mf = np.concatenate((self._mf, mf))
+        self._mr = np.concatenate((self._mr, mr))
+
+    def _periods(self) -> ClsfPeriods:
+        """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too.
+
+        The sums run over the samples of [R_i + D, R_(i+1) + D), D = n tc the filter's delay: there the filtered
+        triangle is symmetric, so an error in the edges' timing enters the estimate at second order only."""
+        rising = np.asarray(self._rising)
+        falling = np.asarray(self._falling)
+        t = self._t
+        lo, hi = self._edges.lo, self._edges.hi
+        if rising.size < 3 or t.size == 0 or lo is None or hi is None:
+            self._trim(None)
             return ClsfPeriods.empty()
-        first, last = int(edges[0]), int(edges[-1])
-        dt = float(np.median(np.diff(t[first:last + 1])))
-        rho, rate = _period_gains(x[first:last], u[first:last], d[first:last], edges[:-1] - first, dt)
-        t0, t1 = t[edges[:-1]], t[edges[1:] - 1] + dt
+        delay = self.demod_filter.delay_s
+        i_all = np.arange(1, rising.size - 1)
+        i_all = i_all[rising[i_all + 1] + delay <= t[-1]]  # windows complete in the buffer
+        if i_all.size == 0:
+            self._trim(None)
+            return ClsfPeriods.empty()
+        done = int(i_all[-1])
+        r_prev, r0, r1 = rising[i_all - 1], rising[i_all], rising[i_all + 1]
+        fa = np.searchsorted(falling, r_prev, side="right")
+        two = (np.searchsorted(falling, r1) - fa == 2) & (r0 + delay >= t[0])
+        fa_c = np.minimum(fa, max(falling.size - 2, 0))
+        if falling.size >= 2:
+            two &= (falling[fa_c] < r0) & (falling[fa_c + 1] > r0)
+        else:
+            two[:] = False
+        k0 = np.searchsorted(t, r0 + delay)
+        k1 = np.searchsorted(t, r1 + delay)
+        use = two & (k1 - k0 >= 8)
+        if not use.any():
+            self._trim(done)
+            return ClsfPeriods.empty()
+        r_prev, r0, r1, k0, k1, fa = r_prev[use], r0[use], r1[use], k0[use], k1[use], fa[use]
+        edges = np.stack((r_prev, falling[fa], r0, falling[fa + 1], r1), axis=1)
+        lengths = k1 - k0
+        idx = np.concatenate([np.arange(a, b) for a, b in zip(k0, k1)])
+        seg = np.repeat(np.arange(lengths.size), lengths)
+        starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
+        tk = t[idx]
+        md = self._filtered_triangles(tk, edges[seg], lo, hi)
+        r = _detrend_segments(tk, md, seg, starts, lengths)
+        m_f = self._mf[idx] + md
+        den = np.add.reduceat(m_f * r, starts)
+        num = np.add.reduceat(self._y[idx] * r, starts)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(den != 0.0, num / den, np.nan)
+        m_at = np.interp(np.stack((r0, r1)), self._t, self._mr)
+        rate = (m_at[1] - m_at[0]) / (r1 - r0)
+        t0, t1 = r0, r1
+        self._trim(done)
         ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
         rho, rate, t1, t0 = rho[ok], rate[ok], t1[ok], t0[ok]
-        self._buf_t, self._buf_x, self._buf_u, self._buf_d = t[last:], x[last:], u[last:], d[last:]
-        self._holds = [h for h in self._holds if h[1] >= t[last]]
+        self._holds = [h for h in self._holds if h[1] >= t[-1] - 10.0]
         if self.rho_ref is None:
             need = self.reference_periods - len(self._ref_acc)
             self._ref_acc.extend(rho[:need].tolist())
@@ -145,6 +280,32 @@ class ClsfEstimator:
         return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain,
                            rate_output_mean=rate)
 
+    def _filtered_triangles(self, tk: np.ndarray, edges: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        """H m_d at the instants tk, m_d = integral of the square wave whose alternating edges (rising first) for
+        each instant are the rows of `edges` (n x 5).
+
+        m_d is taken as lo (t - edges[0]) before the first edge (its history a whole period earlier has decayed out
+        of the filter); each edge adds a ramp of slope +-(hi - lo), whose filtered form is the ramp response."""
+        filt = self.demod_filter
+        signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
+        ramps = filt.ramp_response(tk[:, None] - edges)
+        return lo * (tk - edges[:, 0] - filt.delay_s) + ramps @ signs
+
+    def _trim(self, done: int | None) -> None:
+        """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
+        history edge on and the samples from its window's start on."""
+        if done is not None:
+            rising = self._rising[done:]
+            self._rising = rising
+            self._falling = [f for f in self._falling if f > rising[0]]
+            start = rising[1] + self.demod_filter.delay_s if len(rising) > 1 else rising[0]
+            k = max(0, int(np.searchsorted(self._t, start)) - 2)
+        elif len(self._rising) == 0 and self._t.size > 100000:
+            k = self._t.size - 100000
+        else:
+            return
+        self._t, self._y, self._mf, self._mr = self._t[k:], self._y[k:], self._mf[k:], self._mr[k:]
+
     def _held_mask(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
         held = np.zeros(t0.shape, dtype=bool)
         for h0, h1 in self._holds:
@@ -152,46 +313,19 @@ class ClsfEstimator:
         return held
 
 
-def _rising_edges(d: np.ndarray) -> np.ndarray:
-    """Indices k where the recorded square wave crosses its mid-level upward (d[k-1] < mid <= d[k])."""
-    if d.size < 3:
-        return np.empty(0, dtype=np.int64)
-    hi, lo = float(np.max(d)), float(np.min(d))
-    if hi - lo <= 1e-9 * max(1.0, abs(hi)):
-        return np.empty(0, dtype=np.int64)
-    mid = 0.5 * (hi + lo)
-    above = d >= mid
-    return np.flatnonzero(above[1:] & ~above[:-1]) + 1
+def _detrend_segments(t: np.ndarray, v: np.ndarray, seg: np.ndarray, starts: np.ndarray,
+                      lengths: np.ndarray) -> np.ndarray:
+    """v minus its least-squares line a + b t within each segment: orthogonal to 1 and t on each segment."""
+    def mean(x: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(x, starts) / lengths
 
-
-def _segment_mean(v: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    return np.add.reduceat(v, starts) / lengths
-
-
-def _period_gains(x: np.ndarray, u: np.ndarray, d: np.ndarray, starts: np.ndarray,
-                  dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """rho = D_x / D_m and the mean rate output of each period [starts[j], starts[j+1]) (the last to the end).
-
-    Per period: r = midpoint-rule integral of the zero-mean recorded square wave, made zero-mean (symmetric about
-    the period's centre); m = running integral of the forcer input u = V_r + V_d; D_x = sum x r, D_m = sum m r
-    (r is zero-mean, so x's and m's means drop out). Segmented cumulative sums make it one pass for all periods.
-    """
-    n = x.size
-    lengths = np.diff(np.append(starts, n)).astype(np.float64)
-    seg = np.repeat(np.arange(starts.size), np.diff(np.append(starts, n)))
-    dz = d - _segment_mean(d, starts, lengths)[seg]
-    c = np.cumsum(dz)
-    r = c - (c[starts] - dz[starts])[seg] - 0.5 * dz
-    r -= _segment_mean(r, starts, lengths)[seg]
-    udt = u * dt
-    mc = np.cumsum(udt)
-    m = mc - udt - (mc[starts] - udt[starts])[seg]
-    d_x = np.add.reduceat(x * r, starts)
-    d_m = np.add.reduceat(m * r, starts)
+    tc = t - mean(t)[seg]
+    vc = v - mean(v)[seg]
+    stt = np.add.reduceat(tc * tc, starts)
+    stv = np.add.reduceat(tc * vc, starts)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where((lengths >= 8) & (d_m != 0.0), d_x / d_m, np.nan)
-    rate = _segment_mean(u - d, starts, lengths)
-    return rho, rate
+        b = np.where(stt > 0, stv / np.where(stt > 0, stt, 1.0), 0.0)
+    return vc - tc * b[seg]
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

@@ -74,6 +74,21 @@ class LockInSetup:
     demod_timeconstant_s: float
     demod_order: int
     forcer_gain: float = 1.0
+    auxin_averaging: int = 0  # the AuxIns average 2^this ADC samples per reading
+
+
+@dataclass(frozen=True)
+class StreamTiming:
+    """What the lock-in actually applies to the streamed samples (read back from the instrument), s and Sa/s.
+
+    rate_hz: demodulator sample rate; filter_order, filter_tc_s: the demodulator low-pass on x_sense/y_sense
+    (H(s) = 1/(1 + s tc)^order); auxin_window_s: the AuxIn averaging window that ends at each sample's timestamp
+    (rate_output and dither are window means)."""
+
+    rate_hz: float
+    filter_order: int
+    filter_tc_s: float
+    auxin_window_s: float
 
 
 @dataclass
@@ -152,6 +167,11 @@ class LockIn(Instrument):
     @abc.abstractmethod
     def pll_locked(self) -> bool:
         """True if the PLL reports lock."""
+
+    @abc.abstractmethod
+    def stream_timing(self) -> StreamTiming:
+        """The sample rate, demodulator filter and AuxIn window the instrument applies (read back, after
+        configure): what the CLSF estimator must model."""
 
 
 class FunctionGenerator(Instrument):

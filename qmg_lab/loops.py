@@ -112,6 +112,7 @@ def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
         demod_timeconstant_s=cfg.lockin.demod_timeconstant_s,
         demod_order=cfg.lockin.demod_order,
         forcer_gain=forcer_gain,
+        auxin_averaging=cfg.lockin.auxin_averaging,
     )
 
 

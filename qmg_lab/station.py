@@ -55,7 +55,11 @@ def make_world(cfg: Config) -> World:
     s = cfg.sim
     params = WorldParams(chamber_time_constant_s=s.chamber_time_constant_s, thermal_lag_s=s.thermal_lag_s,
                          initial_temperature_c=s.initial_temperature_c,
-                         table_rate_scale_error_ppm=s.table_rate_scale_error_ppm)
+                         table_rate_scale_error_ppm=s.table_rate_scale_error_ppm,
+                         ds345_timebase_offset_ppm=s.ds345_timebase_offset_ppm,
+                         ds345_timebase_wander_ppm=s.ds345_timebase_wander_ppm,
+                         ds345_timebase_wander_period_s=s.ds345_timebase_wander_period_s,
+                         ds345_command_latency_s=s.ds345_command_latency_s)
     return World(params, clock="virtual" if cfg.lockin.sim else "wall")
 
 
@@ -132,7 +136,7 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
     if lk.sim:
         assert world is not None
         twin = HF2DataServerTwin(world, gyro_params(cfg), cfg.sim.seed, hf2_wiring(cfg), device_id=SIM_DEVICE_ID,
-                                 host=lk.host, port=lk.port)
+                                 host=lk.host, port=lk.port, rate_set=cfg.sim.hf2_rate_set)
         if faults is not None:
             faults.attach_hf2(twin)
         session = Session(lk.host, lk.port, hf2=True, connection=twin)

@@ -26,7 +26,8 @@ from sims.table_twin import RateTableTwin
 from sims.world import World
 from tests.test_faults_helpers import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
 
-DT_S = 1.0 / 1400.0  # demod sample period at the default 1400 Sa/s (rounded to clockbase ticks by the twin)
+DT_S = round(210e6 / 1800.0) / 210e6  # demod sample period at 1800 Sa/s, in whole 210 MHz ticks (the HF2 twin)
+BLOCK_S = round(2.0 / DT_S) * DT_S  # one twin poll of sim_poll_interval_s = 2 s: a whole number of samples
 
 
 def advance_to(world: World, t_s: float, dt: float = 0.01) -> None:
@@ -187,7 +188,7 @@ def test_pll_unlock_pauses_the_step_clock(tmp_path, baseline):
     out = run_inprocess(tmp_path, config_text("pll_unlock_at_s = 45.0\npll_unlock_duration_s = 3.0"))
     assert out.error is None and out.summary.status == "completed"
     # unlock from the start of the block [45, 47) for 3 s: blocks [45, 47) and [47, 49) report unlock -> +4 s
-    assert out.summary.simulated_s - baseline.summary.simulated_s == pytest.approx(4.0, abs=1e-6)
+    assert out.summary.simulated_s - baseline.summary.simulated_s == pytest.approx(2 * BLOCK_S, abs=1e-6)
     assert out.summary.suspensions == 1
     _steps_once(out)
 
@@ -220,7 +221,7 @@ def test_a_link_that_comes_back_is_recovered(tmp_path, baseline, faults, extra_s
     assert out.error is None, out.error
     s = out.summary
     assert s.status == "completed" and s.recoveries >= 1 and s.suspensions >= 1
-    assert s.simulated_s - baseline.summary.simulated_s == pytest.approx(extra_s, abs=1e-6)
+    assert s.simulated_s - baseline.summary.simulated_s == pytest.approx(extra_s / 2.0 * BLOCK_S, abs=1e-6)
     assert s.faults_injected and s.faults_injected[0]["time_s"] >= 1.0
     _steps_once(out)
     assert out.world_is_safe()

@@ -2,7 +2,7 @@
 path (node tree from its bundled HF2 nodedoc, set_transaction, subscribe/poll) against the data-server twin.
 
 Expected numbers: qmg_lab.loops gain design for a default Config (paper eq. 5 as implemented there), the HF2
-clock (210 MHz / 1400 Sa/s = 150000 ticks per sample) and the documented channel assignment
+clock (the HF2 rate 1800 Sa/s as whole 210 MHz ticks: 116667 ticks per sample) and the documented channel assignment
 (drivers/hf2_nodes.py, docs/wiring.md).
 """
 
@@ -24,6 +24,7 @@ from sims.hf2_server import HF2DataServerTwin, HF2Wiring
 from sims.world import World
 
 DEV = "/dev1234"
+RATE = 210e6 / round(210e6 / 1800.0)  # the configured 1800 Sa/s as the HF2 twin applies it: whole clock ticks
 
 
 class CountingTwin(HF2DataServerTwin):
@@ -98,7 +99,7 @@ def test_configure_wires_inputs_outputs_and_auxouts_as_documented() -> None:
     assert g(f"{DEV}/demods/0/adcselect") == 0 and g(f"{DEV}/demods/1/adcselect") == 1
     osc = g(f"{DEV}/plls/0/oscselect")
     assert g(f"{DEV}/demods/0/oscselect") == osc and g(f"{DEV}/demods/1/oscselect") == osc
-    assert twin.getDouble(f"{DEV}/demods/1/rate") == 1400.0
+    assert twin.getDouble(f"{DEV}/demods/1/rate") == RATE
     assert g(f"{DEV}/auxouts/0/outputselect") == -1 and g(f"{DEV}/auxouts/1/outputselect") == -1
     assert twin.getDouble(f"{DEV}/sigouts/1/amplitudes/1") == 0.5  # nominal carrier, gain 1
     from sims.hf2_loops import identify_loops  # how the twin's physics reads these nodes
@@ -147,13 +148,13 @@ def test_poll_yields_samples_at_the_rate_with_monotonic_time() -> None:
     li.start_stream()
     blocks = [li.poll(0.5) for _ in range(3)]
     t = np.concatenate([b.time for b in blocks])
-    assert [len(b) for b in blocks] == [700, 700, 700]
+    assert [len(b) for b in blocks] == [900, 900, 900]  # round(0.5 s * RATE)
     assert t[0] == 0.0
-    assert np.allclose(np.diff(t), 1 / 1400.0, rtol=0, atol=1e-12)
+    assert np.allclose(np.diff(t), 1 / RATE, rtol=0, atol=1e-12)
     assert all(b.samples_lost == 0 for b in blocks)
     for b in blocks:
         assert all(len(getattr(b, f)) == len(b) for f in b.FIELDS)
-    assert world.t == pytest.approx(1.5)
+    assert world.t == pytest.approx(3 * 900 / RATE, abs=1e-12)  # 3 polls of round(0.5 s * RATE) samples
 
 
 def test_samples_lost_equals_the_injected_drop() -> None:
@@ -163,7 +164,7 @@ def test_samples_lost_equals_the_injected_drop() -> None:
     li.poll(0.5)
     twin.drop_samples(13)
     b = li.poll(0.5)
-    assert b.samples_lost == 13 and len(b) == 700 - 13
+    assert b.samples_lost == 13 and len(b) == 900 - 13
     assert li.poll(0.5).samples_lost == 0
 
 

@@ -1,0 +1,167 @@
+"""The dither's edges, located from its own record to a fraction of a sample.
+
+The DS345's square wave reaches the host through an AuxIn: each recorded value is the mean of the input over the
+AuxIn averaging window [t_k - W, t_k] that ends at the sample's timestamp t_k (W <= the sample interval; W -> 0
+is a single ADC sample). The generator runs on its own timebase, so its edges fall anywhere between samples.
+
+Location of one edge, with s_k = (d_k - lo)/(hi - lo) the recorded value as a fraction of the level step:
+
+* a sample whose window contains the edge reads an intermediate value, and the edge lies exactly where that
+  fraction of the window is high: rising t_e = t_k - W s_k, falling t_e = t_k - W (1 - s_k);
+* otherwise the edge lies in the gap between two windows, (t_(k-1), t_k - W); it is taken at the gap's middle
+  (error uniform within +-(dt - W)/2).
+
+Smoothing: edges of one kind follow t_j = a + b j (cycle index j) up to the timebase's slow wander, so each edge is
+replaced by the least-squares line through the last `window` edges of its kind (itself included), evaluated at its
+own index. A gap-located edge then carries an error of about (dt - W) / sqrt(3 window) instead of dt/2. An edge
+that lies more than a quarter period off the line (the generator was reprogrammed) restarts the fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
+
+
+@dataclass
+class EdgeTracker:
+    """Streams dither samples in; returns the smoothed times of the rising and falling edges found."""
+
+    window_s: float = 0.0  # the AuxIn averaging window W, s
+    fit_edges: int = 32
+    lo: float | None = None
+    hi: float | None = None
+    _prev_t: float | None = None
+    _prev_s: float | None = None
+    _raw: dict[int, list[float]] = field(default_factory=lambda: {1: [], -1: []})
+    _idx: dict[int, list[int]] = field(default_factory=lambda: {1: [], -1: []})
+
+    def reset(self) -> None:
+        """Forget the sample history and the fits (after a gap in the stream)."""
+        self._prev_t = self._prev_s = None
+        self._raw = {1: [], -1: []}
+        self._idx = {1: [], -1: []}
+
+    def _update_levels(self, d: np.ndarray) -> None:
+        lo_b, hi_b = float(np.min(d)), float(np.max(d))
+        if self.lo is None or self.hi is None:
+            if hi_b - lo_b <= 1e-9 * max(1.0, abs(hi_b)):
+                return
+            self.lo, self.hi = lo_b, hi_b
+        mid = 0.5 * (self.lo + self.hi)
+        span = self.hi - self.lo
+        high = d[d > mid + 0.45 * span]  # plateau readings only: an edge's intermediate reading is excluded
+        low = d[d < mid - 0.45 * span]
+        if high.size:
+            self.hi = float(np.mean(high))
+        if low.size:
+            self.lo = float(np.mean(low))
+
+    def process(self, t: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rising, falling) smoothed edge times located in this block of samples (times t_k, values d_k)."""
+        empty = np.empty(0)
+        if t.size == 0:
+            return empty, empty
+        self._update_levels(d)
+        if self.lo is None or self.hi is None or self.hi - self.lo <= 0.0:
+            return empty, empty
+        s = (d - self.lo) / (self.hi - self.lo)
+        if self._prev_t is not None and self._prev_s is not None:
+            tt = np.concatenate(([self._prev_t], t))
+            ss = np.concatenate(([self._prev_s], s))
+        else:
+            tt, ss = t, s
+        self._prev_t, self._prev_s = float(tt[-1]), float(ss[-1])
+        high = ss > 0.5
+        k = np.flatnonzero(high[1:] != high[:-1]) + 1  # the first sample on the new side
+        if k.size == 0:
+            return empty, empty
+        kind = np.where(high[k], 1, -1)
+        sk, sp = ss[k], ss[k - 1]
+        frac_new = np.where(kind == 1, sk, 1.0 - sk)  # fraction of window k on the new level
+        frac_old = np.where(kind == 1, sp, 1.0 - sp)  # fraction of window k-1 on the new level
+        w = self.window_s
+        te = 0.5 * (tt[k - 1] + tt[k] - w)
+        if w > 0.0:
+            in_old = frac_old > INTERMEDIATE
+            te = np.where(in_old, tt[k - 1] - w * frac_old, te)
+            in_new = (frac_new > INTERMEDIATE) & (frac_new < 1.0 - INTERMEDIATE)
+            te = np.where(in_new, tt[k] - w * frac_new, te)
+        return self._smooth_all(1, te[kind == 1]), self._smooth_all(-1, te[kind == -1])
+
+    def _smooth_all(self, kind: int, te: np.ndarray) -> np.ndarray:
+        """Smoothed times of a block's new edges of one kind (vectorised: a rolling least-squares line)."""
+        if te.size == 0:
+            return te
+        raw, idx = self._raw[kind], self._idx[kind]
+        hist_t = np.asarray(raw[-self.fit_edges:])
+        period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
+        if raw and period > 0.0:
+            steps = np.maximum(1, np.rint(np.diff(np.concatenate(([raw[-1]], te))) / period)).astype(np.int64)
+            j = idx[-1] + np.cumsum(steps)
+            pred = self._line(raw, idx, np.asarray(j, dtype=float))
+            if np.any(np.abs(te - pred) > 0.25 * period):  # the generator was reprogrammed: edge by edge
+                return np.asarray([self._smooth(kind, float(x)) for x in te])
+        else:
+            return np.asarray([self._smooth(kind, float(x)) for x in te])
+        all_t = np.concatenate((hist_t, te))
+        all_j = np.concatenate((np.asarray(idx[-self.fit_edges:], dtype=float), j.astype(float)))
+        raw.extend(te.tolist())
+        idx.extend(j.tolist())
+        if len(raw) > 4 * self.fit_edges:
+            del raw[:-self.fit_edges]
+            del idx[:-self.fit_edges]
+        # rolling sums over the last fit_edges points ending at each new edge (local offsets keep precision)
+        t0, j0 = float(all_t[0]), float(all_j[0])
+        x, y = all_j - j0, all_t - t0
+        c = [np.concatenate(([0.0], np.cumsum(v))) for v in (np.ones_like(x), x, y, x * x, x * y)]
+        end = np.arange(hist_t.size, all_t.size) + 1
+        start = np.maximum(0, end - self.fit_edges)
+        n, sx, sy, sxx, sxy = (cc[end] - cc[start] for cc in c)
+        den = n * sxx - sx * sx
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = np.where(den > 0, (n * sxy - sx * sy) / np.where(den > 0, den, 1.0), 0.0)
+        icpt = (sy - slope * sx) / n
+        fitted = t0 + icpt + slope * x[hist_t.size:]
+        return np.where(n >= 4, fitted, te)
+
+    def _smooth(self, kind: int, te: float) -> float:
+        raw, idx = self._raw[kind], self._idx[kind]
+        if raw:
+            diffs = np.diff(raw[-self.fit_edges:])
+            period = float(np.median(diffs)) if diffs.size else None
+            if period is not None and period > 0.0:
+                j = idx[-1] + max(1, round((te - raw[-1]) / period))
+                pred = float(self._line(raw, idx, float(j)))
+                if abs(te - pred) > 0.25 * period:
+                    raw.clear()
+                    idx.clear()
+                    j = 0
+            else:
+                j = idx[-1] + 1
+        else:
+            j = 0
+        raw.append(te)
+        idx.append(j)
+        if len(raw) > 4 * self.fit_edges:
+            del raw[:-self.fit_edges]
+            del idx[:-self.fit_edges]
+        if len(raw) < 4:
+            return te
+        return float(self._line(raw, idx, float(j)))
+
+    def _line(self, raw: list[float], idx: list[int], j: float | np.ndarray) -> np.ndarray:
+        """The least-squares line through the last fit_edges (index, time) pairs, at index j."""
+        tr = np.asarray(raw[-self.fit_edges:])
+        jr = np.asarray(idx[-self.fit_edges:], dtype=float)
+        if tr.size < 2:
+            return np.full(np.shape(j), float(tr[-1]))
+        t0, j0 = float(tr[-1]), float(jr[-1])
+        x, y = jr - j0, tr - t0
+        xm, ym = x.mean(), y.mean()
+        sxx = float(np.sum((x - xm) ** 2))
+        slope = float(np.sum((x - xm) * (y - ym)) / sxx) if sxx > 0 else 0.0
+        return t0 + ym + slope * (np.asarray(j, dtype=float) - j0 - xm)
