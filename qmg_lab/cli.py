@@ -21,7 +21,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
-from qmg_lab.config import Config, ConfigError, config_fingerprint, load_config
+from qmg_lab.config import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -52,12 +52,18 @@ def _fail(code: int, message: str) -> NoReturn:
     raise typer.Exit(code)
 
 
-def _load(path: Path, sim: bool) -> tuple[Config, str]:
+def _load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:
+    """The configuration (every instrument a twin with --sim); campaign=True: also the CLSF's stream timing."""
     try:
         cfg, text = load_config(path)
     except ConfigError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
-    return (cfg.with_all_sim() if sim else cfg), text
+    cfg = cfg.with_all_sim() if sim else cfg
+    if campaign:
+        problem = stream_timing_problem(cfg)
+        if problem is not None:
+            _fail(EXIT_BAD_INPUT, f"{path}: {problem}")
+    return cfg, text
 
 
 @contextmanager
@@ -93,13 +99,17 @@ def _bring_up(config: Path, sim: bool) -> Iterator[Station]:
 def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
     """Validate a configuration, show the plan, its duration and every command against the limits."""
     from qmg_lab.plan import build_plan, limit_checks, plan_duration_s
+    from qmg_lab.stream_plan import StreamPlan
 
-    cfg, text = _load(config, False)
+    cfg, text = _load(config, False, campaign=True)
     steps = build_plan(cfg)
     checks = limit_checks(cfg, steps)
     bad = [c for c in checks if not c.ok]
+    stream = StreamPlan(cfg.lockin.demod_rate_hz, cfg.dither.frequency_hz, cfg.lockin.demod_order,
+                        cfg.lockin.demod_timeconstant_s)
     if json_out:
         out.print_json(json.dumps({
+            "clsf_timing": stream.summary() if cfg.clsf.mode != "off" else None,
             "config": str(config), "config_sha256": config_fingerprint(text), "kind": cfg.campaign.kind,
             "steps": [s.__dict__ for s in steps], "duration_s": plan_duration_s(steps),
             "limits": [dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok)
@@ -122,6 +132,14 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
         instruments = ", ".join(f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}"
                                 for n in ("lockin", "generator", "table", "chamber"))
         out.print(f"instruments: {instruments}")
+        if cfg.clsf.mode != "off":
+            sp = stream.summary()
+            out.print(f"CLSF timing: lock-in {sp['rate_hz']:g} Sa/s, {sp['samples_per_period']:.4f} samples per "
+                      f"{cfg.dither.frequency_hz:g} Hz dither period (edge phase gap {sp['edge_phase_gap']:.3f} of a "
+                      f"sample, must be <= 0.25); demod filter order {cfg.lockin.demod_order}, "
+                      f"tc {cfg.lockin.demod_timeconstant_s * 1e6:g} us: delay {sp['filter_delay_s'] * 1e6:g} us, "
+                      f"|H| at 1/3/5 x dither {sp['filter_gain_h1']:.5f}/{sp['filter_gain_h3']:.5f}/"
+                      f"{sp['filter_gain_h5']:.5f} (compensated by the estimator)")
     if bad:
         _fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
 
@@ -163,7 +181,7 @@ def run(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
-    cfg, text = _load(config, sim)
+    cfg, text = _load(config, sim, campaign=True)
     summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
     _print_summary(summary)
 
@@ -274,7 +292,7 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
 def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Path | None, quiet: bool) -> None:
     from qmg_lab.analysis import analyze
 
-    cfg, text = _load(config, sim)
+    cfg, text = _load(config, sim, campaign=True)
     text = with_campaign_kind(text, kind)
     cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
     tmp = None

@@ -16,6 +16,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from qmg_lab.stream_plan import StreamPlan, hf2_rate
+
 
 class ConfigError(ValueError):
     """A configuration that cannot be used; the message names the field and what is allowed."""
@@ -154,9 +156,20 @@ class LockInSection(_Section):
     host: str = Field("localhost", min_length=1)
     port: int = Field(8005, ge=1, le=65535, description="HF2 data server port (HF2: 8005)")
     device: str = Field("dev0", pattern=r"^dev\d+$", description="device id, e.g. dev1234")
-    demod_rate_hz: float = Field(1400.0, ge=200.0, le=28800.0, description="demodulator streaming rate, Sa/s")
-    demod_timeconstant_s: float = Field(1e-4, gt=0.0, le=10.0, description="demodulator filter time constant, s")
-    demod_order: int = Field(1, ge=1, le=8)
+    demod_rate_hz: float = Field(
+        1800.0, ge=200.0, le=28800.0,
+        description="demodulator streaming rate, Sa/s; the HF2 applies the nearest rate it offers (qmg-lab check "
+                    "shows it)",
+    )
+    demod_timeconstant_s: float = Field(
+        1e-4, gt=0.0, le=1e-3,
+        description="demodulator filter time constant per stage, s; at most 1 ms so that the filter passes the "
+                    "dither and adds no more than n tc of lag to the 2 Hz loops",
+    )
+    demod_order: int = Field(1, ge=1, le=8, description="demodulator filter order (stages of 6 dB/octave)")
+    auxin_averaging: int = Field(
+        0, ge=0, le=15, description="AuxIn averaging: each AuxIn reading is the mean of 2^n ADC samples"
+    )
     poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
     sim_poll_interval_s: float = Field(
         2.0, ge=0.05, le=10.0, description="twin only: block length (the twin needs no real-time buffer), s"
@@ -325,6 +338,20 @@ class SimSection(_Section):
     initial_temperature_c: float = Field(25.0, ge=-60.0, le=150.0)
     table_rate_scale_error_ppm: float = Field(60.0, ge=-1e4, le=1e4, description="1291BR: 100 ppm rate accuracy")
     loop_delay_us: float = Field(0.0, ge=0.0, le=1e4, description="lock-in loop delay, us")
+    ds345_timebase_offset_ppm: float = Field(
+        3.0, ge=-1000.0, le=1000.0, description="the DS345's crystal timebase against the HF2's clock, ppm (assumed)"
+    )
+    ds345_timebase_wander_ppm: float = Field(
+        0.5, ge=0.0, le=100.0, description="slow wander of that timebase (sinusoidal amplitude), ppm (assumed)"
+    )
+    ds345_timebase_wander_period_s: float = Field(3600.0, gt=0.0, le=1e7, description="period of that wander, s")
+    ds345_command_latency_s: float = Field(
+        0.37e-3, ge=0.0, le=1.0, description="a DS345 setting takes effect this long after the command, s (assumed)"
+    )
+    hf2_rate_set: Literal["hf2", "ticks"] = Field(
+        "hf2", description="rates the HF2 twin offers: 'hf2' its binary ladder (1800, 3600, ... Sa/s), 'ticks' any "
+                           "clockbase/integer rate (robustness studies at rates no HF2 offers)"
+    )
     drive_voltage_v: float = Field(0.05, gt=0.0, le=10.0, description="true drive voltage at nominal amplitude, V")
     sf_true_v_per_dps: float = Field(0.06, gt=0.0, le=10.0, description="true FTR SF at the reference temperature")
     faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
@@ -510,3 +537,22 @@ def reference_markdown() -> str:
 
 if __name__ == "__main__":  # pragma: no cover
     print(reference_markdown(), end="")
+
+
+def stream_timing_problem(cfg: Config) -> str | None:
+    """Why a campaign configuration cannot stream a trustworthy CLSF, or None (qmg_lab/stream_plan.py).
+
+    The lock-in rate must be one the HF2 offers (unless the twin is told to offer any), and the dither's edges must
+    not lock to the sample grid. Checked before a campaign runs (`run`, `check`, `characterize`), not when a
+    stored configuration is read back for analysis: files written under other rules stay readable."""
+    rate = cfg.lockin.demod_rate_hz
+    if not (cfg.lockin.sim and cfg.sim.hf2_rate_set == "ticks"):
+        applied = hf2_rate(rate)
+        if abs(applied - rate) > 1e-6 * rate:
+            rungs = ", ".join(f"{hf2_rate(r):g}" for r in (450, 900, 1800, 3600, 7200))
+            return (f"lockin.demod_rate_hz = {rate:g} Sa/s is not a rate the HF2 offers (it would stream at "
+                    f"{applied:g} Sa/s); use one of {rungs} ... Sa/s")
+    if cfg.clsf.mode != "off":
+        return StreamPlan(rate, cfg.dither.frequency_hz, cfg.lockin.demod_order,
+                          cfg.lockin.demod_timeconstant_s).problem()
+    return None
