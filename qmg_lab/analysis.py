@@ -4,8 +4,11 @@ Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
 
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
   the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods.
-  Means of the rate output are taken over a whole number of dither periods (round(fs/f_d) samples each), so the
-  dither leaking through the rate loop (|T(7 Hz)| = 0.276 of the virtual rate) cancels exactly.
+  Means of the rate output are taken over a whole number of dither periods, from a rising edge of the recorded
+  dither to a later one (edges located by linear interpolation of the mid-level crossing; the rate output
+  integrated with the trapezoid rule between them), so the dither leaking through the rate loop
+  (|T(7 Hz)| = 0.276 of the virtual rate) cancels whether or not a period is a whole number of samples: the
+  DS345 and the HF2 share no clock.
 * True SF from a step pair (a completed "rate" step with Omega > 0 followed by the next-index "rate" step with
   Omega < 0): SF = (O+ - O-)/(Omega+ - Omega-), bias = (O+ + O-)/2; O = mean /lockin/rate_output (V), Omega =
   mean /table/rate_command over the window (deg/s; the step's table_rate if no table row falls inside).
@@ -131,14 +134,16 @@ class _Ctx:
     run: RunData
     cfg: Config
     fs_hz: float
-    period_samples: int  # whole dither period in lock-in samples (1 if no dither)
+    period_samples: int  # the nearest whole number of lock-in samples per dither period (1 if no dither)
     settle_s: float
     steps: dict[int, dict[str, Any]]  # completed steps by index
     notes: list[str]
+    dither_rising_s: np.ndarray | None = None  # rising edges of the recorded dither, s
+    rate_integral: np.ndarray | None = None  # trapezoid integral of /lockin/rate_output at the sample times, V s
 
 
 def _load(path: str | Path) -> _Ctx:
-    run = read_run(path, select=["lockin/rate_output", "clsf", "table", "chamber", "truth"])
+    run = read_run(path, select=["lockin/rate_output", "lockin/dither", "clsf", "table", "chamber", "truth"])
     notes: list[str] = []
     try:
         cfg = parse_config(str(run.attrs.get("config_toml", "")), f"{run.path}:config_toml")
@@ -156,7 +161,25 @@ def _load(path: str | Path) -> _Ctx:
     for i in range(s["index"].shape[0]):
         if s["status"][i] == "completed":
             steps[int(s["index"][i])] = {k: s[k][i] for k in s}
-    return _Ctx(run, cfg, fs, period, settle, steps, notes)
+    ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
+    if cfg.clsf.mode != "off" and "dither" in run.groups["lockin"]:
+        ctx.dither_rising_s = _rising_edges(t, run.groups["lockin"]["dither"])
+        ctx.rate_integral = np.concatenate(([0.0], np.cumsum(
+            0.5 * np.diff(t) * (run.groups["lockin"]["rate_output"][1:] + run.groups["lockin"]["rate_output"][:-1]))))
+    return ctx
+
+
+def _rising_edges(t: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Times where the recorded square wave crosses its mid-level upward, linearly interpolated, s."""
+    if d.shape[0] < 3:
+        return np.empty(0)
+    hi, lo = float(np.max(d)), float(np.min(d))
+    if hi - lo <= 1e-9 * max(1.0, abs(hi)):
+        return np.empty(0)
+    mid = 0.5 * (hi + lo)
+    k = np.flatnonzero((d[1:] >= mid) & (d[:-1] < mid))
+    frac = (mid - d[k]) / (d[k + 1] - d[k])
+    return t[k] + frac * (t[k + 1] - t[k])
 
 
 def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple[float, float]:
@@ -168,6 +191,12 @@ def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
     lk = ctx.run.groups["lockin"]
     i0, i1 = np.searchsorted(lk["time"], [t0, t1])
     n = int(i1 - i0)
+    if ctx.dither_rising_s is not None and ctx.rate_integral is not None:
+        dt = 1.0 / ctx.fs_hz  # an edge's interpolation reaches one sample either side: stay inside the window
+        e = ctx.dither_rising_s[(ctx.dither_rising_s >= t0 + dt) & (ctx.dither_rising_s <= t1 - dt)]
+        if e.size >= 2:
+            m0, m1 = np.interp([e[0], e[-1]], lk["time"], ctx.rate_integral)
+            return float((m1 - m0) / (e[-1] - e[0])), n
     if ctx.period_samples > 1 and n >= ctx.period_samples:
         n = (n // ctx.period_samples) * ctx.period_samples
     if n <= 0:

@@ -55,7 +55,10 @@ def square(t: np.ndarray, f_hz: float = F_D, fs: float = FS) -> np.ndarray:
 
 
 def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: float = F_D) -> None:
-    sq = square(t, dither_hz, 1.0 / float(np.median(np.diff(t))) if t.shape[0] > 1 else FS)
+    # the same sample rate the callers' leak terms use (a rate from np.diff carries rounding that moves an edge
+    # that falls exactly on a sample to the next one, so the recorded dither and the leak would disagree)
+    fs = round(1.0 / float(np.median(np.diff(t))), 6) if t.shape[0] > 1 else FS
+    sq = square(t, dither_hz, fs)
     z = np.zeros_like(t)
     w.append("lockin", time=t, x_sense=z, y_sense=z, rate_output=rate_output, drive_amplitude=z + 0.5,
              drive_frequency=z + 2200.0, dither=0.6 * sq)

@@ -16,6 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from scipy.integrate import trapezoid
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
@@ -65,13 +66,27 @@ def _mean(t: np.ndarray, y: np.ndarray, a: float, b: float) -> float:
     return float(y[m].mean())
 
 
+def _mean_over_dither_periods(t: np.ndarray, y: np.ndarray, d: np.ndarray, a: float, b: float) -> float:
+    """Mean of y over whole dither periods inside [a, b]: from the first to the last rising mid-level crossing of
+    the recorded dither d (linearly interpolated, at least one sample inside), y integrated with the trapezoid
+    rule between them. A period is a non-integer number of samples, so whole periods are cut in time."""
+    mid = 0.5 * (d.max() + d.min())
+    k = np.flatnonzero((d[1:] >= mid) & (d[:-1] < mid))
+    edges = t[k] + (mid - d[k]) / (d[k + 1] - d[k]) * (t[k + 1] - t[k])
+    dt = float(np.median(np.diff(t)))
+    e = edges[(edges >= a + dt) & (edges <= b - dt)]
+    assert e.size >= 2, f"no whole dither period in [{a}, {b}]"
+    grid = np.concatenate(([e[0]], t[(t > e[0]) & (t < e[-1])], [e[-1]]))
+    return float(trapezoid(np.interp(grid, t, y), grid) / (e[-1] - e[0]))
+
+
 def step_pairs(path: Path, settle_s: float = 5.0) -> dict[str, np.ndarray]:
     """Per +-rate pair: table SF, mean CLSF estimate, mean true SF and mean gyro temperature."""
     with h5py.File(path, "r") as f:
         st = f["steps"]
         kinds = [k.decode() for k in st["kind"][:]]
         ts, te, rate = st["t_start"][:], st["t_end"][:], st["table_rate"][:]
-        lt, ro = f["lockin/time"][:], f["lockin/rate_output"][:]
+        lt, ro, dith = f["lockin/time"][:], f["lockin/rate_output"][:], f["lockin/dither"][:]
         ct, cs = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
         tt, tsf, ttemp = f["truth/time"][:], f["truth/scale_factor"][:], f["truth/temperature"][:]
         tab_t, tab_cmd = f["table/time"][:], f["table/rate_command"][:]
@@ -82,8 +97,8 @@ def step_pairs(path: Path, settle_s: float = 5.0) -> dict[str, np.ndarray]:
         w_a = _mean(tab_t, tab_cmd, ts[a] + settle_s, te[a])
         w_b = _mean(tab_t, tab_cmd, ts[b] + settle_s, te[b])
         assert (w_a, w_b) == (rate[a], rate[b])
-        o_a = _mean(lt, ro, ts[a] + settle_s, te[a])
-        o_b = _mean(lt, ro, ts[b] + settle_s, te[b])
+        o_a = _mean_over_dither_periods(lt, ro, dith, ts[a] + settle_s, te[a])
+        o_b = _mean_over_dither_periods(lt, ro, dith, ts[b] + settle_s, te[b])
         out["sf"].append((o_a - o_b) / (w_a - w_b))
         out["clsf"].append(_mean(ct, cs, ts[a] + settle_s, te[b]))
         out["truth"].append(_mean(tt, tsf, ts[a] + settle_s, te[b]))
@@ -123,9 +138,9 @@ def test_paper_run_writes_every_contract_item(zero_residual_run: Path) -> None:
             if "time" in cols:
                 t = f[group]["time"][:]
                 assert np.all(np.diff(t) >= 0), f"{group}/time not monotonic"
-        # /lockin at the configured 1400 Sa/s (>= 200 Sa/s), gap-free
+        # /lockin at the configured 1800 Sa/s as the HF2 twin streams it (whole 210 MHz ticks), gap-free
         dt = np.diff(f["lockin/time"][:])
-        assert np.allclose(dt, 1 / 1400, rtol=1e-6)
+        assert np.allclose(dt, round(210e6 / 1800) / 210e6, rtol=1e-9)
         # every planned step present once, completed
         idx = f["steps/index"][:]
         assert sorted(idx) == list(range(int(f.attrs["planned_steps"])))
