@@ -37,6 +37,15 @@ def adev_at(values: np.ndarray, rate_hz: float, taus: list[float]) -> list[float
     return [float(np.interp(x, t, ad)) for x in taus]
 
 
+def one_second_means(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Means of v over consecutive whole seconds of t (any sample rate; partial seconds at the ends dropped)."""
+    sec = np.floor(t - t[0]).astype(np.int64)
+    counts = np.bincount(sec)
+    sums = np.bincount(sec, weights=v)
+    full = counts >= 0.9 * np.median(counts)
+    return (sums / np.maximum(counts, 1))[full]
+
+
 def self_calibrated_sf_adev(path: Path) -> tuple[list[float], list[float]]:
     """ADEV (relative) at 60 s and 2000 s after the soak: of the twin's actual SF under CLSF correction (1 s
     means of /truth) and of the CLSF estimate itself (one value per dither period)."""
@@ -46,8 +55,7 @@ def self_calibrated_sf_adev(path: Path) -> tuple[list[float], list[float]]:
         tt, sf = f["truth/time"][:], f["truth/scale_factor"][:]
         ct, est = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
     keep = tt >= t0
-    n = keep.sum() // 1400 * 1400
-    per_s = sf[keep][:n].reshape(-1, 1400).mean(axis=1)
+    per_s = one_second_means(tt[keep], sf[keep])
     k = ct >= t0
     rate = 1.0 / float(np.median(np.diff(ct[k])))
     return adev_at(per_s / per_s.mean() - 1, 1.0, [60.0, 2000.0]), adev_at(est[k], rate, [60.0, 2000.0])

@@ -3,7 +3,7 @@
 Every loop (PLL, AGC, rate, quadrature) and every noise source (ARW, bias instability, pickoff) is on, with the
 7 Hz square-wave dither and a slow temperature ramp, so every per-step term is exercised.
 
-* averaged: dt = 1/1400 s, blocks of 0.5 s (what the HF2 twin polls) and of 60 s; real-time factor = simulated
+* averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls) and of 60 s; real-time factor = simulated
   seconds per wall second.
 * carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
 * memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-DT = 1.0 / 1400.0
+DT = 1.0 / 1800.0
 
 
 def _loops():  # noqa: ANN202 - LoopSettings, imported lazily so the compile probe times the import too
