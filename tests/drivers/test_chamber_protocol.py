@@ -2,6 +2,8 @@
 
 Commands: text + CR LF (SET=%.2f, RATE=%.3f, LTL=/UTL= %.2f); every reply one line ending CR LF; settings
 answer OK; refusals start with '?'; STATUS? is Y/N flags with char 0 = power, char 8 = ramping.
+
+The real framing is unconfirmed: every dialogue is replayed with replies ending CR LF, CR and LF.
 """
 
 from __future__ import annotations
@@ -13,6 +15,18 @@ from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError
 from tests.protocol_serial import ProtocolPort, expected_protocol
 
 OK = b"OK\r\n"
+
+FRAMINGS = {
+    "CRLF": lambda r: r,
+    "CR": lambda r: r.replace(b"\r\n", b"\r"),
+    "LF": lambda r: r.replace(b"\r\n", b"\n"),
+}
+
+
+@pytest.fixture(autouse=True, params=list(FRAMINGS))
+def reply_framing(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    monkeypatch.setattr(ProtocolPort, "reply_framing", staticmethod(FRAMINGS[request.param]))
+    return str(request.param)
 
 
 def chamber(port: ProtocolPort) -> SunEC1xChamber:
@@ -65,8 +79,6 @@ def test_refusal_names_the_command() -> None:
 @pytest.mark.parametrize(("reply", "match"), [
     (b"27.5O\r\n", r"garbled reply to 'C1\?'.*27\.5O"),
     (b"27.5", r"truncated reply to 'C1\?'.*b'27\.5'"),
-    (b"27.5\r", r"truncated reply to 'C1\?'"),
-    (b"27.5\n", r"truncated reply to 'C1\?'"),
     (b"2\x007.5\r\n", r"garbled reply to 'C1\?'"),
     (None, r"timeout: no reply to 'C1\?'"),
     (b"OK\r\n", r"garbled reply to 'C1\?'.*'OK'"),
@@ -128,3 +140,9 @@ def test_reconnect_identifies_and_restores_setpoint() -> None:
     assert not first.is_open
     first.assert_complete()
     second.assert_complete()
+
+
+@pytest.mark.parametrize("reply", [b"27.50\r", b"27.50\n", b"27.50\r\n", b"  27.50 \r\n", b"\n27.50\r"])
+def test_tolerated_framings_parse_the_same_temperature(reply: bytes) -> None:
+    with expected_protocol(chamber, [(b"C1?\r\n", reply)]) as c:
+        assert c._query("C1?", lambda text: float(text)) == 27.5
