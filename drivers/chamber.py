@@ -177,6 +177,21 @@ class SunEC1xChamber(ThermalChamber):
             "safe_setpoint_c": self.safe_setpoint_c,
         }
 
+    def snapshot(self) -> dict[str, Any]:
+        """Identity (STATUS? liveness), settings (limits, ramp rate, framing) and state()."""
+        return {
+            "identity": self.identify(),
+            "firmware": None,  # no public EC1x identity query (docs/bench-bringup.md)
+            "settings": {
+                "min_c": self.min_c, "max_c": self.max_c, "max_ramp_c_per_min": self.max_ramp_c_per_min,
+                "safe_setpoint_c": self.safe_setpoint_c, "ramp_c_per_min": self.ramp_rate(),
+                "power_on": self.power_on(),
+                "framing": {"command_terminator": self.framing.command_terminator,
+                            "reply_terminator": self.framing.reply_terminator},
+            },
+            "state": self.state(),
+        }
+
     def safe_state(self) -> None:
         """SET=safe_setpoint_c, ON: the chamber goes actively to its safe setpoint at the last ramp rate."""
         self._command(SETPOINT_FORMAT.format(self.safe_setpoint_c))
@@ -187,10 +202,12 @@ class SunEC1xChamber(ThermalChamber):
         self._link.close()
 
     def reconnect(self) -> None:
-        """Close, reopen with the factory, identify, and re-send the last setpoint and ramp (harmless: the
-        controller holds them anyway)."""
+        """Close, reopen with the factory, identify, write the limits again (LTL=, UTL=: a controller that was
+        power-cycled may have lost them), and re-send the last setpoint and ramp (harmless: the controller holds
+        them anyway)."""
         self._link.reopen(self._factory)
         self.identify()
+        self.write_limits()
         if self._target_c is not None and self._ramp_c_per_min is not None:
             self.set_setpoint(self._target_c, self._ramp_c_per_min)
 

@@ -129,9 +129,10 @@ def test_constructor_rejects_inconsistent_limits() -> None:
         SunEC1xChamber(ProtocolPort([]), min_c=0, max_c=40, max_ramp_c_per_min=1, safe_setpoint_c=45)
 
 
-def test_reconnect_identifies_and_restores_setpoint() -> None:
+def test_reconnect_identifies_rewrites_limits_and_restores_setpoint() -> None:
     first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
-    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"RATE=1.000\r\n", OK),
+    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"LTL=-40.00\r\n", OK),
+                           (b"UTL=85.00\r\n", OK), (b"RATE=1.000\r\n", OK),
                            (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
     c = SunEC1xChamber(first, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0,
                        port_factory=lambda: second)
