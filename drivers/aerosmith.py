@@ -192,6 +192,20 @@ class Aerosmith1291BR(RateTable):
             "max_accel_dps2": self.max_accel_dps2,
         }
 
+    def snapshot(self) -> dict[str, Any]:
+        """Identity (STA liveness), settings (limits, framing, the assumed command table) and state()."""
+        return {
+            "identity": self.identify(),
+            "firmware": None,  # no public 1291BR command reports it (docs/bench-bringup.md)
+            "settings": {
+                "max_rate_dps": self.max_rate_dps, "max_accel_dps2": self.max_accel_dps2,
+                "framing": {"command_terminator": self.framing.command_terminator,
+                            "reply_terminator": self.framing.reply_terminator, "prompt": self.framing.prompt},
+                "commands": {c.key: c.mnemonic for c in proto.COMMANDS.values()},
+            },
+            "state": self.state(),
+        }
+
     def safe_state(self) -> None:
         """STO: the table decelerates to rest. Idempotent (STO at rest is accepted)."""
         self._transact("stop")
