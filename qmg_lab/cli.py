@@ -7,6 +7,7 @@ Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message namin
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -34,7 +35,9 @@ generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 
 app.add_typer(characterize_app, name="characterize")
 app.add_typer(table_app, name="table")
 app.add_typer(chamber_app, name="chamber")
+lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF2 nodes by hand")
 app.add_typer(generator_app, name="generator")
+app.add_typer(lockin_app, name="lockin")
 
 console = Console(stderr=True)
 out = Console()
@@ -44,6 +47,27 @@ EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
 SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+@app.callback()
+def _options(log_level: Annotated[str | None, typer.Option(
+        "--log-level", help="print the module loggers on stderr from this level: DEBUG (every serial byte), "
+                            "INFO (connections, reconnects, run events), WARNING (faults), ERROR")] = None) -> None:
+    """Options for every command."""
+    if log_level is None:
+        return
+    level = log_level.upper()
+    if level not in LOG_LEVELS:
+        _fail(EXIT_BAD_INPUT, f"--log-level {log_level!r}: one of {', '.join(LOG_LEVELS)}")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    for name in ("qmg_lab", "drivers"):
+        logger = logging.getLogger(name)
+        logger.setLevel(level)
+        logger.addHandler(handler)
 
 
 def _fail(code: int, message: str) -> NoReturn:
@@ -75,17 +99,35 @@ def _station(cfg: Config) -> Iterator[Station]:
         station.close()
 
 
+def instrument_modes(cfg: Config) -> str:
+    """Root attribute instrument_modes: JSON {"lockin": "twin" | "hardware", ...}, one entry per instrument."""
+    return json.dumps({n: "twin" if getattr(cfg, n).sim else "hardware"
+                       for n in ("lockin", "generator", "table", "chamber")})
+
+
 @contextmanager
-def _bring_up(config: Path, sim: bool) -> Iterator[Station]:
+def _bring_up(config: Path, sim: bool, name: str) -> Iterator[Any]:
+    """Connect only the instrument `name` (a bench where only it is cabled can bring it up); on a fault it
+    is put in its safe state and the command exits 3."""
+    from qmg_lab.station import connect_instrument
+
     cfg, _ = _load(config, sim)
-    with _station(cfg) as st:
+    try:
+        conn = connect_instrument(cfg, name)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not connect the {name}: {exc}")
+    try:
+        yield conn.instrument
+    except LimitError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    except InstrumentError as exc:
         try:
-            yield st
-        except LimitError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        except InstrumentError as exc:
-            st.safe_state()
-            _fail(EXIT_FAULT, str(exc))
+            conn.instrument.safe_state()
+        except Exception as again:  # noqa: BLE001 - report both
+            _fail(EXIT_FAULT, f"{exc}; safe state not confirmed: {again}")
+        _fail(EXIT_FAULT, str(exc))
+    finally:
+        conn.close()
 
 
 # ====================================================================================== check
@@ -181,7 +223,8 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
     except LimitError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
-    mode = "sim" if cfg.all_sim else ("hardware" if not cfg.any_sim else "mixed")
+    # the contract's mode: "sim" only when every instrument is a twin; which ones were is in instrument_modes
+    mode = "sim" if cfg.all_sim else "hardware"
     try:
         if resume is not None:
             if output is not None and output.resolve() != resume.resolve():
@@ -199,7 +242,8 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
                                       t0_unix=datetime.now(UTC).timestamp(),
                                       flush_interval_s=cfg.storage.flush_interval_s,
                                       compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-                                      truth=cfg.lockin.sim)
+                                      truth=cfg.lockin.sim,
+                                      extra_attrs={"instrument_modes": instrument_modes(cfg)})
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:
@@ -243,19 +287,28 @@ def _print_summary(summary: Any) -> None:
 # ====================================================================================== instruments
 @app.command()
 def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
-    """Connect every instrument, identify it and show its state."""
+    """Connect each instrument on its own, identify it and show its state; exit 3 if any failed."""
+    from qmg_lab.station import INSTRUMENT_NAMES, connect_instrument
+
     cfg, _ = _load(config, sim)
     report: dict[str, dict[str, Any]] = {}
-    with _station(cfg) as st:
-        for name, inst in st.instruments().items():
-            entry: dict[str, Any] = {"simulated": bool(st.simulated.get(name, False))}
-            try:
-                entry["identity"] = inst.identify()
-                entry["state"] = inst.state()
-                entry["ok"] = True
-            except InstrumentError as exc:
-                entry.update(identity=None, ok=False, error=str(exc))
+    for name in INSTRUMENT_NAMES:
+        entry: dict[str, Any] = {"simulated": bool(getattr(cfg, name).sim)}
+        try:
+            conn = connect_instrument(cfg, name)
+        except (InstrumentError, OSError) as exc:
+            entry.update(identity=None, state=None, ok=False, error=f"could not connect: {exc}")
             report[name] = entry
+            continue
+        try:
+            entry["identity"] = conn.instrument.identify()
+            entry["state"] = conn.instrument.state()
+            entry["ok"] = True
+        except InstrumentError as exc:
+            entry.update(identity=entry.get("identity"), state=None, ok=False, error=str(exc))
+        finally:
+            conn.close()
+        report[name] = entry
     if json_out:
         out.print_json(json.dumps(report, default=str))
     else:
@@ -266,8 +319,10 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
             state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
             tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
         out.print(tbl)
-    if not all(e["ok"] for e in report.values()):
-        raise typer.Exit(EXIT_FAULT)
+    failed = [n for n, e in report.items() if not e["ok"]]
+    if failed:
+        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})"
+                                                                        for n in failed))
 
 
 # ====================================================================================== characterize
@@ -375,9 +430,9 @@ def analyze(
 
 
 # ====================================================================================== bring-up
-def _manual(config: Path, sim: bool, action: Callable[[Station], str]) -> None:
-    with _bring_up(config, sim) as st:
-        out.print(action(st))
+def _manual(config: Path, sim: bool, name: str, action: Callable[[Any], str]) -> None:
+    with _bring_up(config, sim, name) as inst:
+        out.print(action(inst))
 
 
 @table_app.command("rate")
@@ -385,20 +440,21 @@ def table_rate(config: ConfigArg, rate_dps: Annotated[float, typer.Argument(help
                accel_dps2: Annotated[float, typer.Option("--accel", help="deg/s^2")] = 100.0,
                sim: SimOpt = False) -> None:
     """Rate mode: ramp to RATE_DPS."""
-    def act(st: Station) -> str:
-        st.table.set_rate(rate_dps, accel_dps2)
-        r = st.table.read()
+    def act(table: Any) -> str:
+        table.set_rate(rate_dps, accel_dps2)
+        r = table.read()
         return f"table commanded to {rate_dps:g} deg/s at {accel_dps2:g} deg/s^2; now {r.rate_dps:.4f} deg/s"
-    _manual(config, sim, act)
+    _manual(config, sim, "table", act)
 
 
 @table_app.command("stop")
 def table_stop(config: ConfigArg, sim: SimOpt = False) -> None:
     """Decelerate the table to rest."""
-    def act(st: Station) -> str:
-        st.table.stop()
-        return "table stopping"
-    _manual(config, sim, act)
+    def act(table: Any) -> str:
+        table.stop()
+        r = table.read()
+        return f"table stopping; now {r.rate_dps:.4f} deg/s"
+    _manual(config, sim, "table", act)
 
 
 @chamber_app.command("setpoint")
@@ -406,30 +462,160 @@ def chamber_setpoint(config: ConfigArg, setpoint_c: Annotated[float, typer.Argum
                      ramp_c_per_min: Annotated[float, typer.Option("--ramp", help="deg C/min")] = 1.0,
                      sim: SimOpt = False) -> None:
     """Ramp the chamber to SETPOINT_C."""
-    def act(st: Station) -> str:
-        st.chamber.set_setpoint(setpoint_c, ramp_c_per_min)
-        r = st.chamber.read()
+    def act(chamber: Any) -> str:
+        chamber.set_setpoint(setpoint_c, ramp_c_per_min)
+        r = chamber.read()
         return f"chamber setpoint {setpoint_c:g} degC at {ramp_c_per_min:g} degC/min; air {r.temperature_c:.2f} degC"
-    _manual(config, sim, act)
+    _manual(config, sim, "chamber", act)
 
 
 @generator_app.command("square")
 def generator_square(config: ConfigArg, frequency_hz: Annotated[float, typer.Argument(help="Hz")],
                      amplitude_vpp: Annotated[float, typer.Argument(help="Vpp")], sim: SimOpt = False) -> None:
     """DS345 square wave."""
-    def act(st: Station) -> str:
-        st.generator.set_square(frequency_hz, amplitude_vpp, 0.0)
+    def act(generator: Any) -> str:
+        generator.set_square(frequency_hz, amplitude_vpp, 0.0)
         return f"DS345 square {frequency_hz:g} Hz {amplitude_vpp:g} Vpp"
-    _manual(config, sim, act)
+    _manual(config, sim, "generator", act)
 
 
 @generator_app.command("mute")
 def generator_mute(config: ConfigArg, sim: SimOpt = False) -> None:
     """DS345 amplitude to zero (AMPL 0VP: it has no output switch)."""
-    def act(st: Station) -> str:
-        st.generator.mute()
+    def act(generator: Any) -> str:
+        generator.mute()
         return "DS345 muted"
-    _manual(config, sim, act)
+    _manual(config, sim, "generator", act)
+
+
+# ====================================================================================== raw console
+RawCommand = Annotated[str, typer.Argument(help="the command as text; backslash escapes (\\r, \\n, \\xNN) allowed",
+                                           show_default=False)]
+WaitOpt = Annotated[float | None, typer.Option("--wait", help="wait this long for a first byte, s "
+                                               "(default: the configured timeout_s)")]
+IdleOpt = Annotated[float, typer.Option("--idle", help="the reply is over after this long without a byte, s")]
+NoTermOpt = Annotated[bool, typer.Option("--no-terminator", help="do not append the configured command terminator")]
+
+
+def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float | None, idle_s: float,
+                no_terminator: bool) -> None:
+    from qmg_lab.raw_console import decode_escapes, serial_exchange
+    from qmg_lab.station import open_raw_serial
+
+    cfg, _ = _load(config, sim)
+    try:
+        data = decode_escapes(command)
+    except ValueError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    if not data:
+        _fail(EXIT_BAD_INPUT, "the command is empty")
+    if wait_s is not None and not 0 < wait_s <= 60:
+        _fail(EXIT_BAD_INPUT, f"--wait {wait_s:g} s: must be > 0 and <= 60 s")
+    if not 0 < idle_s <= 10:
+        _fail(EXIT_BAD_INPUT, f"--idle {idle_s:g} s: must be > 0 and <= 10 s")
+    section = getattr(cfg, name)
+    try:
+        port, framing, close = open_raw_serial(cfg, name)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not open the {name}'s port: {exc}")
+    try:
+        if not no_terminator:
+            data += framing.command_end
+        where = "twin" if section.sim else section.port
+        out.print(f"{name} raw on {where} ({section.baudrate} baud; command terminator "
+                  f"{framing.command_terminator}, replies {framing.describe()})", highlight=False,
+                  markup=False, soft_wrap=True)
+        ex = serial_exchange(port, data, wait_s=wait_s or section.timeout_s, idle_s=idle_s)
+    except (OSError, ValueError) as exc:
+        _fail(EXIT_FAULT, f"{name}: the raw exchange failed: {exc}")
+    finally:
+        close()
+    for line in ex.render():
+        out.print(line, highlight=False, markup=False, soft_wrap=True)
+
+
+@table_app.command("raw")
+def table_raw(config: ConfigArg, command: RawCommand, sim: SimOpt = False, wait_s: WaitOpt = None,
+              idle_s: IdleOpt = 0.3, no_terminator: NoTermOpt = False) -> None:
+    """Send COMMAND to the 1291BR as typed (+ the command terminator); print the bytes sent and received."""
+    _raw_serial("table", config, command, sim, wait_s, idle_s, no_terminator)
+
+
+@chamber_app.command("raw")
+def chamber_raw(config: ConfigArg, command: RawCommand, sim: SimOpt = False, wait_s: WaitOpt = None,
+                idle_s: IdleOpt = 0.3, no_terminator: NoTermOpt = False) -> None:
+    """Send COMMAND to the chamber controller as typed (+ the command terminator); print the bytes."""
+    _raw_serial("chamber", config, command, sim, wait_s, idle_s, no_terminator)
+
+
+@generator_app.command("raw")
+def generator_raw(config: ConfigArg, command: Annotated[str, typer.Argument(help="e.g. '*IDN?' or 'FREQ 7'",
+                                                                              show_default=False)],
+                  sim: SimOpt = False) -> None:
+    """Send COMMAND to the DS345 (a query, with '?', reads one reply); print the bytes and the timing."""
+    from qmg_lab.raw_console import visa_exchange
+    from qmg_lab.station import open_raw_visa
+
+    cfg, _ = _load(config, sim)
+    if not command.strip():
+        _fail(EXIT_BAD_INPUT, "the command is empty")
+    try:
+        resource, close = open_raw_visa(cfg)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not open the generator: {exc}")
+    try:
+        ex = visa_exchange(resource, command)
+    except Exception as exc:  # noqa: BLE001 - pyvisa's VisaIOError and its kin: show, do not trace
+        _fail(EXIT_FAULT, f"generator: {command!r}: {type(exc).__name__}: {exc}")
+    finally:
+        close()
+    for line in ex.render():
+        out.print(line, highlight=False, markup=False, soft_wrap=True)
+
+
+NodePath = Annotated[str, typer.Argument(help="node path, e.g. oscs/0/freq (the /devN prefix is added)",
+                                         show_default=False)]
+
+
+def _node_path(path: str, device: str) -> str:
+    p = path.strip().lower()
+    if not p or any(ch.isspace() for ch in p):
+        _fail(EXIT_BAD_INPUT, f"node path {path!r} is empty or contains blanks")
+    return p if p.startswith("/dev") else f"/{device}/{p.lstrip('/')}"
+
+
+def _raw_node(config: Path, sim: bool, path: str, value: str | None) -> None:
+    from qmg_lab.raw_console import node_get, node_set
+    from qmg_lab.station import open_raw_hf2
+
+    cfg, _ = _load(config, sim)
+    try:
+        connection, device, close = open_raw_hf2(cfg)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not reach the HF2: {exc}")
+    node = _node_path(path, device)
+    try:
+        ex, _ = node_get(connection, node) if value is None else node_set(connection, node, value)
+    except Exception as exc:  # noqa: BLE001 - zhinst's RuntimeError or the twin's NodeError: no traceback
+        _fail(EXIT_BAD_INPUT if "not" in str(exc).lower() else EXIT_FAULT, f"HF2 {node}: {exc}")
+    finally:
+        close()
+    for t, d, p in ex.lines:
+        out.print(f"{t * 1e3:10.1f} ms  {d} {p}", highlight=False, markup=False, soft_wrap=True)
+
+
+@lockin_app.command("get")
+def lockin_get(config: ConfigArg, path: NodePath, sim: SimOpt = False) -> None:
+    """Read one HF2 node through the data server; print the call, the value and the time it took."""
+    _raw_node(config, sim, path, None)
+
+
+@lockin_app.command("set")
+def lockin_set(config: ConfigArg, path: NodePath,
+               value: Annotated[str, typer.Argument(help="integer, number or text", show_default=False)],
+               sim: SimOpt = False) -> None:
+    """Write one HF2 node, then read it back; print both calls and their timing."""
+    _raw_node(config, sim, path, value)
 
 
 @app.command()
