@@ -217,6 +217,7 @@ class Aerosmith1291BR(RateTable):
     def reconnect(self) -> None:
         """Close the port, open a new one with the factory, identify. Motion is not re-commanded: the
         controller keeps running its last command across a host link drop (assumed)."""
+        log.info("%s: reconnecting", self.NAME)
         self._link.reopen(self._factory)
         self.identify()
 

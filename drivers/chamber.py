@@ -205,6 +205,7 @@ class SunEC1xChamber(ThermalChamber):
         """Close, reopen with the factory, identify, write the limits again (LTL=, UTL=: a controller that was
         power-cycled may have lost them), and re-send the last setpoint and ramp (harmless: the controller holds
         them anyway)."""
+        log.info("%s: reconnecting", self.NAME)
         self._link.reopen(self._factory)
         self.identify()
         self.write_limits()

@@ -344,7 +344,10 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
     connected: dict[str, Instrument] = {}
     try:
         for name in INSTRUMENT_NAMES:
-            connected[name] = bench.connect(name)
+            try:
+                connected[name] = bench.connect(name)
+            except InstrumentError as exc:
+                raise InstrumentError(f"{name}: {exc}") from exc
     except BaseException:
         for inst in connected.values():
             try:
