@@ -39,6 +39,7 @@ lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF
 app.add_typer(generator_app, name="generator")
 app.add_typer(lockin_app, name="lockin")
 
+log = logging.getLogger(__name__)
 console = Console(stderr=True)
 out = Console()
 
@@ -248,6 +249,7 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
         _fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:
         _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+    log.info("run file %s; instruments %s", writer.path, instrument_modes(cfg))
     view = ProgressView(console, enabled=not quiet)
     try:
         with _station(cfg) as station, view:
@@ -515,7 +517,7 @@ def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float 
         _fail(EXIT_BAD_INPUT, f"--idle {idle_s:g} s: must be > 0 and <= 10 s")
     section = getattr(cfg, name)
     try:
-        port, framing, close = open_raw_serial(cfg, name)
+        port, framing, close, at_once = open_raw_serial(cfg, name)
     except (InstrumentError, OSError) as exc:
         _fail(EXIT_FAULT, f"could not open the {name}'s port: {exc}")
     try:
@@ -525,7 +527,7 @@ def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float 
         out.print(f"{name} raw on {where} ({section.baudrate} baud; command terminator "
                   f"{framing.command_terminator}, replies {framing.describe()})", highlight=False,
                   markup=False, soft_wrap=True)
-        ex = serial_exchange(port, data, wait_s=wait_s or section.timeout_s, idle_s=idle_s)
+        ex = serial_exchange(port, data, wait_s=wait_s or section.timeout_s, idle_s=idle_s, answers_at_once=at_once)
     except (OSError, ValueError) as exc:
         _fail(EXIT_FAULT, f"{name}: the raw exchange failed: {exc}")
     finally:

@@ -48,8 +48,10 @@ def decode_escapes(text: str) -> bytes:
         raise ValueError(f"cannot encode {text!r} as bytes: {exc}") from None
 
 
-def serial_exchange(port: Any, data: bytes, *, wait_s: float, idle_s: float) -> Exchange:
-    """Write `data` on a pyserial-like port, then collect what comes back (see the module docstring)."""
+def serial_exchange(port: Any, data: bytes, *, wait_s: float, idle_s: float, answers_at_once: bool = False) -> Exchange:
+    """Write `data` on a pyserial-like port, then collect what comes back (see the module docstring).
+    answers_at_once: the port is an in-process twin, whose reply is complete when the write returns (its reads
+    never wait), so the first empty read ends the exchange."""
     ex = Exchange(sent=data)
     port.reset_input_buffer()
     t0 = time.perf_counter()
@@ -74,8 +76,8 @@ def serial_exchange(port: Any, data: bytes, *, wait_s: float, idle_s: float) -> 
                 last = time.perf_counter()
                 received += chunk
                 ex.add(last - t0, "<<", repr(bytes(chunk)))
-            elif type(port).__name__ == "InProcessSerial":
-                break  # an in-process twin answers at once: nothing now is nothing at all
+            elif answers_at_once:
+                break  # nothing now is nothing at all
     finally:
         if hasattr(port, "timeout"):
             port.timeout = base_timeout

@@ -397,9 +397,10 @@ def restore_world(world: World, state: dict[str, Any]) -> None:
 
 
 # ---------------------------------------------------------------------------------------- raw transports
-def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], None]]:
-    """The open serial port of the table or the chamber (or of its twin), its configured framing, and a
-    closer: for the raw console, nothing else is connected and no driver speaks on it."""
+def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], None], bool]:
+    """The open serial port of the table or the chamber (or of its twin), its configured framing, a closer,
+    and whether the port answers at once (an in-process twin): for the raw console, nothing else is connected
+    and no driver speaks on it."""
     if name not in ("table", "chamber"):
         raise ValueError(f"no serial raw console for {name!r}: table or chamber")
     bench = _Bench(cfg, None, clock="wall")
@@ -409,13 +410,14 @@ def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], 
         bench.close()
         raise
     framing = table_framing(cfg) if name == "table" else chamber_framing(cfg)
+    section = getattr(cfg, name)
 
     def close() -> None:
         try:
             port.close()
         finally:
             bench.close()
-    return port, framing, close
+    return port, framing, close, bool(section.sim and section.sim_transport == "inprocess")
 
 
 def open_raw_visa(cfg: Config) -> tuple[Any, Callable[[], None]]:
