@@ -4,8 +4,8 @@ Protocol (commands from the public EC1x command set; framing and replies assumed
 
 * host -> controller: the command text + CR LF, e.g. ``b"SET=30.00\\r\\n"``, ``b"C1?\\r\\n"``.
 * controller -> host: exactly one line per command, assumed to end CR LF; read tolerantly (CR, LF or CR LF,
-  blanks around the content) by drivers/serial_link.py, terminators settable through `Framing`. Queries answer their value
-  (``b"27.00\\r\\n"``); settings and actions (SET=, RATE=, ON, OFF, LTL=, UTL=) answer ``b"OK\\r\\n"``;
+  blanks around the content) by drivers/serial_link.py, terminators settable through `Framing`. Queries answer
+  their value (``b"27.00\\r\\n"``); settings and actions (SET=, RATE=, ON, OFF, LTL=, UTL=) answer ``b"OK\\r\\n"``;
   a refused command answers ``?`` + a reason (``b"?LIMIT\\r\\n"``).
 * STATUS? answers at least 9 Y/N flags: char 0 = power (chamber on), char 8 = ramping.
 * SET? answers the controller's current setpoint (the ramping one), not the final target.

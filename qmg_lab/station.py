@@ -153,7 +153,8 @@ def table_twin(cfg: Config, world: World) -> RateTableTwin:
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
     """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator)."""
     c = cfg.chamber
-    return ChamberTwin(world, command_end=terminator(c.command_terminator), reply_end=terminator(c.sim_reply_terminator))
+    return ChamberTwin(world, command_end=terminator(c.command_terminator),
+                       reply_end=terminator(c.sim_reply_terminator))
 
 
 def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
