@@ -86,3 +86,25 @@ def test_a_resume_adds_four_resume_snapshots(tmp_path: Path) -> None:
     assert {s["instrument"] for s in resumed} == NAMES
     assert all(s["time"] >= 30.0 for s in resumed)
     assert [e["message"] for e in events if e["kind"] == "started"] == ["new run", "resumed run"]
+
+
+def test_a_file_from_before_the_records_gets_them_when_resumed(tmp_path: Path) -> None:
+    """A run file written before /snapshots and /events existed: --resume lays them out (before SWMR) and the
+    resumed run records its four resume snapshots."""
+    text = config_text()
+
+    def stop_at_20_s(p) -> None:  # noqa: ANN001 - Progress
+        if p.run_time_s >= 20.0:
+            raise KeyboardInterrupt
+
+    first = run_inprocess(tmp_path, text, progress=stop_at_20_s)
+    assert first.error is not None
+    with h5py.File(first.path, "r+") as f:  # as an older qmg-lab wrote it
+        del f["snapshots"], f["events"]
+    second = run_inprocess(tmp_path, text, resume=True)
+    assert second.error is None, second.error
+    with h5py.File(second.path, "r", swmr=True) as f:
+        snaps = read_snapshots(f)
+        kinds = [e["kind"] for e in read_events(f)]
+    assert sorted(s["instrument"] for s in snaps) == sorted(NAMES) and {s["occasion"] for s in snaps} == {"resume"}
+    assert kinds[0] == "started" and kinds[-1] == "completed"
