@@ -1,9 +1,11 @@
 """Driver for the Ideal Aerosmith 1291BR single-axis rate table over a pyserial-like port.
 
-Protocol: the command table in drivers/aerosmith_commands.py (mnemonic + value + CR LF; one reply line ending
-CR, then the prompt line ">" CR; refusals answer "E<nn> text"). Every transaction is checked strictly: the
-value line must parse, the prompt must follow, nothing else is accepted; any deviation raises InstrumentError
-naming the command and the bytes received. Limits are checked before anything is sent (LimitError).
+Protocol: the command table in drivers/aerosmith_commands.py (mnemonic + value + CR LF; one reply line, then
+the prompt ">"; refusals answer "E<nn> text"). The framing (terminators, prompt) is a `Framing`, read tolerantly
+by drivers/serial_link.py (replies ending CR, LF or CR LF; the prompt with or without its terminator). The
+content of every transaction is checked strictly: the value line must parse, the prompt must follow, nothing
+else is accepted; any deviation raises InstrumentError naming the command and the bytes received. Limits are
+checked before anything is sent (LimitError).
 
 Sequences:
 * set_rate(r, a): ACL a, JOG r, then STA to resynchronise (and to see an interlock at once).
@@ -15,12 +17,13 @@ Sequences:
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from typing import Any
 
 from drivers import aerosmith_commands as proto
-from drivers.serial_link import SerialLink, SerialPort
+from drivers.serial_link import Framing, SerialLink, SerialPort
 from qmg_lab.instruments import (
     InstrumentError,
     InterlockError,
@@ -32,27 +35,32 @@ from qmg_lab.instruments import (
 
 MAX_SINE_FREQUENCY_HZ = 100.0
 
+log = logging.getLogger(__name__)
+
 
 class Aerosmith1291BR(RateTable):
     """The 1291BR rate table.
 
     port: an open pyserial-like port (9600 8N1 on hardware). max_rate_dps, max_accel_dps2: the station's
     limits (commands beyond them are refused before sending). port_factory: a callable that opens a new port,
-    used by reconnect().
+    used by reconnect(). framing: terminators and prompt (default proto.FRAMING: commands CR LF, replies
+    CR/LF/CR LF, prompt ">").
     """
 
     NAME = "1291BR"
 
     def __init__(self, port: SerialPort, *, max_rate_dps: float, max_accel_dps2: float,
-                 port_factory: Callable[[], SerialPort] | None = None) -> None:
+                 port_factory: Callable[[], SerialPort] | None = None, framing: Framing | None = None) -> None:
         if not (math.isfinite(max_rate_dps) and max_rate_dps > 0):
             raise ValueError(f"max_rate_dps must be a positive finite number, got {max_rate_dps!r}")
         if not (math.isfinite(max_accel_dps2) and max_accel_dps2 > 0):
             raise ValueError(f"max_accel_dps2 must be a positive finite number, got {max_accel_dps2!r}")
         self.max_rate_dps = float(max_rate_dps)
         self.max_accel_dps2 = float(max_accel_dps2)
-        self._link = SerialLink(port, name=self.NAME, command_terminator=proto.COMMAND_TERMINATOR,
-                                reply_terminator=proto.REPLY_TERMINATOR, max_reply_bytes=proto.MAX_REPLY_BYTES)
+        self.framing = framing or proto.FRAMING
+        if not self.framing.prompt:
+            raise ValueError("the 1291BR framing needs a prompt (the controller's ready prompt, e.g. '>')")
+        self._link = SerialLink(port, name=self.NAME, framing=self.framing, max_reply_bytes=proto.MAX_REPLY_BYTES)
         self._factory = port_factory
         self._mode = "rate"
         self._rate_command_dps = 0.0
@@ -63,7 +71,7 @@ class Aerosmith1291BR(RateTable):
     def _transact(self, key: str, value: float | None = None) -> Any:
         """Send one command from the table; return its parsed reply (None for prompt-only commands)."""
         cmd = proto.COMMANDS[key]
-        raw = cmd.encode(value)
+        raw = cmd.encode(value, self.framing.command_end)
         self._link.send(raw)
         result: Any = None
         line = self._link.read_line(raw)
@@ -79,10 +87,10 @@ class Aerosmith1291BR(RateTable):
             except InstrumentError as exc:
                 raise InstrumentError(f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: {exc}") from exc
             self._raise_if_error(raw, line)
-        if line.encode("ascii") + proto.REPLY_TERMINATOR != proto.PROMPT_LINE:
+        if line != self.framing.prompt:
             raise InstrumentError(
-                f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of "
-                f"{proto.PROMPT_LINE!r}")
+                f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of the prompt "
+                f"{self.framing.prompt!r}")
         return result
 
     def _raise_if_error(self, raw: bytes, line: str) -> None:
@@ -90,7 +98,7 @@ class Aerosmith1291BR(RateTable):
         if m is None:
             return
         code = int(m.group(1))
-        text = raw[: -len(proto.COMMAND_TERMINATOR)].decode("ascii")
+        text = raw[: -len(self.framing.command_end)].decode("ascii")
         # the prompt follows the error line; consume it so the link stays in step
         try:
             self._link.read_line(raw)
@@ -184,6 +192,20 @@ class Aerosmith1291BR(RateTable):
             "max_accel_dps2": self.max_accel_dps2,
         }
 
+    def snapshot(self) -> dict[str, Any]:
+        """Identity (STA liveness), settings (limits, framing, the assumed command table) and state()."""
+        return {
+            "identity": self.identify(),
+            "firmware": None,  # no public 1291BR command reports it (docs/bench-bringup.md)
+            "settings": {
+                "max_rate_dps": self.max_rate_dps, "max_accel_dps2": self.max_accel_dps2,
+                "framing": {"command_terminator": self.framing.command_terminator,
+                            "reply_terminator": self.framing.reply_terminator, "prompt": self.framing.prompt},
+                "commands": {c.key: c.mnemonic for c in proto.COMMANDS.values()},
+            },
+            "state": self.state(),
+        }
+
     def safe_state(self) -> None:
         """STO: the table decelerates to rest. Idempotent (STO at rest is accepted)."""
         self._transact("stop")
@@ -195,6 +217,7 @@ class Aerosmith1291BR(RateTable):
     def reconnect(self) -> None:
         """Close the port, open a new one with the factory, identify. Motion is not re-commanded: the
         controller keeps running its last command across a host link drop (assumed)."""
+        log.info("%s: reconnecting", self.NAME)
         self._link.reopen(self._factory)
         self.identify()
 

@@ -5,12 +5,14 @@ drivers for Ideal Aerosmith tables use (shared/reference/instruments.md) plus th
 entry's `assumption` and in docs/instruments.md. To correct the protocol from the real manual, edit this module
 only: the driver (drivers/aerosmith.py) takes mnemonics, number formats, reply parsers and status bits from here.
 
-Framing (assumed):
+Framing (assumed; the defaults of FRAMING, each settable in [table] of the configuration):
 
 * host -> table: ``<MNE><value>`` + CR LF, the value written right after the mnemonic, no space,
   e.g. ``b"JOG5.000000\\r\\n"``.
-* table -> host: zero or one reply line ending CR (``b"5.000300\\r"``), then the prompt line ``b">\\r"``.
-  Settings and actions answer the prompt only; queries answer their value line, then the prompt.
+* table -> host: zero or one reply line (``b"5.000300\\r"``), then the prompt ``>``. Settings and actions answer
+  the prompt only; queries answer their value line, then the prompt. The reply terminator is read tolerantly
+  (CR, LF or CR LF; the prompt with or without its terminator; blanks around the content): see
+  drivers/serial_link.py.
 * A command the controller refuses answers an error line ``E<nn> <text>`` (two decimal digits, a space, free
   text) ending CR, then the prompt. Error codes: see ERROR_CODES.
 """
@@ -24,9 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.serial_link import Framing
+
 COMMAND_TERMINATOR = b"\r\n"
-REPLY_TERMINATOR = b"\r"
-PROMPT_LINE = b">\r"
+PROMPT = ">"
+#: the assumed framing: commands end CR LF, replies are read tolerantly, the prompt is ">"
+FRAMING = Framing(command_terminator="CRLF", reply_terminator="auto", prompt=PROMPT)
 MAX_REPLY_BYTES = 64
 
 ERROR_LINE = re.compile(r"^E(\d{2}) (.*)$")
@@ -100,15 +105,15 @@ class TableCommand:
             raise ValueError(f"{self.mnemonic} takes no value")
         return float(self.arg_format.format(value)) if math.isfinite(value) else value
 
-    def encode(self, value: float | None = None) -> bytes:
-        """The bytes sent: mnemonic, formatted value, CR LF."""
+    def encode(self, value: float | None = None, terminator: bytes = COMMAND_TERMINATOR) -> bytes:
+        """The bytes sent: mnemonic, formatted value, the command terminator (CR LF by default)."""
         if self.arg_format is None:
             if value is not None:
                 raise ValueError(f"{self.mnemonic} takes no value")
-            return self.mnemonic.encode("ascii") + COMMAND_TERMINATOR
+            return self.mnemonic.encode("ascii") + terminator
         if value is None:
             raise ValueError(f"{self.mnemonic} needs a value ({self.unit})")
-        return (self.mnemonic + self.arg_format.format(value)).encode("ascii") + COMMAND_TERMINATOR
+        return (self.mnemonic + self.arg_format.format(value)).encode("ascii") + terminator
 
 
 _TABLE = (

@@ -3,8 +3,9 @@
 Protocol (commands from the public EC1x command set; framing and replies assumed, see docs/instruments.md):
 
 * host -> controller: the command text + CR LF, e.g. ``b"SET=30.00\\r\\n"``, ``b"C1?\\r\\n"``.
-* controller -> host: exactly one line ending CR LF per command. Queries answer their value
-  (``b"27.00\\r\\n"``); settings and actions (SET=, RATE=, ON, OFF, LTL=, UTL=) answer ``b"OK\\r\\n"``;
+* controller -> host: exactly one line per command, assumed to end CR LF; read tolerantly (CR, LF or CR LF,
+  blanks around the content) by drivers/serial_link.py, terminators settable through `Framing`. Queries answer
+  their value (``b"27.00\\r\\n"``); settings and actions (SET=, RATE=, ON, OFF, LTL=, UTL=) answer ``b"OK\\r\\n"``;
   a refused command answers ``?`` + a reason (``b"?LIMIT\\r\\n"``).
 * STATUS? answers at least 9 Y/N flags: char 0 = power (chamber on), char 8 = ramping.
 * SET? answers the controller's current setpoint (the ramping one), not the final target.
@@ -16,16 +17,17 @@ controller's own protection; the station calls it once after identify()).
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections.abc import Callable
 from typing import Any
 
-from drivers.serial_link import SerialLink, SerialPort
+from drivers.serial_link import Framing, SerialLink, SerialPort
 from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError, ThermalChamber, check_limit
 
-COMMAND_TERMINATOR = b"\r\n"
-REPLY_TERMINATOR = b"\r\n"
+#: the assumed framing: commands end CR LF, replies are read tolerantly (CR, LF or CR LF), no prompt
+FRAMING = Framing(command_terminator="CRLF", reply_terminator="auto", prompt="")
 ACK = "OK"
 ERROR_PREFIX = "?"
 SETPOINT_FORMAT = "SET={:.2f}"  # deg C
@@ -38,6 +40,8 @@ IDENTIFY_QUERY = "STATUS?"  # no identity query is public; STATUS? checks the co
 
 _FLOAT = re.compile(r"^[+-]?\d+(\.\d+)?$")
 _FLAGS = re.compile(r"^[YN]{9,32}$")
+
+log = logging.getLogger(__name__)
 
 
 def parse_temperature(text: str) -> float:
@@ -69,12 +73,14 @@ class SunEC1xChamber(ThermalChamber):
 
     port: an open pyserial-like port. min_c/max_c: setpoint limits (deg C); max_ramp_c_per_min: ramp limit;
     safe_setpoint_c: where safe_state() sends the chamber. port_factory: opens a new port for reconnect().
+    framing: terminators (default FRAMING).
     """
 
     NAME = "EC1x chamber"
 
     def __init__(self, port: SerialPort, *, min_c: float, max_c: float, max_ramp_c_per_min: float,
-                 safe_setpoint_c: float, port_factory: Callable[[], SerialPort] | None = None) -> None:
+                 safe_setpoint_c: float, port_factory: Callable[[], SerialPort] | None = None,
+                 framing: Framing | None = None) -> None:
         for name, v in (("min_c", min_c), ("max_c", max_c), ("max_ramp_c_per_min", max_ramp_c_per_min),
                         ("safe_setpoint_c", safe_setpoint_c)):
             if not math.isfinite(v):
@@ -88,15 +94,15 @@ class SunEC1xChamber(ThermalChamber):
         self.min_c, self.max_c = float(min_c), float(max_c)
         self.max_ramp_c_per_min = float(max_ramp_c_per_min)
         self.safe_setpoint_c = float(safe_setpoint_c)
-        self._link = SerialLink(port, name=self.NAME, command_terminator=COMMAND_TERMINATOR,
-                                reply_terminator=REPLY_TERMINATOR)
+        self.framing = framing or FRAMING
+        self._link = SerialLink(port, name=self.NAME, framing=self.framing)
         self._factory = port_factory
         self._target_c: float | None = None
         self._ramp_c_per_min: float | None = None
 
     # ------------------------------------------------------------------ transactions
     def _transact(self, text: str) -> str:
-        raw = text.encode("ascii") + COMMAND_TERMINATOR
+        raw = text.encode("ascii") + self.framing.command_end
         self._link.send(raw)
         line = self._link.read_line(raw)
         if line.startswith(ERROR_PREFIX):
@@ -171,6 +177,21 @@ class SunEC1xChamber(ThermalChamber):
             "safe_setpoint_c": self.safe_setpoint_c,
         }
 
+    def snapshot(self) -> dict[str, Any]:
+        """Identity (STATUS? liveness), settings (limits, ramp rate, framing) and state()."""
+        return {
+            "identity": self.identify(),
+            "firmware": None,  # no public EC1x identity query (docs/bench-bringup.md)
+            "settings": {
+                "min_c": self.min_c, "max_c": self.max_c, "max_ramp_c_per_min": self.max_ramp_c_per_min,
+                "safe_setpoint_c": self.safe_setpoint_c, "ramp_c_per_min": self.ramp_rate(),
+                "power_on": self.power_on(),
+                "framing": {"command_terminator": self.framing.command_terminator,
+                            "reply_terminator": self.framing.reply_terminator},
+            },
+            "state": self.state(),
+        }
+
     def safe_state(self) -> None:
         """SET=safe_setpoint_c, ON: the chamber goes actively to its safe setpoint at the last ramp rate."""
         self._command(SETPOINT_FORMAT.format(self.safe_setpoint_c))
@@ -181,10 +202,13 @@ class SunEC1xChamber(ThermalChamber):
         self._link.close()
 
     def reconnect(self) -> None:
-        """Close, reopen with the factory, identify, and re-send the last setpoint and ramp (harmless: the
-        controller holds them anyway)."""
+        """Close, reopen with the factory, identify, write the limits again (LTL=, UTL=: a controller that was
+        power-cycled may have lost them), and re-send the last setpoint and ramp (harmless: the controller holds
+        them anyway)."""
+        log.info("%s: reconnecting", self.NAME)
         self._link.reopen(self._factory)
         self.identify()
+        self.write_limits()
         if self._target_c is not None and self._ramp_c_per_min is not None:
             self.set_setpoint(self._target_c, self._ramp_c_per_min)
 

@@ -44,6 +44,7 @@ Vpp = k Vrms with k = 2 sqrt(2) (sine), 2 (square), 2 sqrt(3) (triangle, ramp); 
 
 from __future__ import annotations
 
+import logging
 import math
 import numbers
 import re
@@ -56,6 +57,8 @@ from pyvisa.errors import VisaIOError
 from pyvisa.resources import SerialInstrument
 
 from qmg_lab.instruments import FunctionGenerator, InstrumentError, LimitError, check_limit
+
+log = logging.getLogger(__name__)
 
 # ------------------------------------------------------------------------------------------------ protocol data
 
@@ -296,6 +299,7 @@ class DS345(FunctionGenerator):
         before, if it was read), clear the status (*CLS), then re-apply the last settings."""
         if self._reopen is None:
             raise InstrumentError("DS345 cannot reconnect: no reopen factory was given")
+        log.info("DS345: reconnecting")
         try:
             self.close()
         except InstrumentError:

@@ -14,6 +14,7 @@ device flag ``status/flags/demodsampleloss`` counts as at least one lost sample 
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,8 @@ from qmg_lab.instruments import (
     StreamTiming,
     check_limit,
 )
+
+log = logging.getLogger(__name__)
 
 PLL1_LOCKED_BIT = 1 << 20
 DEFAULT_HF2_PORT = 8005
@@ -148,6 +151,7 @@ class HF2LI(LockIn):
         """New session to the same server (same connection object for the twin), re-identify, re-apply the
         last configuration and forcer gain."""
         was_streaming, gain = self._streaming, self._forcer_gain
+        log.info("HF2LI %s: reconnecting (streaming %s)", self.device_id, was_streaming)
         self._streaming = False
         self._session = self._open_session()
         self._attach()

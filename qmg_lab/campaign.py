@@ -23,6 +23,7 @@ Fault handling (docs/reliability.md):
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -46,7 +47,10 @@ from qmg_lab.instruments import (
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import Step, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
+
+log = logging.getLogger(__name__)
 
 SAFE_STATE_ORDER = ("table", "generator", "chamber")  # the lock-in last: its stream keeps time meanwhile
 
@@ -145,6 +149,30 @@ class CampaignRunner:
         self._safe_confirmed = True
         self._step = Step(-1, "lock", 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
+        self._records = self.writer.records()
+
+    # ================================================================== run log
+    def _now(self) -> float:
+        """Run time for the log: the last sample's time (before the first block of a resumed run, where the
+        file ends)."""
+        return max(self._t, self._log_t) if self._blocks else self._offset_target
+
+    def _event(self, kind: str, instrument: str, message: str, level: int = logging.WARNING) -> None:
+        """One entry of the run's log: the module logger and the run file's /events (runfile_records.py)."""
+        log.log(level, "t=%.3f s %s %s: %s", self._now(), kind, instrument or "campaign", message)
+        try:
+            self._records.event(self._now(), kind, instrument, message)
+        except Exception as exc:  # noqa: BLE001 - the log must never stop a campaign
+            log.error("could not write the event to the run file: %s", exc)
+
+    def _snapshots(self) -> None:
+        """Each instrument's identity, firmware, settings and state into /snapshots (start and every resume)."""
+        occasion = "resume" if self.resume else "start"
+        for name, doc in station_snapshots(self.cfg, self.station).items():
+            try:
+                self._records.snapshot(self._now(), name, occasion, doc)
+            except Exception as exc:  # noqa: BLE001 - a snapshot must never stop a campaign
+                log.error("could not write the %s snapshot: %s", name, exc)
 
     # ================================================================== public
     def run(self) -> RunSummary:
@@ -205,10 +233,12 @@ class CampaignRunner:
             if self.station.restore is not None:
                 self.station.restore(state.as_dict())
         setup = lockin_setup(self.cfg, forcer_gain=self.clsf.gain_correction)
+        self._event("started", "", "resumed run" if self.resume else "new run", logging.INFO)
         self._call("lockin", lambda: self.station.lockin.configure(setup))
         timing = cast(StreamTiming, self._call("lockin", self.station.lockin.stream_timing))
         self.clsf.set_stream_timing(DemodFilter(timing.filter_order, timing.filter_tc_s), timing.auxin_window_s)
         self._dt = 1.0 / timing.rate_hz
+        self._snapshots()
         self._call("lockin", self.station.lockin.start_stream)
         if self.resume:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
@@ -240,11 +270,17 @@ class CampaignRunner:
         except Exception as exc:  # noqa: BLE001 - the stream may be the thing that failed
             failures.append(f"lockin stream: {exc}")
         self._safe_confirmed = not failures
+        self._event("safe_state", "", "confirmed" if not failures else "not confirmed: " + "; ".join(failures),
+                    logging.INFO if not failures else logging.ERROR)
         if failures and not reason:
             reason = "safe state not confirmed: " + "; ".join(failures)
             status = "aborted"
         elif failures:
             reason = reason + " (safe state not confirmed: " + "; ".join(failures) + ")"
+        if status == "completed":
+            self._event("completed", "", "every step completed", logging.INFO)
+        else:
+            self._event("interrupted" if "Ctrl-C" in reason else "abort", "", reason, logging.ERROR)
         self.writer.set_status(status, reason)
         self.writer.flush()
         return failures
@@ -272,6 +308,7 @@ class CampaignRunner:
             blocks += 1
             for name in list(pending):
                 self._reconnects += 1
+                self._event("reconnect", name, f"safe state pending: {pending[name]}", logging.INFO)
                 try:
                     insts[name].reconnect()
                     insts[name].safe_state()
@@ -363,6 +400,7 @@ class CampaignRunner:
         if self._blocks == 0 and self.resume:
             self._offset = max(0.0, self._offset_target + self._dt - float(block.time[0]))
         t = block.time + self._offset
+        self._log_t = float(t[-1])  # the run log's clock: the block being processed
         self._blocks += 1
         self._samples += n
         self._lost += block.samples_lost
@@ -426,6 +464,7 @@ class CampaignRunner:
 
     _last_locked: bool = True
     _offset_target: float = 0.0
+    _log_t: float = 0.0
     _stored_ref: float | None = None
 
     def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
@@ -440,8 +479,10 @@ class CampaignRunner:
         if new and not self._suspended:
             self._suspensions += 1
             self.clsf.hold(self._t - 1.0, math.inf)
+            self._event("suspended", "", new)
         if not new and self._suspended:
             self.clsf.release_hold(self._t + self.cfg.clsf.hold_s)
+            self._event("resumed", "", f"after: {self._suspended}", logging.INFO)
         self._suspended = new
 
     # ================================================================== faults
@@ -465,6 +506,7 @@ class CampaignRunner:
             raise
         except InstrumentError as exc:
             last = exc
+            self._event("fault", name, str(exc))
         for _ in range(self.cfg.recovery.reconnect_attempts):
             try:
                 return True, self._reconnect_and_call(name, fn), None
@@ -477,9 +519,15 @@ class CampaignRunner:
     def _reconnect_and_call(self, name: str, fn: Callable[[], object]) -> object:
         """One recovery try: close, reopen and re-verify `name` (its driver's reconnect), then fn() again."""
         self._reconnects += 1
-        self.station.instruments()[name].reconnect()
-        result = fn()
+        self._event("reconnect", name, "closing, reopening and re-verifying the link", logging.INFO)
+        try:
+            self.station.instruments()[name].reconnect()
+            result = fn()
+        except InstrumentError as exc:
+            self._event("fault", name, f"after reconnecting: {exc}")
+            raise
         self._recoveries += 1
+        self._event("recovered", name, "the call succeeded after reconnecting", logging.INFO)
         return result
 
     def _read_instrument(self, name: str, fn: Callable[[], object]) -> TableReading | ChamberReading | None:

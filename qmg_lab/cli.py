@@ -7,9 +7,10 @@ Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message namin
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -27,15 +28,20 @@ from qmg_lab.instruments import InstrumentError, LimitError, Station
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
                        "1291BR), on the bench or on simulated twins.")
-characterize_app = typer.Typer(no_args_is_help=True, help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2)")
+characterize_app = typer.Typer(no_args_is_help=True,
+                               help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2); the device: "
+                                    "resonance, ringdown, noise")
 table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
 chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
 generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
 app.add_typer(characterize_app, name="characterize")
 app.add_typer(table_app, name="table")
 app.add_typer(chamber_app, name="chamber")
+lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF2 nodes by hand")
 app.add_typer(generator_app, name="generator")
+app.add_typer(lockin_app, name="lockin")
 
+log = logging.getLogger(__name__)
 console = Console(stderr=True)
 out = Console()
 
@@ -44,6 +50,27 @@ EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
 SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+@app.callback()
+def _options(log_level: Annotated[str | None, typer.Option(
+        "--log-level", help="print the module loggers on stderr from this level: DEBUG (every serial byte), "
+                            "INFO (connections, reconnects, run events), WARNING (faults), ERROR")] = None) -> None:
+    """Options for every command."""
+    if log_level is None:
+        return
+    level = log_level.upper()
+    if level not in LOG_LEVELS:
+        _fail(EXIT_BAD_INPUT, f"--log-level {log_level!r}: one of {', '.join(LOG_LEVELS)}")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    for name in ("qmg_lab", "drivers"):
+        logger = logging.getLogger(name)
+        logger.setLevel(level)
+        logger.addHandler(handler)
 
 
 def _fail(code: int, message: str) -> NoReturn:
@@ -81,17 +108,10 @@ def _station(cfg: Config) -> Iterator[Station]:
         station.close()
 
 
-@contextmanager
-def _bring_up(config: Path, sim: bool) -> Iterator[Station]:
-    cfg, _ = _load(config, sim)
-    with _station(cfg) as st:
-        try:
-            yield st
-        except LimitError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        except InstrumentError as exc:
-            st.safe_state()
-            _fail(EXIT_FAULT, str(exc))
+def instrument_modes(cfg: Config) -> str:
+    """Root attribute instrument_modes: JSON {"lockin": "twin" | "hardware", ...}, one entry per instrument."""
+    return json.dumps({n: "twin" if getattr(cfg, n).sim else "hardware"
+                       for n in ("lockin", "generator", "table", "chamber")})
 
 
 # ====================================================================================== check
@@ -199,7 +219,8 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
     except LimitError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
-    mode = "sim" if cfg.all_sim else ("hardware" if not cfg.any_sim else "mixed")
+    # the contract's mode: "sim" only when every instrument is a twin; which ones were is in instrument_modes
+    mode = "sim" if cfg.all_sim else "hardware"
     try:
         if resume is not None:
             if output is not None and output.resolve() != resume.resolve():
@@ -217,11 +238,13 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
                                       t0_unix=datetime.now(UTC).timestamp(),
                                       flush_interval_s=cfg.storage.flush_interval_s,
                                       compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-                                      truth=cfg.lockin.sim)
+                                      truth=cfg.lockin.sim,
+                                      extra_attrs={"instrument_modes": instrument_modes(cfg)})
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:
         _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+    log.info("run file %s; instruments %s", writer.path, instrument_modes(cfg))
     view = ProgressView(console, enabled=not quiet)
     try:
         with _station(cfg) as station, view:
@@ -261,19 +284,28 @@ def _print_summary(summary: Any) -> None:
 # ====================================================================================== instruments
 @app.command()
 def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
-    """Connect every instrument, identify it and show its state."""
+    """Connect each instrument on its own, identify it and show its state; exit 3 if any failed."""
+    from qmg_lab.station import INSTRUMENT_NAMES, connect_instrument
+
     cfg, _ = _load(config, sim)
     report: dict[str, dict[str, Any]] = {}
-    with _station(cfg) as st:
-        for name, inst in st.instruments().items():
-            entry: dict[str, Any] = {"simulated": bool(st.simulated.get(name, False))}
-            try:
-                entry["identity"] = inst.identify()
-                entry["state"] = inst.state()
-                entry["ok"] = True
-            except InstrumentError as exc:
-                entry.update(identity=None, ok=False, error=str(exc))
+    for name in INSTRUMENT_NAMES:
+        entry: dict[str, Any] = {"simulated": bool(getattr(cfg, name).sim)}
+        try:
+            conn = connect_instrument(cfg, name)
+        except (InstrumentError, OSError) as exc:
+            entry.update(identity=None, state=None, ok=False, error=f"could not connect: {exc}")
             report[name] = entry
+            continue
+        try:
+            entry["identity"] = conn.instrument.identify()
+            entry["state"] = conn.instrument.state()
+            entry["ok"] = True
+        except InstrumentError as exc:
+            entry.update(identity=entry.get("identity"), state=None, ok=False, error=str(exc))
+        finally:
+            conn.close()
+        report[name] = entry
     if json_out:
         out.print_json(json.dumps(report, default=str))
     else:
@@ -284,8 +316,10 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
             state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
             tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
         out.print(tbl)
-    if not all(e["ok"] for e in report.values()):
-        raise typer.Exit(EXIT_FAULT)
+    failed = [n for n, e in report.items() if not e["ok"]]
+    if failed:
+        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})"
+                                                                        for n in failed))
 
 
 # ====================================================================================== characterize
@@ -392,64 +426,6 @@ def analyze(
             out.print(f"figure: {p}")
 
 
-# ====================================================================================== bring-up
-def _manual(config: Path, sim: bool, action: Callable[[Station], str]) -> None:
-    with _bring_up(config, sim) as st:
-        out.print(action(st))
-
-
-@table_app.command("rate")
-def table_rate(config: ConfigArg, rate_dps: Annotated[float, typer.Argument(help="deg/s")],
-               accel_dps2: Annotated[float, typer.Option("--accel", help="deg/s^2")] = 100.0,
-               sim: SimOpt = False) -> None:
-    """Rate mode: ramp to RATE_DPS."""
-    def act(st: Station) -> str:
-        st.table.set_rate(rate_dps, accel_dps2)
-        r = st.table.read()
-        return f"table commanded to {rate_dps:g} deg/s at {accel_dps2:g} deg/s^2; now {r.rate_dps:.4f} deg/s"
-    _manual(config, sim, act)
-
-
-@table_app.command("stop")
-def table_stop(config: ConfigArg, sim: SimOpt = False) -> None:
-    """Decelerate the table to rest."""
-    def act(st: Station) -> str:
-        st.table.stop()
-        return "table stopping"
-    _manual(config, sim, act)
-
-
-@chamber_app.command("setpoint")
-def chamber_setpoint(config: ConfigArg, setpoint_c: Annotated[float, typer.Argument(help="deg C")],
-                     ramp_c_per_min: Annotated[float, typer.Option("--ramp", help="deg C/min")] = 1.0,
-                     sim: SimOpt = False) -> None:
-    """Ramp the chamber to SETPOINT_C."""
-    def act(st: Station) -> str:
-        st.chamber.set_setpoint(setpoint_c, ramp_c_per_min)
-        r = st.chamber.read()
-        return f"chamber setpoint {setpoint_c:g} degC at {ramp_c_per_min:g} degC/min; air {r.temperature_c:.2f} degC"
-    _manual(config, sim, act)
-
-
-@generator_app.command("square")
-def generator_square(config: ConfigArg, frequency_hz: Annotated[float, typer.Argument(help="Hz")],
-                     amplitude_vpp: Annotated[float, typer.Argument(help="Vpp")], sim: SimOpt = False) -> None:
-    """DS345 square wave."""
-    def act(st: Station) -> str:
-        st.generator.set_square(frequency_hz, amplitude_vpp, 0.0)
-        return f"DS345 square {frequency_hz:g} Hz {amplitude_vpp:g} Vpp"
-    _manual(config, sim, act)
-
-
-@generator_app.command("mute")
-def generator_mute(config: ConfigArg, sim: SimOpt = False) -> None:
-    """DS345 amplitude to zero (AMPL 0VP: it has no output switch)."""
-    def act(st: Station) -> str:
-        st.generator.mute()
-        return "DS345 muted"
-    _manual(config, sim, act)
-
-
 @app.command()
 def version() -> None:
     """Print the version."""
@@ -461,3 +437,7 @@ def main() -> None:  # pragma: no cover - console entry
         app()
     except KeyboardInterrupt:
         sys.exit(EXIT_INTERRUPTED)
+
+
+# the bring-up and device-tuning commands live in their own modules; importing them registers them
+from qmg_lab import cli_bench, cli_device  # noqa: E402,F401

@@ -29,6 +29,8 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True)
 
 
+Terminator = Literal["CR", "LF", "CRLF"]
+ReplyTerminator = Literal["auto", "CR", "LF", "CRLF"]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -220,6 +222,17 @@ class TableSection(_Section):
     sim_transport: Literal["inprocess", "pty", "socket"] = Field(
         "inprocess", description="twin only: how the driver reaches the twin"
     )
+    # framing (unconfirmed for the 1291BR: docs/bench-bringup.md says how to set it from the manual)
+    command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
+    reply_terminator: ReplyTerminator = Field(
+        "auto", description="ends every reply line: auto (CR, LF or CR LF, each accepted), or exactly CR, LF, CRLF"
+    )
+    prompt: str = Field(">", min_length=1, max_length=8, pattern=r"^[!-~]+$",
+                        description="the controller's ready prompt after every reply")
+    sim_reply_terminator: Terminator = Field("CR", description="twin only: how the twin ends its reply lines")
+    sim_prompt_terminator: Literal["CR", "LF", "CRLF", "none"] = Field(
+        "CR", description="twin only: what follows the twin's prompt (none = a bare prompt)"
+    )
 
 
 class ChamberSection(_Section):
@@ -234,6 +247,12 @@ class ChamberSection(_Section):
     max_ramp_c_per_min: float = Field(5.0, gt=0.0, le=50.0)
     safe_setpoint_c: float = Field(25.0, ge=-100.0, le=200.0, description="setpoint in the safe state")
     sim_transport: Literal["inprocess", "pty", "socket"] = Field("inprocess")
+    # framing (unconfirmed for the EC1x: docs/bench-bringup.md says how to set it from the manual)
+    command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
+    reply_terminator: ReplyTerminator = Field(
+        "auto", description="ends every reply line: auto (CR, LF or CR LF, each accepted), or exactly CR, LF, CRLF"
+    )
+    sim_reply_terminator: Terminator = Field("CRLF", description="twin only: how the twin ends its reply lines")
 
     @model_validator(mode="after")
     def _limits_ordered(self) -> ChamberSection:

@@ -140,6 +140,15 @@ class Instrument(abc.ABC):
         """Close and reopen the transport, re-verify identity and restore settings. Default: not supported."""
         raise InstrumentError(f"{type(self).__name__} cannot reconnect")
 
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-serialisable record for the run file (like a QCoDeS snapshot): identity, firmware, the
+        driver's settings (limits, framing, ...) and state(). Drivers add what they know; the default has
+        identity and state, and the firmware as far as an IEEE 488.2 identity string says (4th field)."""
+        identity = self.identify()
+        fields = [f.strip() for f in identity.split(",")]
+        return {"identity": identity, "firmware": fields[3] if len(fields) == 4 else None, "settings": {},
+                "state": self.state()}
+
 
 class LockIn(Instrument):
     """The HF2LI closing the gyroscope's loops and streaming the demodulators."""

@@ -7,12 +7,17 @@ ports, or to the twins through zhinst's Session(connection=twin), a VISA-like tw
 
 World clock: when the lock-in is simulated its polls advance the world (virtual time, a campaign simulates in
 seconds). When only the table, chamber or generator are twins (bring-up one instrument at a time) the world
-follows the wall clock.
+follows the wall clock. A mixed bench with the lock-in twin and at least one real instrument runs in real
+time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), so that a 60 s dwell lasts
+60 s on the real table too.
 """
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import pyvisa
@@ -23,19 +28,23 @@ from drivers.aerosmith import Aerosmith1291BR
 from drivers.chamber import SunEC1xChamber
 from drivers.ds345 import DS345
 from drivers.hf2li import HF2LI
+from drivers.serial_link import Framing
 from qmg_lab.config import Config
-from qmg_lab.instruments import InstrumentError, Station, TruthBlock, TruthSource
+from qmg_lab.instruments import Instrument, InstrumentError, Station, TruthBlock, TruthSource
 from sims.chamber_twin import ChamberTwin
 from sims.ds345_twin import DS345Twin
 from sims.faults import FaultInjector, FaultPlan
 from sims.gyro_params import GyroParams
 from sims.hf2_loops import HF2Wiring
 from sims.hf2_server import HF2DataServerTwin
-from sims.serial_twin import InProcessSerial, serve_pty, serve_socket
+from sims.serial_twin import InProcessSerial, serve_pty, serve_socket, terminator
 from sims.table_twin import RateTableTwin
 from sims.world import World, WorldParams
 
 SIM_DEVICE_ID = "dev1234"
+INSTRUMENT_NAMES = ("lockin", "generator", "table", "chamber")
+
+log = logging.getLogger(__name__)
 
 
 class _WorldTruth(TruthSource):
@@ -51,7 +60,9 @@ class _WorldTruth(TruthSource):
         return TruthBlock(time=rec.time, scale_factor=rec.scale_factor, temperature=rec.temperature, rate=rec.rate)
 
 
-def make_world(cfg: Config) -> World:
+def make_world(cfg: Config, clock: str | None = None) -> World:
+    """The twins' shared world from [sim]. clock: "virtual" (the lock-in twin's polls advance it) or "wall";
+    default virtual when the lock-in is a twin."""
     s = cfg.sim
     params = WorldParams(chamber_time_constant_s=s.chamber_time_constant_s, thermal_lag_s=s.thermal_lag_s,
                          initial_temperature_c=s.initial_temperature_c,
@@ -60,7 +71,7 @@ def make_world(cfg: Config) -> World:
                          ds345_timebase_wander_ppm=s.ds345_timebase_wander_ppm,
                          ds345_timebase_wander_period_s=s.ds345_timebase_wander_period_s,
                          ds345_command_latency_s=s.ds345_command_latency_s)
-    return World(params, clock="virtual" if cfg.lockin.sim else "wall")
+    return World(params, clock=clock or ("virtual" if cfg.lockin.sim else "wall"))
 
 
 def gyro_params(cfg: Config) -> GyroParams:
@@ -122,74 +133,245 @@ def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], A
     return open_resource
 
 
+# ---------------------------------------------------------------------------------------- config -> driver
+def table_framing(cfg: Config) -> Framing:
+    """[table] command_terminator, reply_terminator, prompt -> the 1291BR driver's Framing."""
+    t = cfg.table
+    return Framing(command_terminator=t.command_terminator, reply_terminator=t.reply_terminator, prompt=t.prompt)
+
+
+def chamber_framing(cfg: Config) -> Framing:
+    """[chamber] command_terminator, reply_terminator -> the EC1x driver's Framing (no prompt)."""
+    c = cfg.chamber
+    return Framing(command_terminator=c.command_terminator, reply_terminator=c.reply_terminator, prompt="")
+
+
+def table_twin(cfg: Config, world: World) -> RateTableTwin:
+    """The 1291BR twin, framed as [table] says (command terminator, sim_reply_terminator, sim_prompt_terminator)."""
+    t = cfg.table
+    return RateTableTwin(world, command_end=terminator(t.command_terminator),
+                         reply_end=terminator(t.sim_reply_terminator),
+                         prompt_end=b"" if t.sim_prompt_terminator == "none" else terminator(t.sim_prompt_terminator))
+
+
+def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
+    """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator)."""
+    c = cfg.chamber
+    return ChamberTwin(world, command_end=terminator(c.command_terminator),
+                       reply_end=terminator(c.sim_reply_terminator))
+
+
+def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
+    """The HF2LI driver on a session (to the data server or to the twin), with the [lockin] wiring and the
+    AuxOut value of its safe state (lockin.output_safe_v)."""
+    return HF2LI(session, device_id, wiring=cfg.lockin, output_safe_v=cfg.lockin.output_safe_v)
+
+
+def table_driver(cfg: Config, open_port: Callable[[], Any]) -> Aerosmith1291BR:
+    """The 1291BR driver on a newly opened port, with the [table] limits and framing."""
+    t = cfg.table
+    return Aerosmith1291BR(open_port(), max_rate_dps=t.max_rate_dps, max_accel_dps2=t.max_accel_dps2,
+                           port_factory=open_port, framing=table_framing(cfg))
+
+
+def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
+    """The EC1x driver on a newly opened port: identified, then the [chamber] min_c/max_c written to the
+    controller as its own limits (LTL=, UTL=), so that the controller refuses a setpoint outside them even if
+    the host goes wrong."""
+    c = cfg.chamber
+    chamber = SunEC1xChamber(open_port(), min_c=c.min_c, max_c=c.max_c, max_ramp_c_per_min=c.max_ramp_c_per_min,
+                             safe_setpoint_c=c.safe_setpoint_c, port_factory=open_port,
+                             framing=chamber_framing(cfg))
+    try:
+        chamber.identify()
+        chamber.write_limits()
+    except InstrumentError:
+        chamber.close()
+        raise
+    return chamber
+
+
+def generator_driver(cfg: Config, open_resource: Callable[[], Any]) -> DS345:
+    """The DS345 driver on a newly opened VISA resource, with the [generator] amplitude limit."""
+    return DS345(open_resource(), max_amplitude_vpp=cfg.generator.max_amplitude_vpp, reopen=open_resource)
+
+
+# ---------------------------------------------------------------------------------------- one bench
+class _Bench:
+    """What the instruments of one configuration share: the twins' world, the fault injector and the closers
+    of the twins' pty/socket servers. Each instrument is connected on its own (`connect(name)`)."""
+
+    def __init__(self, cfg: Config, world: World | None, clock: str | None = None) -> None:
+        self.cfg = cfg
+        if world is None and cfg.any_sim:
+            world = make_world(cfg, clock)
+        self.world = world
+        self.closers: list[Callable[[], None]] = []
+        plan = fault_plan(cfg)
+        self.faults = FaultInjector(world, plan) if world is not None and plan.any else None
+
+    def connect(self, name: str) -> Instrument:
+        """Connect the instrument `name` (real or twin as the configuration says); InstrumentError if it cannot."""
+        log.info("connecting %s (%s)", name, "twin" if getattr(self.cfg, name).sim else "hardware")
+        try:
+            return getattr(self, f"_{name}")()
+        except (OSError, ValueError) as exc:
+            raise InstrumentError(f"{name}: {exc}") from exc
+
+    def _lockin(self) -> HF2LI:
+        lk, world, faults = self.cfg.lockin, self.world, self.faults
+        if lk.sim:
+            assert world is not None
+            twin = HF2DataServerTwin(world, gyro_params(self.cfg), self.cfg.sim.seed, hf2_wiring(self.cfg),
+                                     device_id=SIM_DEVICE_ID, host=lk.host, port=lk.port,
+                                     rate_set=self.cfg.sim.hf2_rate_set)
+            if faults is not None:
+                faults.attach_hf2(twin)
+            connection: Any = twin if self.cfg.all_sim else RealTimePacedConnection(twin, world)
+            return lockin_driver(self.cfg, Session(lk.host, lk.port, hf2=True, connection=connection),
+                                 SIM_DEVICE_ID)
+        return lockin_driver(self.cfg, hf2_session(self.cfg), lk.device)
+
+    def _generator(self) -> DS345:
+        g, world, faults = self.cfg.generator, self.world, self.faults
+        if g.sim:
+            assert world is not None
+            ds_twin = DS345Twin(world)
+            open_gen: Callable[[], Any] = lambda: ds_twin.resource(g.resource)  # noqa: E731
+            if faults is not None:
+                faults.attach_ds345(ds_twin)
+                open_gen = faults.visa_link("generator", open_gen)
+        else:
+            open_gen = _visa_opener(g.resource, g.visa_backend, g.timeout_ms)
+        return generator_driver(self.cfg, open_gen)
+
+    def _table(self) -> Aerosmith1291BR:
+        return table_driver(self.cfg, self.table_port())
+
+    def _chamber(self) -> SunEC1xChamber:
+        return chamber_driver(self.cfg, self.chamber_port())
+
+    def table_port(self) -> Callable[[], Any]:
+        t = self.cfg.table
+        if t.sim:
+            assert self.world is not None
+            return _twin_port(_faulty(self.faults, "table", table_twin(self.cfg, self.world)), t.sim_transport,
+                              t.baudrate, t.timeout_s, self.closers)
+        return _serial_port(t.port, t.baudrate, t.timeout_s)
+
+    def chamber_port(self) -> Callable[[], Any]:
+        c = self.cfg.chamber
+        if c.sim:
+            assert self.world is not None
+            return _twin_port(_faulty(self.faults, "chamber", chamber_twin(self.cfg, self.world)), c.sim_transport,
+                              c.baudrate, c.timeout_s, self.closers)
+        return _serial_port(c.port, c.baudrate, c.timeout_s)
+
+    def close(self) -> None:
+        for stop in self.closers:
+            try:
+                stop()
+            except Exception:  # noqa: BLE001 - stop every server
+                pass
+        self.closers.clear()
+
+
+class RealTimePacedConnection:
+    """The HF2 twin's data-server connection, paced to the wall clock (a mixed bench: real instruments beside
+    the lock-in twin must see real time). `poll(recording_time_s, ...)` advances the twin's world as usual,
+    then returns only once that much wall time has passed since the first poll; every other call goes to the
+    twin unchanged."""
+
+    def __init__(self, twin: HF2DataServerTwin, world: World) -> None:
+        self._twin = twin
+        self._world = world
+        self._wall0: float | None = None
+
+    def poll(self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False,
+             group_id: int = 1) -> dict:
+        if self._wall0 is None:
+            self._wall0 = time.monotonic() - self._world.t
+        data = self._twin.poll(recording_time_s, timeout_ms, flags, flat, group_id)
+        lag = self._world.t - (time.monotonic() - self._wall0)
+        if lag > 0:
+            time.sleep(lag)  # real time, as a data server answers
+        return data
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._twin, name)
+
+
+def hf2_session(cfg: Config) -> Session:
+    """A zhinst-toolkit session to the real HF2 data server at [lockin] host:port."""
+    lk = cfg.lockin
+    try:
+        return Session(lk.host, lk.port, hf2=True)
+    except (RuntimeError, OSError) as exc:
+        raise InstrumentError(f"cannot reach the HF2 data server at {lk.host}:{lk.port}: {exc}") from exc
+
+
+@dataclass
+class Connected:
+    """One instrument connected on its own (bring-up): close() releases it and whatever twin serves it."""
+
+    name: str
+    instrument: Instrument
+    simulated: bool
+    _bench: _Bench
+
+    def close(self) -> None:
+        try:
+            self.instrument.close()
+        finally:
+            self._bench.close()
+
+
+def connect_instrument(cfg: Config, name: str, world: World | None = None) -> Connected:
+    """Connect only the instrument `name` ("lockin", "generator", "table" or "chamber"); nothing else is
+    touched, so a bench where only that instrument is cabled can bring it up. A twin that is not the lock-in
+    runs on the wall clock (nothing else advances its world)."""
+    if name not in INSTRUMENT_NAMES:
+        raise ValueError(f"unknown instrument {name!r}; one of {', '.join(INSTRUMENT_NAMES)}")
+    bench = _Bench(cfg, world, clock=None if name == "lockin" else "wall")
+    try:
+        inst = bench.connect(name)
+    except BaseException:
+        bench.close()
+        raise
+    return Connected(name=name, instrument=inst, simulated=bool(getattr(cfg, name).sim), _bench=bench)
+
+
 def build_station(cfg: Config, world: World | None = None) -> Station:
     """Connect every instrument of the configuration (twins where `sim = true`). `world`: the twins' shared
-    world (default: a new one from [sim]; tests pass their own to look at the physical state)."""
-    if world is None and cfg.any_sim:
-        world = make_world(cfg)
-    closers: list[Callable[[], None]] = []
-    plan = fault_plan(cfg)
-    faults = FaultInjector(world, plan) if world is not None and plan.any else None
-
-    # lock-in
+    world (default: a new one from [sim]; tests pass their own to look at the physical state). If one
+    instrument cannot be connected, those already connected are closed and the InstrumentError names it."""
+    bench = _Bench(cfg, world)
+    world = bench.world
+    connected: dict[str, Instrument] = {}
+    try:
+        for name in INSTRUMENT_NAMES:
+            try:
+                connected[name] = bench.connect(name)
+            except InstrumentError as exc:
+                raise InstrumentError(f"{name}: {exc}") from exc
+    except BaseException:
+        for inst in connected.values():
+            try:
+                inst.close()
+            except Exception:  # noqa: BLE001 - close everything
+                pass
+        bench.close()
+        raise
     lk = cfg.lockin
-    if lk.sim:
-        assert world is not None
-        twin = HF2DataServerTwin(world, gyro_params(cfg), cfg.sim.seed, hf2_wiring(cfg), device_id=SIM_DEVICE_ID,
-                                 host=lk.host, port=lk.port, rate_set=cfg.sim.hf2_rate_set)
-        if faults is not None:
-            faults.attach_hf2(twin)
-        session = Session(lk.host, lk.port, hf2=True, connection=twin)
-        device_id = SIM_DEVICE_ID
-    else:
-        try:
-            session = Session(lk.host, lk.port, hf2=True)
-        except RuntimeError as exc:
-            raise InstrumentError(f"cannot reach the HF2 data server at {lk.host}:{lk.port}: {exc}") from exc
-        device_id = lk.device
-    lockin = HF2LI(session, device_id, wiring=lk)
-
-    # generator
-    g = cfg.generator
-    if g.sim:
-        assert world is not None
-        ds_twin = DS345Twin(world)
-        open_gen: Callable[[], Any] = lambda: ds_twin.resource(g.resource)  # noqa: E731
-        if faults is not None:
-            faults.attach_ds345(ds_twin)
-            open_gen = faults.visa_link("generator", open_gen)
-    else:
-        open_gen = _visa_opener(g.resource, g.visa_backend, g.timeout_ms)
-    generator = DS345(open_gen(), max_amplitude_vpp=g.max_amplitude_vpp, reopen=open_gen)
-
-    # table
-    t = cfg.table
-    if t.sim:
-        assert world is not None
-        open_table = _twin_port(_faulty(faults, "table", RateTableTwin(world)), t.sim_transport, t.baudrate,
-                                t.timeout_s, closers)
-    else:
-        open_table = _serial_port(t.port, t.baudrate, t.timeout_s)
-    table = Aerosmith1291BR(open_table(), max_rate_dps=t.max_rate_dps, max_accel_dps2=t.max_accel_dps2,
-                            port_factory=open_table)
-
-    # chamber
-    c = cfg.chamber
-    if c.sim:
-        assert world is not None
-        open_chamber = _twin_port(_faulty(faults, "chamber", ChamberTwin(world)), c.sim_transport, c.baudrate,
-                                  c.timeout_s, closers)
-    else:
-        open_chamber = _serial_port(c.port, c.baudrate, c.timeout_s)
-    chamber = SunEC1xChamber(open_chamber(), min_c=c.min_c, max_c=c.max_c, max_ramp_c_per_min=c.max_ramp_c_per_min,
-                             safe_setpoint_c=c.safe_setpoint_c, port_factory=open_chamber)
-
-    station = Station(lockin=lockin, generator=generator, table=table, chamber=chamber,
-                      simulated={"lockin": lk.sim, "generator": g.sim, "table": t.sim, "chamber": c.sim},
+    station = Station(lockin=connected["lockin"], generator=connected["generator"],  # type: ignore[arg-type]
+                      table=connected["table"], chamber=connected["chamber"],  # type: ignore[arg-type]
+                      simulated={n: bool(getattr(cfg, n).sim) for n in INSTRUMENT_NAMES},
                       truth=_WorldTruth(world) if (world is not None and lk.sim) else None,
                       restore=(lambda state: restore_world(world, state)) if world is not None else None)
-    station.poll_interval_s = lk.sim_poll_interval_s if lk.sim else lk.poll_interval_s
-    station.on_close.extend(closers)
+    # a paced twin (mixed bench) polls like the hardware: short blocks in real time
+    station.poll_interval_s = lk.sim_poll_interval_s if (lk.sim and cfg.all_sim) else lk.poll_interval_s
+    station.on_close.append(bench.close)
+    faults = bench.faults
     if faults is not None:
         station.injected_faults = lambda: [e.as_dict() for e in faults.events]
     return station
@@ -218,3 +400,50 @@ def restore_world(world: World, state: dict[str, Any]) -> None:
             world.chamber.air_c = float(air)
         if gyro is not None:
             world.chamber.gyro_c = float(gyro)
+
+
+# ---------------------------------------------------------------------------------------- raw transports
+def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], None], bool]:
+    """The open serial port of the table or the chamber (or of its twin), its configured framing, a closer,
+    and whether the port answers at once (an in-process twin): for the raw console, nothing else is connected
+    and no driver speaks on it."""
+    if name not in ("table", "chamber"):
+        raise ValueError(f"no serial raw console for {name!r}: table or chamber")
+    bench = _Bench(cfg, None, clock="wall")
+    try:
+        port = (bench.table_port() if name == "table" else bench.chamber_port())()
+    except BaseException:
+        bench.close()
+        raise
+    framing = table_framing(cfg) if name == "table" else chamber_framing(cfg)
+    section = getattr(cfg, name)
+
+    def close() -> None:
+        try:
+            port.close()
+        finally:
+            bench.close()
+    return port, framing, close, bool(section.sim and section.sim_transport == "inprocess")
+
+
+def open_raw_visa(cfg: Config) -> tuple[Any, Callable[[], None]]:
+    """The DS345's VISA resource (or its twin's), with the driver's terminations and serial framing set."""
+    conn = connect_instrument(cfg, "generator")
+    return conn.instrument.resource, conn.close  # type: ignore[attr-defined]
+
+
+def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:
+    """The HF2 data-server connection (zhinst ziDAQServer, or the twin itself) and the device id."""
+    lk = cfg.lockin
+    if lk.sim:
+        world = make_world(cfg)
+        twin = HF2DataServerTwin(world, gyro_params(cfg), cfg.sim.seed, hf2_wiring(cfg), device_id=SIM_DEVICE_ID,
+                                 host=lk.host, port=lk.port, rate_set=cfg.sim.hf2_rate_set)
+        twin.connectDevice(SIM_DEVICE_ID, "USB")
+        return twin, SIM_DEVICE_ID, lambda: None
+    session = hf2_session(cfg)
+    try:
+        session.connect_device(lk.device)
+    except Exception as exc:  # noqa: BLE001 - zhinst raises RuntimeError and its own kinds
+        raise InstrumentError(f"the HF2 data server does not know device {lk.device}: {exc}") from exc
+    return session.daq_server, lk.device, lambda: None

@@ -59,6 +59,7 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
     _text,
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
+from qmg_lab.runfile_records import RunRecords, create_groups
 
 __all__ = ["RunWriter", "ResumeState", "StorageError", "RunData", "read_run", "read_window", "writer_flags_set",
            "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
@@ -189,6 +190,7 @@ class RunWriter:
                 ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS["steps"],))
                 ds.attrs["units"] = STEPS_UNITS[col]
                 ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
+            create_groups(h5)  # /snapshots, /events (qmg_lab/runfile_records.py): laid out before SWMR
             h5.flush()
             h5.swmr_mode = True
         except BaseException:
@@ -254,6 +256,7 @@ class RunWriter:
             h5.attrs["resume_count"] = int(h5.attrs.get("resume_count", 0)) + 1
             h5.attrs["writer_pid"] = os.getpid()
             h5.attrs["writer_host"] = socket.gethostname()
+            create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
             h5.flush()
             h5.swmr_mode = True
         except BaseException:
@@ -329,6 +332,11 @@ class RunWriter:
         """Last /lockin/time appended (buffered or stored), s; 0.0 if none: a resumed run continues after it."""
         t = self._last_time.get("lockin", -np.inf)
         return float(t) if np.isfinite(t) else 0.0
+
+    def records(self) -> RunRecords:
+        """The /snapshots and /events writer of this file (qmg_lab/runfile_records.py)."""
+        self._check_open()
+        return RunRecords(self._h5, self.path)
 
     def set_clsf_reference(self, rho_ref: float) -> None:
         """Store the CLSF reference level rho_0 (root attr clsf_reference): a resumed run keeps its reference."""

@@ -14,6 +14,8 @@ It plays the instrument (no code shared with the driver) against the shared Worl
 * SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on; the
   stored SET= value while off. STATUS? is 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping
   (on and the setpoint has not reached the target), the rest N.
+* framing options (the real framing is unconfirmed): `command_end` (CR LF by default; CR or LF) and
+  `reply_end` (CR LF by default; CR or LF).
 """
 
 from __future__ import annotations
@@ -37,7 +39,11 @@ class ChamberTwin(FaultableTwin):
     """The EC1x controller. hardware_min_c/hardware_max_c: the controller's own range; max_ramp_c_per_min."""
 
     def __init__(self, world: World, *, hardware_min_c: float = -70.0, hardware_max_c: float = 180.0,
-                 max_ramp_c_per_min: float = 60.0) -> None:
+                 max_ramp_c_per_min: float = 60.0, command_end: bytes = b"\r\n",
+                 reply_end: bytes = REPLY_END) -> None:
+        if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
+            raise ValueError("command_end and reply_end must be CR, LF or CR LF")
+        self.command_end, self.reply_end = command_end, reply_end
         self.world = world
         self.hardware_min_c = float(hardware_min_c)
         self.hardware_max_c = float(hardware_max_c)
@@ -56,10 +62,10 @@ class ChamberTwin(FaultableTwin):
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
         try:
-            if not line.endswith(b"\r"):
+            if not self.command_complete(line):
                 raise _Refused("FRAMING")
             try:
-                text = line[:-1].decode("ascii")
+                text = self.command_text(line).decode("ascii")
             except UnicodeDecodeError:
                 raise _Refused("UNKNOWN COMMAND") from None
             with self.world.lock:
@@ -67,7 +73,7 @@ class ChamberTwin(FaultableTwin):
                 answer = self._dispatch(text)
         except _Refused as r:
             answer = f"?{r}"
-        return answer.encode("ascii") + REPLY_END
+        return answer.encode("ascii") + self.reply_end
 
     def _dispatch(self, text: str) -> str:
         if text in self._queries:

@@ -289,6 +289,7 @@ class _SerialGate:
 
     def __init__(self, injector: FaultInjector, name: str, twin: Any) -> None:
         self.injector, self.name, self.twin = injector, name, twin
+        self.line_end = getattr(twin, "line_end", b"\n")  # the port splits command lines as the twin does
 
     def respond(self, line: bytes) -> bytes:
         if self.injector.link_down(self.name):

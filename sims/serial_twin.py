@@ -1,8 +1,9 @@
 """Serial plumbing for the byte-level twins: in-process port, pty server, loopback TCP server.
 
-A twin is a `LineTwin`: `respond(line) -> bytes` takes one received command line (the bytes before LF, CR
-included if sent) and returns the bytes the instrument writes back. Framing into lines is per connection
-(`LineFramer`), so one twin can serve several connections. Three ways to reach a twin:
+A twin is a `LineTwin`: `respond(line) -> bytes` takes one received command line (the bytes before the twin's
+`line_end` byte, LF unless the twin's commands end CR; a CR before an LF is included) and returns the bytes the
+instrument writes back. Framing into lines is per connection (`LineFramer`), so one twin can serve several
+connections. Three ways to reach a twin:
 
 1. `InProcessSerial(twin)`: the pyserial `Serial` methods drivers use, no thread, no OS buffer. A reply is
    available as soon as the command's LF is written; a read that finds no terminator returns what there is at
@@ -37,18 +38,26 @@ class LineTwin(Protocol):
     def respond(self, line: bytes) -> bytes: ...
 
 
-class LineFramer:
-    """Split a byte stream into LF-terminated lines. An over-long line (> MAX_LINE_BYTES without LF) is
-    passed on as it is, so that the twin answers it with its framing error, and the buffer restarts."""
+def line_end(twin: object) -> bytes:
+    """The byte that ends a command line for `twin` (its `line_end` attribute; LF by default)."""
+    end = getattr(twin, "line_end", b"\n")
+    return end if isinstance(end, bytes) and len(end) == 1 else b"\n"
 
-    def __init__(self) -> None:
+
+class LineFramer:
+    """Split a byte stream into lines ending with `end` (one byte, LF by default). An over-long line
+    (> MAX_LINE_BYTES without `end`) is passed on as it is, so that the twin answers it with its framing error,
+    and the buffer restarts."""
+
+    def __init__(self, end: bytes = b"\n") -> None:
         self._buf = bytearray()
+        self._end = end
 
     def feed(self, data: bytes) -> list[bytes]:
         self._buf.extend(data)
         lines: list[bytes] = []
         while True:
-            i = self._buf.find(b"\n")
+            i = self._buf.find(self._end)
             if i < 0:
                 break
             lines.append(bytes(self._buf[:i]))
@@ -71,7 +80,7 @@ class InProcessSerial:
         self.port = port
         self.timeout = timeout  # kept for API compatibility; reads never wait
         self.baudrate = 9600
-        self._framer = LineFramer()
+        self._framer = LineFramer(line_end(twin))
         self._rx = bytearray()
         self._open = True
 
@@ -82,7 +91,7 @@ class InProcessSerial:
 
     def open(self) -> None:
         self._open = True
-        self._framer = LineFramer()
+        self._framer = LineFramer(line_end(self.twin))
         self._rx.clear()
 
     def close(self) -> None:
@@ -181,7 +190,7 @@ class _PtyServer(_Server):
         self.path = os.ttyname(self.slave)
 
     def _run(self) -> None:
-        framer = LineFramer()
+        framer = LineFramer(line_end(self.twin))
         while True:
             ready, _, _ = select.select([self.master, self._wake_r], [], [])
             if self._wake_r in ready:
@@ -230,7 +239,7 @@ class _SocketServer(_Server):
                 if s is self.listener:
                     conn, _ = self.listener.accept()
                     conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                    self._conns[conn] = LineFramer()
+                    self._conns[conn] = LineFramer(line_end(self.twin))
                     continue
                 try:
                     data = s.recv(4096)
@@ -269,14 +278,42 @@ def serve_socket(twin: LineTwin, host: str = "127.0.0.1", port: int = 0) -> tupl
 ReplyFilter = Callable[[bytes, bytes], bytes]
 
 
+TERMINATORS: dict[str, bytes] = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}
+
+
+def terminator(name: str) -> bytes:
+    """"CR" | "LF" | "CRLF" -> the bytes."""
+    try:
+        return TERMINATORS[name]
+    except KeyError:
+        raise ValueError(f"terminator must be one of {', '.join(TERMINATORS)}, got {name!r}") from None
+
+
 class FaultableTwin:
-    """Base of the line twins: `respond` = `execute` + the fault hook.
+    """Base of the line twins: `respond` = `execute` + the fault hook, and the twin's command framing.
 
     `fault_hook(command_line, reply) -> bytes` is the one place where a reply can be dropped (return b""),
     garbled or truncated before it reaches the wire; None (default) sends replies unchanged.
+    `command_end`: the terminator the instrument expects after every command (CR LF by default); lines are
+    split at its last byte (`line_end`), and `command_complete(line)` checks the bytes before it.
     """
 
     fault_hook: ReplyFilter | None = None
+    command_end: bytes = b"\r\n"
+
+    @property
+    def line_end(self) -> bytes:
+        return self.command_end[-1:]
+
+    def command_complete(self, line: bytes) -> bool:
+        """True if `line` (as split at line_end) carries the rest of the command terminator (the CR of CR LF)."""
+        head = self.command_end[:-1]
+        return line.endswith(head) if head else True
+
+    def command_text(self, line: bytes) -> bytes:
+        """The command without its terminator."""
+        head = self.command_end[:-1]
+        return line[: -len(head)] if head else line
 
     def execute(self, line: bytes) -> bytes:
         raise NotImplementedError

@@ -8,6 +8,9 @@ the shared `sims.world.World` under `world.lock`. Protocol implemented (document
 * answer: settings/actions -> ``b">\\r"``; queries -> ``b"<value>\\r>\\r"``; refusals ->
   ``b"E<nn> <text>\\r>\\r"`` with E01 unknown command, E02 bad/missing argument, E03 outside the controller's
   range, E04 interlock tripped, E05 framing.
+* framing options (the real framing is unconfirmed; the driver must cope with each): `command_end` (CR LF by
+  default; CR or LF), `reply_end` (CR by default; LF or CR LF) ends every reply line, `prompt_end` (CR by
+  default; LF, CR LF, or b"" for a bare prompt) follows the prompt ``>``.
 * ACL a (0 < a <= max_accel_dps2), JOG r (|r| <= max_rate_dps; world.set_table_rate(r, a)), STO
   (world.stop_table(a)), PVE -> world.table_rate_dps() "%.6f" (the delivered rate, scale error included),
   PPO -> world.table_angle_deg() wrapped to [0, 360) "%.4f", STA -> status integer, MCO tol -> "1" if rate
@@ -25,7 +28,8 @@ import re
 from sims.serial_twin import FaultableTwin
 from sims.world import World
 
-PROMPT = b">\r"
+PROMPT_TEXT = b">"
+PROMPT = b">\r"  # the default framing's prompt line
 _LINE = re.compile(r"^([A-Z]{3})(.*)$")
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
 
@@ -42,7 +46,14 @@ class RateTableTwin(FaultableTwin):
     """The 1291BR controller. max_rate_dps / max_accel_dps2 / max_sine_hz: the controller's own limits."""
 
     def __init__(self, world: World, *, max_rate_dps: float = 1000.0, max_accel_dps2: float = 1000.0,
-                 max_sine_hz: float = 100.0) -> None:
+                 max_sine_hz: float = 100.0, command_end: bytes = b"\r\n", reply_end: bytes = b"\r",
+                 prompt_end: bytes = b"\r") -> None:
+        if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
+            raise ValueError("command_end and reply_end must be CR, LF or CR LF")
+        if prompt_end not in (b"", b"\r", b"\n", b"\r\n"):
+            raise ValueError("prompt_end must be empty, CR, LF or CR LF")
+        self.command_end, self.reply_end = command_end, reply_end
+        self.prompt = PROMPT_TEXT + prompt_end
         self.world = world
         self.max_rate_dps = float(max_rate_dps)
         self.max_accel_dps2 = float(max_accel_dps2)
@@ -61,10 +72,10 @@ class RateTableTwin(FaultableTwin):
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
         try:
-            if not line.endswith(b"\r"):
+            if not self.command_complete(line):
                 raise _Refused(5, "FRAMING")
             try:
-                text = line[:-1].decode("ascii")
+                text = self.command_text(line).decode("ascii")
             except UnicodeDecodeError:
                 raise _Refused(1, "UNKNOWN COMMAND") from None
             m = _LINE.match(text)
@@ -75,10 +86,10 @@ class RateTableTwin(FaultableTwin):
                 self.world.now()  # wall-clock worlds integrate up to now
                 value = handler(m.group(2))
         except _Refused as r:
-            return f"E{r.code:02d} {r.text}\r".encode("ascii") + PROMPT
+            return f"E{r.code:02d} {r.text}".encode("ascii") + self.reply_end + self.prompt
         if value is None:
-            return PROMPT
-        return value.encode("ascii") + b"\r" + PROMPT
+            return self.prompt
+        return value.encode("ascii") + self.reply_end + self.prompt
 
     @staticmethod
     def _number(arg: str) -> float:

@@ -9,6 +9,9 @@ buffers are empty.
 
 `expected_protocol(build, pairs)` is a context manager: it builds the driver on a ProtocolPort with
 `build(port)`, yields the driver, and on a normal exit calls `assert_complete()`.
+
+`ProtocolPort.reply_framing` (class attribute, None = replies as written) maps every reply before it is queued:
+a test module sets it (through a parametrized fixture) to replay one dialogue under CR, LF and CR LF framings.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ Pair = tuple[bytes, bytes | None]
 
 class ProtocolPort:
     """A pyserial-like port that plays back an expected (command, reply) dialogue and checks it byte by byte."""
+
+    reply_framing: Callable[[bytes], bytes] | None = None
 
     def __init__(self, pairs: Sequence[Pair], *, port: str = "protocol://fake", timeout: float = 1.0) -> None:
         for i, pair in enumerate(pairs):
@@ -75,7 +80,8 @@ class ProtocolPort:
             self._written.clear()
             self._next += 1
             if reply is not None:
-                self._rx.extend(reply)
+                frame = type(self).reply_framing
+                self._rx.extend(frame(reply) if frame is not None else reply)
 
     def flush(self) -> None:
         pass

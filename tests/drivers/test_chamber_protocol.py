@@ -2,6 +2,8 @@
 
 Commands: text + CR LF (SET=%.2f, RATE=%.3f, LTL=/UTL= %.2f); every reply one line ending CR LF; settings
 answer OK; refusals start with '?'; STATUS? is Y/N flags with char 0 = power, char 8 = ramping.
+
+The real framing is unconfirmed: every dialogue is replayed with replies ending CR LF, CR and LF.
 """
 
 from __future__ import annotations
@@ -13,6 +15,18 @@ from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError
 from tests.protocol_serial import ProtocolPort, expected_protocol
 
 OK = b"OK\r\n"
+
+FRAMINGS = {
+    "CRLF": lambda r: r,
+    "CR": lambda r: r.replace(b"\r\n", b"\r"),
+    "LF": lambda r: r.replace(b"\r\n", b"\n"),
+}
+
+
+@pytest.fixture(autouse=True, params=list(FRAMINGS))
+def reply_framing(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    monkeypatch.setattr(ProtocolPort, "reply_framing", staticmethod(FRAMINGS[request.param]))
+    return str(request.param)
 
 
 def chamber(port: ProtocolPort) -> SunEC1xChamber:
@@ -65,8 +79,6 @@ def test_refusal_names_the_command() -> None:
 @pytest.mark.parametrize(("reply", "match"), [
     (b"27.5O\r\n", r"garbled reply to 'C1\?'.*27\.5O"),
     (b"27.5", r"truncated reply to 'C1\?'.*b'27\.5'"),
-    (b"27.5\r", r"truncated reply to 'C1\?'"),
-    (b"27.5\n", r"truncated reply to 'C1\?'"),
     (b"2\x007.5\r\n", r"garbled reply to 'C1\?'"),
     (None, r"timeout: no reply to 'C1\?'"),
     (b"OK\r\n", r"garbled reply to 'C1\?'.*'OK'"),
@@ -117,9 +129,10 @@ def test_constructor_rejects_inconsistent_limits() -> None:
         SunEC1xChamber(ProtocolPort([]), min_c=0, max_c=40, max_ramp_c_per_min=1, safe_setpoint_c=45)
 
 
-def test_reconnect_identifies_and_restores_setpoint() -> None:
+def test_reconnect_identifies_rewrites_limits_and_restores_setpoint() -> None:
     first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
-    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"RATE=1.000\r\n", OK),
+    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"LTL=-40.00\r\n", OK),
+                           (b"UTL=85.00\r\n", OK), (b"RATE=1.000\r\n", OK),
                            (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
     c = SunEC1xChamber(first, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0,
                        port_factory=lambda: second)
@@ -128,3 +141,9 @@ def test_reconnect_identifies_and_restores_setpoint() -> None:
     assert not first.is_open
     first.assert_complete()
     second.assert_complete()
+
+
+@pytest.mark.parametrize("reply", [b"27.50\r", b"27.50\n", b"27.50\r\n", b"  27.50 \r\n", b"\n27.50\r"])
+def test_tolerated_framings_parse_the_same_temperature(reply: bytes) -> None:
+    with expected_protocol(chamber, [(b"C1?\r\n", reply)]) as c:
+        assert c._query("C1?", lambda text: float(text)) == 27.5

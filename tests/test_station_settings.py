@@ -1,0 +1,98 @@
+"""Configuration that must reach the instruments (issue 12): lockin.output_safe_v and the chamber's own limits.
+
+Each test sets a value different from the power-on default, so it fails if the station drops the setting.
+Expected values are the configured ones, read back from the twins (the HF2 node tree; the EC1x controller's
+LTL/UTL, documented in docs/instruments.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from zhinst.toolkit import Session
+
+from qmg_lab.config import parse_config
+from qmg_lab.station import SIM_DEVICE_ID, build_station, connect_instrument, gyro_params, hf2_wiring, lockin_driver
+from sims.chamber_twin import ChamberTwin
+from sims.hf2_server import HF2DataServerTwin
+from sims.serial_twin import serve_socket
+from sims.world import World, WorldParams
+
+DEV = f"/{SIM_DEVICE_ID}"
+
+
+def cfg_from(text: str):  # noqa: ANN201 - a Config
+    return parse_config(text)
+
+
+def test_output_safe_v_reaches_the_lockin_safe_state() -> None:
+    cfg = cfg_from("[lockin]\nsim = true\noutput_safe_v = 1.25\nrate_auxout = 2\nquadrature_auxout = 3\n")
+    world = World(WorldParams(), clock="virtual")
+    twin = HF2DataServerTwin(world, gyro_params(cfg), 1, hf2_wiring(cfg), device_id=SIM_DEVICE_ID)
+    li = lockin_driver(cfg, Session("localhost", 8005, hf2=True, connection=twin), SIM_DEVICE_ID)
+    li.safe_state()
+    for ch in (2, 3):
+        assert twin.getInt(f"{DEV}/auxouts/{ch}/outputselect") == -1  # manual
+        assert twin.getDouble(f"{DEV}/auxouts/{ch}/offset") == 1.25
+    li.close()
+
+
+def test_build_station_passes_output_safe_v() -> None:
+    cfg = cfg_from("[lockin]\nsim = true\noutput_safe_v = -0.75\n[generator]\nsim = true\n[table]\nsim = true\n"
+                   "[chamber]\nsim = true\n")
+    station = build_station(cfg)
+    try:
+        assert station.lockin.output_safe_v == -0.75  # type: ignore[attr-defined]
+    finally:
+        station.close()
+
+
+@pytest.fixture
+def chamber_controller():  # noqa: ANN201
+    world = World(WorldParams(), clock="wall")
+    twin = ChamberTwin(world)
+    url, stop = serve_socket(twin, "127.0.0.1")
+    yield twin, url
+    stop()
+
+
+def test_chamber_limits_are_written_to_the_controller(chamber_controller) -> None:  # noqa: ANN001
+    twin, url = chamber_controller
+    assert (twin.ltl_c, twin.utl_c) == (-70.0, 180.0)  # the controller's own range before qmg-lab connects
+    cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 10.0\nmax_c = 40.0\nsafe_setpoint_c = 20.0\n')
+    conn = connect_instrument(cfg, "chamber")
+    try:
+        assert (twin.ltl_c, twin.utl_c) == (10.0, 40.0)
+        # the controller itself now refuses a setpoint outside them (EC1x: ?LIMIT), whatever the host sends
+        assert twin.respond(b"SET=45.00\r") == b"?LIMIT\r\n"
+        assert twin.respond(b"SET=39.00\r") == b"OK\r\n"
+    finally:
+        conn.close()
+
+
+def test_chamber_limits_are_written_again_on_reconnect(chamber_controller) -> None:  # noqa: ANN001
+    twin, url = chamber_controller
+    cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 0.0\nmax_c = 50.0\n')
+    conn = connect_instrument(cfg, "chamber")
+    try:
+        twin.respond(b"LTL=-60.00\r")  # a power-cycled controller forgot them
+        conn.instrument.reconnect()
+        assert (twin.ltl_c, twin.utl_c) == (0.0, 50.0)
+    finally:
+        conn.close()
+
+
+def test_a_controller_that_refuses_the_limits_is_an_instrument_fault(tmp_path: Path) -> None:
+    """min_c below the controller's hardware range: LTL= answers ?RANGE and the connection fails, naming it."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[chamber]\nsim = true\nmin_c = -90.0\n", encoding="utf-8")
+    proc = subprocess.run([sys.executable, "-m", "qmg_lab", "chamber", "setpoint", str(cfg), "25"], cwd=root,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3
+    assert "'LTL=-90.00' refused: '?RANGE'" in " ".join(proc.stderr.split())  # rich wraps at 80 columns
+    assert "Traceback" not in proc.stderr
