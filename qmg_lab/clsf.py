@@ -3,7 +3,7 @@
 The DS345's square wave V_d is added to the FTR command V_r in front of the forcer, so the sense mode sees the
 forcer input u = V_r + V_d through the forcer-path gain beta (forcer gain x CLSF gain correction x pickoff gain
 / frequency). Under FTR the sense demodulator's in-phase value X (before the lock-in's filter) obeys
-(docs/physics.md)
+(docs/clsf.md)
 
     dX/dt = -X/tau + beta u - kappa Omega,                                                          (1)
 
@@ -334,7 +334,7 @@ def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: i
     With L = w_bw/s and the n-th odd harmonic of the square wave |Omega_n|^2 ~ 1/n^2,
     D_x(G) ~ sum_n |Omega_n|^2 G / ((n w_d)^2 + (G w_bw)^2), so the sensitivity is
     1 - sum_n w_n 2 w_bw^2 / ((n w_d)^2 + w_bw^2) with weights w_n ~ |Omega_n|^2 / ((n w_d)^2 + w_bw^2).
-    Reported for comparison with physics.md (0.856 for 2 Hz / 7 Hz); the estimator above does not need it.
+    Reported for comparison (0.856 for 2 Hz / 7 Hz, docs/clsf.md); the estimator above does not need it.
     """
     wb, wd = 2 * math.pi * loop_bandwidth_hz, 2 * math.pi * dither_hz
     n = np.arange(1, 2 * harmonics, 2, dtype=np.float64)
