@@ -5,7 +5,8 @@ Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
   the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods.
   Means of the rate output are taken over a whole number of dither periods, from a rising edge of the recorded
-  dither to a later one (edges located by linear interpolation of the mid-level crossing; the rate output
+  dither to a later one (edges located as the CLSF estimator locates them, qmg_lab/dither_edges.py: within the
+  gap between two readings, then refined by a line through 32 edges; the rate output
   integrated with the trapezoid rule between them), so the dither leaking through the rate loop
   (|T(7 Hz)| = 0.276 of the virtual rate) cancels whether or not a period is a whole number of samples: the
   DS345 and the HF2 share no clock.
@@ -42,6 +43,7 @@ from qmg_lab.adev import (AllanResult, arw_deg_per_rt_h, bias_instability_deg_pe
 from qmg_lab.analysis_char import (BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average,
                                    settling_time_s)
 from qmg_lab.config import Config, ConfigError, parse_config
+from qmg_lab.dither_edges import EdgeTracker
 from qmg_lab.storage import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
@@ -164,6 +166,11 @@ def _load(path: str | Path) -> _Ctx:
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
     if cfg.clsf.mode != "off" and "dither" in run.groups["lockin"]:
         ctx.dither_rising_s = _rising_edges(t, run.groups["lockin"]["dither"])
+        tracker = EdgeTracker()  # the same edge location and 32-edge line fit as the CLSF estimator
+        chunks = [tracker.process(t[i:i + 36000], run.groups["lockin"]["dither"][i:i + 36000])[0]
+                  for i in range(0, t.shape[0], 36000)]
+        if chunks and sum(c.size for c in chunks) >= 2:
+            ctx.dither_rising_s = np.concatenate(chunks)
         ctx.rate_integral = np.concatenate(([0.0], np.cumsum(
             0.5 * np.diff(t) * (run.groups["lockin"]["rate_output"][1:] + run.groups["lockin"]["rate_output"][:-1]))))
     return ctx
