@@ -98,7 +98,10 @@ class EdgeTracker:
             return te
         raw, idx = self._raw[kind], self._idx[kind]
         hist_t = np.asarray(raw[-self.fit_edges:])
-        period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
+        if len(raw) >= 2 and idx[-1] > idx[-self.fit_edges:][0]:  # the period from the history's own span
+            period = (raw[-1] - raw[-self.fit_edges:][0]) / (idx[-1] - idx[-self.fit_edges:][0])
+        else:
+            period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
         if raw and period > 0.0:
             steps = np.maximum(1, np.rint(np.diff(np.concatenate(([raw[-1]], te))) / period)).astype(np.int64)
             j = idx[-1] + np.cumsum(steps)

@@ -351,7 +351,10 @@ class HF2DataServerTwin:
         prev = np.concatenate(([v[0] if self._auxout_prev is None else self._auxout_prev], v[:-1]))
         self._auxout_prev = float(v[-1])
         rate = v - (v - prev) * (w / (2.0 * dt))
-        dither = self.world.dither_mean(t_end - w, t_end)
+        if self.world.dither.amplitude_vpp == 0.0:
+            dither = np.full(t_end.shape, self.world.dither.offset_v)
+        else:
+            dither = self.world.window_means_at_step_ends(w)
         return rate, dither
 
     def _ensure_gyro(self, dt: float) -> Any:

@@ -40,6 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
 
@@ -115,25 +116,15 @@ class TruthRecord:
 
 
 def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
-    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1, in closed form:
-    y[k] = a^k (y0 + (1 - a) sum_{j<k} a^-(j+1) u[j]), in chunks short enough that a^-n stays finite."""
+    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion as a linear filter
+    (scipy.signal.lfilter with b = [0, 1 - a], a = [1, -a] and the initial state y0)."""
     n = u.shape[0]
-    y = np.empty(n)
     if a <= 0.0:
+        y = np.empty(n)
         y[0] = y0
         y[1:] = u[:-1]
         return y
-    chunk = n if a >= 1.0 else max(1, min(n, int(200.0 / -math.log(a))))
-    k0 = 0
-    while k0 < n:
-        k1 = min(n, k0 + chunk)
-        m = k1 - k0
-        j = np.arange(m, dtype=np.float64)
-        grow = a ** -(j + 1.0)
-        acc = np.concatenate(([0.0], np.cumsum(grow[:-1] * u[k0:k1 - 1])))
-        y[k0:k1] = a ** j * (y0 + (1.0 - a) * acc)
-        y0 = a * y[k1 - 1] + (1.0 - a) * u[k1 - 1] if k1 < n else y0
-        k0 = k1
+    y, _ = lfilter([0.0, 1.0 - a], [1.0, -a], np.asarray(u, dtype=np.float64), zi=[float(y0)])
     return y
 
 
@@ -154,6 +145,7 @@ class World:
         self.chamber = ChamberState(target_c=t0, controller_setpoint_c=t0, air_c=t0, gyro_c=t0)
         self._truth: deque[TruthRecord] = deque()
         self.forcer_gain = 1.0  # forcer-path gain set through the lock-in (CLSF correct mode)
+        self._last_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last advance's dither phases
         # called as fn(t_start_s, t_end_s) at the start of every advance, under the lock (fault injection)
         self.on_advance: list[Callable[[float, float], None]] = []
 
@@ -321,6 +313,34 @@ class World:
             return f * f - f
         return (1.0 - np.cos(2 * np.pi * u)) / (2 * np.pi)
 
+    def _step_means(self, tb: np.ndarray) -> np.ndarray:
+        """Exact means of the output over the steps [tb[k], tb[k+1]]; remembers the boundaries' phases for
+        `window_means_at_step_ends`."""
+        d = self.dither
+        self._last_grid = None
+        if d.amplitude_vpp == 0.0:
+            return np.full(tb.shape[0] - 1, d.offset_v)
+        u = self._dither_phase(tb)
+        wint = self._wave_integral(u)
+        self._last_grid = (tb, u, wint)
+        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - wint[:-1]) / (u[1:] - u[:-1])
+
+    def window_means_at_step_ends(self, window_s: float) -> np.ndarray:
+        """For each step of the last advance, the exact mean of the output over [t_end - window_s, t_end] (an
+        AuxIn reading), window_s <= the step. The phase at t_end - w is u(t_end) - w du/dt, du/dt taken over
+        the step (the timebase's wander changes it by 1e-12 within a step)."""
+        grid = self._last_grid
+        d = self.dither
+        if grid is None:
+            raise RuntimeError("window_means_at_step_ends needs a dither and an advance first")
+        tb, u, wint = grid
+        if window_s <= 0.0:
+            return self._dither_wave(tb[1:])
+        rate = (u[1:] - u[:-1]) / (tb[1:] - tb[:-1])
+        du = rate * window_s
+        w0 = self._wave_integral(u[1:] - du)
+        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - w0) / du
+
     def dither_mean(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
         """The exact mean of the generator's output over each interval [t0, t1], V (t1 == t0: the value)."""
         d = self.dither
@@ -377,7 +397,8 @@ class World:
             c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
             c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
             c.controller_setpoint_c = sp_end
-            dither = self.dither_mean(t, t + dt)
+            tb = self.t + dt * np.arange(n + 1, dtype=np.float64)  # step boundaries: one phase evaluation each
+            dither = self._step_means(tb)
             self.t = self.t + end
             return BlockInputs(t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas,
                                gyro_c=gyro, dither_v=dither)
