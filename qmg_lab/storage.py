@@ -39,13 +39,17 @@ from qmg_lab.h5clear import clear_superblock_flags, writer_flags_set
 from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part of the API
     CHAMBER_UNITS,
     CHUNK_ROWS,
+    CHUNK_ROWS_REALTIME,
     CLSF_UNITS,
+    COMPRESSED_COLUMNS,
     COMPRESSED_GROUPS,
     COMPRESSIONS,
     DESCRIPTIONS,
     FORMAT,
     GROUP_UNITS,
     GZIP_LEVEL,
+    INSTRUMENT_MODES,
+    INSTRUMENTS,
     KIND_BYTES,
     LOCKIN_UNITS,
     MODES,
@@ -60,7 +64,7 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
 
-__all__ = ["RunWriter", "ResumeState", "StorageError", "RunData", "read_run", "read_window", "writer_flags_set",
+__all__ = ["RunWriter", "ResumeState", "StorageError", "file_instrument_modes", "status_detail", "RunData", "read_run", "read_window", "writer_flags_set",
            "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
            "STEPS_UNITS"]
 
@@ -73,6 +77,82 @@ def _pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
+    """"twin" | "hardware" per instrument as the file records them (root attribute instrument_modes; files
+    without it: every instrument as the root attribute mode says)."""
+    raw = attrs.get("instrument_modes")
+    if raw:
+        try:
+            modes = json.loads(raw)
+            if isinstance(modes, dict) and set(modes) == set(INSTRUMENTS):
+                return {n: str(modes[n]) for n in INSTRUMENTS}
+        except (TypeError, ValueError):
+            pass
+    return {n: ("twin" if attrs.get("mode") == "sim" else "hardware") for n in INSTRUMENTS}
+
+
+def status_detail(run: RunData) -> str:
+    """The file's status as the operator should read it. "running" is what the file says while its writer
+    works, and also what a killed writer leaves behind: a "running" file whose writer process is gone (same
+    host, pid not alive) is "interrupted (process died)"; one written on another host cannot be checked."""
+    if run.status != "running":
+        return run.status
+    pid, host = int(run.attrs.get("writer_pid", -1)), str(run.attrs.get("writer_host", ""))
+    if host and host != socket.gethostname():
+        return f"running, or interrupted (written on host {host}; its process cannot be checked from here)"
+    if run.writer_open and pid > 0 and pid != os.getpid() and _pid_alive(pid):
+        return f"running (process {pid} is writing it)"
+    return "interrupted (process died)"
+
+
+def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> None:
+    """Refuse a station whose instruments are not twin/hardware as the file's were, saying how to match it."""
+    diff = [n for n in INSTRUMENTS if recorded.get(n) != now.get(n)]
+    if not diff:
+        return
+    what = ", ".join(f"{n} was {recorded.get(n)}, now {now.get(n)}" for n in diff)
+    if all(v == "twin" for v in recorded.values()):
+        hint = "the run was made on the twins: resume it with --sim"
+    elif all(v == "hardware" for v in recorded.values()):
+        hint = "the run was made on the bench: resume it without --sim, every instrument with sim = false"
+    else:
+        hint = ("set sim = true for exactly the instruments that were twins ("
+                + ", ".join(n for n in INSTRUMENTS if recorded.get(n) == "twin") + ") and do not pass --sim")
+    raise StorageError(f"{path}: the station does not match the run's instruments ({what}); a run continues "
+                       f"on the instruments it started on: {hint}")
+
+
+def _last(ds: h5py.Dataset) -> float:
+    return float(ds[ds.shape[0] - 1]) if ds.shape[0] else -np.inf
+
+
+def _cut(grp: h5py.Group, n: int) -> None:
+    for c in grp:
+        if grp[c].shape[0] > n:
+            grp[c].resize((n,))
+
+
+def _repair_end(h5: h5py.File) -> None:
+    """Make a reopened file end on one consistent instant (RunWriter.reopen steps 1-3)."""
+    for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
+        _cut(h5[g], min(h5[g][c].shape[0] for c in h5[g]))
+    t_end = _last(h5["lockin"]["time"])
+    if "truth" in h5 and h5["truth"]["time"].shape[0]:  # a writer that never logs truth keeps its lock-in
+        t_end = min(t_end, _last(h5["truth"]["time"]))
+    for g in [g for g in GROUP_UNITS if g in h5]:
+        t = h5[g]["time"][:]
+        _cut(h5[g], int(np.searchsorted(t, t_end, side="right")))
+    steps = h5["steps"]
+    keep = (steps["status"][:] == b"completed") & (steps["t_end"][:] <= t_end)
+    if not keep.all():
+        for c in steps:
+            kept = steps[c][:][keep]
+            steps[c].resize((kept.shape[0],))
+            if kept.shape[0]:
+                steps[c][:] = kept
+
 
 
 @dataclass(frozen=True)
@@ -123,9 +203,14 @@ class RunWriter:
     def create(cls, path: str | Path, *, config_text: str, config_sha256: str, mode: str, software_version: str,
                t0_unix: float, flush_interval_s: float = 1.0, compression: str = "lzf", truth: bool,
                planned_steps: int = -1, planned_step_kinds: Iterable[str] = (),
+               instrument_modes: Mapping[str, str] | None = None, realtime: bool = False,
                extra_attrs: Mapping[str, Any] | None = None,
                clock: Callable[[], float] = _time.monotonic) -> RunWriter:
         """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
+
+        instrument_modes: "twin" | "hardware" per instrument (root attribute instrument_modes, JSON), what
+        --resume checks; default: every instrument as `mode` says. realtime: the data arrive in real time (a
+        hardware lock-in), so each flush carries about a second of data: smaller chunks (CHUNK_ROWS_REALTIME).
 
         planned_steps / planned_step_kinds: the plan's length and its step kinds (root attributes
         `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
@@ -136,6 +221,11 @@ class RunWriter:
             raise StorageError(f"{p}: mode must be one of {MODES}, got {mode!r}")
         if compression not in COMPRESSIONS:
             raise StorageError(f"{p}: compression must be one of {COMPRESSIONS}, got {compression!r}")
+        modes = dict(instrument_modes) if instrument_modes is not None else {
+            n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+        if set(modes) != set(INSTRUMENTS) or not set(modes.values()) <= set(INSTRUMENT_MODES):
+            raise StorageError(f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, "
+                               f"got {modes!r}")
         if not np.isfinite(t0_unix):
             raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
         if p.exists():
@@ -161,6 +251,7 @@ class RunWriter:
             a["resume_count"] = 0
             a["planned_steps"] = int(planned_steps)
             a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
+            a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
             a["compression"] = compression
             a["flush_interval_s"] = float(flush_interval_s)
             a["writer_pid"] = os.getpid()
@@ -175,18 +266,19 @@ class RunWriter:
                 filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
             elif compression == "lzf":
                 filt = {"compression": "lzf", "shuffle": True}
+            rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
             for g, units in GROUP_UNITS.items():
                 if g == "truth" and not truth:
                     continue
                 grp = h5.create_group(g)
                 for col, unit in units.items():
                     ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=np.float64,
-                                            chunks=(CHUNK_ROWS[g],), **(filt if g in COMPRESSED_GROUPS else {}))
+                                            chunks=(rows[g],), **(filt if col in COMPRESSED_COLUMNS.get(g, ()) else {}))
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
             grp = h5.create_group("steps")
             for col, dtype in STEPS_DTYPES.items():
-                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS["steps"],))
+                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],))
                 ds.attrs["units"] = STEPS_UNITS[col]
                 ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
             h5.flush()
@@ -197,20 +289,25 @@ class RunWriter:
             raise
         return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
 
-    @classmethod
-    def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
-               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
-        """Reopen a run file to resume it (after a crash or an abort).
+    @staticmethod
+    def check_resumable(path: str | Path, *, config_sha256: str,
+                        instrument_modes: Mapping[str, str] | None = None) -> RunData:
+        """Read-only: can this file be resumed with this configuration and station? Changes nothing.
 
-        Refuses a file of another configuration (StorageError naming both fingerprints) and a file whose
-        writer process is still alive. Then: clears the crash flags, cuts every group to its shortest column
-        and every group to the last /lockin time (the resumed run continues after it), drops /steps rows whose status is not "completed", sets status "running" (abort_reason ""),
-        increments resume_count and restarts SWMR.
+        Refuses (StorageError naming what is wrong): a missing or unreadable file; a completed run ("already
+        completed"); a file of another configuration (both fingerprints); a file whose writer process is still
+        alive; a station whose instruments are not twin/hardware as the file's were (`instrument_modes`,
+        "twin" | "hardware" per instrument; files without that attribute: every instrument as `mode` says).
+        Returns the file's /steps and root attributes.
         """
         p = Path(path)
         if not p.is_file():
             raise StorageError(f"{p}: no such run file to resume")
         run = read_run(p, select=("steps",))
+        if run.status == "completed":
+            done, planned = run.attrs.get("completed_steps", "?"), run.attrs.get("planned_steps", "?")
+            raise StorageError(f"{p}: the run is already completed ({done} of {planned} steps); there is nothing "
+                               f"to resume: analyse it with `qmg-lab analyze {p}`, or start a new run with -o")
         stored = run.attrs.get("config_sha256", "")
         if stored != config_sha256:
             raise StorageError(f"{p}: was written with configuration {stored}, not with this configuration "
@@ -219,35 +316,40 @@ class RunWriter:
             pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
             if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
                 raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
+        if instrument_modes is not None:
+            _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
+        return run
+
+    @classmethod
+    def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
+               instrument_modes: Mapping[str, str] | None = None,
+               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
+        """Reopen a run file to resume it (after a crash or an abort). Call it once the station is connected:
+        this is the first step that changes the file.
+
+        First every check of `check_resumable` (nothing is changed if one fails). Then: clears the crash flags,
+        restarts SWMR, and makes the file end on a consistent instant:
+        1. every group is cut to its shortest column (whole rows only);
+        2. the end instant is the last /lockin time, or the last /truth time if that is earlier (a kill can
+           fall between the two groups' writes; /truth stays aligned sample for sample with /lockin) unless
+           /truth has no rows at all; /lockin
+           and /truth are cut to it and every other group to rows at or before it;
+        3. /steps keeps only "completed" rows that end at or before that instant: a checkpoint whose data did
+           not all reach the disk is not a checkpoint, and the step is run again after the resume point.
+        Then status "running" (abort_reason ""), completed_steps recounted, resume_count incremented.
+        """
+        p = Path(path)
+        run = cls.check_resumable(p, config_sha256=config_sha256, instrument_modes=instrument_modes)
+        if run.writer_open:
             clear_superblock_flags(p)
         try:
             h5 = h5py.File(p, "r+", libver="latest")
         except OSError as exc:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
-            for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
-                n = min(h5[g][c].shape[0] for c in h5[g])
-                for c in h5[g]:
-                    if h5[g][c].shape[0] != n:
-                        h5[g][c].resize((n,))
-            # The lock-in stream is the heartbeat and the resumed run continues after its last sample: a kill
-            # between two groups' writes may leave another group ending later; cut it back to that time.
-            lt = h5["lockin"]["time"]
-            t_end = float(lt[lt.shape[0] - 1]) if lt.shape[0] else -np.inf
-            for g in [g for g in GROUP_UNITS if g in h5 and g != "lockin"]:
-                t = h5[g]["time"][:]
-                n = int(np.searchsorted(t, t_end, side="right"))
-                if n < t.shape[0]:
-                    for c in h5[g]:
-                        h5[g][c].resize((n,))
+            h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
+            _repair_end(h5)
             steps = h5["steps"]
-            keep = steps["status"][:] == b"completed"
-            if not keep.all():
-                for c in steps:
-                    kept = steps[c][:][keep]
-                    steps[c].resize((kept.shape[0],))
-                    if kept.shape[0]:
-                        steps[c][:] = kept
             h5.attrs["status"] = "running"
             h5.attrs["abort_reason"] = ""
             h5.attrs["completed_steps"] = int(np.unique(steps["index"][:]).shape[0])
@@ -255,7 +357,6 @@ class RunWriter:
             h5.attrs["writer_pid"] = os.getpid()
             h5.attrs["writer_host"] = socket.gethostname()
             h5.flush()
-            h5.swmr_mode = True
         except BaseException:
             h5.close()
             raise

@@ -121,8 +121,15 @@ def test_compression_choices(tmp_path: Path, compression: str) -> None:
     w.append("lockin", **lockin_block(0))
     w.close()
     with h5py.File(p, "r") as f:
-        assert f["lockin/x_sense"].compression == (None if compression == "none" else compression)
-    np.testing.assert_array_equal(read_run(p).groups["lockin"]["x_sense"], lockin_block(0)["x_sense"])
+        for col in ("time", "drive_frequency", "dither"):  # columns that compress
+            assert f[f"lockin/{col}"].compression == (None if compression == "none" else compression)
+            assert f[f"lockin/{col}"].shuffle == (compression != "none")
+        for col in ("x_sense", "y_sense", "rate_output", "drive_amplitude"):  # noise: stored plain
+            assert f[f"lockin/{col}"].compression is None
+        assert all(f[f"truth/{c}"].compression == (None if compression == "none" else compression)
+                   for c in f["truth"])
+    for col, values in lockin_block(0).items():
+        np.testing.assert_array_equal(read_run(p).groups["lockin"][col], values)
 
 
 def test_bad_appends_and_arguments_are_named(tmp_path: Path) -> None:
