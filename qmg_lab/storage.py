@@ -159,7 +159,7 @@ def _repair_end(h5: h5py.File) -> None:
 class ResumeState:
     """What a run file says about the moment its writer stopped (for `--resume`)."""
 
-    last_time: float
+    last_time: float | None  # None: no lock-in sample yet (the resumed run starts at t = 0)
     rho_ref: float | None
     gain_correction: float | None
     chamber_setpoint_c: float | None
@@ -449,7 +449,8 @@ class RunWriter:
             return float(ds[ds.shape[0] - 1]) if ds.shape[0] else None
 
         ref = self._h5.attrs.get("clsf_reference")
-        return ResumeState(last_time=self.last_time(),
+        has_data = bool(np.isfinite(self._last_time.get("lockin", -np.inf)))
+        return ResumeState(last_time=self.last_time() if has_data else None,
                            rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
                            gain_correction=last("clsf", "gain_correction"),
                            chamber_setpoint_c=last("chamber", "setpoint"),
