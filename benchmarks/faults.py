@@ -339,7 +339,8 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
                     fig["unflushed_at_kill_s_max"] = max(float(fig["unflushed_at_kill_s_max"]),  # type: ignore[arg-type]
                                                          killed_at - path.stat().st_mtime)
         else:
-            nth = rng.randint(1, 3) if phase != "end" else rng.randint(1, 6)
+            # the first lock and the dither start happen once per run: their kill follows the first occurrence
+            nth = 1 if phase in ("lock", "dither") else rng.randint(1, 3) if phase != "end" else rng.randint(1, 6)
             delay = 0.0 if rng.random() < 0.25 else rng.uniform(0.0, 0.003)
             proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child", phase, str(nth),
                                      repr(delay), "--", *run_args], stdout=subprocess.DEVNULL,

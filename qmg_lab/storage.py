@@ -187,6 +187,9 @@ class RunWriter:
         self._clock = clock
         self._last_flush = clock()
         self._groups = [g for g in GROUP_UNITS if g in h5]
+        # dataset handles looked up once: an h5py lookup by name costs more than a small append
+        self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
+            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups}
         self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
         self._last_time: dict[str, float] = {}
         for g in self._groups:
@@ -531,10 +534,8 @@ class RunWriter:
         for g, blocks in self._buffer.items():
             if not blocks:
                 continue
-            grp = self._h5[g]
-            for c in GROUP_UNITS[g]:  # time first: a partial write leaves time the column to be cut
+            for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
                 data = blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks])
-                ds = grp[c]
                 n = ds.shape[0]
                 ds.resize((n + data.shape[0],))
                 ds[n:] = data

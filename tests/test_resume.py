@@ -207,3 +207,16 @@ def test_a_twin_run_is_not_resumed_on_the_hardware(tmp_path):
     assert "lockin was twin, now hardware" in message and "resume it with --sim" in message
     assert "Traceback" not in done.stderr
     assert file_digest(path) == before
+
+
+def test_truth_is_aligned_with_the_lockin_when_samples_are_lost(tmp_path):
+    """The HF2 twin drops 50 samples in the middle of a block: /lockin has a 51-period gap there and /truth the same
+    rows (the twin's truth of exactly the delivered samples), from the very first sample on."""
+    out = run_inprocess(tmp_path, config_text(faults="sample_loss_at_s = [30.0]\nsample_loss_count = 50"))
+    assert out.error is None
+    run = out.run()
+    tl, tt = run.groups["lockin"]["time"], run.groups["truth"]["time"]
+    np.testing.assert_array_equal(tt, tl)
+    dt = 1.0 / out.cfg.lockin.demod_rate_hz
+    gaps = np.rint(np.diff(tl) / dt).astype(int)
+    assert sorted(set(gaps.tolist())) == [1, 51] and np.sum(gaps == 51) == 1
