@@ -14,9 +14,15 @@ Protocol (docs/hdf5.md):
   the file when the row is.
 * A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
   `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
-* HDF5 marks a file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags
-  stay set and HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
-  (`qmg_lab.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`) after checking that the file's writer is gone.
+* Layout for the write pattern (qmg_lab/runfile_layout.py, docs/hdf5.md): big chunks when the writer is faster
+  than real time (twins), small ones when a flush carries a second of data (`realtime=True`, hardware); shuffle +
+  the file's compression only on the columns that compress.
+* Resume (`check_resumable`, then `reopen` once the station is connected): nothing changes in the file until every
+  check passed (not completed, same configuration, writer gone, same twin/hardware instruments). HDF5 marks a
+  file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags stay set and
+  HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
+  (`qmg_lab.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`), then cuts the file to one
+  consistent instant and drops the checkpoints that end after it.
 """
 
 from __future__ import annotations
@@ -63,96 +69,11 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
     _text,
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
+from qmg_lab.runfile_resume import check_resumable, file_instrument_modes, repair_end, status_detail
 
 __all__ = ["RunWriter", "ResumeState", "StorageError", "file_instrument_modes", "status_detail", "RunData", "read_run", "read_window", "writer_flags_set",
            "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
            "STEPS_UNITS"]
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
-    """"twin" | "hardware" per instrument as the file records them (root attribute instrument_modes; files
-    without it: every instrument as the root attribute mode says)."""
-    raw = attrs.get("instrument_modes")
-    if raw:
-        try:
-            modes = json.loads(raw)
-            if isinstance(modes, dict) and set(modes) == set(INSTRUMENTS):
-                return {n: str(modes[n]) for n in INSTRUMENTS}
-        except (TypeError, ValueError):
-            pass
-    return {n: ("twin" if attrs.get("mode") == "sim" else "hardware") for n in INSTRUMENTS}
-
-
-def status_detail(run: RunData) -> str:
-    """The file's status as the operator should read it. "running" is what the file says while its writer
-    works, and also what a killed writer leaves behind: a "running" file whose writer process is gone (same
-    host, pid not alive) is "interrupted (process died)"; one written on another host cannot be checked."""
-    if run.status != "running":
-        return run.status
-    pid, host = int(run.attrs.get("writer_pid", -1)), str(run.attrs.get("writer_host", ""))
-    if host and host != socket.gethostname():
-        return f"running, or interrupted (written on host {host}; its process cannot be checked from here)"
-    if run.writer_open and pid > 0 and pid != os.getpid() and _pid_alive(pid):
-        return f"running (process {pid} is writing it)"
-    return "interrupted (process died)"
-
-
-def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> None:
-    """Refuse a station whose instruments are not twin/hardware as the file's were, saying how to match it."""
-    diff = [n for n in INSTRUMENTS if recorded.get(n) != now.get(n)]
-    if not diff:
-        return
-    what = ", ".join(f"{n} was {recorded.get(n)}, now {now.get(n)}" for n in diff)
-    if all(v == "twin" for v in recorded.values()):
-        hint = "the run was made on the twins: resume it with --sim"
-    elif all(v == "hardware" for v in recorded.values()):
-        hint = "the run was made on the bench: resume it without --sim, every instrument with sim = false"
-    else:
-        hint = ("set sim = true for exactly the instruments that were twins ("
-                + ", ".join(n for n in INSTRUMENTS if recorded.get(n) == "twin") + ") and do not pass --sim")
-    raise StorageError(f"{path}: the station does not match the run's instruments ({what}); a run continues "
-                       f"on the instruments it started on: {hint}")
-
-
-def _last(ds: h5py.Dataset) -> float:
-    return float(ds[ds.shape[0] - 1]) if ds.shape[0] else -np.inf
-
-
-def _cut(grp: h5py.Group, n: int) -> None:
-    for c in grp:
-        if grp[c].shape[0] > n:
-            grp[c].resize((n,))
-
-
-def _repair_end(h5: h5py.File) -> None:
-    """Make a reopened file end on one consistent instant (RunWriter.reopen steps 1-3)."""
-    for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
-        _cut(h5[g], min(h5[g][c].shape[0] for c in h5[g]))
-    t_end = _last(h5["lockin"]["time"])
-    if "truth" in h5 and h5["truth"]["time"].shape[0]:  # a writer that never logs truth keeps its lock-in
-        t_end = min(t_end, _last(h5["truth"]["time"]))
-    for g in [g for g in GROUP_UNITS if g in h5]:
-        t = h5[g]["time"][:]
-        _cut(h5[g], int(np.searchsorted(t, t_end, side="right")))
-    steps = h5["steps"]
-    keep = (steps["status"][:] == b"completed") & (steps["t_end"][:] <= t_end)
-    if not keep.all():
-        for c in steps:
-            kept = steps[c][:][keep]
-            steps[c].resize((kept.shape[0],))
-            if kept.shape[0]:
-                steps[c][:] = kept
-
 
 
 @dataclass(frozen=True)
@@ -295,33 +216,9 @@ class RunWriter:
     @staticmethod
     def check_resumable(path: str | Path, *, config_sha256: str,
                         instrument_modes: Mapping[str, str] | None = None) -> RunData:
-        """Read-only: can this file be resumed with this configuration and station? Changes nothing.
-
-        Refuses (StorageError naming what is wrong): a missing or unreadable file; a completed run ("already
-        completed"); a file of another configuration (both fingerprints); a file whose writer process is still
-        alive; a station whose instruments are not twin/hardware as the file's were (`instrument_modes`,
-        "twin" | "hardware" per instrument; files without that attribute: every instrument as `mode` says).
-        Returns the file's /steps and root attributes.
-        """
-        p = Path(path)
-        if not p.is_file():
-            raise StorageError(f"{p}: no such run file to resume")
-        run = read_run(p, select=("steps",))
-        if run.status == "completed":
-            done, planned = run.attrs.get("completed_steps", "?"), run.attrs.get("planned_steps", "?")
-            raise StorageError(f"{p}: the run is already completed ({done} of {planned} steps); there is nothing "
-                               f"to resume: analyse it with `qmg-lab analyze {p}`, or start a new run with -o")
-        stored = run.attrs.get("config_sha256", "")
-        if stored != config_sha256:
-            raise StorageError(f"{p}: was written with configuration {stored}, not with this configuration "
-                               f"{config_sha256}; resume with the configuration the run was started with")
-        if run.writer_open:
-            pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
-            if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
-                raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
-        if instrument_modes is not None:
-            _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
-        return run
+        """Read-only: can this file be resumed with this configuration and station? Changes nothing
+        (qmg_lab.runfile_resume.check_resumable: completed, configuration, live writer, instruments)."""
+        return check_resumable(path, config_sha256=config_sha256, instrument_modes=instrument_modes)
 
     @classmethod
     def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
@@ -351,7 +248,7 @@ class RunWriter:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
             h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
-            _repair_end(h5)
+            repair_end(h5)
             steps = h5["steps"]
             h5.attrs["status"] = "running"
             h5.attrs["abort_reason"] = ""
