@@ -28,7 +28,7 @@ import pytest
 
 from qmg_lab.config import config_fingerprint, parse_config
 from qmg_lab.plan import build_plan
-from qmg_lab.storage import RunWriter
+from qmg_lab.storage import RunWriter, read_run
 from tests.test_faults_helpers import config_text, run_inprocess
 
 def long_config() -> str:
@@ -220,3 +220,31 @@ def test_truth_is_aligned_with_the_lockin_when_samples_are_lost(tmp_path):
     dt = 1.0 / out.cfg.lockin.demod_rate_hz
     gaps = np.rint(np.diff(tl) / dt).astype(int)
     assert sorted(set(gaps.tolist())) == [1, 51] and np.sum(gaps == 51) == 1
+
+
+def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeypatch):
+    """Two Ctrl-C arrive while the CLI closes the run file: the close completes (the file is clean, its superblock
+    flags cleared) and the interrupt is raised after it. Unprotected, the second Ctrl-C would cut the close."""
+    import signal as sig
+
+    from qmg_lab import cli, storage
+
+    closes_completed: list[bool] = []
+
+    class CtrlCInClose(storage.RunWriter):
+        def close(self) -> None:
+            if not self.closed:
+                os.kill(os.getpid(), sig.SIGINT)
+                os.kill(os.getpid(), sig.SIGINT)
+                self._flush_buffers()  # some of the close's own work after the signals arrived
+            super().close()
+            closes_completed.append(True)
+
+    monkeypatch.setattr(storage, "RunWriter", CtrlCInClose)
+    text = config_text()
+    path = tmp_path / "run.h5"
+    with pytest.raises(KeyboardInterrupt):
+        cli._execute(parse_config(text), text, output=path, resume=None, quiet=True)
+    assert closes_completed == [True]  # the interrupt came after the close, not in the middle of it
+    run = read_run(path)
+    assert run.status == "completed" and not run.writer_open
