@@ -530,8 +530,9 @@ def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.
 
     The truth source records every simulated sample (on the world's clock); the lock-in block holds those the
     stream delivered (fewer if samples were lost), on the stream's clock. Both end on the same sample, the last
-    of the block, so samples are matched by their distance from it in sample periods: /truth gets the rows of
-    the delivered samples only, with /lockin's time values, and stays aligned sample for sample.
+    of the block (the HF2 twin drops lost samples inside a block, never its last one), so samples are matched by
+    their distance from it in sample periods: /truth gets the rows of the delivered samples only, with /lockin's
+    time values, and stays aligned sample for sample.
     """
     if len(truth.time) == len(t) and abs((truth.time[-1] - truth.time[0]) - (t[-1] - t[0])) < 0.5 * dt:
         # the same samples (the usual case: every simulated sample delivered): row for row
