@@ -11,7 +11,8 @@ Protocol (docs/hdf5.md):
 * Appends go to a small per-group memory buffer that is written and flushed when `maybe_flush` finds that
   `flush_interval_s` of wall time has passed, on `flush`, on every `append_step` and `set_status`, and on
   `close`. A step row with status "completed" is therefore a checkpoint: every sample appended before it is in
-  the file when the row is.
+  the file when the row is. Past BUFFER_ROWS_MAX buffered rows the buffers are handed to HDF5 early (no file
+  flush), so memory does not grow with the data one flush interval carries.
 * A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
   `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
 * Layout for the write pattern (qmg_lab/runfile_layout.py, docs/hdf5.md): big chunks when the writer is faster
@@ -40,6 +41,7 @@ from typing import Any
 
 import h5py
 import numpy as np
+from h5py import h5s
 
 from qmg_lab.h5clear import clear_superblock_flags, writer_flags_set
 from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part of the API
@@ -70,6 +72,15 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
 from qmg_lab.runfile_resume import check_resumable, file_instrument_modes, repair_end, status_detail
+
+#: the writer's chunk cache per dataset. HDF5 2.0 defaults to 8 MiB per open dataset, and the writer keeps ~30
+#: datasets open: 1 MiB (8 fast-group chunks) holds every partial chunk until its flush; w0 = 1 evicts fully
+#: written chunks first (an append-only pattern never comes back to them)
+WRITER_CACHE: dict[str, Any] = {"rdcc_nbytes": 1 << 20, "rdcc_w0": 1.0}
+
+#: rows buffered in memory (all groups) before they are handed to HDF5 without a file flush: about 12 MB of
+#: buffers, so a writer's memory does not depend on how much data one wall-clock flush interval carries
+BUFFER_ROWS_MAX = 131072
 
 __all__ = ["RunWriter", "ResumeState", "StorageError", "file_instrument_modes", "status_detail", "RunData", "read_run", "read_window", "writer_flags_set",
            "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
@@ -112,6 +123,7 @@ class RunWriter:
         self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
             g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups}
         self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
+        self._buffered_rows = 0
         self._last_time: dict[str, float] = {}
         for g in self._groups:
             t = h5[g]["time"]
@@ -157,7 +169,7 @@ class RunWriter:
         if not p.parent.is_dir():
             raise StorageError(f"{p}: directory {p.parent} does not exist")
         try:
-            h5 = h5py.File(p, "w-", libver="latest")
+            h5 = h5py.File(p, "w-", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot create the run file: {exc}") from None
         try:
@@ -243,7 +255,7 @@ class RunWriter:
         if run.writer_open:
             clear_superblock_flags(p)
         try:
-            h5 = h5py.File(p, "r+", libver="latest")
+            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
@@ -273,13 +285,15 @@ class RunWriter:
         if group not in self._buffer:
             raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
         expected = GROUP_UNITS[group]
-        if set(columns) != set(expected):
+        if columns.keys() != expected.keys():
             missing = sorted(set(expected) - set(columns))
             extra = sorted(set(columns) - set(expected))
             raise StorageError(f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
                                f"missing {missing}, unknown {extra}")
-        arrays = {c: np.asarray(columns[c], dtype=np.float64).reshape(-1) if np.ndim(columns[c]) == 0
-                  else np.asarray(columns[c], dtype=np.float64) for c in expected}
+        arrays = {c: np.asarray(columns[c], dtype=np.float64) for c in expected}
+        for c, arr in arrays.items():
+            if arr.ndim == 0:
+                arrays[c] = arr.reshape(1)
         n = arrays["time"].shape[0]
         for c, arr in arrays.items():
             if arr.ndim != 1 or arr.shape[0] != n:
@@ -295,6 +309,9 @@ class RunWriter:
                                f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)")
         self._last_time[group] = float(t[-1])
         self._buffer[group].append(arrays)
+        self._buffered_rows += n
+        if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
+            self._flush_buffers()
 
     def append_step(self, *, index: int, kind: str, t_start: float, t_end: float, table_rate: float,
                     chamber_setpoint: float, status: str) -> None:
@@ -428,17 +445,26 @@ class RunWriter:
             raise StorageError(f"{self.path}: the run file is closed")
 
     def _flush_buffers(self) -> None:
+        self._buffered_rows = 0
         for g, blocks in self._buffer.items():
             if not blocks:
                 continue
             for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
                 data = blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks])
-                n = ds.shape[0]
-                ds.resize((n + data.shape[0],))
-                ds[n:] = data
+                _append_rows(ds, np.ascontiguousarray(data))
             blocks.clear()
 
     def _flush_file(self) -> None:
         self._h5.flush()
         self._last_flush = self._clock()
 
+
+def _append_rows(ds: h5py.Dataset, data: np.ndarray) -> None:
+    """Extend a 1-D dataset by `data` (C-contiguous float64) with the HDF5 calls themselves: h5py's
+    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take."""
+    dsid = ds.id
+    n, m = dsid.shape[0], data.shape[0]
+    dsid.set_extent((n + m,))
+    fspace = dsid.get_space()
+    fspace.select_hyperslab((n,), (m,))
+    dsid.write(h5s.create_simple((m,)), fspace, data)
