@@ -1,20 +1,39 @@
-"""Soak run: many short simulated campaigns under randomly injected faults, plus SIGKILLed runs that are resumed.
+"""Soak run: many short simulated campaigns under randomly injected faults, plus kill -9 / --resume runs compared
+with uninterrupted runs of the same seed.
 
-    python benchmarks/faults.py --json [--campaigns 60] [--kills 8] [--seed 1]
+    python benchmarks/faults.py --json [--campaigns 60] [--kills 56] [--seed 1]
 
 Part 1 (in-process, qmg_lab.campaign on the twins): each campaign gets a random [sim.faults] drawn from --seed
 (per-reply serial/VISA timeouts and garbles, a link drop of the table, chamber or generator lasting 1-45 s,
 sometimes an interlock trip, a chamber overshoot, a sensor dropout, HF2 sample loss, a PLL unlock). A fault
 ends "recovered" when its campaign completes, else the campaign must have aborted with the station safe
 (checked on the twins' World: table commanded to 0, DS345 muted, chamber at its safe setpoint).
-Part 2 (subprocesses): `qmg-lab run` is SIGKILLed at a random step, the file is opened with h5py, then
-`--resume` finishes it.
+
+Part 2 (subprocesses): `qmg-lab run` is killed with SIGKILL at random instants, cycling through the phases
+lock (the first lock), dither (its start), table_move (right after a rate command, while the table ramps),
+step (a random block of a random step), suspension (while the campaign is suspended by an injected chamber
+overshoot or PLL unlock), end (the last step or the safe state at the end), close (inside the final
+RunWriter.close) and anywhere (an external kill after a random wall time, which can land inside HDF5 itself).
+The in-phase kills are armed by hooks in the child process (this script with --child): at the chosen point a
+timer thread sends SIGKILL to its own process after 0-3 ms (or at once), i.e. at a random instant of whatever
+runs next. Each killed file is then resumed with a plain `qmg-lab run CONFIG --resume FILE` and compared, group
+by group, with an uninterrupted run of the same configuration and seed:
+- steps identical: index, kind, table rate, chamber setpoint and status of every planned step, each once, no
+  step shorter than planned, no step starting before the previous one ended;
+- every time axis continuous and aligned: /lockin sampled every 1/demod_rate_hz from 0 to its end, the resume
+  point included; /truth/time equal to /lockin/time sample for sample; /table and /chamber at lock-in sample
+  times, one per block; /clsf at lock-in sample times, increasing;
+- the truth check (analysis truth_check_rms_ppm: table-step SF vs the twin's true SF) equal to the
+  uninterrupted run's within its noise: |a - b| <= 3 b / sqrt(pairs) + 0.5 ppm.
+A kill that lands after the run wrote status "completed" (the end of close) leaves nothing to resume: --resume
+must refuse it with exit 2 "already completed"; it counts as resumed ("already_completed").
 
 Figures (JSON): faults_injected, campaigns_completed, campaigns_aborted, safe_state_reached (of the aborted),
 faults_unresolved (neither recovered nor safe: must be 0), files_unreadable (must be 0), samples_lost (samples
 missing from /lockin/time of the final files that no injected HF2 sample loss explains: must be 0),
-kills, resumed_completed, unflushed_at_kill_s_max (wall time between the file's last write and the kill:
-at most about storage.flush_interval_s), wall_s.
+kills, kills_by_phase, resumed (resumed_completed + already_completed: must equal kills), mismatches (must be 0,
+with mismatch_details), unflushed_at_kill_s_max (wall time between the file's last write and an external
+kill: at most about storage.flush_interval_s), wall_s.
 """
 
 from __future__ import annotations
@@ -38,6 +57,7 @@ sys.path.insert(0, str(ROOT))
 
 from qmg_lab.campaign import CampaignRunner  # noqa: E402
 from qmg_lab.config import config_fingerprint, parse_config  # noqa: E402
+from qmg_lab.plan import build_plan  # noqa: E402
 from qmg_lab.station import build_station, make_world  # noqa: E402
 from qmg_lab.storage import RunWriter, read_run  # noqa: E402
 
@@ -151,61 +171,225 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
     return fig
 
 
-def completed_steps(path: Path) -> int:
-    try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            return int(h5.attrs["completed_steps"])
-    except (OSError, KeyError):
-        return -1
+KILL_CONFIG = BASE.format(hold=100.0) + """
+[sim]
+seed = {seed}
+[sim.faults]
+chamber_overshoot_at_s = {overshoot_at:.2f}
+chamber_overshoot_c = 4.0
+pll_unlock_at_s = {unlock_at:.2f}
+pll_unlock_duration_s = 2.0
+"""
+PHASES = ("lock", "dither", "table_move", "step", "suspension", "end", "close", "anywhere")
 
 
-def kills(n: int, seed: int, tmp: Path) -> dict[str, float]:
+def kill_config(seed: int) -> str:
+    """A short campaign (about 190 s simulated) with one chamber overshoot and one PLL unlock: suspensions."""
+    rng = random.Random(seed)
+    return KILL_CONFIG.format(seed=seed, overshoot_at=rng.uniform(40.0, 120.0), unlock_at=rng.uniform(40.0, 150.0))
+
+
+def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
+    """--child: run the CLI in this process with a hook that SIGKILLs it at the chosen point of `phase`."""
+    import threading
+
+    from qmg_lab import campaign as cmp
+    from qmg_lab import cli, storage
+
+    sys.setswitchinterval(1e-4)  # let the timer thread in between the main thread's bytecodes
+    seen = [0]
+
+    def arm() -> None:
+        if delay_s <= 0:
+            os.kill(os.getpid(), signal.SIGKILL)
+        threading.Timer(delay_s, os.kill, (os.getpid(), signal.SIGKILL)).start()
+
+    def count() -> None:
+        seen[0] += 1
+        if seen[0] == nth:
+            arm()
+
+    block, apply_, dither, finish, close = (cmp.CampaignRunner._block, cmp.CampaignRunner._apply,
+                                            cmp.CampaignRunner._start_dither, cmp.CampaignRunner._finish,
+                                            storage.RunWriter.close)
+
+    def hooked_block(self, step, elapsed, want):  # type: ignore[no-untyped-def]
+        if ((phase == "lock" and step.kind == "lock" and step.index == 0)
+                or (phase == "step" and step.index >= 0 and step.index == self._kill_step)
+                or (phase == "suspension" and self._suspended)
+                or (phase == "end" and step.index == len(self.steps) - 1 and nth <= 3)):
+            arm() if phase == "end" else count()
+        return block(self, step, elapsed, want)
+
+    def hooked_apply(self, step):  # type: ignore[no-untyped-def]
+        apply_(self, step)
+        if phase == "table_move" and step.moves_table:
+            count()
+
+    def hooked_dither(self):  # type: ignore[no-untyped-def]
+        dither(self)
+        if phase == "dither":
+            count()
+
+    def hooked_finish(self, status, reason):  # type: ignore[no-untyped-def]
+        if phase == "end" and nth > 3:  # half of the 'end' kills land in the final safe state
+            arm()
+        return finish(self, status, reason)
+
+    def hooked_close(self):  # type: ignore[no-untyped-def]
+        if phase == "close":
+            arm()
+        return close(self)
+
+    cmp.CampaignRunner._block = hooked_block
+    cmp.CampaignRunner._apply = hooked_apply
+    cmp.CampaignRunner._start_dither = hooked_dither
+    cmp.CampaignRunner._finish = hooked_finish
+    cmp.CampaignRunner._kill_step = random.Random(nth).randint(3, 20)
+    storage.RunWriter.close = hooked_close
+    sys.argv = ["qmg-lab", *argv]
+    cli.main()
+
+
+def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
+    """Differences between a resumed file and the uninterrupted run (see the module docstring)."""
+    bad: list[str] = []
+    run, want = read_run(path), read_run(ref)
+    s, r = run.steps, want.steps
+    order = np.argsort(s["index"], kind="stable")
+    for col in ("index", "kind", "table_rate", "chamber_setpoint", "status"):
+        if s[col][order].tolist() != r[col].tolist():
+            bad.append(f"steps/{col} differ")
+    if set(s["status"]) != {"completed"}:
+        bad.append(f"step statuses {sorted(set(s['status']))}")
+    planned = build_plan(parse_config(run.attrs["config_toml"]))
+    dur = (s["t_end"] - s["t_start"])[order]
+    short = [p.index for p, d in zip(planned, dur, strict=False) if p.kind != "lock" and d < p.duration_s - dt]
+    if short:
+        bad.append(f"steps {short} shorter than planned")
+    ts, te = s["t_start"][order], s["t_end"][order]
+    if len(ts) > 1 and np.any(ts[1:] < te[:-1]):
+        bad.append("steps overlap")
+    g = run.groups
+    tl = g["lockin"]["time"]
+    if tl[0] != 0.0 or not np.allclose(np.diff(tl), dt, rtol=1e-6, atol=0):
+        gaps = np.diff(tl)
+        bad.append(f"/lockin/time not continuous (gaps {gaps.min():.6g}..{gaps.max():.6g} s)")
+    if not np.array_equal(g["truth"]["time"], tl):
+        bad.append(f"/truth/time not equal to /lockin/time ({len(g['truth']['time'])} vs {len(tl)} rows)")
+    for grp in ("table", "chamber", "clsf"):
+        t = g[grp]["time"]
+        if not np.all(np.diff(t) > 0):
+            bad.append(f"/{grp}/time not increasing")
+        on_grid = np.abs((t - tl[0]) / dt - np.rint((t - tl[0]) / dt)) < 1e-3
+        if not on_grid.all():
+            bad.append(f"/{grp}/time not at lock-in sample times")
+    for grp in ("table", "chamber"):
+        if np.diff(g[grp]["time"]).max() > poll_s + dt * 1.5:
+            bad.append(f"/{grp} has a gap longer than one block")
+    if te.max() > tl[-1]:
+        bad.append("a step ends after the data")
+    from qmg_lab.analysis import analyze
+
+    a, b = analyze(path), analyze(ref)
+    if a.truth_check_rms_ppm is None or b.truth_check_rms_ppm is None:
+        bad.append("no truth check")
+    else:
+        tol = 3.0 * b.truth_check_rms_ppm / np.sqrt(max(b.n_step_pairs, 1)) + 0.5
+        if abs(a.truth_check_rms_ppm - b.truth_check_rms_ppm) > tol:
+            bad.append(f"truth check {a.truth_check_rms_ppm:.2f} ppm vs {b.truth_check_rms_ppm:.2f} ppm "
+                       f"(tolerance {tol:.2f})")
+    return bad
+
+
+def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
     rng = random.Random(seed + 7)
-    cfg_path = tmp / "kill.toml"
-    cfg_path.write_text(BASE.format(hold=300.0) + f"[sim]\nseed = {seed}\n")  # 38 steps, about 2 s of wall time
-    cmd = [sys.executable, "-m", "qmg_lab", "run", str(cfg_path), "-q"]
-    fig: dict[str, float] = dict(kills=0, resumed_completed=0, files_unreadable=0, samples_lost=0,
-                                 unflushed_at_kill_s_max=0.0)
+    seeds = [seed * 100 + k for k in range(max(1, min(8, n // 7)))]
+    configs, refs = {}, {}
+    for sd in seeds:  # the uninterrupted run of each seed
+        configs[sd] = tmp / f"kill{sd}.toml"
+        configs[sd].write_text(kill_config(sd))
+        refs[sd] = tmp / f"ref{sd}.h5"
+        subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(refs[sd]), "-q"],
+                       check=True, stdout=subprocess.DEVNULL, cwd=ROOT)
+    cfg0 = parse_config(configs[seeds[0]].read_text())
+    dt, poll_s = 1.0 / cfg0.lockin.demod_rate_hz, cfg0.lockin.sim_poll_interval_s
+    fig: dict[str, object] = dict(kills=0, kills_by_phase={p: 0 for p in PHASES}, not_killed=0,
+                                  resumed_completed=0, already_completed=0, resume_failed=0, files_unreadable=0,
+                                  mismatches=0, mismatch_details=[], samples_lost=0, unflushed_at_kill_s_max=0.0)
     for i in range(n):
+        phase, sd = PHASES[i % len(PHASES)], seeds[i % len(seeds)]
         path = tmp / f"kill{i}.h5"
-        proc = subprocess.Popen([*cmd, "-o", str(path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        target = rng.randint(1, 30)
-        while completed_steps(path) < target and proc.poll() is None:
+        run_args = ["run", str(configs[sd]), "-o", str(path), "-q"]
+        if phase == "anywhere":
+            proc = subprocess.Popen([sys.executable, "-m", "qmg_lab", *run_args], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL, cwd=ROOT)
+            while not path.exists() and proc.poll() is None:  # the station is up and the file created
+                try:
+                    proc.wait(timeout=0.01)
+                except subprocess.TimeoutExpired:
+                    pass
             try:
-                proc.wait(timeout=0.01)
+                proc.wait(timeout=rng.uniform(0.0, 1.0))
             except subprocess.TimeoutExpired:
-                pass
-        try:  # a random moment inside the step, not just at its checkpoint
-            proc.wait(timeout=rng.uniform(0.0, 0.1))
-        except subprocess.TimeoutExpired:
-            pass
-        if proc.poll() is not None:
-            continue  # finished before the kill: not a kill
-        os.kill(proc.pid, signal.SIGKILL)
-        killed_at = time.time()
-        proc.wait()
-        fig["kills"] += 1
-        fig["unflushed_at_kill_s_max"] = max(fig["unflushed_at_kill_s_max"], killed_at - path.stat().st_mtime)
-        try:
-            with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-                t = h5["lockin/time"][:]
-                if len(t) > 1 and not np.all(np.diff(t) > 0):
-                    raise ValueError("time not monotonic")
-        except Exception:  # noqa: BLE001
-            fig["files_unreadable"] += 1
+                os.kill(proc.pid, signal.SIGKILL)
+                killed_at = time.time()
+                proc.wait()
+                if path.exists():
+                    fig["unflushed_at_kill_s_max"] = max(float(fig["unflushed_at_kill_s_max"]),  # type: ignore[arg-type]
+                                                         killed_at - path.stat().st_mtime)
+        else:
+            # the first lock and the dither start happen once per run: their kill follows the first occurrence
+            nth = 1 if phase in ("lock", "dither") else rng.randint(1, 3) if phase != "end" else rng.randint(1, 6)
+            delay = 0.0 if rng.random() < 0.25 else rng.uniform(0.0, 0.003)
+            proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child", phase, str(nth),
+                                     repr(delay), "--", *run_args], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL, cwd=ROOT)
+            proc.wait()
+        if proc.returncode != -signal.SIGKILL or not path.exists():
+            fig["not_killed"] += 1  # type: ignore[operator]
             continue
-        done = subprocess.run([*cmd, "--resume", str(path)], capture_output=True, timeout=300)
-        if done.returncode == 0 and read_run(path).status == "completed":
-            fig["resumed_completed"] += 1
-        fig["samples_lost"] += missing_samples(path, 0)
+        fig["kills"] += 1  # type: ignore[operator]
+        fig["kills_by_phase"][phase] += 1  # type: ignore[index]
+        try:
+            killed = read_run(path)
+        except Exception as exc:  # noqa: BLE001
+            fig["files_unreadable"] += 1  # type: ignore[operator]
+            fig["mismatch_details"].append(f"kill{i} ({phase}): unreadable after the kill: {exc}")  # type: ignore[attr-defined]
+            continue
+        done = subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "--resume", str(path), "-q"],
+                              capture_output=True, text=True, timeout=300, cwd=ROOT)
+        if done.returncode == 0:
+            fig["resumed_completed"] += 1  # type: ignore[operator]
+        elif (done.returncode == 2 and killed.status == "completed"
+              and "already completed" in " ".join(done.stderr.split())):
+            fig["already_completed"] += 1  # type: ignore[operator]
+        else:
+            fig["resume_failed"] += 1  # type: ignore[operator]
+            fig["mismatch_details"].append(f"kill{i} ({phase}): resume exit {done.returncode}: "  # type: ignore[attr-defined]
+                                           f"{' '.join(done.stderr.split())[-300:]}")
+            continue
+        try:
+            bad = check_against(path, refs[sd], dt, poll_s)
+        except Exception as exc:  # noqa: BLE001
+            fig["files_unreadable"] += 1  # type: ignore[operator]
+            bad = [f"unreadable after the resume: {exc}"]
+        if bad:
+            fig["mismatches"] += 1  # type: ignore[operator]
+            fig["mismatch_details"].append(f"kill{i} ({phase}, seed {sd}): " + "; ".join(bad))  # type: ignore[attr-defined]
+        fig["samples_lost"] += missing_samples(path, 0)  # type: ignore[operator]
+    fig["resumed"] = int(fig["resumed_completed"]) + int(fig["already_completed"])  # type: ignore[call-overload]
     return fig
 
 
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":  # faults.py --child PHASE NTH DELAY -- qmg-lab args
+        child(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[6:])
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
-    ap.add_argument("--campaigns", type=int, default=60)
-    ap.add_argument("--kills", type=int, default=8)
+    ap.add_argument("--campaigns", type=int, default=60, help="soak campaigns under random faults (part 1)")
+    ap.add_argument("--kills", type=int, default=56, help="kill -9 + --resume runs (part 2)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     t0 = time.monotonic()
@@ -213,11 +397,11 @@ def main() -> None:
         tmp = Path(d)
         s = soak(args.campaigns, args.seed, tmp)
         k = kills(args.kills, args.seed, tmp)
-    result = {**s, "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),
-              "samples_lost": s["samples_lost"] + int(k["samples_lost"]), "kills": int(k["kills"]),
-              "resumed_completed": int(k["resumed_completed"]),
-              "unflushed_at_kill_s_max": round(k["unflushed_at_kill_s_max"], 3),
+    result = {**s, "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),  # type: ignore[call-overload]
+              "samples_lost": s["samples_lost"] + int(k["samples_lost"]),  # type: ignore[call-overload]
+              **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
               "campaigns": args.campaigns, "seed": args.seed, "wall_s": round(time.monotonic() - t0, 1)}
+    result["unflushed_at_kill_s_max"] = round(float(result["unflushed_at_kill_s_max"]), 3)  # type: ignore[arg-type]
     if args.json:
         print(json.dumps(result))
     else:

@@ -43,6 +43,7 @@ from qmg_lab.instruments import (
     Station,
     StreamTiming,
     TableReading,
+    TruthBlock,
 )
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
@@ -397,9 +398,7 @@ class CampaignRunner:
         n = len(block)
         if n == 0:
             return 0.0
-        if self._blocks == 0 and self.resume:
-            self._offset = max(0.0, self._offset_target + self._dt - float(block.time[0]))
-        t = block.time + self._offset
+        t = self._file_time(block.time)
         self._log_t = float(t[-1])  # the run log's clock: the block being processed
         self._blocks += 1
         self._samples += n
@@ -433,8 +432,7 @@ class CampaignRunner:
                 self.writer.append("chamber", time=np.array([t_end]), setpoint=np.array([cham.setpoint_c]),
                                    temperature=np.array([cham.temperature_c]))
             if truth is not None and len(truth.time):
-                self.writer.append("truth", time=truth.time + self._offset, scale_factor=truth.scale_factor,
-                                   temperature=truth.temperature, rate=truth.rate)
+                self.writer.append("truth", **_aligned_truth(truth, t, self._dt))
             self.writer.maybe_flush()
         self._t = t_end
         if tab is not None:
@@ -463,9 +461,25 @@ class CampaignRunner:
         return block_s
 
     _last_locked: bool = True
-    _offset_target: float = 0.0
+    _offset_target: float | None = None
+    _last_stream_t: float | None = None
     _log_t: float = 0.0
     _stored_ref: float | None = None
+
+    def _file_time(self, stream_t: np.ndarray) -> np.ndarray:
+        """File time of a block's samples: the lock-in stream's time plus an offset, so that the file's /lockin
+        time runs on continuously. The offset is set when a stream (re)starts: at the first block (0 on a new
+        run: the first sample is t = 0; on a resumed run the first sample follows the file's last one by one
+        sample period) and whenever the stream's time goes back (the lock-in was reconnected and restarted its
+        stream: the new stream follows the last logged sample by one period)."""
+        first = float(stream_t[0])
+        if self._last_stream_t is None or first <= self._last_stream_t:
+            if self._last_stream_t is not None:
+                self._offset_target = self._t
+            dt = float(stream_t[1] - stream_t[0]) if len(stream_t) > 1 else self._dt
+            self._offset = 0.0 if self._offset_target is None else self._offset_target + dt - first
+        self._last_stream_t = float(stream_t[-1])
+        return stream_t + self._offset
 
     def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
         """Pause the step's clock while the PLL is unlocked or the chamber is out of its band."""
@@ -565,6 +579,30 @@ class CampaignRunner:
                     self._recovering[name] = f"{name} being recovered ({exc})"
         finally:
             self._recovering.pop(name, None)
+
+
+def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.ndarray]:
+    """The twin's truth rows of exactly the lock-in samples of a block, at their file times `t`.
+
+    The truth source records every simulated sample (on the world's clock); the lock-in block holds those the
+    stream delivered (fewer if samples were lost), on the stream's clock. Both end on the same sample, the last
+    of the block (the HF2 twin drops lost samples inside a block, never its last one), so samples are matched by
+    their distance from it in sample periods: /truth gets the rows of the delivered samples only, with /lockin's
+    time values, and stays aligned sample for sample.
+    """
+    if len(truth.time) == len(t) and abs((truth.time[-1] - truth.time[0]) - (t[-1] - t[0])) < 0.5 * dt:
+        # the same samples (the usual case: every simulated sample delivered): row for row
+        return {"time": t, "scale_factor": truth.scale_factor, "temperature": truth.temperature,
+                "rate": truth.rate}
+    if len(truth.time) > 1:  # the stream's true sample period (the configured rate may have been rounded)
+        dt = float(truth.time[-1] - truth.time[0]) / (len(truth.time) - 1)
+    k_truth = np.rint((truth.time[-1] - truth.time) / dt).astype(np.int64)
+    k_lock = np.rint((t[-1] - t) / dt).astype(np.int64)
+    _, i_truth, i_lock = np.intersect1d(k_truth, k_lock, assume_unique=True, return_indices=True)
+    order = np.argsort(i_lock)
+    i_truth, i_lock = i_truth[order], i_lock[order]
+    return {"time": t[i_lock], "scale_factor": truth.scale_factor[i_truth],
+            "temperature": truth.temperature[i_truth], "rate": truth.rate[i_truth]}
 
 
 class _null:

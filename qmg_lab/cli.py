@@ -108,12 +108,6 @@ def _station(cfg: Config) -> Iterator[Station]:
         station.close()
 
 
-def instrument_modes(cfg: Config) -> str:
-    """Root attribute instrument_modes: JSON {"lockin": "twin" | "hardware", ...}, one entry per instrument."""
-    return json.dumps({n: "twin" if getattr(cfg, n).sim else "hardware"
-                       for n in ("lockin", "generator", "table", "chamber")})
-
-
 # ====================================================================================== check
 @app.command()
 def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
@@ -206,9 +200,19 @@ def run(
     _print_summary(summary)
 
 
+def _instrument_modes(cfg: Config) -> dict[str, str]:
+    """"twin" | "hardware" per instrument, as the configuration (after --sim) sets them."""
+    return {n: ("twin" if getattr(cfg, n).sim else "hardware") for n in ("lockin", "generator", "table", "chamber")}
+
+
 def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool,
              overwrite: bool = False) -> Any:
+    """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
+    instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
+    configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
+    or change the file. The file's final close is protected from a second Ctrl-C."""
     from qmg_lab.campaign import CampaignAborted, CampaignInterrupted, CampaignRunner
+    from qmg_lab.interrupts import InterruptGuard
     from qmg_lab.plan import assert_within_limits, build_plan
     from qmg_lab.progress import ProgressView
     from qmg_lab.storage import RunWriter, StorageError
@@ -219,47 +223,60 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
     except LimitError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
-    # the contract's mode: "sim" only when every instrument is a twin; which ones were is in instrument_modes
+    modes = _instrument_modes(cfg)
     mode = "sim" if cfg.all_sim else "hardware"
-    try:
-        if resume is not None:
-            if output is not None and output.resolve() != resume.resolve():
-                _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
-            writer = RunWriter.reopen(resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s)
-        else:
-            path = output or _default_output(cfg)
-            if path.exists() and overwrite and path.is_file():
-                path.unlink()
-            if path.exists():
-                _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+    if resume is not None:
+        if output is not None and output.resolve() != resume.resolve():
+            _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+        try:
+            RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
+        except StorageError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        path = resume
+    else:
+        path = output or _default_output(cfg)
+        if path.exists() and not (overwrite and path.is_file()):
+            _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            writer = RunWriter.create(path, config_text=text, config_sha256=sha, mode=mode,
-                                      software_version=__version__,
-                                      t0_unix=datetime.now(UTC).timestamp(),
-                                      flush_interval_s=cfg.storage.flush_interval_s,
-                                      compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-                                      truth=cfg.lockin.sim,
-                                      extra_attrs={"instrument_modes": instrument_modes(cfg)})
-    except StorageError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
-    except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-    log.info("run file %s; instruments %s", writer.path, instrument_modes(cfg))
-    view = ProgressView(console, enabled=not quiet)
-    try:
-        with _station(cfg) as station, view:
-            runner = CampaignRunner(cfg, station, writer, progress=view.update, resume=resume is not None,
-                                    steps=steps)
-            return runner.run()
-    except CampaignInterrupted as exc:
-        _fail(EXIT_INTERRUPTED, f"{exc}; instruments in their safe state; file {writer.path} (status aborted; "
-                                f"continue with --resume {writer.path})")
-    except (CampaignAborted, InstrumentError) as exc:
-        _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
-    except LimitError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
-    finally:
-        writer.close()
+        except OSError as exc:
+            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+    with _station(cfg) as station:
+        try:
+            if resume is not None:
+                writer = RunWriter.reopen(resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s,
+                                          instrument_modes=modes)
+            else:
+                if path.exists():
+                    path.unlink()  # --overwrite, now that the station answered
+                writer = RunWriter.create(path, config_text=text, config_sha256=sha, mode=mode,
+                                          software_version=__version__,
+                                          t0_unix=datetime.now(UTC).timestamp(),
+                                          flush_interval_s=cfg.storage.flush_interval_s,
+                                          compression=cfg.storage.resolved_compression(cfg.lockin.sim),
+                                          truth=cfg.lockin.sim, instrument_modes=modes,
+                                          realtime=not cfg.lockin.sim)
+        except StorageError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        except OSError as exc:
+            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+        log.info("run file %s; instruments %s", writer.path, modes)
+        view = ProgressView(console, enabled=not quiet)
+        try:
+            with view:
+                runner = CampaignRunner(cfg, station, writer, progress=view.update, resume=resume is not None,
+                                        steps=steps)
+                return runner.run()
+        except CampaignInterrupted as exc:
+            _fail(EXIT_INTERRUPTED, f"{exc}; instruments in their safe state; file {writer.path} (status "
+                                    f"aborted; continue with --resume {writer.path})")
+        except (CampaignAborted, InstrumentError) as exc:
+            _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
+        except LimitError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        finally:
+            with InterruptGuard() as guard, guard.protect():  # a second Ctrl-C waits for the file's last write
+                writer.close()
 
 
 def _print_summary(summary: Any) -> None:
@@ -400,14 +417,17 @@ def analyze(
     figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
 ) -> None:
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
+    import dataclasses
+
     from qmg_lab.analysis import analyze as run_analysis
     from qmg_lab.analysis import render_table
-    from qmg_lab.storage import StorageError
+    from qmg_lab.storage import StorageError, read_run, status_detail
 
     if not run_file.exists():
         _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     try:
         result = run_analysis(run_file)
+        detail = status_detail(read_run(run_file, select=()))
         written = []
         if figures is not None:
             from qmg_lab.report import write_figures
@@ -417,11 +437,12 @@ def analyze(
         _fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
         data = result.to_json()
+        data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
         if figures is not None:
             data["figures"] = [str(p) for p in written]
         out.print_json(json.dumps(data, default=float))
     else:
-        out.print(render_table(result))
+        out.print(render_table(dataclasses.replace(result, status=detail)))
         for p in written:
             out.print(f"figure: {p}")
 

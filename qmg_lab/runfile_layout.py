@@ -63,15 +63,28 @@ STATUS_BYTES = 16
 STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_start": np.float64,
                                 "t_end": np.float64, "table_rate": np.float64, "chamber_setpoint": np.float64,
                                 "status": f"S{STATUS_BYTES}"}
-#: rows per chunk. A flush rewrites the last, partial chunk of every dataset; a compressed chunk that grew is
-#: written elsewhere and its old space is not reused, so small chunks keep that waste small (benchmarks/
-#: storage_speed.py: 512 rows = 0.37 s at 1400 Sa/s). Only the fast groups are compressed; the slow ones (a few
-#: rows per second, < 1 MB per hour) are stored plain, where a partial chunk is rewritten in place.
-CHUNK_ROWS = {"lockin": 512, "clsf": 256, "table": 256, "chamber": 256, "truth": 512, "steps": 64}
-COMPRESSED_GROUPS = ("lockin", "truth")
+#: rows per chunk, chosen for the write pattern and for readers who slice hours of data.
+#: Under SWMR, HDF5 never reuses the space of a compressed chunk that is rewritten larger, so every flush that
+#: ends inside a compressed chunk leaves one dead copy of that partial chunk behind. A writer faster than real
+#: time (the twins: one flush carries minutes of data) writes whole chunks and can afford big ones: 16384 rows
+#: (11.7 s at 1400 Sa/s, 128 KiB raw) keep an hour of one column to ~310 chunks for readers. A real-time writer
+#: (hardware: a flush every flush_interval_s carries ~1400 rows) uses 2048 rows, about one flush, so the dead
+#: copies stay small (benchmarks/storage_speed.py). Slow groups (a few rows per second) are never compressed:
+#: their partial chunk is rewritten in place.
+CHUNK_ROWS = {"lockin": 16384, "truth": 16384, "clsf": 1024, "table": 1024, "chamber": 1024, "steps": 64}
+CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256, "chamber": 256, "steps": 64}
+#: columns stored with shuffle + the file's compression. The four noise-dominated lock-in columns (x_sense,
+#: y_sense, rate_output, drive_amplitude) are stored plain: lzf saves only 4-25 % of them at ~10 ns per byte,
+#: which on the twins is most of the write cost. Everything else compresses 2x to 100x.
+COMPRESSED_COLUMNS = {"lockin": ("time", "drive_frequency", "dither"),
+                      "truth": ("time", "scale_factor", "temperature", "rate")}
+COMPRESSED_GROUPS = tuple(COMPRESSED_COLUMNS)
 COMPRESSIONS = ("none", "gzip", "lzf")
 GZIP_LEVEL = 1
 MODES = ("sim", "hardware")
+#: instruments of a station, each run on its twin or on the hardware (root attribute instrument_modes)
+INSTRUMENTS = ("lockin", "generator", "table", "chamber")
+INSTRUMENT_MODES = ("twin", "hardware")
 STATUSES = ("running", "completed", "aborted")
 
 

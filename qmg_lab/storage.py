@@ -11,12 +11,19 @@ Protocol (docs/hdf5.md):
 * Appends go to a small per-group memory buffer that is written and flushed when `maybe_flush` finds that
   `flush_interval_s` of wall time has passed, on `flush`, on every `append_step` and `set_status`, and on
   `close`. A step row with status "completed" is therefore a checkpoint: every sample appended before it is in
-  the file when the row is.
+  the file when the row is. Past BUFFER_ROWS_MAX buffered rows the buffers are handed to HDF5 early (no file
+  flush), so memory does not grow with the data one flush interval carries.
 * A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
   `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
-* HDF5 marks a file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags
-  stay set and HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
-  (`qmg_lab.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`) after checking that the file's writer is gone.
+* Layout for the write pattern (qmg_lab/runfile_layout.py, docs/hdf5.md): big chunks when the writer is faster
+  than real time (twins), small ones when a flush carries a second of data (`realtime=True`, hardware); shuffle +
+  the file's compression only on the columns that compress.
+* Resume (`check_resumable`, then `reopen` once the station is connected): nothing changes in the file until every
+  check passed (not completed, same configuration, writer gone, same twin/hardware instruments). HDF5 marks a
+  file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags stay set and
+  HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
+  (`qmg_lab.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`), then cuts the file to one
+  consistent instant and drops the checkpoints that end after it.
 """
 
 from __future__ import annotations
@@ -34,18 +41,23 @@ from typing import Any
 
 import h5py
 import numpy as np
+from h5py import h5s
 
 from qmg_lab.h5clear import clear_superblock_flags, writer_flags_set
 from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part of the API
     CHAMBER_UNITS,
     CHUNK_ROWS,
+    CHUNK_ROWS_REALTIME,
     CLSF_UNITS,
+    COMPRESSED_COLUMNS,
     COMPRESSED_GROUPS,
     COMPRESSIONS,
     DESCRIPTIONS,
     FORMAT,
     GROUP_UNITS,
     GZIP_LEVEL,
+    INSTRUMENT_MODES,
+    INSTRUMENTS,
     KIND_BYTES,
     LOCKIN_UNITS,
     MODES,
@@ -60,27 +72,27 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
 from qmg_lab.runfile_records import RunRecords, create_groups
+from qmg_lab.runfile_resume import check_resumable, file_instrument_modes, repair_end, status_detail
 
-__all__ = ["RunWriter", "ResumeState", "StorageError", "RunData", "read_run", "read_window", "writer_flags_set",
+#: the writer's chunk cache per dataset. HDF5 2.0 defaults to 8 MiB per open dataset, and the writer keeps ~30
+#: datasets open: 1 MiB (8 fast-group chunks) holds every partial chunk until its flush; w0 = 1 evicts fully
+#: written chunks first (an append-only pattern never comes back to them)
+WRITER_CACHE: dict[str, Any] = {"rdcc_nbytes": 1 << 20, "rdcc_w0": 1.0}
+
+#: rows buffered in memory (all groups) before they are handed to HDF5 without a file flush: about 12 MB of
+#: buffers, so a writer's memory does not depend on how much data one wall-clock flush interval carries
+BUFFER_ROWS_MAX = 131072
+
+__all__ = ["RunWriter", "ResumeState", "StorageError", "file_instrument_modes", "status_detail", "RunData", "read_run", "read_window", "writer_flags_set",
            "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
            "STEPS_UNITS"]
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @dataclass(frozen=True)
 class ResumeState:
     """What a run file says about the moment its writer stopped (for `--resume`)."""
 
-    last_time: float
+    last_time: float | None  # None: no lock-in sample yet (the resumed run starts at t = 0)
     rho_ref: float | None
     gain_correction: float | None
     chamber_setpoint_c: float | None
@@ -108,7 +120,11 @@ class RunWriter:
         self._clock = clock
         self._last_flush = clock()
         self._groups = [g for g in GROUP_UNITS if g in h5]
+        # dataset handles looked up once: an h5py lookup by name costs more than a small append
+        self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
+            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups}
         self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
+        self._buffered_rows = 0
         self._last_time: dict[str, float] = {}
         for g in self._groups:
             t = h5[g]["time"]
@@ -124,9 +140,14 @@ class RunWriter:
     def create(cls, path: str | Path, *, config_text: str, config_sha256: str, mode: str, software_version: str,
                t0_unix: float, flush_interval_s: float = 1.0, compression: str = "lzf", truth: bool,
                planned_steps: int = -1, planned_step_kinds: Iterable[str] = (),
+               instrument_modes: Mapping[str, str] | None = None, realtime: bool = False,
                extra_attrs: Mapping[str, Any] | None = None,
                clock: Callable[[], float] = _time.monotonic) -> RunWriter:
         """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
+
+        instrument_modes: "twin" | "hardware" per instrument (root attribute instrument_modes, JSON), what
+        --resume checks; default: every instrument as `mode` says. realtime: the data arrive in real time (a
+        hardware lock-in), so each flush carries about a second of data: smaller chunks (CHUNK_ROWS_REALTIME).
 
         planned_steps / planned_step_kinds: the plan's length and its step kinds (root attributes
         `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
@@ -137,6 +158,11 @@ class RunWriter:
             raise StorageError(f"{p}: mode must be one of {MODES}, got {mode!r}")
         if compression not in COMPRESSIONS:
             raise StorageError(f"{p}: compression must be one of {COMPRESSIONS}, got {compression!r}")
+        modes = dict(instrument_modes) if instrument_modes is not None else {
+            n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+        if set(modes) != set(INSTRUMENTS) or not set(modes.values()) <= set(INSTRUMENT_MODES):
+            raise StorageError(f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, "
+                               f"got {modes!r}")
         if not np.isfinite(t0_unix):
             raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
         if p.exists():
@@ -144,7 +170,7 @@ class RunWriter:
         if not p.parent.is_dir():
             raise StorageError(f"{p}: directory {p.parent} does not exist")
         try:
-            h5 = h5py.File(p, "w-", libver="latest")
+            h5 = h5py.File(p, "w-", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot create the run file: {exc}") from None
         try:
@@ -162,6 +188,7 @@ class RunWriter:
             a["resume_count"] = 0
             a["planned_steps"] = int(planned_steps)
             a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
+            a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
             a["compression"] = compression
             a["flush_interval_s"] = float(flush_interval_s)
             a["writer_pid"] = os.getpid()
@@ -176,18 +203,19 @@ class RunWriter:
                 filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
             elif compression == "lzf":
                 filt = {"compression": "lzf", "shuffle": True}
+            rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
             for g, units in GROUP_UNITS.items():
                 if g == "truth" and not truth:
                     continue
                 grp = h5.create_group(g)
                 for col, unit in units.items():
                     ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=np.float64,
-                                            chunks=(CHUNK_ROWS[g],), **(filt if g in COMPRESSED_GROUPS else {}))
+                                            chunks=(rows[g],), **(filt if col in COMPRESSED_COLUMNS.get(g, ()) else {}))
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
             grp = h5.create_group("steps")
             for col, dtype in STEPS_DTYPES.items():
-                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS["steps"],))
+                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],))
                 ds.attrs["units"] = STEPS_UNITS[col]
                 ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
             create_groups(h5)  # /snapshots, /events (qmg_lab/runfile_records.py): laid out before SWMR
@@ -199,66 +227,51 @@ class RunWriter:
             raise
         return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
 
+    @staticmethod
+    def check_resumable(path: str | Path, *, config_sha256: str,
+                        instrument_modes: Mapping[str, str] | None = None) -> RunData:
+        """Read-only: can this file be resumed with this configuration and station? Changes nothing
+        (qmg_lab.runfile_resume.check_resumable: completed, configuration, live writer, instruments)."""
+        return check_resumable(path, config_sha256=config_sha256, instrument_modes=instrument_modes)
+
     @classmethod
     def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
+               instrument_modes: Mapping[str, str] | None = None,
                clock: Callable[[], float] = _time.monotonic) -> RunWriter:
-        """Reopen a run file to resume it (after a crash or an abort).
+        """Reopen a run file to resume it (after a crash or an abort). Call it once the station is connected:
+        this is the first step that changes the file.
 
-        Refuses a file of another configuration (StorageError naming both fingerprints) and a file whose
-        writer process is still alive. Then: clears the crash flags, cuts every group to its shortest column
-        and every group to the last /lockin time (the resumed run continues after it), drops /steps rows whose status is not "completed", sets status "running" (abort_reason ""),
-        increments resume_count and restarts SWMR.
+        First every check of `check_resumable` (nothing is changed if one fails). Then: clears the crash flags,
+        restarts SWMR, and makes the file end on a consistent instant:
+        1. every group is cut to its shortest column (whole rows only);
+        2. the end instant is the last /lockin time, or the last /truth time if that is earlier (a kill can
+           fall between the two groups' writes; /truth stays aligned sample for sample with /lockin) unless
+           /truth has no rows at all; /lockin
+           and /truth are cut to it and every other group to rows at or before it;
+        3. /steps keeps only "completed" rows that end at or before that instant: a checkpoint whose data did
+           not all reach the disk is not a checkpoint, and the step is run again after the resume point.
+        Then status "running" (abort_reason ""), completed_steps recounted, resume_count incremented.
         """
         p = Path(path)
-        if not p.is_file():
-            raise StorageError(f"{p}: no such run file to resume")
-        run = read_run(p, select=("steps",))
-        stored = run.attrs.get("config_sha256", "")
-        if stored != config_sha256:
-            raise StorageError(f"{p}: was written with configuration {stored}, not with this configuration "
-                               f"{config_sha256}; resume with the configuration the run was started with")
+        run = cls.check_resumable(p, config_sha256=config_sha256, instrument_modes=instrument_modes)
         if run.writer_open:
-            pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
-            if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
-                raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
             clear_superblock_flags(p)
         try:
-            h5 = h5py.File(p, "r+", libver="latest")
+            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
-            for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
-                n = min(h5[g][c].shape[0] for c in h5[g])
-                for c in h5[g]:
-                    if h5[g][c].shape[0] != n:
-                        h5[g][c].resize((n,))
-            # The lock-in stream is the heartbeat and the resumed run continues after its last sample: a kill
-            # between two groups' writes may leave another group ending later; cut it back to that time.
-            lt = h5["lockin"]["time"]
-            t_end = float(lt[lt.shape[0] - 1]) if lt.shape[0] else -np.inf
-            for g in [g for g in GROUP_UNITS if g in h5 and g != "lockin"]:
-                t = h5[g]["time"][:]
-                n = int(np.searchsorted(t, t_end, side="right"))
-                if n < t.shape[0]:
-                    for c in h5[g]:
-                        h5[g][c].resize((n,))
+            create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
+            h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
+            repair_end(h5)
             steps = h5["steps"]
-            keep = steps["status"][:] == b"completed"
-            if not keep.all():
-                for c in steps:
-                    kept = steps[c][:][keep]
-                    steps[c].resize((kept.shape[0],))
-                    if kept.shape[0]:
-                        steps[c][:] = kept
             h5.attrs["status"] = "running"
             h5.attrs["abort_reason"] = ""
             h5.attrs["completed_steps"] = int(np.unique(steps["index"][:]).shape[0])
             h5.attrs["resume_count"] = int(h5.attrs.get("resume_count", 0)) + 1
             h5.attrs["writer_pid"] = os.getpid()
             h5.attrs["writer_host"] = socket.gethostname()
-            create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
             h5.flush()
-            h5.swmr_mode = True
         except BaseException:
             h5.close()
             raise
@@ -275,13 +288,15 @@ class RunWriter:
         if group not in self._buffer:
             raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
         expected = GROUP_UNITS[group]
-        if set(columns) != set(expected):
+        if columns.keys() != expected.keys():
             missing = sorted(set(expected) - set(columns))
             extra = sorted(set(columns) - set(expected))
             raise StorageError(f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
                                f"missing {missing}, unknown {extra}")
-        arrays = {c: np.asarray(columns[c], dtype=np.float64).reshape(-1) if np.ndim(columns[c]) == 0
-                  else np.asarray(columns[c], dtype=np.float64) for c in expected}
+        arrays = {c: np.asarray(columns[c], dtype=np.float64) for c in expected}
+        for c, arr in arrays.items():
+            if arr.ndim == 0:
+                arrays[c] = arr.reshape(1)
         n = arrays["time"].shape[0]
         for c, arr in arrays.items():
             if arr.ndim != 1 or arr.shape[0] != n:
@@ -297,6 +312,9 @@ class RunWriter:
                                f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)")
         self._last_time[group] = float(t[-1])
         self._buffer[group].append(arrays)
+        self._buffered_rows += n
+        if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
+            self._flush_buffers()
 
     def append_step(self, *, index: int, kind: str, t_start: float, t_end: float, table_rate: float,
                     chamber_setpoint: float, status: str) -> None:
@@ -356,7 +374,8 @@ class RunWriter:
             return float(ds[ds.shape[0] - 1]) if ds.shape[0] else None
 
         ref = self._h5.attrs.get("clsf_reference")
-        return ResumeState(last_time=self.last_time(),
+        has_data = bool(np.isfinite(self._last_time.get("lockin", -np.inf)))
+        return ResumeState(last_time=self.last_time() if has_data else None,
                            rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
                            gain_correction=last("clsf", "gain_correction"),
                            chamber_setpoint_c=last("chamber", "setpoint"),
@@ -434,19 +453,26 @@ class RunWriter:
             raise StorageError(f"{self.path}: the run file is closed")
 
     def _flush_buffers(self) -> None:
+        self._buffered_rows = 0
         for g, blocks in self._buffer.items():
             if not blocks:
                 continue
-            grp = self._h5[g]
-            for c in GROUP_UNITS[g]:  # time first: a partial write leaves time the column to be cut
+            for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
                 data = blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks])
-                ds = grp[c]
-                n = ds.shape[0]
-                ds.resize((n + data.shape[0],))
-                ds[n:] = data
+                _append_rows(ds, np.ascontiguousarray(data))
             blocks.clear()
 
     def _flush_file(self) -> None:
         self._h5.flush()
         self._last_flush = self._clock()
 
+
+def _append_rows(ds: h5py.Dataset, data: np.ndarray) -> None:
+    """Extend a 1-D dataset by `data` (C-contiguous float64) with the HDF5 calls themselves: h5py's
+    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take."""
+    dsid = ds.id
+    n, m = dsid.shape[0], data.shape[0]
+    dsid.set_extent((n + m,))
+    fspace = dsid.get_space()
+    fspace.select_hyperslab((n,), (m,))
+    dsid.write(h5s.create_simple((m,)), fspace, data)

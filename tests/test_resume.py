@@ -1,6 +1,12 @@
 """Crash safety: `qmg-lab run` killed with SIGKILL in the middle of a simulated campaign leaves a file that h5py
 opens, with monotonic time; `--resume` finishes it, and the result matches an uninterrupted run of the same
-configuration (same seed) step by step: same indices, kinds, table rates and chamber setpoints, each once.
+configuration (same seed) step by step: same indices, kinds, table rates and chamber setpoints, each once; every
+time axis runs on continuously across the resume (no gap longer than the group's own spacing) and /truth is the
+twin's truth at exactly the /lockin sample times.
+
+The resume edge cases change nothing in the file (its bytes are compared): a completed run is refused (exit 2,
+"already completed"), a station that does not answer ends with exit 3 before the file is touched, and a run made
+on the twins is not resumed on the hardware (exit 2, saying to add --sim).
 
 No sleeping: the test waits on the run file's `completed_steps` attribute (read through HDF5 SWMR) between
 waits on the process itself.
@@ -8,6 +14,7 @@ waits on the process itself.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -19,8 +26,9 @@ import h5py
 import numpy as np
 import pytest
 
-from qmg_lab.config import parse_config
+from qmg_lab.config import config_fingerprint, parse_config
 from qmg_lab.plan import build_plan
+from qmg_lab.storage import RunWriter, read_run
 from tests.test_faults_helpers import config_text, run_inprocess
 
 def long_config() -> str:
@@ -85,7 +93,7 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
                         timeout=120)
     assert an.returncode == 0, an.stderr
     res = json.loads(an.stdout)
-    assert res["status"] == "running"
+    assert res["status"] == "running" and res["status_detail"] == "interrupted (process died)"
     missing = sorted(set(range(len(planned))) - set(steps_before.tolist()))
     assert [m["index"] for m in res["missing_steps"]] == missing
     assert [m["kind"] for m in res["missing_steps"]] == [planned[i].kind for i in missing]
@@ -112,7 +120,18 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
         for group in ("lockin", "clsf", "table", "chamber", "truth"):
             tg = resumed[f"{group}/time"][:]
             assert np.all(np.diff(tg) >= 0), group
-        assert np.all(np.diff(resumed["lockin/time"][:]) > 0)
+        # continuous: the lock-in samples 1/demod_rate_hz apart everywhere, the resume point included, and the
+        # file ends where its last step does (nothing after the end of the run's own data)
+        dt = 1.0 / parse_config(text).lockin.demod_rate_hz
+        tl = resumed["lockin/time"][:]
+        assert tl[0] == 0.0
+        np.testing.assert_allclose(np.diff(tl), dt, rtol=1e-6)
+        assert t_end.max() <= tl[-1]
+        # table and chamber: one reading per block (blocks of lockin.sim_poll_interval_s at most)
+        for group in ("table", "chamber"):
+            assert np.diff(resumed[f"{group}/time"][:]).max() <= parse_config(text).lockin.sim_poll_interval_s + dt
+        # /truth: the twin's truth at exactly the lock-in sample times, from the first sample on
+        np.testing.assert_array_equal(resumed["truth/time"][:], tl)
     finally:
         resumed.close()
         reference.close()
@@ -128,3 +147,104 @@ def test_resume_refuses_another_configuration(tmp_path):
     assert done.returncode == 2
     assert "resume with the configuration the run was started with" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def file_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_resuming_a_completed_run_is_refused_and_changes_nothing(tmp_path):
+    text = config_text()
+    out = run_inprocess(tmp_path, text)
+    assert out.error is None and out.run().status == "completed"
+    cfg_path = tmp_path / "short.toml"
+    cfg_path.write_text(text)
+    before = file_digest(out.path)
+    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(out.path), "-q"), capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "already completed" in " ".join(done.stderr.split()) and "Traceback" not in done.stderr
+    assert file_digest(out.path) == before
+
+
+def test_resume_that_cannot_connect_changes_nothing(tmp_path):
+    """A bench run (every instrument on hardware) left "running" by a killed process; the bench does not answer
+    on this machine: exit 3, and the file is exactly as the killed process left it."""
+    text = config_text().replace("sim = true", "sim = false")
+    assert "sim = true" not in text
+    cfg_path = tmp_path / "bench.toml"
+    cfg_path.write_text(text)
+    path = tmp_path / "bench.h5"
+    w = RunWriter.create(path, config_text=text, config_sha256=config_fingerprint(text), mode="hardware",
+                         software_version="test", t0_unix=0.0, truth=False)
+    w.append_step(index=0, kind="lock", t_start=0.0, t_end=2.0, table_rate=0.0, chamber_setpoint=25.0,
+                  status="completed")
+    w.set_status("aborted", "power cut")
+    w.close()
+    before = file_digest(path)
+    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 3, done.stderr
+    assert "could not connect" in " ".join(done.stderr.split()) and "Traceback" not in done.stderr
+    assert file_digest(path) == before
+
+
+def test_a_twin_run_is_not_resumed_on_the_hardware(tmp_path):
+    """A bench configuration run with --sim (every instrument its twin) and aborted; `--resume` without --sim
+    would continue it on the bench: exit 2, naming the instruments and saying to add --sim; file unchanged."""
+    text = config_text(faults="interlock_trip_at_s = 30.0").replace("sim = true", "sim = false")
+    cfg_path = tmp_path / "bench.toml"
+    cfg_path.write_text(text)
+    path = tmp_path / "twins.h5"
+    first = subprocess.run(qmg("run", str(cfg_path), "--sim", "-o", str(path), "-q"), capture_output=True,
+                           text=True, timeout=120)
+    assert first.returncode == 3, first.stderr  # the interlock
+    before = file_digest(path)
+    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 2, done.stderr
+    message = " ".join(done.stderr.split())  # the console wraps long lines
+    assert "lockin was twin, now hardware" in message and "resume it with --sim" in message
+    assert "Traceback" not in done.stderr
+    assert file_digest(path) == before
+
+
+def test_truth_is_aligned_with_the_lockin_when_samples_are_lost(tmp_path):
+    """The HF2 twin drops 50 samples in the middle of a block: /lockin has a 51-period gap there and /truth the same
+    rows (the twin's truth of exactly the delivered samples), from the very first sample on."""
+    out = run_inprocess(tmp_path, config_text(faults="sample_loss_at_s = [30.0]\nsample_loss_count = 50"))
+    assert out.error is None
+    run = out.run()
+    tl, tt = run.groups["lockin"]["time"], run.groups["truth"]["time"]
+    np.testing.assert_array_equal(tt, tl)
+    dt = 1.0 / out.cfg.lockin.demod_rate_hz
+    gaps = np.rint(np.diff(tl) / dt).astype(int)
+    assert sorted(set(gaps.tolist())) == [1, 51] and np.sum(gaps == 51) == 1
+
+
+def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeypatch):
+    """Two Ctrl-C arrive while the CLI closes the run file: the close completes (the file is clean, its superblock
+    flags cleared) and the interrupt is raised after it. Unprotected, the second Ctrl-C would cut the close."""
+    import signal as sig
+
+    from qmg_lab import cli, storage
+
+    closes_completed: list[bool] = []
+
+    class CtrlCInClose(storage.RunWriter):
+        def close(self) -> None:
+            if not self.closed:
+                os.kill(os.getpid(), sig.SIGINT)
+                os.kill(os.getpid(), sig.SIGINT)
+                self._flush_buffers()  # some of the close's own work after the signals arrived
+            super().close()
+            closes_completed.append(True)
+
+    monkeypatch.setattr(storage, "RunWriter", CtrlCInClose)
+    text = config_text()
+    path = tmp_path / "run.h5"
+    with pytest.raises(KeyboardInterrupt):
+        cli._execute(parse_config(text), text, output=path, resume=None, quiet=True)
+    assert closes_completed == [True]  # the interrupt came after the close, not in the middle of it
+    run = read_run(path)
+    assert run.status == "completed" and not run.writer_open

@@ -121,8 +121,15 @@ def test_compression_choices(tmp_path: Path, compression: str) -> None:
     w.append("lockin", **lockin_block(0))
     w.close()
     with h5py.File(p, "r") as f:
-        assert f["lockin/x_sense"].compression == (None if compression == "none" else compression)
-    np.testing.assert_array_equal(read_run(p).groups["lockin"]["x_sense"], lockin_block(0)["x_sense"])
+        for col in ("time", "drive_frequency", "dither"):  # columns that compress
+            assert f[f"lockin/{col}"].compression == (None if compression == "none" else compression)
+            assert f[f"lockin/{col}"].shuffle == (compression != "none")
+        for col in ("x_sense", "y_sense", "rate_output", "drive_amplitude"):  # noise: stored plain
+            assert f[f"lockin/{col}"].compression is None
+        assert all(f[f"truth/{c}"].compression == (None if compression == "none" else compression)
+                   for c in f["truth"])
+    for col, values in lockin_block(0).items():
+        np.testing.assert_array_equal(read_run(p).groups["lockin"][col], values)
 
 
 def test_bad_appends_and_arguments_are_named(tmp_path: Path) -> None:
@@ -363,3 +370,77 @@ def test_reopen_cuts_groups_that_end_after_the_lockin(tmp_path: Path) -> None:
     with h5py.File(p, "r") as f:
         assert f["truth/time"][-1] == pytest.approx(699 / FS)
         assert all(f["truth"][c].shape == (700,) for c in f["truth"])
+
+
+def test_reopen_drops_a_checkpoint_whose_data_is_not_on_disk(tmp_path: Path) -> None:
+    """A completed step row ending after the last stored lock-in sample (the data of the step did not all reach
+    the disk) is not a checkpoint: reopen drops it and the step is run again after the resume point."""
+    p = tmp_path / "run.h5"
+    w = new_writer(p, truth=False)
+    for k in range(2):
+        w.append("lockin", **lockin_block(k))  # up to 1399/1400 s
+    w.append_step(index=0, kind="lock", t_start=0, t_end=0.5, table_rate=0, chamber_setpoint=25, status="completed")
+    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.2, table_rate=5, chamber_setpoint=25,
+                  status="completed")
+    w.close()
+    with h5py.File(p, "r+") as f:  # the lock-in data of step 1 lost: the file ends at 0.75 s
+        for c in f["lockin"]:
+            f["lockin"][c].resize((1050,))
+    w = RunWriter.reopen(p, config_sha256=SHA)
+    assert w.completed_steps() == {0}
+    assert w.last_time() == pytest.approx(1049 / FS)
+    w.close()
+    assert read_run(p).attrs["completed_steps"] == 1
+
+
+def test_reopen_keeps_truth_aligned_with_the_lockin(tmp_path: Path) -> None:
+    """A kill between the /lockin and the /truth writes of one flush: the file is cut back to the last instant both
+    have, so /truth/time stays equal to /lockin/time row for row."""
+    p = tmp_path / "run.h5"
+    w = new_writer(p)
+    for k in range(3):
+        b = lockin_block(k)
+        w.append("lockin", **b)
+        if k < 2:
+            t = b["time"]
+            w.append("truth", time=t, scale_factor=0.06 + 0 * t, temperature=25 + 0 * t, rate=0 * t)
+    w.close()
+    w = RunWriter.reopen(p, config_sha256=SHA)
+    assert w.last_time() == pytest.approx(1399 / FS)
+    w.close()
+    run = read_run(p)
+    np.testing.assert_array_equal(run.groups["truth"]["time"], run.groups["lockin"]["time"])
+
+
+def test_resume_checks_change_nothing_and_name_the_instruments(tmp_path: Path) -> None:
+    p = tmp_path / "run.h5"
+    w = new_writer(p, instrument_modes={"lockin": "twin", "generator": "twin", "table": "hardware",
+                                        "chamber": "twin"}, mode="hardware")
+    w.append("lockin", **lockin_block(0))
+    w.close()
+    before = p.read_bytes()
+    with pytest.raises(StorageError) as err:
+        RunWriter.reopen(p, config_sha256=SHA, instrument_modes={n: "twin" for n in
+                                                                 ("lockin", "generator", "table", "chamber")})
+    assert "table was hardware, now twin" in str(err.value) and "(lockin, generator, chamber)" in str(err.value)
+    assert p.read_bytes() == before
+    w = RunWriter.reopen(p, config_sha256=SHA)
+    w.set_status("completed")
+    w.close()
+    before = p.read_bytes()
+    with pytest.raises(StorageError, match="already completed"):
+        RunWriter.reopen(p, config_sha256=SHA)
+    assert p.read_bytes() == before
+
+
+def test_chunks_follow_the_write_pattern(tmp_path: Path) -> None:
+    """Twins (faster than real time) get big chunks for the fast groups, a real-time writer small ones; the slow
+    groups are never compressed."""
+    fast, slow = tmp_path / "twins.h5", tmp_path / "bench.h5"
+    new_writer(fast).close()
+    new_writer(slow, realtime=True, truth=False, mode="hardware").close()
+    with h5py.File(fast, "r") as f, h5py.File(slow, "r") as g:
+        assert f["lockin/time"].chunks[0] > g["lockin/time"].chunks[0]
+        assert f["truth/time"].chunks == f["lockin/time"].chunks
+        for grp in ("clsf", "table", "chamber", "steps"):
+            assert all(f[grp][c].compression is None for c in f[grp])
