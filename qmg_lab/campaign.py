@@ -156,7 +156,9 @@ class CampaignRunner:
     def _now(self) -> float:
         """Run time for the log: the last sample's time (before the first block of a resumed run, where the
         file ends)."""
-        return max(self._t, self._log_t) if self._blocks else self._offset_target
+        if self._blocks:
+            return max(self._t, self._log_t)
+        return self._offset_target if self._offset_target is not None else 0.0
 
     def _event(self, kind: str, instrument: str, message: str, level: int = logging.WARNING) -> None:
         """One entry of the run's log: the module logger and the run file's /events (runfile_records.py)."""

@@ -122,7 +122,8 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
             assert np.all(np.diff(tg) >= 0), group
         # continuous: the lock-in samples 1/demod_rate_hz apart everywhere, the resume point included, and the
         # file ends where its last step does (nothing after the end of the run's own data)
-        dt = 1.0 / parse_config(text).lockin.demod_rate_hz
+        rate = parse_config(text).lockin.demod_rate_hz
+        dt = round(210e6 / rate) / 210e6  # the HF2 twin streams in whole ticks of its 210 MHz clock
         tl = resumed["lockin/time"][:]
         assert tl[0] == 0.0
         np.testing.assert_allclose(np.diff(tl), dt, rtol=1e-6)
