@@ -78,7 +78,7 @@ class LoopsSection(_Section):
     quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
     rate_zero_offset_hz: float = Field(
         0.0, ge=0.0, le=5.0,
-        description="rate PI zero this far above 1/tau, Hz (physics.md: hides the slow mode of a mode mismatch, "
+        description="rate PI zero this far above 1/tau, Hz (hides the slow mode of a mode mismatch, "
                     "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
     )
     agc_zero_offset_hz: float = Field(
