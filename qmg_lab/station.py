@@ -182,12 +182,18 @@ def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
     chamber = SunEC1xChamber(open_port(), min_c=c.min_c, max_c=c.max_c, max_ramp_c_per_min=c.max_ramp_c_per_min,
                              safe_setpoint_c=c.safe_setpoint_c, port_factory=open_port,
                              framing=chamber_framing(cfg))
-    try:
-        chamber.identify()
-        chamber.write_limits()
-    except InstrumentError:
-        chamber.close()
-        raise
+    # a transient fault at connect (a reply lost on a noisy line) gets the same bounded reconnects as a fault
+    # during a campaign ([recovery] reconnect_attempts); what still fails after them is reported
+    steps = [lambda: (chamber.identify(), chamber.write_limits())]
+    steps += [chamber.reconnect] * cfg.recovery.reconnect_attempts  # reopen, identify, write the limits again
+    for n, step in enumerate(steps, start=1):
+        try:
+            step()
+            return chamber
+        except InstrumentError:
+            if n == len(steps):
+                chamber.close()
+                raise
     return chamber
 
 
