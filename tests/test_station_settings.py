@@ -96,3 +96,26 @@ def test_a_controller_that_refuses_the_limits_is_an_instrument_fault(tmp_path: P
     assert proc.returncode == 3
     assert "'LTL=-90.00' refused: '?RANGE'" in " ".join(proc.stderr.split())  # rich wraps at 80 columns
     assert "Traceback" not in proc.stderr
+
+
+def test_a_reply_lost_while_writing_the_limits_is_retried_at_connect(chamber_controller) -> None:  # noqa: ANN001
+    """The first LTL= reply is lost (a timeout); the connect reconnects once ([recovery] reconnect_attempts) and
+    writes the limits, instead of failing the whole station on one lost reply."""
+    twin, url = chamber_controller
+    lost: list[bytes] = []
+
+    def drop_first_ltl(line: bytes, reply: bytes) -> bytes:
+        if line.startswith(b"LTL=") and not lost:
+            lost.append(line)
+            return b""
+        return reply
+
+    twin.fault_hook = drop_first_ltl
+    cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 5.0\nmax_c = 45.0\ntimeout_s = 0.3\n'
+                   "[recovery]\nreconnect_attempts = 1\n")
+    conn = connect_instrument(cfg, "chamber")
+    try:
+        assert len(lost) == 1 and lost[0].startswith(b"LTL=5.00")  # one reply was lost (the line as framed)
+        assert (twin.ltl_c, twin.utl_c) == (5.0, 45.0)
+    finally:
+        conn.close()
