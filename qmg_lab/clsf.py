@@ -114,12 +114,7 @@ class ClsfEstimator:
             raise ValueError(f"clsf.mode must be observe, correct or off, not {self.mode!r}")
         if self.tau_s <= 0 or self.time_constant_s <= 0:
             raise ValueError("tau_s and time_constant_s must be positive")
-        if not (math.isfinite(self.auxin_window_s) and self.auxin_window_s >= 0.0):
-            raise ValueError(f"auxin_window_s {self.auxin_window_s!r} must be >= 0")
-        self._edges = EdgeTracker(window_s=self.auxin_window_s)
-        self._sos: np.ndarray | None = None
-        self._sos_dt = 0.0
-        self.reset_buffer()
+        self.set_stream_timing(self.demod_filter, self.auxin_window_s)
 
     # ------------------------------------------------------------------ control from the campaign
     def hold(self, t_start: float, t_end: float) -> None:
@@ -147,7 +142,7 @@ class ClsfEstimator:
         self.demod_filter = demod_filter
         self.auxin_window_s = float(auxin_window_s)
         self._edges = EdgeTracker(window_s=self.auxin_window_s)
-        self._sos = None
+        self._sos: np.ndarray | None = None  # the filter's FOH sections at the stream's sample interval _sos_dt
         self._sos_dt = 0.0
         self.reset_buffer()
 
