@@ -25,7 +25,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 
 @dataclass(frozen=True)
@@ -82,6 +81,8 @@ class DemodFilter:
         State space of the chain: x' = A x + B u, A = (-I + subdiagonal ones)/tc, B = e_1/tc, y = x_n."""
         if self.tc_s == 0.0:
             return None
+        from scipy import signal  # imported here: scipy.signal takes ~0.9 s to import, and `check` needs none of it
+
         n, tc = self.order, self.tc_s
         a = (-np.eye(n) + np.eye(n, k=-1)) / tc
         b = np.zeros((n, 1))
