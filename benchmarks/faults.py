@@ -20,9 +20,10 @@ runs next. Each killed file is then resumed with a plain `qmg-lab run CONFIG --r
 by group, with an uninterrupted run of the same configuration and seed:
 - steps identical: index, kind, table rate, chamber setpoint and status of every planned step, each once, no
   step shorter than planned, no step starting before the previous one ended;
-- every time axis continuous and aligned: /lockin sampled every 1/demod_rate_hz from 0 to its end, the resume
-  point included; /truth/time equal to /lockin/time sample for sample; /table and /chamber at lock-in sample
-  times, one per block; /clsf at lock-in sample times, increasing;
+- every time axis continuous and aligned: /lockin sampled at the stream's own sample period (that of the
+  uninterrupted run: the HF2 applies its own rate) from 0 to its end, the resume point included; /truth/time
+  equal to /lockin/time sample for sample; /table and /chamber at lock-in sample times, one per block; /clsf
+  increasing and inside the lock-in record (a dither period ends at a dither edge, between samples);
 - the truth check (analysis truth_check_rms_ppm: table-step SF vs the twin's true SF) equal to the
   uninterrupted run's within its noise: |a - b| <= 3 b / sqrt(pairs) + 0.5 ppm.
 A kill that lands after the run wrote status "completed" (the end of close) leaves nothing to resume: --resume
@@ -281,6 +282,10 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
         t = g[grp]["time"]
         if not np.all(np.diff(t) > 0):
             bad.append(f"/{grp}/time not increasing")
+        if grp == "clsf":
+            if t.size and (t[0] < tl[0] or t[-1] > tl[-1] + dt):
+                bad.append("/clsf/time outside the lock-in record")
+            continue
         on_grid = np.abs((t - tl[0]) / dt - np.rint((t - tl[0]) / dt)) < 1e-3
         if not on_grid.all():
             bad.append(f"/{grp}/time not at lock-in sample times")
@@ -313,7 +318,9 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
         subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(refs[sd]), "-q"],
                        check=True, stdout=subprocess.DEVNULL, cwd=ROOT)
     cfg0 = parse_config(configs[seeds[0]].read_text())
-    dt, poll_s = 1.0 / cfg0.lockin.demod_rate_hz, cfg0.lockin.sim_poll_interval_s
+    with h5py.File(refs[seeds[0]], "r") as f:  # the sample period the lock-in applied (its rate, read back)
+        dt = float(np.median(np.diff(f["lockin/time"][:2000])))
+    poll_s = cfg0.lockin.sim_poll_interval_s
     fig: dict[str, object] = dict(kills=0, kills_by_phase={p: 0 for p in PHASES}, not_killed=0,
                                   resumed_completed=0, already_completed=0, resume_failed=0, files_unreadable=0,
                                   mismatches=0, mismatch_details=[], samples_lost=0, unflushed_at_kill_s_max=0.0)

@@ -169,8 +169,12 @@ class RunWriter:
             raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume")
         if not p.parent.is_dir():
             raise StorageError(f"{p}: directory {p.parent} does not exist")
+        # the file is laid out under a hidden name and renamed into place once SWMR is on: a process killed while
+        # laying it out leaves no half-made file at `path` that a reader or --resume could not open
+        tmp = p.with_name(f".{p.name}.creating")
+        tmp.unlink(missing_ok=True)  # left by a process killed in this very window: never a run's data
         try:
-            h5 = h5py.File(p, "w-", libver="latest", **WRITER_CACHE)
+            h5 = h5py.File(tmp, "w-", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot create the run file: {exc}") from None
         try:
@@ -221,9 +225,10 @@ class RunWriter:
             create_groups(h5)  # /snapshots, /events (qmg_lab/runfile_records.py): laid out before SWMR
             h5.flush()
             h5.swmr_mode = True
+            os.replace(tmp, p)  # the open file keeps its descriptor; readers find it complete, in SWMR
         except BaseException:
             h5.close()
-            p.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
         return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
 
