@@ -164,29 +164,14 @@ def _load(path: str | Path) -> _Ctx:
         if s["status"][i] == "completed":
             steps[int(s["index"][i])] = {k: s[k][i] for k in s}
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
-    if cfg.clsf.mode != "off" and "dither" in run.groups["lockin"]:
-        ctx.dither_rising_s = _rising_edges(t, run.groups["lockin"]["dither"])
+    lk = run.groups["lockin"]
+    if cfg.clsf.mode != "off" and "dither" in lk:
         tracker = EdgeTracker()  # the same edge location and 32-edge line fit as the CLSF estimator
-        chunks = [tracker.process(t[i:i + 36000], run.groups["lockin"]["dither"][i:i + 36000])[0]
-                  for i in range(0, t.shape[0], 36000)]
-        if chunks and sum(c.size for c in chunks) >= 2:
-            ctx.dither_rising_s = np.concatenate(chunks)
-        ctx.rate_integral = np.concatenate(([0.0], np.cumsum(
-            0.5 * np.diff(t) * (run.groups["lockin"]["rate_output"][1:] + run.groups["lockin"]["rate_output"][:-1]))))
+        ctx.dither_rising_s = np.concatenate([np.empty(0)] + [
+            tracker.process(t[i:i + 36000], lk["dither"][i:i + 36000])[0] for i in range(0, t.shape[0], 36000)])
+        ro = lk["rate_output"]
+        ctx.rate_integral = np.concatenate(([0.0], np.cumsum(0.5 * np.diff(t) * (ro[1:] + ro[:-1]))))
     return ctx
-
-
-def _rising_edges(t: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Times where the recorded square wave crosses its mid-level upward, linearly interpolated, s."""
-    if d.shape[0] < 3:
-        return np.empty(0)
-    hi, lo = float(np.max(d)), float(np.min(d))
-    if hi - lo <= 1e-9 * max(1.0, abs(hi)):
-        return np.empty(0)
-    mid = 0.5 * (hi + lo)
-    k = np.flatnonzero((d[1:] >= mid) & (d[:-1] < mid))
-    frac = (mid - d[k]) / (d[k + 1] - d[k])
-    return t[k] + frac * (t[k + 1] - t[k])
 
 
 def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple[float, float]:
