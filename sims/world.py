@@ -341,22 +341,6 @@ class World:
         w0 = self._wave_integral(u[1:] - du)
         return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - w0) / du
 
-    def dither_mean(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
-        """The exact mean of the generator's output over each interval [t0, t1], V (t1 == t0: the value)."""
-        d = self.dither
-        t0 = np.asarray(t0, dtype=np.float64)
-        t1 = np.asarray(t1, dtype=np.float64)
-        if d.amplitude_vpp == 0.0:
-            return np.full(t0.shape, d.offset_v)
-        u0, u1 = self._dither_phase(t0), self._dither_phase(t1)
-        du = u1 - u0
-        point = np.abs(du) < 1e-12
-        with np.errstate(divide="ignore", invalid="ignore"):
-            w = (self._wave_integral(u1) - self._wave_integral(u0)) / np.where(point, 1.0, du)
-        if point.any():
-            w = np.where(point, (self._dither_wave(t1) - d.offset_v) / (0.5 * d.amplitude_vpp), w)
-        return d.offset_v + 0.5 * d.amplitude_vpp * w
-
     def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
         c = self.chamber
         s0, s1 = c.controller_setpoint_c, c.target_c

@@ -110,17 +110,21 @@ def test_sine_dither_step_means_and_mute():
     assert np.all(w.advance(10, DT).dither_v == 0.5)
 
 
-def test_dither_window_mean_reads_a_point_value_for_a_zero_window():
-    w = World()
-    w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
-    t = np.linspace(0.01, 1.0, 50)
-    assert np.all(np.isin(np.round(w.dither_mean(t, t), 12), [-0.3, 0.3]))
-
-
-def test_interlock_brakes_the_table_to_rest():
-    w = World()
-    w.set_table_rate(50.0, 300.0)
-    w.advance(1400, DT)
-    w.trip_interlock()
-    w.advance(1400, DT)
-    assert w.table.interlock and w.table_rate_dps() == 0.0
+def test_auxin_windows_read_point_values_and_exact_fractions():
+    p = WorldParams(ds345_timebase_offset_ppm=20.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
+    w = World(p)
+    w.set_dither(function=DITHER_SQUARE, frequency_hz=7.3, amplitude_vpp=0.6)
+    b = w.advance(1400 * 2, DT)
+    t_end = b.t + DT
+    # a zero window reads the waveform at the step's end, from u(t) written out here
+    u = _ds345_phase_cycles(t_end, 7.3, p)
+    np.testing.assert_array_equal(w.window_means_at_step_ends(0.0), np.where(u - np.floor(u) < 0.5, 0.3, -0.3))
+    # a window of 0.6 step reads the fraction of it spent high (fine grid of 2000 points per window)
+    win = 0.6 * DT
+    fine = t_end[:, None] - win * (np.arange(2000) + 0.5)[None, :] / 2000
+    uf = _ds345_phase_cycles(fine, 7.3, p)
+    expected = 0.3 * (2 * ((uf - np.floor(uf)) < 0.5).mean(axis=1) - 1)
+    means = w.window_means_at_step_ends(win)
+    np.testing.assert_allclose(means, expected, atol=0.6 / 2000)
+    # 29 edges in 2 s, each inside a window with probability 0.6 (~17 expected): those read in between
+    assert np.sum(np.abs(means) < 0.29) >= 10
