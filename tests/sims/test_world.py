@@ -128,3 +128,12 @@ def test_auxin_windows_read_point_values_and_exact_fractions():
     np.testing.assert_allclose(means, expected, atol=0.6 / 2000)
     # 29 edges in 2 s, each inside a window with probability 0.6 (~17 expected): those read in between
     assert np.sum(np.abs(means) < 0.29) >= 10
+
+
+def test_interlock_brakes_the_table_to_rest():
+    w = World()
+    w.set_table_rate(50.0, 300.0)
+    w.advance(1400, DT)
+    w.trip_interlock()
+    w.advance(1400, DT)
+    assert w.table.interlock and w.table_rate_dps() == 0.0
