@@ -36,8 +36,12 @@ def run_once(config: Path, out: Path) -> tuple[float, float, float, float]:
     if out.exists():
         out.unlink()
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "qmg_lab", "run", str(config), "--sim", "-o", str(out), "-q"],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "qmg_lab", "run", str(config), "--sim", "-o", str(out), "-q"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)

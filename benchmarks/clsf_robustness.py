@@ -47,13 +47,21 @@ NOISE_OFF = "arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_n
 
 def case_config(rate_hz: float, rate_set: str, dither_hz: float, offset_ppm: float, noise: bool = True) -> str:
     text = (ROOT / "configs" / "paper_campaign.toml").read_text()
-    for old, new in (("demod_rate_hz = 1800.0", f"demod_rate_hz = {rate_hz}"),
-                     ("frequency_hz = 7.0", f"frequency_hz = {dither_hz}")):
+    for old, new in (
+        ("demod_rate_hz = 1800.0", f"demod_rate_hz = {rate_hz}"),
+        ("frequency_hz = 7.0", f"frequency_hz = {dither_hz}"),
+    ):
         if old not in text:
             raise SystemExit(f"configs/paper_campaign.toml no longer holds {old!r}: update this benchmark")
         text = text.replace(old, new)
-    return text + (f"pickoff_ratio_tempco_ppm_per_c = 0.0\nds345_timebase_offset_ppm = {offset_ppm}\n"
-                   f"hf2_rate_set = \"{rate_set}\"\n") + ("" if noise else NOISE_OFF)
+    return (
+        text
+        + (
+            f"pickoff_ratio_tempco_ppm_per_c = 0.0\nds345_timebase_offset_ppm = {offset_ppm}\n"
+            f'hf2_rate_set = "{rate_set}"\n'
+        )
+        + ("" if noise else NOISE_OFF)
+    )
 
 
 def clsf_vs_truth_rms_ppm(h5: Path) -> float:
@@ -71,24 +79,36 @@ def run_case(case: tuple[float, str, float, float], workdir: Path, noise: bool =
     cfg, h5 = workdir / f"{name}.toml", workdir / f"{name}.h5"
     cfg.write_text(case_config(rate_hz, rate_set, dither_hz, offset_ppm, noise))
     t0 = time.perf_counter()
-    run = subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(cfg), "--sim", "-o", str(h5), "--overwrite",
-                          "-q"], cwd=ROOT, capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "run", str(cfg), "--sim", "-o", str(h5), "--overwrite", "-q"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
     if run.returncode != 0:
         return {"case": name, "error": run.stderr.strip()[-400:] or f"exit {run.returncode}"}
-    ana = subprocess.run([sys.executable, "-m", "qmg_lab", "analyze", str(h5), "--json"], cwd=ROOT,
-                         capture_output=True, text=True)
+    ana = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "analyze", str(h5), "--json"], cwd=ROOT, capture_output=True, text=True
+    )
     vs_truth = clsf_vs_truth_rms_ppm(h5) if ana.returncode == 0 else math.nan
     h5.unlink(missing_ok=True)
     if ana.returncode != 0:
         return {"case": name, "error": ana.stderr.strip()[-400:]}
     res = json.loads(ana.stdout)
-    return {"case": name, "rate_hz": rate_hz, "rate_set": rate_set, "dither_hz": dither_hz,
-            "ds345_offset_ppm": offset_ppm, "samples_per_period": rate_hz / dither_hz,
-            "clsf_accuracy_rms_ppm": res.get("clsf_accuracy_rms_ppm"),
-            "clsf_accuracy_rms_ppm_mean_removed": res.get("clsf_accuracy_rms_ppm_mean_removed"),
-            "truth_check_rms_ppm": res.get("truth_check_rms_ppm"), "clsf_vs_truth_rms_ppm": vs_truth,
-            "n_step_pairs": res.get("n_step_pairs"),
-            "wall_s": round(time.perf_counter() - t0, 1)}
+    return {
+        "case": name,
+        "rate_hz": rate_hz,
+        "rate_set": rate_set,
+        "dither_hz": dither_hz,
+        "ds345_offset_ppm": offset_ppm,
+        "samples_per_period": rate_hz / dither_hz,
+        "clsf_accuracy_rms_ppm": res.get("clsf_accuracy_rms_ppm"),
+        "clsf_accuracy_rms_ppm_mean_removed": res.get("clsf_accuracy_rms_ppm_mean_removed"),
+        "truth_check_rms_ppm": res.get("truth_check_rms_ppm"),
+        "clsf_vs_truth_rms_ppm": vs_truth,
+        "n_step_pairs": res.get("n_step_pairs"),
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
 
 
 def grid(full: bool) -> list[tuple[float, str, float, float]]:
@@ -111,12 +131,16 @@ def main() -> None:
     ok = [r for r in results if "error" not in r and r["clsf_accuracy_rms_ppm"] is not None]
     worst = max(ok, key=lambda r: float(r["clsf_accuracy_rms_ppm"])) if ok else None  # type: ignore[arg-type]
     summary = {
-        "cases": len(results), "failed": len(results) - len(ok),
+        "cases": len(results),
+        "failed": len(results) - len(ok),
         "worst_clsf_accuracy_rms_ppm": worst["clsf_accuracy_rms_ppm"] if worst else None,
         "worst_case": worst["case"] if worst else None,
-        "median_clsf_accuracy_rms_ppm": statistics.median(float(r["clsf_accuracy_rms_ppm"]) for r in ok) if ok else None,
+        "median_clsf_accuracy_rms_ppm": statistics.median(float(r["clsf_accuracy_rms_ppm"]) for r in ok)
+        if ok
+        else None,
         "worst_clsf_vs_truth_rms_ppm": max(float(r["clsf_vs_truth_rms_ppm"]) for r in ok) if ok else None,
-        "noise": args.noise, "target_ppm": 20.0,
+        "noise": args.noise,
+        "target_ppm": 20.0,
     }
     if args.json:
         print(json.dumps({"results": results, **summary}, indent=1))
@@ -126,9 +150,11 @@ def main() -> None:
         if "error" in r:
             print(f"{r['case']:>22}  FAILED: {r['error']}")
             continue
-        print(f"{r['case']:>22} {r['samples_per_period']:10.3f} {r['clsf_accuracy_rms_ppm']:8.1f} "
-              f"{r['clsf_accuracy_rms_ppm_mean_removed']:9.1f} {r['truth_check_rms_ppm']:9.1f} "
-              f"{r['clsf_vs_truth_rms_ppm']:9.1f}")
+        print(
+            f"{r['case']:>22} {r['samples_per_period']:10.3f} {r['clsf_accuracy_rms_ppm']:8.1f} "
+            f"{r['clsf_accuracy_rms_ppm_mean_removed']:9.1f} {r['truth_check_rms_ppm']:9.1f} "
+            f"{r['clsf_vs_truth_rms_ppm']:9.1f}"
+        )
     print(json.dumps(summary))
 
 

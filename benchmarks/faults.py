@@ -94,27 +94,40 @@ flush_interval_s = 1.0
 
 def random_faults(rng: random.Random) -> str:
     """One campaign's [sim.faults] section."""
-    lines = [f"serial_timeout_prob = {rng.uniform(0, 0.03):.4f}", f"serial_garble_prob = {rng.uniform(0, 0.03):.4f}",
-             f"visa_timeout_prob = {rng.uniform(0, 0.05):.4f}", f"visa_garble_prob = {rng.uniform(0, 0.05):.4f}"]
+    lines = [
+        f"serial_timeout_prob = {rng.uniform(0, 0.03):.4f}",
+        f"serial_garble_prob = {rng.uniform(0, 0.03):.4f}",
+        f"visa_timeout_prob = {rng.uniform(0, 0.05):.4f}",
+        f"visa_garble_prob = {rng.uniform(0, 0.05):.4f}",
+    ]
     if rng.random() < 0.6:
         who = rng.choice(["table", "chamber", "generator"])
         at = rng.uniform(1.0, 8.0) if who == "generator" else rng.uniform(5.0, 100.0)
-        lines += [f"disconnect_instrument = '{who}'", f"disconnect_at_s = [{at:.2f}]",
-                  f"disconnect_duration_s = {rng.choice([1.0, 4.0, 8.0, 20.0, 45.0])}"]
+        lines += [
+            f"disconnect_instrument = '{who}'",
+            f"disconnect_at_s = [{at:.2f}]",
+            f"disconnect_duration_s = {rng.choice([1.0, 4.0, 8.0, 20.0, 45.0])}",
+        ]
     if rng.random() < 0.1:
         lines.append(f"interlock_trip_at_s = {rng.uniform(10.0, 100.0):.2f}")
     if rng.random() < 0.3:
-        lines += [f"chamber_overshoot_at_s = {rng.uniform(10.0, 90.0):.2f}",
-                  f"chamber_overshoot_c = {rng.uniform(1.0, 6.0):.2f}"]
+        lines += [
+            f"chamber_overshoot_at_s = {rng.uniform(10.0, 90.0):.2f}",
+            f"chamber_overshoot_c = {rng.uniform(1.0, 6.0):.2f}",
+        ]
     if rng.random() < 0.3:
-        lines += [f"chamber_dropout_at_s = {rng.uniform(10.0, 90.0):.2f}",
-                  f"chamber_dropout_duration_s = {rng.uniform(1.0, 8.0):.2f}"]
+        lines += [
+            f"chamber_dropout_at_s = {rng.uniform(10.0, 90.0):.2f}",
+            f"chamber_dropout_duration_s = {rng.uniform(1.0, 8.0):.2f}",
+        ]
     losses = [f"{rng.uniform(5.0, 100.0):.2f}" for _ in range(rng.randint(0, 2))]
     if losses:
         lines += [f"sample_loss_at_s = [{', '.join(losses)}]", f"sample_loss_count = {rng.randint(1, 500)}"]
     if rng.random() < 0.3:
-        lines += [f"pll_unlock_at_s = {rng.uniform(10.0, 90.0):.2f}",
-                  f"pll_unlock_duration_s = {rng.uniform(0.5, 5.0):.2f}"]
+        lines += [
+            f"pll_unlock_at_s = {rng.uniform(10.0, 90.0):.2f}",
+            f"pll_unlock_duration_s = {rng.uniform(0.5, 5.0):.2f}",
+        ]
     return "\n".join(lines)
 
 
@@ -132,17 +145,32 @@ def missing_samples(path: Path, injected: int) -> int:
 
 def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
     rng = random.Random(seed)
-    fig = dict(faults_injected=0, campaigns_completed=0, campaigns_aborted=0, safe_state_reached=0,
-               faults_unresolved=0, files_unreadable=0, samples_lost=0)
+    fig = dict(
+        faults_injected=0,
+        campaigns_completed=0,
+        campaigns_aborted=0,
+        safe_state_reached=0,
+        faults_unresolved=0,
+        files_unreadable=0,
+        samples_lost=0,
+    )
     for i in range(n):
         text = BASE.format(hold=50.0) + f"[sim]\nseed = {seed * 1000 + i}\n[sim.faults]\n{random_faults(rng)}\n"
         cfg = parse_config(text)
         world = make_world(cfg)
         station = build_station(cfg, world)
         path = tmp / f"soak{i}.h5"
-        writer = RunWriter.create(path, config_text=text, config_sha256=config_fingerprint(text), mode="sim",
-                                  software_version="bench", t0_unix=time.time(), compression="none", truth=True,
-                                  flush_interval_s=cfg.storage.flush_interval_s)
+        writer = RunWriter.create(
+            path,
+            config_text=text,
+            config_sha256=config_fingerprint(text),
+            mode="sim",
+            software_version="bench",
+            t0_unix=time.time(),
+            compression="none",
+            truth=True,
+            flush_interval_s=cfg.storage.flush_interval_s,
+        )
         runner = CampaignRunner(cfg, station, writer)
         try:
             summary = runner.run()
@@ -154,8 +182,11 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
         faults = summary.faults_injected
         n_faults = sum(1 for f in faults if f["kind"] != "link_restored")
         fig["faults_injected"] += n_faults
-        safe = (world.table.rate_command_dps == 0.0 and world.dither.amplitude_vpp == 0.0
-                and world.chamber.target_c == SAFE_C)
+        safe = (
+            world.table.rate_command_dps == 0.0
+            and world.dither.amplitude_vpp == 0.0
+            and world.chamber.target_c == SAFE_C
+        )
         if summary.status == "completed":
             fig["campaigns_completed"] += 1
         else:
@@ -172,7 +203,9 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
     return fig
 
 
-KILL_CONFIG = BASE.format(hold=100.0) + """
+KILL_CONFIG = (
+    BASE.format(hold=100.0)
+    + """
 [sim]
 seed = {seed}
 [sim.faults]
@@ -181,6 +214,7 @@ chamber_overshoot_c = 4.0
 pll_unlock_at_s = {unlock_at:.2f}
 pll_unlock_duration_s = 2.0
 """
+)
 PHASES = ("lock", "dither", "table_move", "step", "suspension", "end", "close", "anywhere")
 
 
@@ -210,15 +244,21 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
         if seen[0] == nth:
             arm()
 
-    block, apply_, dither, finish, close = (cmp.CampaignRunner._block, cmp.CampaignRunner._apply,
-                                            cmp.CampaignRunner._start_dither, cmp.CampaignRunner._finish,
-                                            storage.RunWriter.close)
+    block, apply_, dither, finish, close = (
+        cmp.CampaignRunner._block,
+        cmp.CampaignRunner._apply,
+        cmp.CampaignRunner._start_dither,
+        cmp.CampaignRunner._finish,
+        storage.RunWriter.close,
+    )
 
     def hooked_block(self, step, elapsed, want):  # type: ignore[no-untyped-def]
-        if ((phase == "lock" and step.kind == "lock" and step.index == 0)
-                or (phase == "step" and step.index >= 0 and step.index == self._kill_step)
-                or (phase == "suspension" and self._suspended)
-                or (phase == "end" and step.index == len(self.steps) - 1 and nth <= 3)):
+        if (
+            (phase == "lock" and step.kind == "lock" and step.index == 0)
+            or (phase == "step" and step.index >= 0 and step.index == self._kill_step)
+            or (phase == "suspension" and self._suspended)
+            or (phase == "end" and step.index == len(self.steps) - 1 and nth <= 3)
+        ):
             arm() if phase == "end" else count()
         return block(self, step, elapsed, want)
 
@@ -302,8 +342,9 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
     else:
         tol = 3.0 * b.truth_check_rms_ppm / np.sqrt(max(b.n_step_pairs, 1)) + 0.5
         if abs(a.truth_check_rms_ppm - b.truth_check_rms_ppm) > tol:
-            bad.append(f"truth check {a.truth_check_rms_ppm:.2f} ppm vs {b.truth_check_rms_ppm:.2f} ppm "
-                       f"(tolerance {tol:.2f})")
+            bad.append(
+                f"truth check {a.truth_check_rms_ppm:.2f} ppm vs {b.truth_check_rms_ppm:.2f} ppm (tolerance {tol:.2f})"
+            )
     return bad
 
 
@@ -315,22 +356,40 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
         configs[sd] = tmp / f"kill{sd}.toml"
         configs[sd].write_text(kill_config(sd))
         refs[sd] = tmp / f"ref{sd}.h5"
-        subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(refs[sd]), "-q"],
-                       check=True, stdout=subprocess.DEVNULL, cwd=ROOT)
+        subprocess.run(
+            [sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(refs[sd]), "-q"],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            cwd=ROOT,
+        )
     cfg0 = parse_config(configs[seeds[0]].read_text())
     with h5py.File(refs[seeds[0]], "r") as f:  # the sample period the lock-in applied (its rate, read back)
         dt = float(np.median(np.diff(f["lockin/time"][:2000])))
     poll_s = cfg0.lockin.sim_poll_interval_s
-    fig: dict[str, object] = dict(kills=0, kills_by_phase={p: 0 for p in PHASES}, not_killed=0,
-                                  resumed_completed=0, already_completed=0, resume_failed=0, files_unreadable=0,
-                                  mismatches=0, mismatch_details=[], samples_lost=0, unflushed_at_kill_s_max=0.0)
+    fig: dict[str, object] = dict(
+        kills=0,
+        kills_by_phase={p: 0 for p in PHASES},
+        not_killed=0,
+        resumed_completed=0,
+        already_completed=0,
+        resume_failed=0,
+        files_unreadable=0,
+        mismatches=0,
+        mismatch_details=[],
+        samples_lost=0,
+        unflushed_at_kill_s_max=0.0,
+    )
     for i in range(n):
         phase, sd = PHASES[i % len(PHASES)], seeds[i % len(seeds)]
         path = tmp / f"kill{i}.h5"
         run_args = ["run", str(configs[sd]), "-o", str(path), "-q"]
         if phase == "anywhere":
-            proc = subprocess.Popen([sys.executable, "-m", "qmg_lab", *run_args], stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.DEVNULL, cwd=ROOT)
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "qmg_lab", *run_args],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                cwd=ROOT,
+            )
             while not path.exists() and proc.poll() is None:  # the station is up and the file created
                 try:
                     proc.wait(timeout=0.01)
@@ -343,15 +402,29 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
                 killed_at = time.time()
                 proc.wait()
                 if path.exists():
-                    fig["unflushed_at_kill_s_max"] = max(float(fig["unflushed_at_kill_s_max"]),  # type: ignore[arg-type]
-                                                         killed_at - path.stat().st_mtime)
+                    fig["unflushed_at_kill_s_max"] = max(
+                        float(fig["unflushed_at_kill_s_max"]),  # type: ignore[arg-type]
+                        killed_at - path.stat().st_mtime,
+                    )
         else:
             # the first lock and the dither start happen once per run: their kill follows the first occurrence
             nth = 1 if phase in ("lock", "dither") else rng.randint(1, 3) if phase != "end" else rng.randint(1, 6)
             delay = 0.0 if rng.random() < 0.25 else rng.uniform(0.0, 0.003)
-            proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--child", phase, str(nth),
-                                     repr(delay), "--", *run_args], stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.DEVNULL, cwd=ROOT)
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    str(Path(__file__).resolve()),
+                    "--child",
+                    phase,
+                    str(nth),
+                    repr(delay),
+                    "--",
+                    *run_args,
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                cwd=ROOT,
+            )
             proc.wait()
         if proc.returncode != -signal.SIGKILL or not path.exists():
             fig["not_killed"] += 1  # type: ignore[operator]
@@ -364,17 +437,27 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
             fig["files_unreadable"] += 1  # type: ignore[operator]
             fig["mismatch_details"].append(f"kill{i} ({phase}): unreadable after the kill: {exc}")  # type: ignore[attr-defined]
             continue
-        done = subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "--resume", str(path), "-q"],
-                              capture_output=True, text=True, timeout=300, cwd=ROOT)
+        done = subprocess.run(
+            [sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "--resume", str(path), "-q"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=ROOT,
+        )
         if done.returncode == 0:
             fig["resumed_completed"] += 1  # type: ignore[operator]
-        elif (done.returncode == 2 and killed.status == "completed"
-              and "already completed" in " ".join(done.stderr.split())):
+        elif (
+            done.returncode == 2
+            and killed.status == "completed"
+            and "already completed" in " ".join(done.stderr.split())
+        ):
             fig["already_completed"] += 1  # type: ignore[operator]
         else:
             fig["resume_failed"] += 1  # type: ignore[operator]
-            fig["mismatch_details"].append(f"kill{i} ({phase}): resume exit {done.returncode}: "  # type: ignore[attr-defined]
-                                           f"{' '.join(done.stderr.split())[-300:]}")
+            fig["mismatch_details"].append(
+                f"kill{i} ({phase}): resume exit {done.returncode}: "  # type: ignore[attr-defined]
+                f"{' '.join(done.stderr.split())[-300:]}"
+            )
             continue
         try:
             bad = check_against(path, refs[sd], dt, poll_s)
@@ -404,10 +487,15 @@ def main() -> None:
         tmp = Path(d)
         s = soak(args.campaigns, args.seed, tmp)
         k = kills(args.kills, args.seed, tmp)
-    result = {**s, "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),  # type: ignore[call-overload]
-              "samples_lost": s["samples_lost"] + int(k["samples_lost"]),  # type: ignore[call-overload]
-              **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
-              "campaigns": args.campaigns, "seed": args.seed, "wall_s": round(time.monotonic() - t0, 1)}
+    result = {
+        **s,
+        "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),  # type: ignore[call-overload]
+        "samples_lost": s["samples_lost"] + int(k["samples_lost"]),  # type: ignore[call-overload]
+        **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
+        "campaigns": args.campaigns,
+        "seed": args.seed,
+        "wall_s": round(time.monotonic() - t0, 1),
+    }
     result["unflushed_at_kill_s_max"] = round(float(result["unflushed_at_kill_s_max"]), 3)  # type: ignore[arg-type]
     if args.json:
         print(json.dumps(result))

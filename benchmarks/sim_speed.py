@@ -39,8 +39,12 @@ def _loops():  # noqa: ANN202 - LoopSettings, imported lazily so the compile pro
     from sims.gyro import LoopSettings, PidSettings, PllSettings
 
     su = lockin_setup(Config())
-    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                        rate=PidSettings.from_gains(su.rate), quadrature=PidSettings.from_gains(su.quadrature))
+    return LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(su.rate),
+        quadrature=PidSettings.from_gains(su.quadrature),
+    )
 
 
 def _inputs(n: int, dt: float, t0: float):  # noqa: ANN202 - BlockInputs
@@ -90,8 +94,14 @@ def _child_compile() -> None:
 
 
 def _run_child(args: list[str], env: dict[str, str] | None = None) -> dict[str, float]:
-    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), *args], capture_output=True, text=True,
-                         env=env, check=True, cwd=str(ROOT))
+    out = subprocess.run(
+        [sys.executable, str(Path(__file__).resolve()), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+        cwd=str(ROOT),
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 

@@ -36,30 +36,53 @@ FS = 1400.0
 def write_campaign(path: Path, compression: str, minutes: float, truth: bool, realtime: bool) -> dict[str, float]:
     rng = np.random.default_rng(1)
     text = "[campaign]\nname='bench'\n"
-    w = RunWriter.create(path, config_text=text, config_sha256=hashlib.sha256(text.encode()).hexdigest(),
-                         mode="sim", software_version="bench", t0_unix=time.time(), compression=compression,
-                         truth=truth, flush_interval_s=1e9, realtime=realtime)
+    w = RunWriter.create(
+        path,
+        config_text=text,
+        config_sha256=hashlib.sha256(text.encode()).hexdigest(),
+        mode="sim",
+        software_version="bench",
+        t0_unix=time.time(),
+        compression=compression,
+        truth=truth,
+        flush_interval_s=1e9,
+        realtime=realtime,
+    )
     block = 700 if realtime else 2800
     flush_every = 2 if realtime else 30
     n_blocks = int(minutes * 60 * FS / block)
     t_cpu = 0.0
     for k in range(n_blocks):
         t = (k * block + np.arange(block)) / FS
-        cols = dict(time=t, x_sense=1e-6 * rng.standard_normal(block), y_sense=1e-6 * rng.standard_normal(block),
-                    rate_output=0.3 + 1e-4 * rng.standard_normal(block),
-                    drive_amplitude=0.5 + 1e-6 * rng.standard_normal(block),
-                    drive_frequency=2200.0 + 1e-4 * rng.standard_normal(block),
-                    dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(block))
+        cols = dict(
+            time=t,
+            x_sense=1e-6 * rng.standard_normal(block),
+            y_sense=1e-6 * rng.standard_normal(block),
+            rate_output=0.3 + 1e-4 * rng.standard_normal(block),
+            drive_amplitude=0.5 + 1e-6 * rng.standard_normal(block),
+            drive_frequency=2200.0 + 1e-4 * rng.standard_normal(block),
+            dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(block),
+        )
         n_clsf = block // 200
         tc = t[199::200][:n_clsf]
         tr = dict(time=t, scale_factor=0.06 * (1 + 1e-6 * t / 60), temperature=25 + 1e-3 * t, rate=5.0 + 0 * t)
         t0 = time.perf_counter()
         w.append("lockin", **cols)
-        w.append("clsf", time=tc, eta=1e-5 * rng.standard_normal(n_clsf),
-                 sf_change_estimate=1e-5 * rng.standard_normal(n_clsf), gain_correction=np.ones(n_clsf),
-                 rate_output_mean=0.3 + 1e-5 * rng.standard_normal(n_clsf))
-        w.append("table", time=[t[-1]], rate_command=[5.0], rate_measured=[5.0 + 1e-4 * rng.standard_normal()],
-                 position=[k * 2.5 % 360])
+        w.append(
+            "clsf",
+            time=tc,
+            eta=1e-5 * rng.standard_normal(n_clsf),
+            sf_change_estimate=1e-5 * rng.standard_normal(n_clsf),
+            gain_correction=np.ones(n_clsf),
+            rate_output_mean=0.3 + 1e-5 * rng.standard_normal(n_clsf),
+        )
+        w.append(
+            "table",
+            time=[t[-1]],
+            rate_command=[5.0],
+            rate_measured=[5.0 + 1e-4 * rng.standard_normal()],
+            position=[k * 2.5 % 360],
+        )
         w.append("chamber", time=[t[-1]], setpoint=[25.0], temperature=[25 + 1e-3 * rng.standard_normal()])
         if truth:
             w.append("truth", **tr)
@@ -74,8 +97,11 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     with h5py.File(path, "r") as f:
         f["lockin/rate_output"][:]
     t_read = time.perf_counter() - t0
-    return {"mb_per_hour": path.stat().st_size / 1e6 / hours, "write_cpu_s_per_hour": t_cpu / hours,
-            "read_one_column_s_per_hour": t_read / hours}
+    return {
+        "mb_per_hour": path.stat().st_size / 1e6 / hours,
+        "write_cpu_s_per_hour": t_cpu / hours,
+        "read_one_column_s_per_hour": t_read / hours,
+    }
 
 
 def main() -> None:
@@ -87,8 +113,10 @@ def main() -> None:
         for pattern, realtime, truth in (("twins", False, True), ("hardware", True, False)):
             for comp in ("none", "lzf", "gzip"):
                 key = f"{pattern}_{comp}{'_with_truth' if truth else ''}"
-                out[key] = {k: round(v, 3) for k, v in
-                            write_campaign(Path(d) / f"{key}.h5", comp, args.minutes, truth, realtime).items()}
+                out[key] = {
+                    k: round(v, 3)
+                    for k, v in write_campaign(Path(d) / f"{key}.h5", comp, args.minutes, truth, realtime).items()
+                }
     print(json.dumps(out, indent=2))
 
 

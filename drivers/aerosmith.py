@@ -49,8 +49,15 @@ class Aerosmith1291BR(RateTable):
 
     NAME = "1291BR"
 
-    def __init__(self, port: SerialPort, *, max_rate_dps: float, max_accel_dps2: float,
-                 port_factory: Callable[[], SerialPort] | None = None, framing: Framing | None = None) -> None:
+    def __init__(
+        self,
+        port: SerialPort,
+        *,
+        max_rate_dps: float,
+        max_accel_dps2: float,
+        port_factory: Callable[[], SerialPort] | None = None,
+        framing: Framing | None = None,
+    ) -> None:
         if not (math.isfinite(max_rate_dps) and max_rate_dps > 0):
             raise ValueError(f"max_rate_dps must be a positive finite number, got {max_rate_dps!r}")
         if not (math.isfinite(max_accel_dps2) and max_accel_dps2 > 0):
@@ -81,7 +88,8 @@ class Aerosmith1291BR(RateTable):
                 result = cmd.reply(line)
             except ValueError as exc:
                 raise InstrumentError(
-                    f"{self.NAME}: garbled reply to {cmd.mnemonic!r}: received {line!r} ({exc})") from exc
+                    f"{self.NAME}: garbled reply to {cmd.mnemonic!r}: received {line!r} ({exc})"
+                ) from exc
             try:
                 line = self._link.read_line(raw)
             except InstrumentError as exc:
@@ -90,7 +98,8 @@ class Aerosmith1291BR(RateTable):
         if line != self.framing.prompt:
             raise InstrumentError(
                 f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of the prompt "
-                f"{self.framing.prompt!r}")
+                f"{self.framing.prompt!r}"
+            )
         return result
 
     def _raise_if_error(self, raw: bytes, line: str) -> None:
@@ -120,8 +129,12 @@ class Aerosmith1291BR(RateTable):
         self._check_accel(accel_dps2)
         self._transact("accel", accel_dps2)
         self._transact("jog", rate_dps)
-        self._mode, self._rate_command_dps, self._accel_dps2, self._sine = "rate", float(rate_dps), float(
-            accel_dps2), None
+        self._mode, self._rate_command_dps, self._accel_dps2, self._sine = (
+            "rate",
+            float(rate_dps),
+            float(accel_dps2),
+            None,
+        )
         self._check_interlock(self._transact("status"), "JOG")
 
     def set_sinusoid(self, amplitude_dps: float, frequency_hz: float, accel_dps2: float) -> None:
@@ -133,20 +146,25 @@ class Aerosmith1291BR(RateTable):
         check_limit("sinusoid amplitude", amplitude_dps, 0.0, self.max_rate_dps, "deg/s")
         check_limit("sinusoid frequency", frequency_hz, 0.0, MAX_SINE_FREQUENCY_HZ, "Hz")
         if frequency_hz <= 0.0 or amplitude_dps <= 0.0:
-            raise LimitError(f"sinusoid amplitude ({amplitude_dps:g} deg/s) and frequency ({frequency_hz:g} Hz) "
-                             "must be positive")
+            raise LimitError(
+                f"sinusoid amplitude ({amplitude_dps:g} deg/s) and frequency ({frequency_hz:g} Hz) must be positive"
+            )
         self._check_accel(accel_dps2)
         peak = amplitude_dps * 2.0 * math.pi * frequency_hz
         if peak > accel_dps2:
             raise LimitError(
                 f"sinusoid peak acceleration amplitude*2*pi*frequency = {peak:g} deg/s^2 exceeds the "
-                f"acceleration limit {accel_dps2:g} deg/s^2")
+                f"acceleration limit {accel_dps2:g} deg/s^2"
+            )
         self._transact("accel", accel_dps2)
         self._transact("sine_amplitude", amplitude_dps)
         self._transact("sine_frequency", frequency_hz)
         self._transact("sine_go")
-        self._mode, self._sine, self._accel_dps2 = "sine", (float(amplitude_dps), float(frequency_hz)), float(
-            accel_dps2)
+        self._mode, self._sine, self._accel_dps2 = (
+            "sine",
+            (float(amplitude_dps), float(frequency_hz)),
+            float(accel_dps2),
+        )
         self._check_interlock(self._transact("status"), "SGO")
 
     def stop(self) -> None:
@@ -160,8 +178,9 @@ class Aerosmith1291BR(RateTable):
         rate = self._transact("velocity")
         position = self._transact("position")
         status = self._transact("status")
-        return TableReading(rate_dps=rate, position_deg=position, status=status,
-                            interlock=bool(status & proto.TableStatus.INTERLOCK))
+        return TableReading(
+            rate_dps=rate, position_deg=position, status=status, interlock=bool(status & proto.TableStatus.INTERLOCK)
+        )
 
     def motion_complete(self, tolerance_dps: float) -> bool:
         """MCO<tol>: True when the rate is within `tolerance_dps` of the command (rate mode)."""
@@ -198,9 +217,13 @@ class Aerosmith1291BR(RateTable):
             "identity": self.identify(),
             "firmware": None,  # no public 1291BR command reports it (docs/bench-bringup.md)
             "settings": {
-                "max_rate_dps": self.max_rate_dps, "max_accel_dps2": self.max_accel_dps2,
-                "framing": {"command_terminator": self.framing.command_terminator,
-                            "reply_terminator": self.framing.reply_terminator, "prompt": self.framing.prompt},
+                "max_rate_dps": self.max_rate_dps,
+                "max_accel_dps2": self.max_accel_dps2,
+                "framing": {
+                    "command_terminator": self.framing.command_terminator,
+                    "reply_terminator": self.framing.reply_terminator,
+                    "prompt": self.framing.prompt,
+                },
                 "commands": {c.key: c.mnemonic for c in proto.COMMANDS.values()},
             },
             "state": self.state(),

@@ -78,11 +78,23 @@ class SunEC1xChamber(ThermalChamber):
 
     NAME = "EC1x chamber"
 
-    def __init__(self, port: SerialPort, *, min_c: float, max_c: float, max_ramp_c_per_min: float,
-                 safe_setpoint_c: float, port_factory: Callable[[], SerialPort] | None = None,
-                 framing: Framing | None = None) -> None:
-        for name, v in (("min_c", min_c), ("max_c", max_c), ("max_ramp_c_per_min", max_ramp_c_per_min),
-                        ("safe_setpoint_c", safe_setpoint_c)):
+    def __init__(
+        self,
+        port: SerialPort,
+        *,
+        min_c: float,
+        max_c: float,
+        max_ramp_c_per_min: float,
+        safe_setpoint_c: float,
+        port_factory: Callable[[], SerialPort] | None = None,
+        framing: Framing | None = None,
+    ) -> None:
+        for name, v in (
+            ("min_c", min_c),
+            ("max_c", max_c),
+            ("max_ramp_c_per_min", max_ramp_c_per_min),
+            ("safe_setpoint_c", safe_setpoint_c),
+        ):
             if not math.isfinite(v):
                 raise ValueError(f"{name} must be a finite number, got {v!r}")
         if min_c >= max_c:
@@ -139,8 +151,7 @@ class SunEC1xChamber(ThermalChamber):
         temperature = self._query("C1?", parse_temperature)
         setpoint = self._query("SET?", parse_temperature)
         flags = self._query("STATUS?", parse_status)
-        return ChamberReading(temperature_c=temperature, setpoint_c=setpoint,
-                              ramping=flags[STATUS_RAMPING_CHAR] == "Y")
+        return ChamberReading(temperature_c=temperature, setpoint_c=setpoint, ramping=flags[STATUS_RAMPING_CHAR] == "Y")
 
     def ramp_rate(self) -> float:
         """RATE?: the controller's ramp rate, deg C/min."""
@@ -183,11 +194,16 @@ class SunEC1xChamber(ThermalChamber):
             "identity": self.identify(),
             "firmware": None,  # no public EC1x identity query (docs/bench-bringup.md)
             "settings": {
-                "min_c": self.min_c, "max_c": self.max_c, "max_ramp_c_per_min": self.max_ramp_c_per_min,
-                "safe_setpoint_c": self.safe_setpoint_c, "ramp_c_per_min": self.ramp_rate(),
+                "min_c": self.min_c,
+                "max_c": self.max_c,
+                "max_ramp_c_per_min": self.max_ramp_c_per_min,
+                "safe_setpoint_c": self.safe_setpoint_c,
+                "ramp_c_per_min": self.ramp_rate(),
                 "power_on": self.power_on(),
-                "framing": {"command_terminator": self.framing.command_terminator,
-                            "reply_terminator": self.framing.reply_terminator},
+                "framing": {
+                    "command_terminator": self.framing.command_terminator,
+                    "reply_terminator": self.framing.reply_terminator,
+                },
             },
             "state": self.state(),
         }

@@ -95,8 +95,12 @@ _AMPL_RE = re.compile(rf"^({_NUMBER})(VP|VR|DB)$")
 _FUNC_RE = re.compile(r"^[0-5]$")
 _ESR_RE = re.compile(r"^\d{1,3}$")
 
-_CREST_VPP_PER_VRMS: dict[int, float] = {0: 2.0 * math.sqrt(2.0), 1: 2.0, 2: 2.0 * math.sqrt(3.0),
-                                         3: 2.0 * math.sqrt(3.0)}
+_CREST_VPP_PER_VRMS: dict[int, float] = {
+    0: 2.0 * math.sqrt(2.0),
+    1: 2.0,
+    2: 2.0 * math.sqrt(3.0),
+    3: 2.0 * math.sqrt(3.0),
+}
 
 
 class VisaLikeResource(Protocol):
@@ -161,12 +165,21 @@ class DS345(FunctionGenerator):
     framing (8N2); it sends nothing.
     """
 
-    def __init__(self, resource: VisaLikeResource, max_amplitude_vpp: float = AMPL_MAX_VPP,
-                 reopen: Callable[[], VisaLikeResource] | None = None) -> None:
-        if not (isinstance(max_amplitude_vpp, numbers.Real) and math.isfinite(max_amplitude_vpp)
-                and AMPL_MIN_VPP <= max_amplitude_vpp <= AMPL_MAX_VPP):
-            raise ValueError(f"max_amplitude_vpp = {max_amplitude_vpp!r} must lie in "
-                             f"[{AMPL_MIN_VPP}, {AMPL_MAX_VPP}] Vpp (the DS345's range into 50 ohm)")
+    def __init__(
+        self,
+        resource: VisaLikeResource,
+        max_amplitude_vpp: float = AMPL_MAX_VPP,
+        reopen: Callable[[], VisaLikeResource] | None = None,
+    ) -> None:
+        if not (
+            isinstance(max_amplitude_vpp, numbers.Real)
+            and math.isfinite(max_amplitude_vpp)
+            and AMPL_MIN_VPP <= max_amplitude_vpp <= AMPL_MAX_VPP
+        ):
+            raise ValueError(
+                f"max_amplitude_vpp = {max_amplitude_vpp!r} must lie in "
+                f"[{AMPL_MIN_VPP}, {AMPL_MAX_VPP}] Vpp (the DS345's range into 50 ohm)"
+            )
         self.max_amplitude_vpp = float(max_amplitude_vpp)
         self._reopen = reopen
         self._resource: VisaLikeResource | None = None
@@ -220,8 +233,9 @@ class DS345(FunctionGenerator):
 
     @staticmethod
     def _garbled(command: str, reply: str, expected: str) -> InstrumentError:
-        return InstrumentError(f"DS345: garbled reply to {command!r}: {reply.encode(errors='replace')!r} "
-                               f"(expected {expected})")
+        return InstrumentError(
+            f"DS345: garbled reply to {command!r}: {reply.encode(errors='replace')!r} (expected {expected})"
+        )
 
     # ---------------------------------------------------------------- status
     def read_esr(self) -> int:
@@ -356,8 +370,10 @@ class DS345(FunctionGenerator):
         check_limit("DS345 offset", offs, -OFFSET_MAX_V, OFFSET_MAX_V, "V")
         peak = ampl / 2.0 + abs(offs)
         if peak > PEAK_PLUS_OFFSET_MAX_V + 1e-12:
-            raise LimitError(f"DS345 |AC peak| + |DC| = {ampl / 2:g} + {abs(offs):g} = {peak:g} V exceeds the "
-                             f"{PEAK_PLUS_OFFSET_MAX_V:g} V limit into 50 ohm")
+            raise LimitError(
+                f"DS345 |AC peak| + |DC| = {ampl / 2:g} + {abs(offs):g} = {peak:g} V exceeds the "
+                f"{PEAK_PLUS_OFFSET_MAX_V:g} V limit into 50 ohm"
+            )
         return Waveform(function, freq, ampl, offs)
 
     def _apply(self, w: Waveform) -> None:

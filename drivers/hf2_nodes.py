@@ -56,20 +56,31 @@ def forcer_mixer_channel(wiring: LockInWiring) -> int:
 
 def check_wiring(wiring: LockInWiring) -> None:
     """Raise ValueError naming the first impossible wiring field."""
-    for name, hi in (("drive_sigin", 1), ("sense_sigin", 1), ("drive_sigout", 1), ("forcer_sigout", 1),
-                     ("rate_auxout", 3), ("quadrature_auxout", 3), ("rate_auxin", 1), ("dither_auxin", 1)):
+    for name, hi in (
+        ("drive_sigin", 1),
+        ("sense_sigin", 1),
+        ("drive_sigout", 1),
+        ("forcer_sigout", 1),
+        ("rate_auxout", 3),
+        ("quadrature_auxout", 3),
+        ("rate_auxin", 1),
+        ("dither_auxin", 1),
+    ):
         v = getattr(wiring, name, None)
         if not isinstance(v, int) or not 0 <= v <= hi:
             raise ValueError(f"lock-in wiring: {name} = {v!r} must be an integer in [0, {hi}]")
     m = forcer_mixer_channel(wiring)
     if not 0 <= m < N_MIXER_CHANNELS or m == DRIVE_MIXER_CHANNEL and wiring.forcer_sigout == wiring.drive_sigout:
-        raise ValueError(f"lock-in wiring: forcer_mixer_channel = {m} must be in [0, 7] and differ from the "
-                         "drive channel when both use the same output")
+        raise ValueError(
+            f"lock-in wiring: forcer_mixer_channel = {m} must be in [0, 7] and differ from the "
+            "drive channel when both use the same output"
+        )
     if not 0.0 < float(wiring.forcer_carrier_amplitude) <= 1.0:
-        raise ValueError(f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
-                         "in (0, 1] (fraction of the output range)")
-    for a, b in (("drive_sigin", "sense_sigin"), ("rate_auxin", "dither_auxin"),
-                 ("rate_auxout", "quadrature_auxout")):
+        raise ValueError(
+            f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
+            "in (0, 1] (fraction of the output range)"
+        )
+    for a, b in (("drive_sigin", "sense_sigin"), ("rate_auxin", "dither_auxin"), ("rate_auxout", "quadrature_auxout")):
         if getattr(wiring, a) == getattr(wiring, b):
             raise ValueError(f"lock-in wiring: {a} and {b} must differ (both {getattr(wiring, a)})")
 
@@ -79,8 +90,10 @@ def forcer_amplitude(wiring: LockInWiring, gain: float) -> float:
     check_limit("forcer_gain", gain, *FORCER_GAIN_LIMITS, "")
     amplitude = float(wiring.forcer_carrier_amplitude) * gain
     if amplitude > 1.0:
-        raise LimitError(f"forcer carrier amplitude = {amplitude:g} (nominal {wiring.forcer_carrier_amplitude:g} "
-                         f"x gain {gain:g}) is above the limit 1.0 of the output range")
+        raise LimitError(
+            f"forcer carrier amplitude = {amplitude:g} (nominal {wiring.forcer_carrier_amplitude:g} "
+            f"x gain {gain:g}) is above the limit 1.0 of the output range"
+        )
     return amplitude
 
 
@@ -101,8 +114,9 @@ def _check_pid(name: str, g: PidGains, limit_v: float | None) -> None:
     if g.range <= 0:
         raise LimitError(f"{name}.range = {g.range:g} must be positive")
     if limit_v is not None and abs(g.center) + g.range > limit_v:
-        raise LimitError(f"{name} output centre {g.center:g} V +- range {g.range:g} V exceeds the limit "
-                         f"+-{limit_v:g} V")
+        raise LimitError(
+            f"{name} output centre {g.center:g} V +- range {g.range:g} V exceeds the limit +-{limit_v:g} V"
+        )
 
 
 def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
@@ -116,8 +130,10 @@ def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
     if int(setup.demod_order) != setup.demod_order:
         raise LimitError(f"demod_order = {setup.demod_order!r} must be an integer 1..8")
     if int(setup.auxin_averaging) != setup.auxin_averaging or not 0 <= setup.auxin_averaging <= 15:
-        raise LimitError(f"auxin_averaging = {setup.auxin_averaging!r} must be an integer 0..15 "
-                         "(the AuxIns average 2^n = 1..32768 ADC samples)")
+        raise LimitError(
+            f"auxin_averaging = {setup.auxin_averaging!r} must be an integer 0..15 "
+            "(the AuxIns average 2^n = 1..32768 ADC samples)"
+        )
     _check_pid("pll", setup.pll, None)
     _check_pid("agc", setup.agc, None)
     drive_output_range(setup.agc)
@@ -128,10 +144,21 @@ def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
 
 def _pid_nodes(n: int, g: PidGains, inp: int, inch: int, out: int, outch: int) -> list[tuple[str, Any]]:
     b = f"pids/{n}/"
-    return [(b + "enable", 0), (b + "input", inp), (b + "inputchannel", inch), (b + "output", out),
-            (b + "outputchannel", outch), (b + "setpointselect", 0), (b + "setpoint", g.setpoint),
-            (b + "p", g.p), (b + "i", g.i), (b + "d", g.d), (b + "center", g.center), (b + "range", g.range),
-            (b + "outputdefaultenable", 0)]
+    return [
+        (b + "enable", 0),
+        (b + "input", inp),
+        (b + "inputchannel", inch),
+        (b + "output", out),
+        (b + "outputchannel", outch),
+        (b + "setpointselect", 0),
+        (b + "setpoint", g.setpoint),
+        (b + "p", g.p),
+        (b + "i", g.i),
+        (b + "d", g.d),
+        (b + "center", g.center),
+        (b + "range", g.range),
+        (b + "outputdefaultenable", 0),
+    ]
 
 
 def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[tuple[str, Any]]:
@@ -140,49 +167,84 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
     fm = forcer_mixer_channel(w)
     drange = drive_output_range(setup.agc)
     s: list[tuple[str, Any]] = [
-        ("pids/*/enable", 0), ("plls/0/enable", 0),
-        (f"sigins/{w.drive_sigin}/range", SIGIN_RANGE_V), (f"sigins/{w.sense_sigin}/range", SIGIN_RANGE_V),
+        ("pids/*/enable", 0),
+        ("plls/0/enable", 0),
+        (f"sigins/{w.drive_sigin}/range", SIGIN_RANGE_V),
+        (f"sigins/{w.sense_sigin}/range", SIGIN_RANGE_V),
         (f"oscs/{pll_osc}/freq", setup.f0_hz),
     ]
     for d, sigin in ((DRIVE_DEMOD, w.drive_sigin), (SENSE_DEMOD, w.sense_sigin)):
         b = f"demods/{d}/"
-        s += [(b + "adcselect", sigin), (b + "oscselect", pll_osc), (b + "harmonic", 1), (b + "phaseshift", 0.0),
-              (b + "order", int(setup.demod_order)), (b + "timeconstant", setup.demod_timeconstant_s),
-              (b + "sinc", 0), (b + "trigger", 0), (b + "rate", setup.demod_rate_hz), (b + "enable", 1)]
+        s += [
+            (b + "adcselect", sigin),
+            (b + "oscselect", pll_osc),
+            (b + "harmonic", 1),
+            (b + "phaseshift", 0.0),
+            (b + "order", int(setup.demod_order)),
+            (b + "timeconstant", setup.demod_timeconstant_s),
+            (b + "sinc", 0),
+            (b + "trigger", 0),
+            (b + "rate", setup.demod_rate_hz),
+            (b + "enable", 1),
+        ]
     if fm not in (DRIVE_DEMOD, SENSE_DEMOD):  # the forcer channel's oscillator must be the PLL's too
         s += [(f"demods/{fm}/oscselect", pll_osc), (f"demods/{fm}/harmonic", 1), (f"demods/{fm}/phaseshift", 0.0)]
     s += [("auxins/0/averaging", int(setup.auxin_averaging))]
     b = "plls/0/"
-    s += [(b + "adcselect", w.drive_sigin), (b + "harmonic", 1), (b + "freqcenter", setup.f0_hz),
-          (b + "freqrange", setup.pll_range_hz), (b + "setpoint", setup.pll.setpoint), (b + "p", setup.pll.p),
-          (b + "i", setup.pll.i), (b + "d", setup.pll.d), (b + "autocenter", 0), (b + "autopid", 1),
-          (b + "autotimeconstant", 1), (b + "timeconstant", setup.demod_timeconstant_s),
-          (b + "order", int(setup.demod_order))]
+    s += [
+        (b + "adcselect", w.drive_sigin),
+        (b + "harmonic", 1),
+        (b + "freqcenter", setup.f0_hz),
+        (b + "freqrange", setup.pll_range_hz),
+        (b + "setpoint", setup.pll.setpoint),
+        (b + "p", setup.pll.p),
+        (b + "i", setup.pll.i),
+        (b + "d", setup.pll.d),
+        (b + "autocenter", 0),
+        (b + "autopid", 1),
+        (b + "autotimeconstant", 1),
+        (b + "timeconstant", setup.demod_timeconstant_s),
+        (b + "order", int(setup.demod_order)),
+    ]
     # outputs: drive channel and forcer carrier; every other mixer channel of the used outputs off
     used = {(w.drive_sigout, DRIVE_MIXER_CHANNEL), (w.forcer_sigout, fm)}
     for out in sorted({w.drive_sigout, w.forcer_sigout}):
         for m in range(N_MIXER_CHANNELS):
             if (out, m) not in used:
                 s.append((f"sigouts/{out}/enables/{m}", 0))
-    s += [(f"sigouts/{w.drive_sigout}/range", drange), (f"sigouts/{w.drive_sigout}/add", 0),
-          (f"sigouts/{w.drive_sigout}/offset", 0.0),
-          (f"sigouts/{w.drive_sigout}/waveforms/{DRIVE_MIXER_CHANNEL}", 0),
-          (f"sigouts/{w.drive_sigout}/amplitudes/{DRIVE_MIXER_CHANNEL}", setup.agc.center / drange),
-          (f"sigouts/{w.drive_sigout}/enables/{DRIVE_MIXER_CHANNEL}", 1)]
+    s += [
+        (f"sigouts/{w.drive_sigout}/range", drange),
+        (f"sigouts/{w.drive_sigout}/add", 0),
+        (f"sigouts/{w.drive_sigout}/offset", 0.0),
+        (f"sigouts/{w.drive_sigout}/waveforms/{DRIVE_MIXER_CHANNEL}", 0),
+        (f"sigouts/{w.drive_sigout}/amplitudes/{DRIVE_MIXER_CHANNEL}", setup.agc.center / drange),
+        (f"sigouts/{w.drive_sigout}/enables/{DRIVE_MIXER_CHANNEL}", 1),
+    ]
     if w.forcer_sigout != w.drive_sigout:
-        s += [(f"sigouts/{w.forcer_sigout}/range", FORCER_OUTPUT_RANGE_V), (f"sigouts/{w.forcer_sigout}/add", 0),
-              (f"sigouts/{w.forcer_sigout}/offset", 0.0)]
-    s += [(f"sigouts/{w.forcer_sigout}/waveforms/{fm}", 0),
-          (f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", forcer_amplitude(w, setup.forcer_gain)),
-          (f"sigouts/{w.forcer_sigout}/enables/{fm}", 1)]
+        s += [
+            (f"sigouts/{w.forcer_sigout}/range", FORCER_OUTPUT_RANGE_V),
+            (f"sigouts/{w.forcer_sigout}/add", 0),
+            (f"sigouts/{w.forcer_sigout}/offset", 0.0),
+        ]
+    s += [
+        (f"sigouts/{w.forcer_sigout}/waveforms/{fm}", 0),
+        (f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", forcer_amplitude(w, setup.forcer_gain)),
+        (f"sigouts/{w.forcer_sigout}/enables/{fm}", 1),
+    ]
     for ch, g in ((w.rate_auxout, setup.rate), (w.quadrature_auxout, setup.quadrature)):
         s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/scale", 1.0), (f"auxouts/{ch}/offset", g.center)]
     s += _pid_nodes(AGC_PID, setup.agc, 2, DRIVE_DEMOD, w.drive_sigout, DRIVE_MIXER_CHANNEL)
     s += _pid_nodes(RATE_PID, setup.rate, 0, SENSE_DEMOD, 3, w.rate_auxout)
     s += _pid_nodes(QUAD_PID, setup.quadrature, 1, SENSE_DEMOD, 3, w.quadrature_auxout)
     # switch on: outputs, PLL, then the loops
-    s += [(f"sigouts/{w.drive_sigout}/on", 1), (f"sigouts/{w.forcer_sigout}/on", 1), ("plls/0/enable", 1),
-          (f"pids/{AGC_PID}/enable", 1), (f"pids/{RATE_PID}/enable", 1), (f"pids/{QUAD_PID}/enable", 1)]
+    s += [
+        (f"sigouts/{w.drive_sigout}/on", 1),
+        (f"sigouts/{w.forcer_sigout}/on", 1),
+        ("plls/0/enable", 1),
+        (f"pids/{AGC_PID}/enable", 1),
+        (f"pids/{RATE_PID}/enable", 1),
+        (f"pids/{QUAD_PID}/enable", 1),
+    ]
     return s
 
 
@@ -196,6 +258,9 @@ def safe_nodes(wiring: LockInWiring, output_safe_v: float) -> list[tuple[str, An
     s: list[tuple[str, Any]] = [("pids/*/enable", 0)]
     for ch in (w.rate_auxout, w.quadrature_auxout):
         s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/offset", float(output_safe_v))]
-    s += [(f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", 0.0), (f"sigouts/{w.forcer_sigout}/on", 0),
-          (f"sigouts/{w.drive_sigout}/on", 0)]
+    s += [
+        (f"sigouts/{w.forcer_sigout}/amplitudes/{fm}", 0.0),
+        (f"sigouts/{w.forcer_sigout}/on", 0),
+        (f"sigouts/{w.drive_sigout}/on", 0),
+    ]
     return s

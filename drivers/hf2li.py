@@ -21,8 +21,19 @@ import numpy as np
 from zhinst.toolkit import PollFlags, Session
 
 from drivers.hf2_nodes import (
-    AGC_PID, AUXIN_ADC_RATE_HZ, DRIVE_DEMOD, QUAD_PID, RATE_PID, SENSE_DEMOD, LockInWiring, check_setup, check_wiring,
-    forcer_amplitude, forcer_mixer_channel, safe_nodes, setup_nodes,
+    AGC_PID,
+    AUXIN_ADC_RATE_HZ,
+    DRIVE_DEMOD,
+    QUAD_PID,
+    RATE_PID,
+    SENSE_DEMOD,
+    LockInWiring,
+    check_setup,
+    check_wiring,
+    forcer_amplitude,
+    forcer_mixer_channel,
+    safe_nodes,
+    setup_nodes,
 )
 from qmg_lab.instruments import (
     InstrumentError,
@@ -48,8 +59,14 @@ class HF2LI(LockIn):
     ``wiring`` is qmg_lab.config.LockInSection or any object with its cabling fields.
     """
 
-    def __init__(self, session: Session | str, device_id: str, wiring: LockInWiring,
-                 output_safe_v: float = 0.0, port: int = DEFAULT_HF2_PORT) -> None:
+    def __init__(
+        self,
+        session: Session | str,
+        device_id: str,
+        wiring: LockInWiring,
+        output_safe_v: float = 0.0,
+        port: int = DEFAULT_HF2_PORT,
+    ) -> None:
         check_wiring(wiring)
         check_limit("output_safe_v", output_safe_v, -10.0, 10.0, "V")
         self.device_id = device_id.lower()
@@ -108,28 +125,43 @@ class HF2LI(LockIn):
         version = self._session.about.version()
         revision = self._session.about.revision()
         options = str(d.features.options()).replace("\n", ",").strip(",")
-        return (f"Zurich Instruments {d.features.devtype()} {d.features.serial()} (options {options}); "
-                f"HF2 data server {version} (revision {revision})")
+        return (
+            f"Zurich Instruments {d.features.devtype()} {d.features.serial()} (options {options}); "
+            f"HF2 data server {version} (revision {revision})"
+        )
 
     def state(self) -> dict[str, Any]:
         g = lambda p: self._get(p)  # noqa: E731
         w, fm = self.wiring, forcer_mixer_channel(self.wiring)
         pids = {}
         for name, n in (("agc", AGC_PID), ("rate", RATE_PID), ("quadrature", QUAD_PID)):
-            pids[name] = {leaf: float(g(f"pids/{n}/{leaf}")) for leaf in
-                          ("p", "i", "setpoint", "center", "range", "error", "shift")}
+            pids[name] = {
+                leaf: float(g(f"pids/{n}/{leaf}"))
+                for leaf in ("p", "i", "setpoint", "center", "range", "error", "shift")
+            }
             pids[name]["enable"] = int(g(f"pids/{n}/enable"))
         return {
-            "device": self.device_id, "clockbase_hz": self._clockbase, "streaming": self._streaming,
-            "pll": {"enable": int(g("plls/0/enable")), "locked": int(g("plls/0/locked")),
-                    "freqcenter_hz": float(g("plls/0/freqcenter")), "freqdelta_hz": float(g("plls/0/freqdelta")),
-                    "p": float(g("plls/0/p")), "i": float(g("plls/0/i"))},
+            "device": self.device_id,
+            "clockbase_hz": self._clockbase,
+            "streaming": self._streaming,
+            "pll": {
+                "enable": int(g("plls/0/enable")),
+                "locked": int(g("plls/0/locked")),
+                "freqcenter_hz": float(g("plls/0/freqcenter")),
+                "freqdelta_hz": float(g("plls/0/freqdelta")),
+                "p": float(g("plls/0/p")),
+                "i": float(g("plls/0/i")),
+            },
             "pids": pids,
             "demod_rate_hz": [float(g(f"demods/{d}/rate")) for d in (DRIVE_DEMOD, SENSE_DEMOD)],
-            "auxout_v": {"rate": float(g(f"auxouts/{w.rate_auxout}/value")),
-                         "quadrature": float(g(f"auxouts/{w.quadrature_auxout}/value"))},
-            "sigouts_on": {"drive": int(g(f"sigouts/{w.drive_sigout}/on")),
-                           "forcer": int(g(f"sigouts/{w.forcer_sigout}/on"))},
+            "auxout_v": {
+                "rate": float(g(f"auxouts/{w.rate_auxout}/value")),
+                "quadrature": float(g(f"auxouts/{w.quadrature_auxout}/value")),
+            },
+            "sigouts_on": {
+                "drive": int(g(f"sigouts/{w.drive_sigout}/on")),
+                "forcer": int(g(f"sigouts/{w.forcer_sigout}/on")),
+            },
             "forcer_amplitude": float(g(f"sigouts/{w.forcer_sigout}/amplitudes/{fm}")),
             "forcer_gain": self._forcer_gain,
         }
@@ -208,8 +240,7 @@ class HF2LI(LockIn):
             raise InstrumentError(f"HF2LI {self.device_id}: poll failed: {exc}") from exc
         drive = self._samples(raw, DRIVE_DEMOD)
         sense = self._samples(raw, SENSE_DEMOD)
-        ts, i_d, i_s = np.intersect1d(drive["timestamp"], sense["timestamp"], assume_unique=True,
-                                      return_indices=True)
+        ts, i_d, i_s = np.intersect1d(drive["timestamp"], sense["timestamp"], assume_unique=True, return_indices=True)
         lost = self._count_lost(ts)
         if flag and lost == 0:
             lost = 1
@@ -222,7 +253,8 @@ class HF2LI(LockIn):
         rate_key, dither_key = f"auxin{w.rate_auxin}", f"auxin{w.dither_auxin}"
         return LockInBlock(
             time=(ts.astype(np.int64) - t0) / self._clockbase,
-            x_sense=np.asarray(sense["x"])[i_s], y_sense=np.asarray(sense["y"])[i_s],
+            x_sense=np.asarray(sense["x"])[i_s],
+            y_sense=np.asarray(sense["y"])[i_s],
             rate_output=np.asarray(sense[rate_key])[i_s],
             drive_amplitude=np.hypot(np.asarray(drive["x"])[i_d], np.asarray(drive["y"])[i_d]),
             drive_frequency=np.asarray(drive["frequency"])[i_d],
@@ -236,8 +268,10 @@ class HF2LI(LockIn):
         try:
             data = raw[key]
         except KeyError:
-            return {k: np.zeros(0, dtype=np.uint64 if k == "timestamp" else float)
-                    for k in ("timestamp", "x", "y", "frequency", "auxin0", "auxin1")}
+            return {
+                k: np.zeros(0, dtype=np.uint64 if k == "timestamp" else float)
+                for k in ("timestamp", "x", "y", "frequency", "auxin0", "auxin1")
+            }
         return {k: np.asarray(v) for k, v in data.items() if k != "time"}
 
     def _count_lost(self, ts: np.ndarray) -> int:
@@ -263,10 +297,12 @@ class HF2LI(LockIn):
         order and time constant, and the AuxIn averaging (window = 2^averaging / AUXIN_ADC_RATE_HZ)."""
         d = SENSE_DEMOD
         avg = int(self._get("auxins/0/averaging"))
-        return StreamTiming(rate_hz=float(self._get(f"demods/{d}/rate")),
-                            filter_order=int(self._get(f"demods/{d}/order")),
-                            filter_tc_s=float(self._get(f"demods/{d}/timeconstant")),
-                            auxin_window_s=float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ)
+        return StreamTiming(
+            rate_hz=float(self._get(f"demods/{d}/rate")),
+            filter_order=int(self._get(f"demods/{d}/order")),
+            filter_tc_s=float(self._get(f"demods/{d}/timeconstant")),
+            auxin_window_s=float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ,
+        )
 
     def pll_locked(self) -> bool:
         locked = int(self._get("plls/0/locked"))

@@ -67,11 +67,13 @@ class Framing:
 
     def __post_init__(self) -> None:
         if self.command_terminator not in TERMINATORS:
-            raise ValueError(f"command_terminator must be one of {', '.join(TERMINATORS)}, "
-                             f"got {self.command_terminator!r}")
+            raise ValueError(
+                f"command_terminator must be one of {', '.join(TERMINATORS)}, got {self.command_terminator!r}"
+            )
         if self.reply_terminator != "auto" and self.reply_terminator not in TERMINATORS:
-            raise ValueError(f"reply_terminator must be auto or one of {', '.join(TERMINATORS)}, "
-                             f"got {self.reply_terminator!r}")
+            raise ValueError(
+                f"reply_terminator must be auto or one of {', '.join(TERMINATORS)}, got {self.reply_terminator!r}"
+            )
         if any(not 0x21 <= ord(ch) <= 0x7E for ch in self.prompt):
             raise ValueError(f"prompt must be printable ASCII without spaces, got {self.prompt!r}")
 
@@ -161,32 +163,36 @@ class SerialLink:
             received += self._rx[:n]
             del self._rx[:n]
             if prompt and self._rx.startswith(prompt):
-                rest = self._rx[len(prompt):]
+                rest = self._rx[len(prompt) :]
                 if not rest or rest[:1] in (b"\r", b"\n", b" ", b"\t"):
-                    del self._rx[:len(prompt)]
+                    del self._rx[: len(prompt)]
                     received += prompt
                     self._log.debug("received %r (prompt) for %r", bytes(received), command)
                     return self.framing.prompt
             end = self._line_end()
             if end is not None:
-                body = bytes(self._rx[:end[0]])
-                received += self._rx[:end[1]]
-                del self._rx[:end[1]]
+                body = bytes(self._rx[: end[0]])
+                received += self._rx[: end[1]]
+                del self._rx[: end[1]]
                 break
             if len(self._rx) > self.max_reply_bytes:
                 data = bytes(received + self._rx)
                 self._rx.clear()
-                raise InstrumentError(f"{self.name}: garbled reply to {self._show(command)}: more than "
-                                      f"{self.max_reply_bytes} bytes without a terminator: received {data!r}")
+                raise InstrumentError(
+                    f"{self.name}: garbled reply to {self._show(command)}: more than "
+                    f"{self.max_reply_bytes} bytes without a terminator: received {data!r}"
+                )
             if not self._fill(command):
                 data = bytes(received + self._rx)
                 self._rx.clear()
                 if not data.strip(_LINE_ENDS + _BLANKS):
-                    raise InstrumentError(f"{self.name}: timeout: no reply to {self._show(command)} "
-                                          f"(received {data!r})")
+                    raise InstrumentError(
+                        f"{self.name}: timeout: no reply to {self._show(command)} (received {data!r})"
+                    )
                 raise InstrumentError(
                     f"{self.name}: truncated reply to {self._show(command)}: received {data!r} "
-                    f"without a terminator ({self.framing.describe()})")
+                    f"without a terminator ({self.framing.describe()})"
+                )
         self._log.debug("received %r for %r", bytes(received), command)
         body = body.strip(_BLANKS)
         if not body or any(b < 0x20 or b > 0x7E for b in body):
@@ -219,5 +225,8 @@ class SerialLink:
 
     def _show(self, command: bytes) -> str:
         """The command as it appears in messages: its text without the terminator."""
-        return repr(command[: -len(self.command_terminator)].decode("ascii", "replace")) if command.endswith(
-            self.command_terminator) else repr(command)
+        return (
+            repr(command[: -len(self.command_terminator)].decode("ascii", "replace"))
+            if command.endswith(self.command_terminator)
+            else repr(command)
+        )

@@ -37,8 +37,10 @@ class AllanResult:
         return float(np.exp(np.interp(np.log(tau_s), np.log(self.tau_s), np.log(self.dev))))
 
     def rows(self, scale: float = 1.0) -> list[dict[str, float]]:
-        return [{"tau_s": float(t), "value": float(d * scale), "low": float(lo * scale), "high": float(hi * scale)}
-                for t, d, lo, hi in zip(self.tau_s, self.dev, self.low, self.high, strict=True)]
+        return [
+            {"tau_s": float(t), "value": float(d * scale), "low": float(lo * scale), "high": float(hi * scale)}
+            for t, d, lo, hi in zip(self.tau_s, self.dev, self.low, self.high, strict=True)
+        ]
 
 
 def overlapping_adev(y: np.ndarray, rate_hz: float, min_clusters: int = 3) -> AllanResult:

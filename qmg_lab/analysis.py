@@ -39,9 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from qmg_lab.adev import (AllanResult, arw_deg_per_rt_h, bias_instability_deg_per_h, overlapping_adev)
-from qmg_lab.analysis_char import (BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average,
-                                   settling_time_s)
+from qmg_lab.adev import AllanResult, arw_deg_per_rt_h, bias_instability_deg_per_h, overlapping_adev
+from qmg_lab.analysis_char import BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average, settling_time_s
 from qmg_lab.config import Config, ConfigError, parse_config
 from qmg_lab.dither_edges import EdgeTracker
 from qmg_lab.storage import RunData, read_run
@@ -109,8 +108,9 @@ class AnalysisResult:
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
-        d["adev"] = [{"tau_s": r["tau_s"], "ppm": r["value"], "ppm_low": r["low"], "ppm_high": r["high"]}
-                     for r in self.adev]
+        d["adev"] = [
+            {"tau_s": r["tau_s"], "ppm": r["value"], "ppm_low": r["low"], "ppm_high": r["high"]} for r in self.adev
+        ]
         return _clean(d)
 
 
@@ -167,8 +167,10 @@ def _load(path: str | Path) -> _Ctx:
     lk = run.groups["lockin"]
     if cfg.clsf.mode != "off" and "dither" in lk:
         tracker = EdgeTracker()  # the same edge location and 32-edge line fit as the CLSF estimator
-        ctx.dither_rising_s = np.concatenate([np.empty(0)] + [
-            tracker.process(t[i:i + 36000], lk["dither"][i:i + 36000])[0] for i in range(0, t.shape[0], 36000)])
+        ctx.dither_rising_s = np.concatenate(
+            [np.empty(0)]
+            + [tracker.process(t[i : i + 36000], lk["dither"][i : i + 36000])[0] for i in range(0, t.shape[0], 36000)]
+        )
         ro = lk["rate_output"]
         ctx.rate_integral = np.concatenate(([0.0], np.cumsum(0.5 * np.diff(t) * (ro[1:] + ro[:-1]))))
     return ctx
@@ -193,7 +195,7 @@ def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
         n = (n // ctx.period_samples) * ctx.period_samples
     if n <= 0:
         return float("nan"), 0
-    return float(np.mean(lk["rate_output"][i0:i0 + n])), n
+    return float(np.mean(lk["rate_output"][i0 : i0 + n])), n
 
 
 def _mean_in(group: dict[str, np.ndarray] | None, col: str, windows: list[tuple[float, float]]) -> float:
@@ -239,10 +241,18 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
             res.notes.append(f"steps {idx}/{idx + 1}: no samples after the settle time; pair skipped")
             continue
         rp, rm = _commanded(ctx, sp, wp), _commanded(ctx, sm, wm)
-        pair = StepPair(index_plus=idx, index_minus=idx + 1, t_mid_s=0.5 * (wp[0] + wm[1]),
-                        temperature_c=_mean_in(chamber, "temperature", [wp, wm]),
-                        sf_v_per_dps=(op - om) / (rp - rm), bias_v=0.5 * (op + om),
-                        rate_plus_dps=rp, rate_minus_dps=rm, output_plus_v=op, output_minus_v=om)
+        pair = StepPair(
+            index_plus=idx,
+            index_minus=idx + 1,
+            t_mid_s=0.5 * (wp[0] + wm[1]),
+            temperature_c=_mean_in(chamber, "temperature", [wp, wm]),
+            sf_v_per_dps=(op - om) / (rp - rm),
+            bias_v=0.5 * (op + om),
+            rate_plus_dps=rp,
+            rate_minus_dps=rm,
+            output_plus_v=op,
+            output_minus_v=om,
+        )
         pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
         pair.truth_change_ppm = _mean_in(truth, "scale_factor", [wp, wm])  # raw SF for now
         pair.gyro_temperature_c = _mean_in(truth, "temperature", [wp, wm])
@@ -334,7 +344,7 @@ def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
         i0, i1 = np.searchsorted(lk["time"], [a, b])
         per = ctx.period_samples if ctx.period_samples > 1 else max(1, int(round(ctx.fs_hz / 10)))
         n = (int(i1 - i0) // per) * per
-        y = lk["rate_output"][i0:i0 + n].reshape(-1, per).mean(axis=1)
+        y = lk["rate_output"][i0 : i0 + n].reshape(-1, per).mean(axis=1)
         rate = ctx.fs_hz / per
     if y.shape[0] < 6 or not rate > 0:
         res.notes.append("gyro ARW/bias instability: static segment too short")
@@ -368,8 +378,11 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
     lk, truth = ctx.run.groups["lockin"], ctx.run.groups.get("truth")
     f_d = ctx.cfg.dither.frequency_hz
     nuisance = (f_d, 3 * f_d, 5 * f_d) if ctx.cfg.clsf.mode != "off" else ()
-    res.phase_reference = ("twin /truth/rate" if truth is not None and truth["time"].shape[0]
-                           else "command A sin(2 pi f (t - t_start)): phase zero assumed at the step start")
+    res.phase_reference = (
+        "twin /truth/rate"
+        if truth is not None and truth["time"].shape[0]
+        else "command A sin(2 pi f (t - t_start)): phase zero assumed at the step start"
+    )
     for idx, s in sines:
         f = float(_SINE.match(str(s["kind"])).group(1))  # type: ignore[union-attr]
         t0, t1 = _window(ctx, s, extra_settle=2.0 / f)
@@ -388,8 +401,14 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
             ts = float(s["t_start"])
             ref = complex(float(s["table_rate"]) * np.exp(-0.5j * np.pi - 2j * np.pi * f * ts))
         h = out / ref
-        res.bode.append(BodePoint(frequency_hz=f, amplitude_ratio=abs(h), gain_db=20 * math.log10(abs(h)),
-                                  phase_deg=math.degrees(math.atan2(h.imag, h.real))))
+        res.bode.append(
+            BodePoint(
+                frequency_hz=f,
+                amplitude_ratio=abs(h),
+                gain_db=20 * math.log10(abs(h)),
+                phase_deg=math.degrees(math.atan2(h.imag, h.real)),
+            )
+        )
     res.bandwidth_hz = bandwidth_3db(res.bode)
 
 
@@ -399,8 +418,12 @@ def _settling(ctx: _Ctx, res: AnalysisResult) -> None:
         s, prev = ctx.steps[idx], ctx.steps.get(idx - 1)
         if prev is None and idx == min(ctx.steps):
             prev = {"table_rate": 0.0, "kind": "rest"}  # the first step starts from rest
-        if s["kind"] in ("rate", "level") and prev is not None and s["table_rate"] != prev["table_rate"] \
-                and not _SINE.match(str(prev["kind"])):
+        if (
+            s["kind"] in ("rate", "level")
+            and prev is not None
+            and s["table_rate"] != prev["table_rate"]
+            and not _SINE.match(str(prev["kind"]))
+        ):
             a, b = float(s["t_start"]), float(s["t_end"])
             per = ctx.period_samples
             i0, i1 = np.searchsorted(lk["time"], [a - 1.0, b])
@@ -437,19 +460,27 @@ def _completeness(ctx: _Ctx, res: AnalysisResult) -> None:
         res.notes.append("the file does not record the planned steps; missing steps unknown")
         return
     res.steps_planned = planned
-    res.missing_steps = [{"index": i, "kind": kinds[i] if i < len(kinds) else ""}
-                         for i in range(planned) if i not in ctx.steps]
+    res.missing_steps = [
+        {"index": i, "kind": kinds[i] if i < len(kinds) else ""} for i in range(planned) if i not in ctx.steps
+    ]
 
 
 def analyze(path: str | Path) -> AnalysisResult:
     """Analyse a run file (complete, aborted or killed; simulated or hardware). See the module docstring."""
     ctx = _load(path)
     a, cfg = ctx.run.attrs, ctx.cfg
-    res = AnalysisResult(file=str(ctx.run.path), status=str(a.get("status", "")),
-                         abort_reason=str(a.get("abort_reason", "")), mode=str(a.get("mode", "")),
-                         campaign_kind=cfg.campaign.kind, clsf_mode=cfg.clsf.mode, steps_planned=None,
-                         steps_completed=len(ctx.steps), missing_steps=[],
-                         sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps)
+    res = AnalysisResult(
+        file=str(ctx.run.path),
+        status=str(a.get("status", "")),
+        abort_reason=str(a.get("abort_reason", "")),
+        mode=str(a.get("mode", "")),
+        campaign_kind=cfg.campaign.kind,
+        clsf_mode=cfg.clsf.mode,
+        steps_planned=None,
+        steps_completed=len(ctx.steps),
+        missing_steps=[],
+        sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps,
+    )
     res.notes.extend(ctx.notes)
     if ctx.run.writer_open:
         res.notes.append("the file was not closed by its writer (killed, or still being written)")
@@ -484,13 +515,21 @@ def render_table(result: AnalysisResult) -> Any:
     rows: list[tuple[str, str, str]] = [
         ("campaign / CLSF mode", f"{r.campaign_kind} / {r.clsf_mode}", ""),
         ("steps completed / planned", f"{r.steps_completed} / {f(r.steps_planned)}", ""),
-        ("missing steps", ", ".join(f"{m['index']}:{m['kind']}" for m in r.missing_steps[:8])
-         + (" ..." if len(r.missing_steps) > 8 else "") or "none", ""),
+        (
+            "missing steps",
+            ", ".join(f"{m['index']}:{m['kind']}" for m in r.missing_steps[:8])
+            + (" ..." if len(r.missing_steps) > 8 else "")
+            or "none",
+            "",
+        ),
         ("SF nominal / measured", f"{f(r.sf_nominal_v_per_dps)} / {f(r.sf_measured_v_per_dps, '{:.6g}')}", "V/(deg/s)"),
         ("step pairs", f(r.n_step_pairs), ""),
         ("true SF change (p-p)", f(r.sf_true_change_ppm, "{:.1f}"), "ppm"),
-        ("SF tempco true / CLSF", f"{f(r.sf_tempco_ppm_per_c, '{:.1f}')} / {f(r.clsf_tempco_ppm_per_c, '{:.1f}')}",
-         "ppm/degC"),
+        (
+            "SF tempco true / CLSF",
+            f"{f(r.sf_tempco_ppm_per_c, '{:.1f}')} / {f(r.clsf_tempco_ppm_per_c, '{:.1f}')}",
+            "ppm/degC",
+        ),
         ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}"), "ppm"),
         ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}"), "ppm"),
         ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}"), "ppm"),
@@ -500,8 +539,12 @@ def render_table(result: AnalysisResult) -> Any:
         ("bias instability", f(r.bias_instability_deg_per_h, "{:.3f}"), "deg/h"),
         ("FTR bandwidth (-3 dB)", f(r.bandwidth_hz, "{:.3f}"), "Hz"),
         ("2 % settling time", f(r.settling_time_s, "{:.3f}"), "s"),
-        ("nonlinearity max / RMS", f"{f(r.linearity.get('nonlinearity_max_pct_fs'), '{:.3f}')} / "
-         f"{f(r.linearity.get('nonlinearity_rms_pct_fs'), '{:.3f}')}", "% FS"),
+        (
+            "nonlinearity max / RMS",
+            f"{f(r.linearity.get('nonlinearity_max_pct_fs'), '{:.3f}')} / "
+            f"{f(r.linearity.get('nonlinearity_rms_pct_fs'), '{:.3f}')}",
+            "% FS",
+        ),
         ("asymmetry", f(r.linearity.get("asymmetry_ppm"), "{:.0f}"), "ppm"),
     ]
     for row in rows:

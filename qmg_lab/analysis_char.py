@@ -110,7 +110,12 @@ def linearity(rates_dps: np.ndarray, outputs_v: np.ndarray) -> Linearity:
         return float(np.polyfit(r[mask], o[mask], 1)[0]) if np.unique(r[mask]).shape[0] >= 2 else float("nan")
 
     asym = (side(r >= 0) - side(r <= 0)) / sf
-    return Linearity(sf_v_per_dps=float(sf), bias_v=float(bias),
-                     nonlinearity_max_pct_fs=float(100 * np.max(np.abs(resid)) / abs(sf * fs)),
-                     nonlinearity_rms_pct_fs=float(100 * np.sqrt(np.mean(resid**2)) / abs(sf * fs)),
-                     asymmetry_ppm=float(asym * 1e6), full_scale_dps=fs, residuals_v=resid)
+    return Linearity(
+        sf_v_per_dps=float(sf),
+        bias_v=float(bias),
+        nonlinearity_max_pct_fs=float(100 * np.max(np.abs(resid)) / abs(sf * fs)),
+        nonlinearity_rms_pct_fs=float(100 * np.sqrt(np.mean(resid**2)) / abs(sf * fs)),
+        asymmetry_ppm=float(asym * 1e6),
+        full_scale_dps=fs,
+        residuals_v=resid,
+    )

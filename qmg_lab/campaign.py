@@ -131,9 +131,12 @@ class CampaignRunner:
     def __post_init__(self) -> None:
         self.steps = self.steps or build_plan(self.cfg)
         assert_within_limits(self.cfg, self.steps)
-        self.clsf = ClsfEstimator(tau_s=self.cfg.device.tau_s, mode=self.cfg.clsf.mode,
-                                  time_constant_s=self.cfg.clsf.time_constant_s,
-                                  reference_periods=self.cfg.clsf.reference_periods)
+        self.clsf = ClsfEstimator(
+            tau_s=self.cfg.device.tau_s,
+            mode=self.cfg.clsf.mode,
+            time_constant_s=self.cfg.clsf.time_constant_s,
+            reference_periods=self.cfg.clsf.reference_periods,
+        )
         self._offset = 0.0
         self._t = 0.0  # file time of the last sample, s
         self._dt = 1.0 / self.cfg.lockin.demod_rate_hz
@@ -215,13 +218,25 @@ class CampaignRunner:
 
     def summary(self, status: str, reason: str = "") -> RunSummary:
         return RunSummary(
-            path=str(self.writer.path), status=status, steps_completed=len(self.writer.completed_steps()),
-            steps_planned=len(self.steps), simulated_s=self._t, wall_s=time.monotonic() - self._wall0,
-            blocks=self._blocks, samples=self._samples, samples_lost=self._lost, suspensions=self._suspensions,
-            recoveries=self._recoveries, last_sf_change_ppm=self._read.sf_change * 1e6,
-            gain_correction=self.clsf.gain_correction, abort_reason=reason, resumed=self.resume,
-            reconnects=self._reconnects, safe_state_confirmed=self._safe_confirmed,
-            faults_injected=list(self.station.injected_faults()) if self.station.injected_faults else [])
+            path=str(self.writer.path),
+            status=status,
+            steps_completed=len(self.writer.completed_steps()),
+            steps_planned=len(self.steps),
+            simulated_s=self._t,
+            wall_s=time.monotonic() - self._wall0,
+            blocks=self._blocks,
+            samples=self._samples,
+            samples_lost=self._lost,
+            suspensions=self._suspensions,
+            recoveries=self._recoveries,
+            last_sf_change_ppm=self._read.sf_change * 1e6,
+            gain_correction=self.clsf.gain_correction,
+            abort_reason=reason,
+            resumed=self.resume,
+            reconnects=self._reconnects,
+            safe_state_confirmed=self._safe_confirmed,
+            faults_injected=list(self.station.injected_faults()) if self.station.injected_faults else [],
+        )
 
     # ================================================================== set-up and tear-down
     def _prepare(self) -> None:
@@ -245,8 +260,13 @@ class CampaignRunner:
         self._call("lockin", self.station.lockin.start_stream)
         if self.resume:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
-            self._step = Step(-1, "lock", self.cfg.loops.lock_settle_s, self.cfg.plan.chamber_start_c,
-                              self.cfg.plan.chamber_ramp_c_per_min)
+            self._step = Step(
+                -1,
+                "lock",
+                self.cfg.loops.lock_settle_s,
+                self.cfg.plan.chamber_start_c,
+                self.cfg.plan.chamber_ramp_c_per_min,
+            )
             self._wait_for_lock(self._step)
             if self.clsf.mode != "off" and self.clsf.rho_ref is not None:
                 self._start_dither()
@@ -273,8 +293,12 @@ class CampaignRunner:
         except Exception as exc:  # noqa: BLE001 - the stream may be the thing that failed
             failures.append(f"lockin stream: {exc}")
         self._safe_confirmed = not failures
-        self._event("safe_state", "", "confirmed" if not failures else "not confirmed: " + "; ".join(failures),
-                    logging.INFO if not failures else logging.ERROR)
+        self._event(
+            "safe_state",
+            "",
+            "confirmed" if not failures else "not confirmed: " + "; ".join(failures),
+            logging.INFO if not failures else logging.ERROR,
+        )
         if failures and not reason:
             reason = "safe state not confirmed: " + "; ".join(failures)
             status = "aborted"
@@ -335,9 +359,15 @@ class CampaignRunner:
         else:
             self._apply(step)
             self._dwell(step)
-        self.writer.append_step(index=step.index, kind=step.kind, t_start=t_start, t_end=self._t,
-                                table_rate=step.table_rate_dps, chamber_setpoint=step.chamber_target_c,
-                                status="completed")
+        self.writer.append_step(
+            index=step.index,
+            kind=step.kind,
+            t_start=t_start,
+            t_end=self._t,
+            table_rate=step.table_rate_dps,
+            chamber_setpoint=step.chamber_target_c,
+            status="completed",
+        )
         self._done_s += step.duration_s
         self.writer.flush()
 
@@ -352,8 +382,9 @@ class CampaignRunner:
             self._call("table", lambda: st.table.set_rate(step.table_rate_dps, p.table_accel_dps2))
             self._read.table_cmd = step.table_rate_dps
         elif step.kind.startswith("sine"):
-            self._call("table", lambda: st.table.set_sinusoid(step.table_rate_dps, step.sine_frequency_hz,
-                                                                p.table_accel_dps2))
+            self._call(
+                "table", lambda: st.table.set_sinusoid(step.table_rate_dps, step.sine_frequency_hz, p.table_accel_dps2)
+            )
             self._read.table_cmd = 0.0
             self.clsf.hold(self._t, self._t + step.duration_s)
         elif step.kind in ("return", "hold", "soak") and previous != 0.0:
@@ -389,7 +420,8 @@ class CampaignRunner:
             if waited > lp.lock_timeout_s + step.duration_s:
                 raise CampaignAborted(
                     f"the PLL did not lock within loops.lock_timeout_s = {lp.lock_timeout_s:g} s "
-                    "(check the drive wiring and loops.pll_bandwidth_hz)")
+                    "(check the drive wiring and loops.pll_bandwidth_hz)"
+                )
 
     # ================================================================== one block
     def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
@@ -419,20 +451,33 @@ class CampaignRunner:
         with guard.protect() if guard is not None else _null():
             self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
             if len(periods):
-                self.writer.append("clsf", time=periods.time, eta=periods.eta,
-                                   sf_change_estimate=periods.sf_change_estimate,
-                                   gain_correction=periods.gain_correction,
-                                   rate_output_mean=periods.rate_output_mean)
+                self.writer.append(
+                    "clsf",
+                    time=periods.time,
+                    eta=periods.eta,
+                    sf_change_estimate=periods.sf_change_estimate,
+                    gain_correction=periods.gain_correction,
+                    rate_output_mean=periods.rate_output_mean,
+                )
                 self._read.sf_change = float(periods.sf_change_estimate[-1])
             if self.clsf.rho_ref is not None and self.clsf.rho_ref != self._stored_ref:
                 self.writer.set_clsf_reference(self.clsf.rho_ref)
                 self._stored_ref = self.clsf.rho_ref
             if tab is not None:
-                self.writer.append("table", time=np.array([t_end]), rate_command=np.array([self._read.table_cmd]),
-                                   rate_measured=np.array([tab.rate_dps]), position=np.array([tab.position_deg]))
+                self.writer.append(
+                    "table",
+                    time=np.array([t_end]),
+                    rate_command=np.array([self._read.table_cmd]),
+                    rate_measured=np.array([tab.rate_dps]),
+                    position=np.array([tab.position_deg]),
+                )
             if cham is not None:
-                self.writer.append("chamber", time=np.array([t_end]), setpoint=np.array([cham.setpoint_c]),
-                                   temperature=np.array([cham.temperature_c]))
+                self.writer.append(
+                    "chamber",
+                    time=np.array([t_end]),
+                    setpoint=np.array([cham.setpoint_c]),
+                    temperature=np.array([cham.temperature_c]),
+                )
             if truth is not None and len(truth.time):
                 self.writer.append("truth", **_aligned_truth(truth, t, self._dt))
             self.writer.maybe_flush()
@@ -442,19 +487,30 @@ class CampaignRunner:
         if cham is not None:
             self._read.chamber_c, self._read.chamber_sp = cham.temperature_c, cham.setpoint_c
         if tab is not None and tab.interlock and not self._finishing:
-            raise CampaignAborted(f"rate-table interlock tripped (table status {tab.status}); the table braked "
-                                  "to rest; reset the interlock at the controller before resuming")
-        self._update_suspenders(step, self._read.chamber_c if cham is not None else math.nan,
-                                self._read.chamber_sp)
+            raise CampaignAborted(
+                f"rate-table interlock tripped (table status {tab.status}); the table braked "
+                "to rest; reset the interlock at the controller before resuming"
+            )
+        self._update_suspenders(step, self._read.chamber_c if cham is not None else math.nan, self._read.chamber_sp)
         block_s = n * self._dt
         if self.progress is not None:
-            self.progress(Progress(
-                step=step, n_steps=len(self.steps), step_elapsed_s=step_elapsed, run_time_s=self._t,
-                planned_s=plan_duration_s(self.steps), done_s=self._done_s + step_elapsed,
-                chamber_c=self._read.chamber_c, chamber_setpoint_c=self._read.chamber_sp,
-                table_rate_dps=self._read.table_rate, sf_change_ppm=self._read.sf_change * 1e6,
-                gain_correction=self.clsf.gain_correction, suspended=self._suspended,
-                wall_s=time.monotonic() - self._wall0))
+            self.progress(
+                Progress(
+                    step=step,
+                    n_steps=len(self.steps),
+                    step_elapsed_s=step_elapsed,
+                    run_time_s=self._t,
+                    planned_s=plan_duration_s(self.steps),
+                    done_s=self._done_s + step_elapsed,
+                    chamber_c=self._read.chamber_c,
+                    chamber_setpoint_c=self._read.chamber_sp,
+                    table_rate_dps=self._read.table_rate,
+                    sf_change_ppm=self._read.sf_change * 1e6,
+                    gain_correction=self.clsf.gain_correction,
+                    suspended=self._suspended,
+                    wall_s=time.monotonic() - self._wall0,
+                )
+            )
         if self._failed and not self._finishing:
             # a reading failed even after reconnecting: recover it now that this block is logged
             failed, self._failed = self._failed, {}
@@ -510,8 +566,9 @@ class CampaignRunner:
             return result
         assert exc is not None
         if name == "lockin" or self._finishing:
-            raise InstrumentError(f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} "
-                                  "reconnections)") from exc
+            raise InstrumentError(
+                f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} reconnections)"
+            ) from exc
         return self._recover(name, fn, exc)
 
     def _attempt(self, name: str, fn: Callable[[], object]) -> tuple[bool, object, InstrumentError | None]:
@@ -594,8 +651,7 @@ def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.
     """
     if len(truth.time) == len(t) and abs((truth.time[-1] - truth.time[0]) - (t[-1] - t[0])) < 0.5 * dt:
         # the same samples (the usual case: every simulated sample delivered): row for row
-        return {"time": t, "scale_factor": truth.scale_factor, "temperature": truth.temperature,
-                "rate": truth.rate}
+        return {"time": t, "scale_factor": truth.scale_factor, "temperature": truth.temperature, "rate": truth.rate}
     if len(truth.time) > 1:  # the stream's true sample period (the configured rate may have been rounded)
         dt = float(truth.time[-1] - truth.time[0]) / (len(truth.time) - 1)
     k_truth = np.rint((truth.time[-1] - truth.time) / dt).astype(np.int64)
@@ -603,8 +659,12 @@ def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.
     _, i_truth, i_lock = np.intersect1d(k_truth, k_lock, assume_unique=True, return_indices=True)
     order = np.argsort(i_lock)
     i_truth, i_lock = i_truth[order], i_lock[order]
-    return {"time": t[i_lock], "scale_factor": truth.scale_factor[i_truth],
-            "temperature": truth.temperature[i_truth], "rate": truth.rate[i_truth]}
+    return {
+        "time": t[i_lock],
+        "scale_factor": truth.scale_factor[i_truth],
+        "temperature": truth.temperature[i_truth],
+        "rate": truth.rate[i_truth],
+    }
 
 
 class _null:

@@ -25,12 +25,17 @@ from qmg_lab import __version__
 from qmg_lab.config import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
-                       "1291BR), on the bench or on simulated twins.")
-characterize_app = typer.Typer(no_args_is_help=True,
-                               help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2); the device: "
-                                    "resonance, ringdown, noise")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
+    "1291BR), on the bench or on simulated twins.",
+)
+characterize_app = typer.Typer(
+    no_args_is_help=True,
+    help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2); the device: resonance, ringdown, noise",
+)
 table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
 chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
 generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
@@ -56,9 +61,16 @@ LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
 @app.callback()
-def _options(log_level: Annotated[str | None, typer.Option(
-        "--log-level", help="print the module loggers on stderr from this level: DEBUG (every serial byte), "
-                            "INFO (connections, reconnects, run events), WARNING (faults), ERROR")] = None) -> None:
+def _options(
+    log_level: Annotated[
+        str | None,
+        typer.Option(
+            "--log-level",
+            help="print the module loggers on stderr from this level: DEBUG (every serial byte), "
+            "INFO (connections, reconnects, run events), WARNING (faults), ERROR",
+        ),
+    ] = None,
+) -> None:
     """Options for every command."""
     if log_level is None:
         return
@@ -119,18 +131,29 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
     steps = build_plan(cfg)
     checks = limit_checks(cfg, steps)
     bad = [c for c in checks if not c.ok]
-    stream = StreamPlan(cfg.lockin.demod_rate_hz, cfg.dither.frequency_hz, cfg.lockin.demod_order,
-                        cfg.lockin.demod_timeconstant_s)
+    stream = StreamPlan(
+        cfg.lockin.demod_rate_hz, cfg.dither.frequency_hz, cfg.lockin.demod_order, cfg.lockin.demod_timeconstant_s
+    )
     if json_out:
-        out.print_json(json.dumps({
-            "clsf_timing": stream.summary() if cfg.clsf.mode != "off" else None,
-            "config": str(config), "config_sha256": config_fingerprint(text), "kind": cfg.campaign.kind,
-            "steps": [s.__dict__ for s in steps], "duration_s": plan_duration_s(steps),
-            "limits": [dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok)
-                       for c in checks]}))
+        out.print_json(
+            json.dumps(
+                {
+                    "clsf_timing": stream.summary() if cfg.clsf.mode != "off" else None,
+                    "config": str(config),
+                    "config_sha256": config_fingerprint(text),
+                    "kind": cfg.campaign.kind,
+                    "steps": [s.__dict__ for s in steps],
+                    "duration_s": plan_duration_s(steps),
+                    "limits": [
+                        dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok) for c in checks
+                    ],
+                }
+            )
+        )
     else:
-        tbl = Table(title=f"{cfg.campaign.name}: {cfg.campaign.kind}, {len(steps)} steps, "
-                          f"{plan_duration_s(steps) / 3600:.2f} h")
+        tbl = Table(
+            title=f"{cfg.campaign.name}: {cfg.campaign.kind}, {len(steps)} steps, {plan_duration_s(steps) / 3600:.2f} h"
+        )
         for col in ("#", "kind", "duration", "table rate", "chamber target"):
             tbl.add_column(col, justify="right" if col != "kind" else "left")
         for s in _summarise_steps(steps):
@@ -140,20 +163,27 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
         for col in ("check", "value", "allowed", "ok"):
             lim.add_column(col)
         for c in checks:
-            lim.add_row(c.what, f"{c.value:g} {c.unit}", f"[{c.low:g}, {c.high:g}] {c.unit}",
-                        "[green]ok[/]" if c.ok else "[bold red]REFUSED[/]")
+            lim.add_row(
+                c.what,
+                f"{c.value:g} {c.unit}",
+                f"[{c.low:g}, {c.high:g}] {c.unit}",
+                "[green]ok[/]" if c.ok else "[bold red]REFUSED[/]",
+            )
         out.print(lim)
-        instruments = ", ".join(f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}"
-                                for n in ("lockin", "generator", "table", "chamber"))
+        instruments = ", ".join(
+            f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}" for n in ("lockin", "generator", "table", "chamber")
+        )
         out.print(f"instruments: {instruments}")
         if cfg.clsf.mode != "off":
             sp = stream.summary()
-            out.print(f"CLSF timing: lock-in {sp['rate_hz']:g} Sa/s, {sp['samples_per_period']:.4f} samples per "
-                      f"{cfg.dither.frequency_hz:g} Hz dither period (edge phase gap {sp['edge_phase_gap']:.3f} of a "
-                      f"sample, must be <= 0.25); demod filter order {cfg.lockin.demod_order}, "
-                      f"tc {cfg.lockin.demod_timeconstant_s * 1e6:g} us: delay {sp['filter_delay_s'] * 1e6:g} us, "
-                      f"|H| at 1/3/5 x dither {sp['filter_gain_h1']:.5f}/{sp['filter_gain_h3']:.5f}/"
-                      f"{sp['filter_gain_h5']:.5f} (compensated by the estimator)")
+            out.print(
+                f"CLSF timing: lock-in {sp['rate_hz']:g} Sa/s, {sp['samples_per_period']:.4f} samples per "
+                f"{cfg.dither.frequency_hz:g} Hz dither period (edge phase gap {sp['edge_phase_gap']:.3f} of a "
+                f"sample, must be <= 0.25); demod filter order {cfg.lockin.demod_order}, "
+                f"tc {cfg.lockin.demod_timeconstant_s * 1e6:g} us: delay {sp['filter_delay_s'] * 1e6:g} us, "
+                f"|H| at 1/3/5 x dither {sp['filter_gain_h1']:.5f}/{sp['filter_gain_h3']:.5f}/"
+                f"{sp['filter_gain_h5']:.5f} (compensated by the estimator)"
+            )
     if bad:
         _fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
 
@@ -165,15 +195,26 @@ def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
     while i < len(steps):
         s = steps[i]
         j = i
-        while (j + 1 < len(steps) and steps[j + 1].kind == s.kind and s.kind in ("rate", "hold")
-               and abs(steps[j + 1].table_rate_dps) == abs(s.table_rate_dps)
-               and steps[j + 1].chamber_target_c == s.chamber_target_c):
+        while (
+            j + 1 < len(steps)
+            and steps[j + 1].kind == s.kind
+            and s.kind in ("rate", "hold")
+            and abs(steps[j + 1].table_rate_dps) == abs(s.table_rate_dps)
+            and steps[j + 1].chamber_target_c == s.chamber_target_c
+        ):
             j += 1
         n = j - i + 1
         rate = f"{s.table_rate_dps:+g} deg/s" if n == 1 else f"+-{abs(s.table_rate_dps):g} deg/s"
         dur = f"{s.duration_s:.4g} s" if n == 1 else f"{n} x {s.duration_s:.4g} s"
-        rows.append((f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}", s.kind, dur, rate,
-                     f"{s.chamber_target_c:g} degC"))
+        rows.append(
+            (
+                f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}",
+                s.kind,
+                dur,
+                rate,
+                f"{s.chamber_target_c:g} degC",
+            )
+        )
         i = j + 1
     return rows
 
@@ -201,12 +242,13 @@ def run(
 
 
 def _instrument_modes(cfg: Config) -> dict[str, str]:
-    """"twin" | "hardware" per instrument, as the configuration (after --sim) sets them."""
+    """ "twin" | "hardware" per instrument, as the configuration (after --sim) sets them."""
     return {n: ("twin" if getattr(cfg, n).sim else "hardware") for n in ("lockin", "generator", "table", "chamber")}
 
 
-def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool,
-             overwrite: bool = False) -> Any:
+def _execute(
+    cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
+) -> Any:
     """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
     configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
@@ -244,18 +286,25 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
     with _station(cfg) as station:
         try:
             if resume is not None:
-                writer = RunWriter.reopen(resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s,
-                                          instrument_modes=modes)
+                writer = RunWriter.reopen(
+                    resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+                )
             else:
                 if path.exists():
                     path.unlink()  # --overwrite, now that the station answered
-                writer = RunWriter.create(path, config_text=text, config_sha256=sha, mode=mode,
-                                          software_version=__version__,
-                                          t0_unix=datetime.now(UTC).timestamp(),
-                                          flush_interval_s=cfg.storage.flush_interval_s,
-                                          compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-                                          truth=cfg.lockin.sim, instrument_modes=modes,
-                                          realtime=not cfg.lockin.sim)
+                writer = RunWriter.create(
+                    path,
+                    config_text=text,
+                    config_sha256=sha,
+                    mode=mode,
+                    software_version=__version__,
+                    t0_unix=datetime.now(UTC).timestamp(),
+                    flush_interval_s=cfg.storage.flush_interval_s,
+                    compression=cfg.storage.resolved_compression(cfg.lockin.sim),
+                    truth=cfg.lockin.sim,
+                    instrument_modes=modes,
+                    realtime=not cfg.lockin.sim,
+                )
         except StorageError as exc:
             _fail(EXIT_BAD_INPUT, str(exc))
         except OSError as exc:
@@ -264,12 +313,16 @@ def _execute(cfg: Config, text: str, *, output: Path | None, resume: Path | None
         view = ProgressView(console, enabled=not quiet)
         try:
             with view:
-                runner = CampaignRunner(cfg, station, writer, progress=view.update, resume=resume is not None,
-                                        steps=steps)
+                runner = CampaignRunner(
+                    cfg, station, writer, progress=view.update, resume=resume is not None, steps=steps
+                )
                 return runner.run()
         except CampaignInterrupted as exc:
-            _fail(EXIT_INTERRUPTED, f"{exc}; instruments in their safe state; file {writer.path} (status "
-                                    f"aborted; continue with --resume {writer.path})")
+            _fail(
+                EXIT_INTERRUPTED,
+                f"{exc}; instruments in their safe state; file {writer.path} (status "
+                f"aborted; continue with --resume {writer.path})",
+            )
         except (CampaignAborted, InstrumentError) as exc:
             _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
         except LimitError as exc:
@@ -335,8 +388,7 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
         out.print(tbl)
     failed = [n for n, e in report.items() if not e["ok"]]
     if failed:
-        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})"
-                                                                        for n in failed))
+        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})" for n in failed))
 
 
 # ====================================================================================== characterize
@@ -394,17 +446,25 @@ def with_campaign_kind(text: str, kind: str) -> str:
 
 
 @characterize_app.command("bandwidth")
-def characterize_bandwidth(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
-                           output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
-                           quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False) -> None:
+def characterize_bandwidth(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False,
+) -> None:
     """Sinusoidal table rates: closed-loop FTR response, -3 dB bandwidth and settling time (paper Fig. 3)."""
     _characterize("bandwidth", config, sim, json_out, output, quiet)
 
 
 @characterize_app.command("linearity")
-def characterize_linearity(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
-                           output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
-                           quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False) -> None:
+def characterize_linearity(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False,
+) -> None:
     """Constant table rates: scale factor, nonlinearity and asymmetry (paper Fig. 2)."""
     _characterize("linearity", config, sim, json_out, output, quiet)
 

@@ -62,69 +62,92 @@ def _manual(config: Path, sim: bool, name: str, action: Callable[[Any], str]) ->
 
 
 @table_app.command("rate")
-def table_rate(config: ConfigArg, rate_dps: Annotated[float, typer.Argument(help="deg/s")],
-               accel_dps2: Annotated[float, typer.Option("--accel", help="deg/s^2")] = 100.0,
-               sim: SimOpt = False) -> None:
+def table_rate(
+    config: ConfigArg,
+    rate_dps: Annotated[float, typer.Argument(help="deg/s")],
+    accel_dps2: Annotated[float, typer.Option("--accel", help="deg/s^2")] = 100.0,
+    sim: SimOpt = False,
+) -> None:
     """Rate mode: ramp to RATE_DPS."""
+
     def act(table: Any) -> str:
         table.set_rate(rate_dps, accel_dps2)
         r = table.read()
         return f"table commanded to {rate_dps:g} deg/s at {accel_dps2:g} deg/s^2; now {r.rate_dps:.4f} deg/s"
+
     _manual(config, sim, "table", act)
 
 
 @table_app.command("stop")
 def table_stop(config: ConfigArg, sim: SimOpt = False) -> None:
     """Decelerate the table to rest."""
+
     def act(table: Any) -> str:
         table.stop()
         r = table.read()
         return f"table stopping; now {r.rate_dps:.4f} deg/s"
+
     _manual(config, sim, "table", act)
 
 
 @chamber_app.command("setpoint")
-def chamber_setpoint(config: ConfigArg, setpoint_c: Annotated[float, typer.Argument(help="deg C")],
-                     ramp_c_per_min: Annotated[float, typer.Option("--ramp", help="deg C/min")] = 1.0,
-                     sim: SimOpt = False) -> None:
+def chamber_setpoint(
+    config: ConfigArg,
+    setpoint_c: Annotated[float, typer.Argument(help="deg C")],
+    ramp_c_per_min: Annotated[float, typer.Option("--ramp", help="deg C/min")] = 1.0,
+    sim: SimOpt = False,
+) -> None:
     """Ramp the chamber to SETPOINT_C."""
+
     def act(chamber: Any) -> str:
         chamber.set_setpoint(setpoint_c, ramp_c_per_min)
         r = chamber.read()
         return f"chamber setpoint {setpoint_c:g} degC at {ramp_c_per_min:g} degC/min; air {r.temperature_c:.2f} degC"
+
     _manual(config, sim, "chamber", act)
 
 
 @generator_app.command("square")
-def generator_square(config: ConfigArg, frequency_hz: Annotated[float, typer.Argument(help="Hz")],
-                     amplitude_vpp: Annotated[float, typer.Argument(help="Vpp")], sim: SimOpt = False) -> None:
+def generator_square(
+    config: ConfigArg,
+    frequency_hz: Annotated[float, typer.Argument(help="Hz")],
+    amplitude_vpp: Annotated[float, typer.Argument(help="Vpp")],
+    sim: SimOpt = False,
+) -> None:
     """DS345 square wave."""
+
     def act(generator: Any) -> str:
         generator.set_square(frequency_hz, amplitude_vpp, 0.0)
         return f"DS345 square {frequency_hz:g} Hz {amplitude_vpp:g} Vpp"
+
     _manual(config, sim, "generator", act)
 
 
 @generator_app.command("mute")
 def generator_mute(config: ConfigArg, sim: SimOpt = False) -> None:
     """DS345 amplitude to zero (AMPL 0VP: it has no output switch)."""
+
     def act(generator: Any) -> str:
         generator.mute()
         return "DS345 muted"
+
     _manual(config, sim, "generator", act)
 
 
 # ====================================================================================== raw console
-RawCommand = Annotated[str, typer.Argument(help="the command as text; backslash escapes (\\r, \\n, \\xNN) allowed",
-                                           show_default=False)]
-WaitOpt = Annotated[float | None, typer.Option("--wait", help="wait this long for a first byte, s "
-                                               "(default: the configured timeout_s)")]
+RawCommand = Annotated[
+    str, typer.Argument(help="the command as text; backslash escapes (\\r, \\n, \\xNN) allowed", show_default=False)
+]
+WaitOpt = Annotated[
+    float | None, typer.Option("--wait", help="wait this long for a first byte, s (default: the configured timeout_s)")
+]
 IdleOpt = Annotated[float, typer.Option("--idle", help="the reply is over after this long without a byte, s")]
 NoTermOpt = Annotated[bool, typer.Option("--no-terminator", help="do not append the configured command terminator")]
 
 
-def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float | None, idle_s: float,
-                no_terminator: bool) -> None:
+def _raw_serial(
+    name: str, config: Path, command: str, sim: bool, wait_s: float | None, idle_s: float, no_terminator: bool
+) -> None:
     from qmg_lab.raw_console import decode_escapes, serial_exchange
     from qmg_lab.station import open_raw_serial
 
@@ -148,9 +171,13 @@ def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float 
         if not no_terminator:
             data += framing.command_end
         where = "twin" if section.sim else section.port
-        out.print(f"{name} raw on {where} ({section.baudrate} baud; command terminator "
-                  f"{framing.command_terminator}, replies {framing.describe()})", highlight=False,
-                  markup=False, soft_wrap=True)
+        out.print(
+            f"{name} raw on {where} ({section.baudrate} baud; command terminator "
+            f"{framing.command_terminator}, replies {framing.describe()})",
+            highlight=False,
+            markup=False,
+            soft_wrap=True,
+        )
         ex = serial_exchange(port, data, wait_s=wait_s or section.timeout_s, idle_s=idle_s, answers_at_once=at_once)
     except (OSError, ValueError) as exc:
         _fail(EXIT_FAULT, f"{name}: the raw exchange failed: {exc}")
@@ -161,23 +188,37 @@ def _raw_serial(name: str, config: Path, command: str, sim: bool, wait_s: float 
 
 
 @table_app.command("raw")
-def table_raw(config: ConfigArg, command: RawCommand, sim: SimOpt = False, wait_s: WaitOpt = None,
-              idle_s: IdleOpt = 0.3, no_terminator: NoTermOpt = False) -> None:
+def table_raw(
+    config: ConfigArg,
+    command: RawCommand,
+    sim: SimOpt = False,
+    wait_s: WaitOpt = None,
+    idle_s: IdleOpt = 0.3,
+    no_terminator: NoTermOpt = False,
+) -> None:
     """Send COMMAND to the 1291BR as typed (+ the command terminator); print the bytes sent and received."""
     _raw_serial("table", config, command, sim, wait_s, idle_s, no_terminator)
 
 
 @chamber_app.command("raw")
-def chamber_raw(config: ConfigArg, command: RawCommand, sim: SimOpt = False, wait_s: WaitOpt = None,
-                idle_s: IdleOpt = 0.3, no_terminator: NoTermOpt = False) -> None:
+def chamber_raw(
+    config: ConfigArg,
+    command: RawCommand,
+    sim: SimOpt = False,
+    wait_s: WaitOpt = None,
+    idle_s: IdleOpt = 0.3,
+    no_terminator: NoTermOpt = False,
+) -> None:
     """Send COMMAND to the chamber controller as typed (+ the command terminator); print the bytes."""
     _raw_serial("chamber", config, command, sim, wait_s, idle_s, no_terminator)
 
 
 @generator_app.command("raw")
-def generator_raw(config: ConfigArg, command: Annotated[str, typer.Argument(help="e.g. '*IDN?' or 'FREQ 7'",
-                                                                              show_default=False)],
-                  sim: SimOpt = False) -> None:
+def generator_raw(
+    config: ConfigArg,
+    command: Annotated[str, typer.Argument(help="e.g. '*IDN?' or 'FREQ 7'", show_default=False)],
+    sim: SimOpt = False,
+) -> None:
     """Send COMMAND to the DS345 (a query, with '?', reads one reply); print the bytes and the timing."""
     from qmg_lab.raw_console import visa_exchange
     from qmg_lab.station import open_raw_visa
@@ -199,8 +240,9 @@ def generator_raw(config: ConfigArg, command: Annotated[str, typer.Argument(help
         out.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
-NodePath = Annotated[str, typer.Argument(help="node path, e.g. oscs/0/freq (the /devN prefix is added)",
-                                         show_default=False)]
+NodePath = Annotated[
+    str, typer.Argument(help="node path, e.g. oscs/0/freq (the /devN prefix is added)", show_default=False)
+]
 
 
 def _node_path(path: str, device: str) -> str:
@@ -237,8 +279,11 @@ def lockin_get(config: ConfigArg, path: NodePath, sim: SimOpt = False) -> None:
 
 
 @lockin_app.command("set")
-def lockin_set(config: ConfigArg, path: NodePath,
-               value: Annotated[str, typer.Argument(help="integer, number or text", show_default=False)],
-               sim: SimOpt = False) -> None:
+def lockin_set(
+    config: ConfigArg,
+    path: NodePath,
+    value: Annotated[str, typer.Argument(help="integer, number or text", show_default=False)],
+    sim: SimOpt = False,
+) -> None:
     """Write one HF2 node, then read it back; print both calls and their timing."""
     _raw_node(config, sim, path, value)

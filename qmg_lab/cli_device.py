@@ -62,17 +62,27 @@ def _measure(config: Path, sim: bool, what: Callable[[Config, Station], dict[str
             _fail(EXIT_BAD_INPUT, str(exc))
         except (TuningError, InstrumentError) as exc:
             failures = st.safe_state()
-            _fail(EXIT_FAULT, f"{exc}" + (f"; safe state not confirmed: {'; '.join(failures)}" if failures else
-                                          "; instruments in their safe state"))
+            _fail(
+                EXIT_FAULT,
+                f"{exc}"
+                + (
+                    f"; safe state not confirmed: {'; '.join(failures)}"
+                    if failures
+                    else "; instruments in their safe state"
+                ),
+            )
         finally:
             st.safe_state()
     raise AssertionError("unreachable")
 
 
 @characterize_app.command("resonance")
-def characterize_resonance(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
-                           record_s: Annotated[float, typer.Option("--record", help="s of locked record")] = 20.0
-                           ) -> None:
+def characterize_resonance(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    record_s: Annotated[float, typer.Option("--record", help="s of locked record")] = 20.0,
+) -> None:
     """f0 from the locked PLL and the drive voltage the AGC needs for the setpoint amplitude."""
     from dataclasses import asdict
 
@@ -85,9 +95,14 @@ def characterize_resonance(config: ConfigArg, sim: SimOpt = False, json_out: Jso
 
 
 @characterize_app.command("ringdown")
-def characterize_ringdown(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
-                          record_s: Annotated[float | None, typer.Option(
-                              "--record", help="s of free decay (default: the configured tau)")] = None) -> None:
+def characterize_ringdown(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    record_s: Annotated[
+        float | None, typer.Option("--record", help="s of free decay (default: the configured tau)")
+    ] = None,
+) -> None:
     """Drive off, free decay of the drive amplitude: tau and Q = pi f0 tau."""
     from dataclasses import asdict
 
@@ -99,13 +114,17 @@ def characterize_ringdown(config: ConfigArg, sim: SimOpt = False, json_out: Json
     def what(cfg: Config, st: Station) -> dict[str, Any]:
         res = measure_resonance(cfg, st, 5.0)
         return asdict(measure_ringdown(cfg, st, res.f0_hz, record_s))
+
     _print_result(_measure(config, sim, what), json_out, "ring-down")
 
 
 @characterize_app.command("noise")
-def characterize_noise(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False,
-                       record_s: Annotated[float, typer.Option("--record", help="s of static record")] = 1800.0
-                       ) -> None:
+def characterize_noise(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    record_s: Annotated[float, typer.Option("--record", help="s of static record")] = 1800.0,
+) -> None:
     """Static record with the loops closed: ARW and bias instability from the Allan deviation."""
     from dataclasses import asdict
 
@@ -113,8 +132,7 @@ def characterize_noise(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt
 
     if not 60.0 <= record_s <= 7 * 86400.0:
         _fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [60, 604800] s")
-    _print_result(_measure(config, sim, lambda cfg, st: asdict(measure_noise(cfg, st, record_s))), json_out,
-                  "noise")
+    _print_result(_measure(config, sim, lambda cfg, st: asdict(measure_noise(cfg, st, record_s))), json_out, "noise")
 
 
 @app.command()

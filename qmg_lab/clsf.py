@@ -151,8 +151,9 @@ class ClsfEstimator:
         return self.rho_ref is not None
 
     # ------------------------------------------------------------------ processing
-    def process(self, time: np.ndarray, x_sense: np.ndarray, rate_output: np.ndarray,
-                dither: np.ndarray) -> ClsfPeriods:
+    def process(
+        self, time: np.ndarray, x_sense: np.ndarray, rate_output: np.ndarray, dither: np.ndarray
+    ) -> ClsfPeriods:
         """Add a block of samples; return the estimates of every dither period completed by it.
 
         The gain correction recorded for a period is the one in force while the block was taken (the lock-in's
@@ -191,8 +192,11 @@ class ClsfEstimator:
         mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
         self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
         dt = self._sample_dt(tt)
-        if self._sos is None and self.demod_filter.tc_s > 0.0 or (self._sos is not None and
-                                                                   abs(dt - self._sos_dt) > 1e-9 * dt):
+        if (
+            self._sos is None
+            and self.demod_filter.tc_s > 0.0
+            or (self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt)
+        ):
             self._sos = self.demod_filter.foh_sos(dt)
             self._sos_dt = dt
             self._zi = None
@@ -272,8 +276,9 @@ class ClsfEstimator:
         gain = np.full(eta.shape, self.gain_correction)
         if self.mode == "correct" and eta.size:
             self.gain_correction *= math.exp(-float(np.sum((t1 - t0) * eta)) / self.time_constant_s)
-        return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain,
-                           rate_output_mean=rate)
+        return ClsfPeriods(
+            time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
+        )
 
     def _filtered_triangles(self, tk: np.ndarray, edges: np.ndarray, lo: float, hi: float) -> np.ndarray:
         """H m_d at the instants tk, m_d = integral of the square wave whose alternating edges (rising first) for
@@ -308,9 +313,11 @@ class ClsfEstimator:
         return held
 
 
-def _detrend_segments(t: np.ndarray, v: np.ndarray, seg: np.ndarray, starts: np.ndarray,
-                      lengths: np.ndarray) -> np.ndarray:
+def _detrend_segments(
+    t: np.ndarray, v: np.ndarray, seg: np.ndarray, starts: np.ndarray, lengths: np.ndarray
+) -> np.ndarray:
     """v minus its least-squares line a + b t within each segment: orthogonal to 1 and t on each segment."""
+
     def mean(x: np.ndarray) -> np.ndarray:
         return np.add.reduceat(x, starts) / lengths
 

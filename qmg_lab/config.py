@@ -77,14 +77,18 @@ class LoopsSection(_Section):
     rate_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0, description="FTR rate-loop bandwidth, Hz")
     quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
     rate_zero_offset_hz: float = Field(
-        0.0, ge=0.0, le=5.0,
+        0.0,
+        ge=0.0,
+        le=5.0,
         description="rate PI zero this far above 1/tau, Hz (hides the slow mode of a mode mismatch, "
-                    "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
+        "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
     )
     agc_zero_offset_hz: float = Field(
-        0.05, ge=0.0, le=5.0,
+        0.05,
+        ge=0.0,
+        le=5.0,
         description="AGC PI zero this far above 1/tau, Hz: on the pole, the drive amplitude (and the SF) would "
-                    "recover from each table step's Coriolis disturbance with tau = 174 s",
+        "recover from each table step's Coriolis disturbance with tau = 174 s",
     )
     lock_timeout_s: float = Field(60.0, gt=0.0, le=3600.0, description="how long to wait for PLL lock and settling")
     lock_settle_s: float = Field(10.0, ge=0.0, le=3600.0, description="time all loops must stay locked before the run")
@@ -159,14 +163,18 @@ class LockInSection(_Section):
     port: int = Field(8005, ge=1, le=65535, description="HF2 data server port (HF2: 8005)")
     device: str = Field("dev0", pattern=r"^dev\d+$", description="device id, e.g. dev1234")
     demod_rate_hz: float = Field(
-        1800.0, ge=200.0, le=28800.0,
+        1800.0,
+        ge=200.0,
+        le=28800.0,
         description="demodulator streaming rate, Sa/s; the HF2 applies the nearest rate it offers (qmg-lab check "
-                    "shows it)",
+        "shows it)",
     )
     demod_timeconstant_s: float = Field(
-        1e-4, gt=0.0, le=1e-3,
+        1e-4,
+        gt=0.0,
+        le=1e-3,
         description="demodulator filter time constant per stage, s; at most 1 ms so that the filter passes the "
-                    "dither and adds no more than n tc of lag to the 2 Hz loops",
+        "dither and adds no more than n tc of lag to the 2 Hz loops",
     )
     demod_order: int = Field(1, ge=1, le=8, description="demodulator filter order (stages of 6 dB/octave)")
     auxin_averaging: int = Field(
@@ -227,8 +235,13 @@ class TableSection(_Section):
     reply_terminator: ReplyTerminator = Field(
         "auto", description="ends every reply line: auto (CR, LF or CR LF, each accepted), or exactly CR, LF, CRLF"
     )
-    prompt: str = Field(">", min_length=1, max_length=8, pattern=r"^[!-~]+$",
-                        description="the controller's ready prompt after every reply")
+    prompt: str = Field(
+        ">",
+        min_length=1,
+        max_length=8,
+        pattern=r"^[!-~]+$",
+        description="the controller's ready prompt after every reply",
+    )
     sim_reply_terminator: Terminator = Field("CR", description="twin only: how the twin ends its reply lines")
     sim_prompt_terminator: Literal["CR", "LF", "CRLF", "none"] = Field(
         "CR", description="twin only: what follows the twin's prompt (none = a bare prompt)"
@@ -268,8 +281,9 @@ class ChamberSection(_Section):
 class StorageSection(_Section):
     flush_interval_s: float = Field(1.0, gt=0.0, le=60.0, description="flush the HDF5 file at least this often")
     compression: Literal["auto", "none", "gzip", "lzf"] = Field(
-        "auto", description="auto = lzf (shuffle + lzf on the columns that compress: about half the file for "
-                            "about 1 s per campaign hour), twins and hardware alike; docs/hdf5.md"
+        "auto",
+        description="auto = lzf (shuffle + lzf on the columns that compress: about half the file for "
+        "about 1 s per campaign hour), twins and hardware alike; docs/hdf5.md",
     )
 
     def resolved_compression(self, simulated_lockin: bool = False) -> str:
@@ -300,9 +314,7 @@ class SimFaultsSection(_Section):
     interlock_trip_at_s: float | None = Field(None, ge=0.0, description="the rate table's interlock trips, s")
     chamber_overshoot_at_s: float | None = Field(None, ge=0.0, description="the chamber air overshoots, s")
     chamber_overshoot_c: float = Field(5.0, ge=0.0, le=50.0, description="overshoot peak, deg C")
-    chamber_overshoot_decay_s: float = Field(
-        30.0, gt=0.0, le=3600.0, description="overshoot decays as exp(-t/this), s"
-    )
+    chamber_overshoot_decay_s: float = Field(30.0, gt=0.0, le=3600.0, description="overshoot decays as exp(-t/this), s")
     chamber_dropout_at_s: float | None = Field(
         None, ge=0.0, description="the chamber's air sensor drops out (C1? answers ?SENSOR), s"
     )
@@ -322,7 +334,9 @@ class RecoverySection(_Section):
         3, ge=0, le=20, description="immediate close/reopen/re-verify attempts before the campaign suspends"
     )
     timeout_s: float = Field(
-        30.0, ge=0.0, le=3600.0,
+        30.0,
+        ge=0.0,
+        le=3600.0,
         description="the campaign keeps logging, suspended, and retries a failed instrument this long, s; then aborts",
     )
     safe_state_timeout_s: float = Field(
@@ -369,8 +383,9 @@ class SimSection(_Section):
         0.37e-3, ge=0.0, le=1.0, description="a DS345 setting takes effect this long after the command, s (assumed)"
     )
     hf2_rate_set: Literal["hf2", "ticks"] = Field(
-        "hf2", description="rates the HF2 twin offers: 'hf2' its binary ladder (1800, 3600, ... Sa/s), 'ticks' any "
-                           "clockbase/integer rate (robustness studies at rates no HF2 offers)"
+        "hf2",
+        description="rates the HF2 twin offers: 'hf2' its binary ladder (1800, 3600, ... Sa/s), 'ticks' any "
+        "clockbase/integer rate (robustness studies at rates no HF2 offers)",
     )
     drive_voltage_v: float = Field(0.05, gt=0.0, le=10.0, description="true drive voltage at nominal amplitude, V")
     sf_true_v_per_dps: float = Field(0.06, gt=0.0, le=10.0, description="true FTR SF at the reference temperature")
@@ -410,8 +425,10 @@ class Config(_Section):
 
     def with_all_sim(self, sim: bool = True) -> Config:
         """The same configuration with every instrument set to its twin (the CLI's --sim)."""
-        update = {name: getattr(self, name).model_copy(update={"sim": sim})
-                  for name in ("lockin", "generator", "table", "chamber")}
+        update = {
+            name: getattr(self, name).model_copy(update={"sim": sim})
+            for name in ("lockin", "generator", "table", "chamber")
+        }
         return self.model_copy(update=update)
 
     @property
@@ -446,7 +463,8 @@ def _allowed(info: Any) -> str:
     if getattr(ann, "__origin__", None) is Literal:
         return "one of " + ", ".join(repr(a) for a in args)
     kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
-        ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None), "")
+        ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None), ""
+    )
     if getattr(ann, "__origin__", None) is list:
         kind = "a list of numbers"
     bounds = []
@@ -518,14 +536,26 @@ def config_fingerprint(text: str) -> str:
 
 def reference_markdown() -> str:
     """docs/configuration.md, generated from the schema (a test keeps the file equal to this)."""
-    lines = ["# Configuration reference", "",
-             "Generated from `qmg_lab/config.py` by `python -m qmg_lab.config > docs/configuration.md`.",
-             "Every section is strict: an unknown key is an error that names it. Units are in the names",
-             "(`_s` seconds, `_hz` hertz, `_dps` deg/s, `_dps2` deg/s², `_c` °C, `_v` volts, `_vrms` volts rms).", ""]
+    lines = [
+        "# Configuration reference",
+        "",
+        "Generated from `qmg_lab/config.py` by `python -m qmg_lab.config > docs/configuration.md`.",
+        "Every section is strict: an unknown key is an error that names it. Units are in the names",
+        "(`_s` seconds, `_hz` hertz, `_dps` deg/s, `_dps2` deg/s², `_c` °C, `_v` volts, `_vrms` volts rms).",
+        "",
+    ]
 
     def section(name: str, model: type[BaseModel]) -> None:
-        lines.extend([f"## [{name}]", "", (model.__doc__ or "").strip().split("\n\n")[0], "",
-                      "| key | default | allowed | meaning |", "|---|---|---|---|"])
+        lines.extend(
+            [
+                f"## [{name}]",
+                "",
+                (model.__doc__ or "").strip().split("\n\n")[0],
+                "",
+                "| key | default | allowed | meaning |",
+                "|---|---|---|---|",
+            ]
+        )
         for key, f in model.model_fields.items():
             ann = f.annotation
             if isinstance(ann, type) and issubclass(ann, BaseModel):
@@ -570,9 +600,12 @@ def stream_timing_problem(cfg: Config) -> str | None:
         applied = hf2_rate(rate)
         if abs(applied - rate) > 1e-6 * rate:
             rungs = ", ".join(f"{hf2_rate(r):g}" for r in (450, 900, 1800, 3600, 7200))
-            return (f"lockin.demod_rate_hz = {rate:g} Sa/s is not a rate the HF2 offers (it would stream at "
-                    f"{applied:g} Sa/s); use one of {rungs} ... Sa/s")
+            return (
+                f"lockin.demod_rate_hz = {rate:g} Sa/s is not a rate the HF2 offers (it would stream at "
+                f"{applied:g} Sa/s); use one of {rungs} ... Sa/s"
+            )
     if cfg.clsf.mode != "off":
-        return StreamPlan(rate, cfg.dither.frequency_hz, cfg.lockin.demod_order,
-                          cfg.lockin.demod_timeconstant_s).problem()
+        return StreamPlan(
+            rate, cfg.dither.frequency_hz, cfg.lockin.demod_order, cfg.lockin.demod_timeconstant_s
+        ).problem()
     return None

@@ -97,9 +97,9 @@ class EdgeTracker:
         if te.size == 0:
             return te
         raw, idx = self._raw[kind], self._idx[kind]
-        hist_t = np.asarray(raw[-self.fit_edges:])
-        if len(raw) >= 2 and idx[-1] > idx[-self.fit_edges:][0]:  # the period from the history's own span
-            period = (raw[-1] - raw[-self.fit_edges:][0]) / (idx[-1] - idx[-self.fit_edges:][0])
+        hist_t = np.asarray(raw[-self.fit_edges :])
+        if len(raw) >= 2 and idx[-1] > idx[-self.fit_edges :][0]:  # the period from the history's own span
+            period = (raw[-1] - raw[-self.fit_edges :][0]) / (idx[-1] - idx[-self.fit_edges :][0])
         else:
             period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
         if raw and period > 0.0:
@@ -111,12 +111,12 @@ class EdgeTracker:
         else:
             return np.asarray([self._smooth(kind, float(x)) for x in te])
         all_t = np.concatenate((hist_t, te))
-        all_j = np.concatenate((np.asarray(idx[-self.fit_edges:], dtype=float), j.astype(float)))
+        all_j = np.concatenate((np.asarray(idx[-self.fit_edges :], dtype=float), j.astype(float)))
         raw.extend(te.tolist())
         idx.extend(j.tolist())
         if len(raw) > 4 * self.fit_edges:
-            del raw[:-self.fit_edges]
-            del idx[:-self.fit_edges]
+            del raw[: -self.fit_edges]
+            del idx[: -self.fit_edges]
         # rolling sums over the last fit_edges points ending at each new edge (local offsets keep precision)
         t0, j0 = float(all_t[0]), float(all_j[0])
         x, y = all_j - j0, all_t - t0
@@ -128,13 +128,13 @@ class EdgeTracker:
         with np.errstate(divide="ignore", invalid="ignore"):
             slope = np.where(den > 0, (n * sxy - sx * sy) / np.where(den > 0, den, 1.0), 0.0)
         icpt = (sy - slope * sx) / n
-        fitted = t0 + icpt + slope * x[hist_t.size:]
+        fitted = t0 + icpt + slope * x[hist_t.size :]
         return np.where(n >= 4, fitted, te)
 
     def _smooth(self, kind: int, te: float) -> float:
         raw, idx = self._raw[kind], self._idx[kind]
         if raw:
-            diffs = np.diff(raw[-self.fit_edges:])
+            diffs = np.diff(raw[-self.fit_edges :])
             period = float(np.median(diffs)) if diffs.size else None
             if period is not None and period > 0.0:
                 j = idx[-1] + max(1, round((te - raw[-1]) / period))
@@ -150,16 +150,16 @@ class EdgeTracker:
         raw.append(te)
         idx.append(j)
         if len(raw) > 4 * self.fit_edges:
-            del raw[:-self.fit_edges]
-            del idx[:-self.fit_edges]
+            del raw[: -self.fit_edges]
+            del idx[: -self.fit_edges]
         if len(raw) < 4:
             return te
         return float(self._line(raw, idx, float(j)))
 
     def _line(self, raw: list[float], idx: list[int], j: float | np.ndarray) -> np.ndarray:
         """The least-squares line through the last fit_edges (index, time) pairs, at index j."""
-        tr = np.asarray(raw[-self.fit_edges:])
-        jr = np.asarray(idx[-self.fit_edges:], dtype=float)
+        tr = np.asarray(raw[-self.fit_edges :])
+        jr = np.asarray(idx[-self.fit_edges :], dtype=float)
         if tr.size < 2:
             return np.full(np.shape(j), float(tr[-1]))
         t0, j0 = float(tr[-1]), float(jr[-1])

@@ -34,12 +34,18 @@ def _lookup3(data: bytes, initval: int = 0) -> int:
     while n - pos > 12:
         x, y, z = struct.unpack_from("<III", data, pos)
         a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
-        a = ((a - c) & m) ^ rot(c, 4); c = (c + b) & m
-        b = ((b - a) & m) ^ rot(a, 6); a = (a + c) & m
-        c = ((c - b) & m) ^ rot(b, 8); b = (b + a) & m
-        a = ((a - c) & m) ^ rot(c, 16); c = (c + b) & m
-        b = ((b - a) & m) ^ rot(a, 19); a = (a + c) & m
-        c = ((c - b) & m) ^ rot(b, 4); b = (b + a) & m
+        a = ((a - c) & m) ^ rot(c, 4)
+        c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 6)
+        a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 8)
+        b = (b + a) & m
+        a = ((a - c) & m) ^ rot(c, 16)
+        c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 19)
+        a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 4)
+        b = (b + a) & m
         pos += 12
     x, y, z = struct.unpack("<III", data[pos:].ljust(12, b"\0"))
     a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
@@ -64,8 +70,10 @@ def _superblock(path: Path) -> tuple[bytes, int]:
         raise StorageError(f"{path}: not an HDF5 file (no HDF5 signature at offset 0)")
     version = head[8]
     if version not in (2, 3):
-        raise StorageError(f"{path}: HDF5 superblock version {version}; qmg-lab files use version 3 "
-                           f"(libver='latest'); this file was not written by qmg-lab")
+        raise StorageError(
+            f"{path}: HDF5 superblock version {version}; qmg-lab files use version 3 "
+            f"(libver='latest'); this file was not written by qmg-lab"
+        )
     size_offsets = head[9]
     length = 12 + 4 * size_offsets + 4  # signature..flags, 4 addresses, checksum
     body = head[: length - 4]
@@ -92,4 +100,3 @@ def clear_superblock_flags(path: Path) -> None:
         fh.write(new + struct.pack("<I", _lookup3(new)))
         fh.flush()
         os.fsync(fh.fileno())
-

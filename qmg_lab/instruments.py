@@ -146,8 +146,12 @@ class Instrument(abc.ABC):
         identity and state, and the firmware as far as an IEEE 488.2 identity string says (4th field)."""
         identity = self.identify()
         fields = [f.strip() for f in identity.split(",")]
-        return {"identity": identity, "firmware": fields[3] if len(fields) == 4 else None, "settings": {},
-                "state": self.state()}
+        return {
+            "identity": identity,
+            "firmware": fields[3] if len(fields) == 4 else None,
+            "settings": {},
+            "state": self.state(),
+        }
 
 
 class LockIn(Instrument):

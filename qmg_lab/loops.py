@@ -81,15 +81,21 @@ def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0
     p = 2.0 * math.pi * bandwidth_hz / b_d
     i = p * (1.0 / device.tau_s + 2.0 * math.pi * zero_offset_hz)
     # The drive output sits at its sustaining value; centre the PID there so the integrator starts near it.
-    return PidGains(p=p, i=i, setpoint=device.drive_amplitude_vrms,
-                    center=device.drive_voltage_v, range=min(device.max_forcer_v, 100 * device.drive_voltage_v))
+    return PidGains(
+        p=p,
+        i=i,
+        setpoint=device.drive_amplitude_vrms,
+        center=device.drive_voltage_v,
+        range=min(device.max_forcer_v, 100 * device.drive_voltage_v),
+    )
 
 
 def pll_pi(f0_hz: float, bandwidth_hz: float, damping: float) -> PidGains:
     """PLL PI in Hz/deg and Hz^2/deg for a second-order loop of natural frequency 2 pi (bandwidth/2)."""
     wn = 2.0 * math.pi * bandwidth_hz / 2.0
-    return PidGains(p=2.0 * damping * wn / 360.0, i=wn * wn / 360.0, setpoint=0.0, center=f0_hz,
-                    range=max(1.0, 0.01 * f0_hz))
+    return PidGains(
+        p=2.0 * damping * wn / 360.0, i=wn * wn / 360.0, setpoint=0.0, center=f0_hz, range=max(1.0, 0.01 * f0_hz)
+    )
 
 
 def rate_bandwidth_hz(gains: PidGains, device: DeviceSection) -> float:

@@ -82,8 +82,15 @@ def build_plan(cfg: Config) -> list[Step]:
         n_pairs = max(1, math.ceil((ramp_time_s(cfg) + p.chamber_end_hold_s) / (2.0 * p.dwell_s)))
         for _ in range(n_pairs):
             for sign in (1.0, -1.0):
-                steps.append(dict(kind="rate", duration_s=p.dwell_s, target=p.chamber_end_c,
-                                  rate=sign * p.table_rate_dps, settle=p.settle_s))
+                steps.append(
+                    dict(
+                        kind="rate",
+                        duration_s=p.dwell_s,
+                        target=p.chamber_end_c,
+                        rate=sign * p.table_rate_dps,
+                        settle=p.settle_s,
+                    )
+                )
     elif kind == "allan":
         remaining = p.duration_s
         pair = 2.0 * p.dwell_s if p.table_step_interval_s > 0 else 0.0
@@ -98,32 +105,61 @@ def build_plan(cfg: Config) -> list[Step]:
                     d = min(p.dwell_s, remaining)
                     if d <= 0:
                         break
-                    steps.append(dict(kind="rate", duration_s=d, target=t_start, rate=sign * p.table_rate_dps,
-                                      settle=min(p.settle_s, 0.5 * d)))
+                    steps.append(
+                        dict(
+                            kind="rate",
+                            duration_s=d,
+                            target=t_start,
+                            rate=sign * p.table_rate_dps,
+                            settle=min(p.settle_s, 0.5 * d),
+                        )
+                    )
                     remaining -= d
                 steps.append(dict(kind="return", duration_s=_return_s(cfg), target=t_start))
     elif kind == "bandwidth":
-        steps.append(dict(kind="rate", duration_s=p.dwell_s, target=t_start, rate=p.bandwidth_amplitude_dps,
-                          settle=p.settle_s))
+        steps.append(
+            dict(kind="rate", duration_s=p.dwell_s, target=t_start, rate=p.bandwidth_amplitude_dps, settle=p.settle_s)
+        )
         steps.append(dict(kind="return", duration_s=p.dwell_s, target=t_start))
         for f in p.bandwidth_frequencies_hz:
             dur = p.bandwidth_cycles / f + max(p.settle_s, 2.0 / f)
-            steps.append(dict(kind=f"sine:{f:.3f}Hz", duration_s=dur, target=t_start,
-                              rate=p.bandwidth_amplitude_dps, freq=f, settle=max(p.settle_s, 2.0 / f)))
+            steps.append(
+                dict(
+                    kind=f"sine:{f:.3f}Hz",
+                    duration_s=dur,
+                    target=t_start,
+                    rate=p.bandwidth_amplitude_dps,
+                    freq=f,
+                    settle=max(p.settle_s, 2.0 / f),
+                )
+            )
     elif kind == "linearity":
         for r in p.linearity_rates_dps:
             steps.append(dict(kind="level", duration_s=p.dwell_s, target=t_start, rate=r, settle=p.settle_s))
-    steps.append(dict(kind="return", duration_s=_return_s(cfg), target=cfg.chamber.safe_setpoint_c
-                      if kind == "temperature_sweep" else t_start))
+    steps.append(
+        dict(
+            kind="return",
+            duration_s=_return_s(cfg),
+            target=cfg.chamber.safe_setpoint_c if kind == "temperature_sweep" else t_start,
+        )
+    )
     # merge: a "return" directly after another "return" adds nothing
     out: list[Step] = []
     for s in steps:
         if out and s["kind"] == "return" and out[-1].kind == "return":
             continue
-        out.append(Step(index=len(out), kind=s["kind"], duration_s=float(s["duration_s"]),
-                        chamber_target_c=float(s["target"]), chamber_ramp_c_per_min=ramp,
-                        table_rate_dps=float(s.get("rate", 0.0)), sine_frequency_hz=float(s.get("freq", 0.0)),
-                        settle_s=float(s.get("settle", 0.0))))
+        out.append(
+            Step(
+                index=len(out),
+                kind=s["kind"],
+                duration_s=float(s["duration_s"]),
+                chamber_target_c=float(s["target"]),
+                chamber_ramp_c_per_min=ramp,
+                table_rate_dps=float(s.get("rate", 0.0)),
+                sine_frequency_hz=float(s.get("freq", 0.0)),
+                settle_s=float(s.get("settle", 0.0)),
+            )
+        )
     return out
 
 
@@ -147,8 +183,15 @@ def limit_checks(cfg: Config, steps: list[Step]) -> list[LimitCheck]:
     for s in steps:
         if s.sine_frequency_hz > 0:
             acc = abs(s.table_rate_dps) * 2 * math.pi * s.sine_frequency_hz
-            checks.append(LimitCheck(f"step {s.index} sinusoid peak acceleration", acc, 0.0,
-                                     min(t.max_accel_dps2, p.table_accel_dps2), "deg/s^2"))
+            checks.append(
+                LimitCheck(
+                    f"step {s.index} sinusoid peak acceleration",
+                    acc,
+                    0.0,
+                    min(t.max_accel_dps2, p.table_accel_dps2),
+                    "deg/s^2",
+                )
+            )
     targets = sorted({s.chamber_target_c for s in steps} | {c.safe_setpoint_c})
     checks.append(LimitCheck("chamber setpoint (lowest)", targets[0], c.min_c, c.max_c, "degC"))
     checks.append(LimitCheck("chamber setpoint (highest)", targets[-1], c.min_c, c.max_c, "degC"))
@@ -167,9 +210,19 @@ def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
     """Raise LimitError naming every limit the plan would break."""
     bad = [ch for ch in limit_checks(cfg, steps) if not ch.ok]
     if bad:
-        raise LimitError("the plan breaks instrument limits: " + "; ".join(
-            f"{ch.what} = {ch.value:g} {ch.unit} outside [{ch.low:g}, {ch.high:g}] {ch.unit}" for ch in bad))
+        raise LimitError(
+            "the plan breaks instrument limits: "
+            + "; ".join(f"{ch.what} = {ch.value:g} {ch.unit} outside [{ch.low:g}, {ch.high:g}] {ch.unit}" for ch in bad)
+        )
 
 
-__all__ = ["Step", "LimitCheck", "build_plan", "plan_duration_s", "limit_checks", "assert_within_limits",
-           "dither_amplitude_vpp", "ramp_time_s"]
+__all__ = [
+    "Step",
+    "LimitCheck",
+    "build_plan",
+    "plan_duration_s",
+    "limit_checks",
+    "assert_within_limits",
+    "dither_amplitude_vpp",
+    "ramp_time_s",
+]

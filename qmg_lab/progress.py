@@ -57,15 +57,18 @@ class ProgressView:
                 f"step {p.step.index + 1}/{p.n_steps} {p.step.kind} {p.step_elapsed_s:.0f}/{p.step.duration_s:.0f} s"
                 f" | chamber {p.chamber_c:.2f} (sp {p.chamber_setpoint_c:.2f}) degC | table {p.table_rate_dps:+.3f} deg/s"
                 f" | SF change {p.sf_change_ppm:+.1f} ppm | elapsed {_fmt_s(p.run_time_s)} remaining {_fmt_s(remaining)}"
-                f" | {rate:.0f}x{' | SUSPENDED: ' + p.suspended if p.suspended else ''}", highlight=False)
+                f" | {rate:.0f}x{' | SUSPENDED: ' + p.suspended if p.suspended else ''}",
+                highlight=False,
+            )
 
     @staticmethod
     def _panel(p: Progress, remaining: float, rate: float) -> Table:
         t = Table(show_header=False, title="qmg-lab run", expand=False)
         t.add_column("", style="bold")
         t.add_column("")
-        t.add_row("step", f"{p.step.index + 1}/{p.n_steps}  {p.step.kind}  "
-                          f"{p.step_elapsed_s:.0f}/{p.step.duration_s:.0f} s")
+        t.add_row(
+            "step", f"{p.step.index + 1}/{p.n_steps}  {p.step.kind}  {p.step_elapsed_s:.0f}/{p.step.duration_s:.0f} s"
+        )
         t.add_row("chamber", f"{p.chamber_c:.3f} degC (setpoint {p.chamber_setpoint_c:.3f})")
         t.add_row("table", f"{p.table_rate_dps:+.4f} deg/s")
         t.add_row("CLSF SF change", f"{p.sf_change_ppm:+.1f} ppm   gain {p.gain_correction:.6f}")

@@ -34,8 +34,7 @@ class Exchange:
 
     def render(self) -> list[str]:
         out = [f"{t * 1e3:10.1f} ms  {d} {p}" for t, d, p in self.lines]
-        out.append(f"sent {len(self.sent)} bytes {self.sent!r}; received {len(self.received)} bytes "
-                   f"{self.received!r}")
+        out.append(f"sent {len(self.sent)} bytes {self.sent!r}; received {len(self.received)} bytes {self.received!r}")
         return out
 
 
@@ -100,8 +99,7 @@ def visa_exchange(resource: Any, message: str) -> Exchange:
         reply = resource.read()
         t = time.perf_counter() - t0
         ex.received = reply.encode("ascii", "backslashreplace") + rt.encode("ascii")
-        ex.add(t, "<<", f"{reply.encode('ascii', 'backslashreplace')!r} + read termination {rt!r} "
-                        "(stripped by VISA)")
+        ex.add(t, "<<", f"{reply.encode('ascii', 'backslashreplace')!r} + read termination {rt!r} (stripped by VISA)")
     return ex
 
 

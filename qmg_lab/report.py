@@ -123,8 +123,13 @@ def _fig4(path: Path, r: AnalysisResult, outdir: Path, out: FigureSet, dither_hz
     _save(fig, outdir, "fig4_clsf_io", out)
 
 
-def _fig5(run_clsf: dict[str, np.ndarray] | None, chamber: dict[str, np.ndarray] | None, outdir: Path,
-          out: FigureSet, r: AnalysisResult) -> None:
+def _fig5(
+    run_clsf: dict[str, np.ndarray] | None,
+    chamber: dict[str, np.ndarray] | None,
+    outdir: Path,
+    out: FigureSet,
+    r: AnalysisResult,
+) -> None:
     if not r.pairs or run_clsf is None or "rate_output_mean" not in run_clsf or run_clsf["time"].shape[0] == 0:
         out.skipped["fig5_rate_steps"] = "no +-rate step pairs with per-period rate output"
         return
@@ -200,8 +205,12 @@ def _fig7(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
         return
     fig, ax, tau, dev = _allan_plot(r.adev, f"CLSF SF estimate ({r.clsf_mode} mode), 68 % CI")
     if r.adev_gain_correction:
-        ax.loglog([a["tau_s"] for a in r.adev_gain_correction], [a["value"] for a in r.adev_gain_correction],
-                  "s--", label="gain correction ln g_c")
+        ax.loglog(
+            [a["tau_s"] for a in r.adev_gain_correction],
+            [a["value"] for a in r.adev_gain_correction],
+            "s--",
+            label="gain correction ln g_c",
+        )
     ax.loglog(tau, dev[0] * np.sqrt(tau[0] / tau), "k:", label="slope -1/2 (white)")
     _finish_allan(ax, "Allan deviation [ppm]")
     _save(fig, outdir, "fig7_allan", out)
@@ -214,11 +223,16 @@ def _fig8(r: AnalysisResult, outdir: Path, out: FigureSet) -> None:
     fig, ax, tau, _ = _allan_plot(r.gyro_adev_deg_per_h, "gyro rate, 68 % CI")
     if math.isfinite(r.arw_deg_per_rt_h):
         # sigma(tau) = N / sqrt(tau), N in deg/h/sqrt(Hz) = 60 x ARW in deg/sqrt(h)
-        ax.loglog(tau, 60.0 * r.arw_deg_per_rt_h / np.sqrt(tau), "k:",
-                  label=f"ARW {r.arw_deg_per_rt_h:.4f} deg/sqrt(h)")
+        ax.loglog(
+            tau, 60.0 * r.arw_deg_per_rt_h / np.sqrt(tau), "k:", label=f"ARW {r.arw_deg_per_rt_h:.4f} deg/sqrt(h)"
+        )
     if math.isfinite(r.bias_instability_deg_per_h):
-        ax.axhline(0.664 * r.bias_instability_deg_per_h, color="r", ls="--",
-                   label=f"0.664 B, B = {r.bias_instability_deg_per_h:.3f} deg/h")
+        ax.axhline(
+            0.664 * r.bias_instability_deg_per_h,
+            color="r",
+            ls="--",
+            label=f"0.664 B, B = {r.bias_instability_deg_per_h:.3f} deg/h",
+        )
     _finish_allan(ax, "Allan deviation of rate [deg/h]")
     _save(fig, outdir, "fig8_gyro_allan", out)
 
@@ -231,6 +245,7 @@ def make_figures(path: str | Path, outdir: str | Path, result: AnalysisResult | 
     run = read_run(p, select=["clsf", "chamber", "lockin/time"])
     out = FigureSet()
     from qmg_lab.config import Config, ConfigError, parse_config
+
     try:
         cfg = parse_config(str(run.attrs.get("config_toml", "")))
     except ConfigError:

@@ -11,18 +11,37 @@ import numpy as np
 
 FORMAT = "qmg-lab/1"
 
-LOCKIN_UNITS = {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
-                "drive_frequency": "Hz", "dither": "V"}
+LOCKIN_UNITS = {
+    "time": "s",
+    "x_sense": "V",
+    "y_sense": "V",
+    "rate_output": "V",
+    "drive_amplitude": "V",
+    "drive_frequency": "Hz",
+    "dither": "V",
+}
 CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
 TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
 CHAMBER_UNITS = {"time": "s", "setpoint": "degC", "temperature": "degC"}
 TRUTH_UNITS = {"time": "s", "scale_factor": "V/(deg/s)", "temperature": "degC", "rate": "deg/s"}
-STEPS_UNITS = {"index": "1", "kind": "text", "t_start": "s", "t_end": "s", "table_rate": "deg/s",
-               "chamber_setpoint": "degC", "status": "text"}
+STEPS_UNITS = {
+    "index": "1",
+    "kind": "text",
+    "t_start": "s",
+    "t_end": "s",
+    "table_rate": "deg/s",
+    "chamber_setpoint": "degC",
+    "status": "text",
+}
 
 #: group name -> column name -> units (the order is the column order in the file)
-GROUP_UNITS: dict[str, dict[str, str]] = {"lockin": LOCKIN_UNITS, "clsf": CLSF_UNITS, "table": TABLE_UNITS,
-                                          "chamber": CHAMBER_UNITS, "truth": TRUTH_UNITS}
+GROUP_UNITS: dict[str, dict[str, str]] = {
+    "lockin": LOCKIN_UNITS,
+    "clsf": CLSF_UNITS,
+    "table": TABLE_UNITS,
+    "chamber": CHAMBER_UNITS,
+    "truth": TRUTH_UNITS,
+}
 
 DESCRIPTIONS: dict[str, str] = {
     "lockin/time": "sample time, s since the root attribute t0_unix",
@@ -34,7 +53,7 @@ DESCRIPTIONS: dict[str, str] = {
     "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
     "clsf/time": "end of the dither period the row describes, s since t0_unix",
     "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
-                "change seen by the dither)",
+    "change seen by the dither)",
     "clsf/sf_change_estimate": "CLSF estimate of the scale-factor change SF/SF0 - 1 = 1/(1 + eta) - 1",
     "clsf/gain_correction": "CLSF gain correction g_c in force during the period (1.0 = none; correct mode only)",
     "clsf/rate_output_mean": "rate output averaged over the whole dither period (the dither cancels), V",
@@ -60,9 +79,15 @@ DESCRIPTIONS: dict[str, str] = {
 
 KIND_BYTES = 48
 STATUS_BYTES = 16
-STEPS_DTYPES: dict[str, Any] = {"index": np.int64, "kind": f"S{KIND_BYTES}", "t_start": np.float64,
-                                "t_end": np.float64, "table_rate": np.float64, "chamber_setpoint": np.float64,
-                                "status": f"S{STATUS_BYTES}"}
+STEPS_DTYPES: dict[str, Any] = {
+    "index": np.int64,
+    "kind": f"S{KIND_BYTES}",
+    "t_start": np.float64,
+    "t_end": np.float64,
+    "table_rate": np.float64,
+    "chamber_setpoint": np.float64,
+    "status": f"S{STATUS_BYTES}",
+}
 #: rows per chunk, chosen for the write pattern and for readers who slice hours of data.
 #: Under SWMR, HDF5 never reuses the space of a compressed chunk that is rewritten larger, so every flush that
 #: ends inside a compressed chunk leaves one dead copy of that partial chunk behind. A writer faster than real
@@ -76,8 +101,10 @@ CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256,
 #: columns stored with shuffle + the file's compression. The four noise-dominated lock-in columns (x_sense,
 #: y_sense, rate_output, drive_amplitude) are stored plain: lzf saves only 4-25 % of them at ~10 ns per byte,
 #: which on the twins is most of the write cost. Everything else compresses 2x to 100x.
-COMPRESSED_COLUMNS = {"lockin": ("time", "drive_frequency", "dither"),
-                      "truth": ("time", "scale_factor", "temperature", "rate")}
+COMPRESSED_COLUMNS = {
+    "lockin": ("time", "drive_frequency", "dither"),
+    "truth": ("time", "scale_factor", "temperature", "rate"),
+}
 COMPRESSED_GROUPS = tuple(COMPRESSED_COLUMNS)
 COMPRESSIONS = ("none", "gzip", "lzf")
 GZIP_LEVEL = 1

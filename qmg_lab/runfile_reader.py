@@ -119,12 +119,14 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
     steps = groups.pop("steps")
     for c in ("kind", "status"):
         steps[c] = np.array([s.decode("utf-8", "replace") for s in steps[c]], dtype=str)
-    return RunData(path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open,
-                   rows_cut=rows_cut)
+    return RunData(
+        path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open, rows_cut=rows_cut
+    )
 
 
-def read_window(path: str | Path, group: str, t_start: float, t_end: float,
-                columns: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+def read_window(
+    path: str | Path, group: str, t_start: float, t_end: float, columns: Iterable[str] | None = None
+) -> dict[str, np.ndarray]:
     """Rows of one group with t_start <= time <= t_end, read by bisection (no full-column read).
 
     For figures and spot checks on long files. Opens the file like `read_run` (SWMR, partial files allowed).

@@ -30,8 +30,18 @@ log = logging.getLogger(__name__)
 
 NAME_BYTES = 16
 EVENT_MESSAGE_BYTES = 400
-EVENT_KINDS = ("fault", "reconnect", "recovered", "suspended", "resumed", "abort", "interrupted", "safe_state",
-               "completed", "started")
+EVENT_KINDS = (
+    "fault",
+    "reconnect",
+    "recovered",
+    "suspended",
+    "resumed",
+    "abort",
+    "interrupted",
+    "safe_state",
+    "completed",
+    "started",
+)
 CHUNK = 64
 JSON_CHUNK = 16384
 
@@ -98,16 +108,30 @@ class RunRecords:
         offset = blob.shape[0]
         blob.resize((offset + data.shape[0],))
         blob[offset:] = data
-        _append(g, {"time": float(time_s), "instrument": _text(instrument, NAME_BYTES),
-                    "occasion": _text(occasion, NAME_BYTES), "offset": offset, "length": int(data.shape[0])})
+        _append(
+            g,
+            {
+                "time": float(time_s),
+                "instrument": _text(instrument, NAME_BYTES),
+                "occasion": _text(occasion, NAME_BYTES),
+                "offset": offset,
+                "length": int(data.shape[0]),
+            },
+        )
         self._h5.flush()
 
     def event(self, time_s: float, kind: str, instrument: str, message: str) -> None:
         if not self.available:
             return
-        _append(self._h5["events"], {"time": float(time_s), "kind": _text(kind, NAME_BYTES),
-                                     "instrument": _text(instrument, NAME_BYTES),
-                                     "message": _text(message, EVENT_MESSAGE_BYTES)})
+        _append(
+            self._h5["events"],
+            {
+                "time": float(time_s),
+                "kind": _text(kind, NAME_BYTES),
+                "instrument": _text(instrument, NAME_BYTES),
+                "message": _text(message, EVENT_MESSAGE_BYTES),
+            },
+        )
         self._h5.flush()
 
 
@@ -121,8 +145,14 @@ def read_snapshots(h5: h5py.File) -> list[dict[str, Any]]:
     rows = []
     for i in range(n):
         o, k = int(g["offset"][i]), int(g["length"][i])
-        rows.append({"time": float(g["time"][i]), "instrument": g["instrument"][i].decode(),
-                     "occasion": g["occasion"][i].decode(), "document": json.loads(blob[o:o + k].decode("utf-8"))})
+        rows.append(
+            {
+                "time": float(g["time"][i]),
+                "instrument": g["instrument"][i].decode(),
+                "occasion": g["occasion"][i].decode(),
+                "document": json.loads(blob[o : o + k].decode("utf-8")),
+            }
+        )
     return rows
 
 
@@ -132,5 +162,12 @@ def read_events(h5: h5py.File) -> list[dict[str, Any]]:
         return []
     g = h5["events"]
     n = min(g[c].shape[0] for c in EVENT_COLUMNS)
-    return [{"time": float(g["time"][i]), "kind": g["kind"][i].decode(), "instrument": g["instrument"][i].decode(),
-             "message": g["message"][i].decode("utf-8", "replace")} for i in range(n)]
+    return [
+        {
+            "time": float(g["time"][i]),
+            "kind": g["kind"][i].decode(),
+            "instrument": g["instrument"][i].decode(),
+            "message": g["message"][i].decode("utf-8", "replace"),
+        }
+        for i in range(n)
+    ]

@@ -18,8 +18,9 @@ from qmg_lab.runfile_layout import GROUP_UNITS, INSTRUMENTS, StorageError
 from qmg_lab.runfile_reader import RunData, read_run
 
 
-def check_resumable(path: str | Path, *, config_sha256: str,
-                    instrument_modes: Mapping[str, str] | None = None) -> RunData:
+def check_resumable(
+    path: str | Path, *, config_sha256: str, instrument_modes: Mapping[str, str] | None = None
+) -> RunData:
     """Read-only: can this file be resumed with this configuration and station? Changes nothing.
 
     Refuses (StorageError naming what is wrong): a missing or unreadable file; a completed run ("already
@@ -34,12 +35,16 @@ def check_resumable(path: str | Path, *, config_sha256: str,
     run = read_run(p, select=("steps",))
     if run.status == "completed":
         done, planned = run.attrs.get("completed_steps", "?"), run.attrs.get("planned_steps", "?")
-        raise StorageError(f"{p}: the run is already completed ({done} of {planned} steps); there is nothing "
-                           f"to resume: analyse it with `qmg-lab analyze {p}`, or start a new run with -o")
+        raise StorageError(
+            f"{p}: the run is already completed ({done} of {planned} steps); there is nothing "
+            f"to resume: analyse it with `qmg-lab analyze {p}`, or start a new run with -o"
+        )
     stored = run.attrs.get("config_sha256", "")
     if stored != config_sha256:
-        raise StorageError(f"{p}: was written with configuration {stored}, not with this configuration "
-                           f"{config_sha256}; resume with the configuration the run was started with")
+        raise StorageError(
+            f"{p}: was written with configuration {stored}, not with this configuration "
+            f"{config_sha256}; resume with the configuration the run was started with"
+        )
     if run.writer_open:
         pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
         if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
@@ -60,7 +65,7 @@ def _pid_alive(pid: int) -> bool:
 
 
 def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
-    """"twin" | "hardware" per instrument as the file records them (root attribute instrument_modes; files
+    """ "twin" | "hardware" per instrument as the file records them (root attribute instrument_modes; files
     without it: every instrument as the root attribute mode says)."""
     raw = attrs.get("instrument_modes")
     if raw:
@@ -98,10 +103,15 @@ def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> N
     elif all(v == "hardware" for v in recorded.values()):
         hint = "the run was made on the bench: resume it without --sim, every instrument with sim = false"
     else:
-        hint = ("set sim = true for exactly the instruments that were twins ("
-                + ", ".join(n for n in INSTRUMENTS if recorded.get(n) == "twin") + ") and do not pass --sim")
-    raise StorageError(f"{path}: the station does not match the run's instruments ({what}); a run continues "
-                       f"on the instruments it started on: {hint}")
+        hint = (
+            "set sim = true for exactly the instruments that were twins ("
+            + ", ".join(n for n in INSTRUMENTS if recorded.get(n) == "twin")
+            + ") and do not pass --sim"
+        )
+    raise StorageError(
+        f"{path}: the station does not match the run's instruments ({what}); a run continues "
+        f"on the instruments it started on: {hint}"
+    )
 
 
 def _last(ds: h5py.Dataset) -> float:

@@ -31,10 +31,13 @@ def address(cfg: Config, name: str) -> str:
 
 def instrument_snapshot(cfg: Config, name: str, instrument: Any) -> dict[str, Any]:
     """One instrument's snapshot document."""
-    doc: dict[str, Any] = {"instrument": name, "simulated": bool(getattr(cfg, name).sim),
-                           "address": address(cfg, name),
-                           "driver": f"{type(instrument).__module__}.{type(instrument).__name__}",
-                           "taken_unix": time.time()}
+    doc: dict[str, Any] = {
+        "instrument": name,
+        "simulated": bool(getattr(cfg, name).sim),
+        "address": address(cfg, name),
+        "driver": f"{type(instrument).__module__}.{type(instrument).__name__}",
+        "taken_unix": time.time(),
+    }
     try:
         doc.update(instrument.snapshot())
     except InstrumentError as exc:

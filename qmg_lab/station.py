@@ -64,13 +64,16 @@ def make_world(cfg: Config, clock: str | None = None) -> World:
     """The twins' shared world from [sim]. clock: "virtual" (the lock-in twin's polls advance it) or "wall";
     default virtual when the lock-in is a twin."""
     s = cfg.sim
-    params = WorldParams(chamber_time_constant_s=s.chamber_time_constant_s, thermal_lag_s=s.thermal_lag_s,
-                         initial_temperature_c=s.initial_temperature_c,
-                         table_rate_scale_error_ppm=s.table_rate_scale_error_ppm,
-                         ds345_timebase_offset_ppm=s.ds345_timebase_offset_ppm,
-                         ds345_timebase_wander_ppm=s.ds345_timebase_wander_ppm,
-                         ds345_timebase_wander_period_s=s.ds345_timebase_wander_period_s,
-                         ds345_command_latency_s=s.ds345_command_latency_s)
+    params = WorldParams(
+        chamber_time_constant_s=s.chamber_time_constant_s,
+        thermal_lag_s=s.thermal_lag_s,
+        initial_temperature_c=s.initial_temperature_c,
+        table_rate_scale_error_ppm=s.table_rate_scale_error_ppm,
+        ds345_timebase_offset_ppm=s.ds345_timebase_offset_ppm,
+        ds345_timebase_wander_ppm=s.ds345_timebase_wander_ppm,
+        ds345_timebase_wander_period_s=s.ds345_timebase_wander_period_s,
+        ds345_command_latency_s=s.ds345_command_latency_s,
+    )
     return World(params, clock=clock or ("virtual" if cfg.lockin.sim else "wall"))
 
 
@@ -92,10 +95,17 @@ def fault_plan(cfg: Config) -> FaultPlan:
 
 def hf2_wiring(cfg: Config) -> HF2Wiring:
     lk = cfg.lockin
-    return HF2Wiring(drive_sigin=lk.drive_sigin, sense_sigin=lk.sense_sigin, drive_sigout=lk.drive_sigout,
-                     forcer_sigout=lk.forcer_sigout, forcer_carrier_amplitude=lk.forcer_carrier_amplitude,
-                     rate_auxout=lk.rate_auxout, quadrature_auxout=lk.quadrature_auxout,
-                     rate_auxin=lk.rate_auxin, dither_auxin=lk.dither_auxin)
+    return HF2Wiring(
+        drive_sigin=lk.drive_sigin,
+        sense_sigin=lk.sense_sigin,
+        drive_sigout=lk.drive_sigout,
+        forcer_sigout=lk.forcer_sigout,
+        forcer_carrier_amplitude=lk.forcer_carrier_amplitude,
+        rate_auxout=lk.rate_auxout,
+        quadrature_auxout=lk.quadrature_auxout,
+        rate_auxin=lk.rate_auxin,
+        dither_auxin=lk.dither_auxin,
+    )
 
 
 def _serial_port(url: str, baudrate: int, timeout_s: float) -> Callable[[], Any]:
@@ -104,11 +114,13 @@ def _serial_port(url: str, baudrate: int, timeout_s: float) -> Callable[[], Any]
             return serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s)
         except (serial.SerialException, ValueError) as exc:
             raise InstrumentError(f"cannot open serial port {url!r}: {exc}") from exc
+
     return open_port
 
 
-def _twin_port(twin: Any, transport: str, baudrate: int, timeout_s: float,
-               closers: list[Callable[[], None]]) -> Callable[[], Any]:
+def _twin_port(
+    twin: Any, transport: str, baudrate: int, timeout_s: float, closers: list[Callable[[], None]]
+) -> Callable[[], Any]:
     """A port factory reaching `twin` in-process, over a pty or over a loopback socket."""
     if transport == "inprocess":
         return lambda: InProcessSerial(twin, timeout=timeout_s)
@@ -128,8 +140,10 @@ def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], A
             res.timeout = timeout_ms
             return res
         except (pyvisa.errors.Error, ValueError, OSError) as exc:
-            raise InstrumentError(f"cannot open VISA resource {resource!r} (backend {backend or 'default'}): "
-                                  f"{exc}") from exc
+            raise InstrumentError(
+                f"cannot open VISA resource {resource!r} (backend {backend or 'default'}): {exc}"
+            ) from exc
+
     return open_resource
 
 
@@ -149,16 +163,20 @@ def chamber_framing(cfg: Config) -> Framing:
 def table_twin(cfg: Config, world: World) -> RateTableTwin:
     """The 1291BR twin, framed as [table] says (command terminator, sim_reply_terminator, sim_prompt_terminator)."""
     t = cfg.table
-    return RateTableTwin(world, command_end=terminator(t.command_terminator),
-                         reply_end=terminator(t.sim_reply_terminator),
-                         prompt_end=b"" if t.sim_prompt_terminator == "none" else terminator(t.sim_prompt_terminator))
+    return RateTableTwin(
+        world,
+        command_end=terminator(t.command_terminator),
+        reply_end=terminator(t.sim_reply_terminator),
+        prompt_end=b"" if t.sim_prompt_terminator == "none" else terminator(t.sim_prompt_terminator),
+    )
 
 
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
     """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator)."""
     c = cfg.chamber
-    return ChamberTwin(world, command_end=terminator(c.command_terminator),
-                       reply_end=terminator(c.sim_reply_terminator))
+    return ChamberTwin(
+        world, command_end=terminator(c.command_terminator), reply_end=terminator(c.sim_reply_terminator)
+    )
 
 
 def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
@@ -170,8 +188,13 @@ def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
 def table_driver(cfg: Config, open_port: Callable[[], Any]) -> Aerosmith1291BR:
     """The 1291BR driver on a newly opened port, with the [table] limits and framing."""
     t = cfg.table
-    return Aerosmith1291BR(open_port(), max_rate_dps=t.max_rate_dps, max_accel_dps2=t.max_accel_dps2,
-                           port_factory=open_port, framing=table_framing(cfg))
+    return Aerosmith1291BR(
+        open_port(),
+        max_rate_dps=t.max_rate_dps,
+        max_accel_dps2=t.max_accel_dps2,
+        port_factory=open_port,
+        framing=table_framing(cfg),
+    )
 
 
 def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
@@ -179,9 +202,15 @@ def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
     controller as its own limits (LTL=, UTL=), so that the controller refuses a setpoint outside them even if
     the host goes wrong."""
     c = cfg.chamber
-    chamber = SunEC1xChamber(open_port(), min_c=c.min_c, max_c=c.max_c, max_ramp_c_per_min=c.max_ramp_c_per_min,
-                             safe_setpoint_c=c.safe_setpoint_c, port_factory=open_port,
-                             framing=chamber_framing(cfg))
+    chamber = SunEC1xChamber(
+        open_port(),
+        min_c=c.min_c,
+        max_c=c.max_c,
+        max_ramp_c_per_min=c.max_ramp_c_per_min,
+        safe_setpoint_c=c.safe_setpoint_c,
+        port_factory=open_port,
+        framing=chamber_framing(cfg),
+    )
     # a transient fault at connect (a reply lost on a noisy line) gets the same bounded reconnects as a fault
     # during a campaign ([recovery] reconnect_attempts); what still fails after them is reported
     steps = [lambda: (chamber.identify(), chamber.write_limits())]
@@ -228,14 +257,20 @@ class _Bench:
         lk, world, faults = self.cfg.lockin, self.world, self.faults
         if lk.sim:
             assert world is not None
-            twin = HF2DataServerTwin(world, gyro_params(self.cfg), self.cfg.sim.seed, hf2_wiring(self.cfg),
-                                     device_id=SIM_DEVICE_ID, host=lk.host, port=lk.port,
-                                     rate_set=self.cfg.sim.hf2_rate_set)
+            twin = HF2DataServerTwin(
+                world,
+                gyro_params(self.cfg),
+                self.cfg.sim.seed,
+                hf2_wiring(self.cfg),
+                device_id=SIM_DEVICE_ID,
+                host=lk.host,
+                port=lk.port,
+                rate_set=self.cfg.sim.hf2_rate_set,
+            )
             if faults is not None:
                 faults.attach_hf2(twin)
             connection: Any = twin if self.cfg.all_sim else RealTimePacedConnection(twin, world)
-            return lockin_driver(self.cfg, Session(lk.host, lk.port, hf2=True, connection=connection),
-                                 SIM_DEVICE_ID)
+            return lockin_driver(self.cfg, Session(lk.host, lk.port, hf2=True, connection=connection), SIM_DEVICE_ID)
         return lockin_driver(self.cfg, hf2_session(self.cfg), lk.device)
 
     def _generator(self) -> DS345:
@@ -261,16 +296,26 @@ class _Bench:
         t = self.cfg.table
         if t.sim:
             assert self.world is not None
-            return _twin_port(_faulty(self.faults, "table", table_twin(self.cfg, self.world)), t.sim_transport,
-                              t.baudrate, t.timeout_s, self.closers)
+            return _twin_port(
+                _faulty(self.faults, "table", table_twin(self.cfg, self.world)),
+                t.sim_transport,
+                t.baudrate,
+                t.timeout_s,
+                self.closers,
+            )
         return _serial_port(t.port, t.baudrate, t.timeout_s)
 
     def chamber_port(self) -> Callable[[], Any]:
         c = self.cfg.chamber
         if c.sim:
             assert self.world is not None
-            return _twin_port(_faulty(self.faults, "chamber", chamber_twin(self.cfg, self.world)), c.sim_transport,
-                              c.baudrate, c.timeout_s, self.closers)
+            return _twin_port(
+                _faulty(self.faults, "chamber", chamber_twin(self.cfg, self.world)),
+                c.sim_transport,
+                c.baudrate,
+                c.timeout_s,
+                self.closers,
+            )
         return _serial_port(c.port, c.baudrate, c.timeout_s)
 
     def close(self) -> None:
@@ -293,8 +338,9 @@ class RealTimePacedConnection:
         self._world = world
         self._wall0: float | None = None
 
-    def poll(self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False,
-             group_id: int = 1) -> dict:
+    def poll(
+        self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False, group_id: int = 1
+    ) -> dict:
         if self._wall0 is None:
             self._wall0 = time.monotonic() - self._world.t
         data = self._twin.poll(recording_time_s, timeout_ms, flags, flat, group_id)
@@ -369,11 +415,15 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
         bench.close()
         raise
     lk = cfg.lockin
-    station = Station(lockin=connected["lockin"], generator=connected["generator"],  # type: ignore[arg-type]
-                      table=connected["table"], chamber=connected["chamber"],  # type: ignore[arg-type]
-                      simulated={n: bool(getattr(cfg, n).sim) for n in INSTRUMENT_NAMES},
-                      truth=_WorldTruth(world) if (world is not None and lk.sim) else None,
-                      restore=(lambda state: restore_world(world, state)) if world is not None else None)
+    station = Station(
+        lockin=connected["lockin"],
+        generator=connected["generator"],  # type: ignore[arg-type]
+        table=connected["table"],
+        chamber=connected["chamber"],  # type: ignore[arg-type]
+        simulated={n: bool(getattr(cfg, n).sim) for n in INSTRUMENT_NAMES},
+        truth=_WorldTruth(world) if (world is not None and lk.sim) else None,
+        restore=(lambda state: restore_world(world, state)) if world is not None else None,
+    )
     # a paced twin (mixed bench) polls like the hardware: short blocks in real time
     station.poll_interval_s = lk.sim_poll_interval_s if (lk.sim and cfg.all_sim) else lk.poll_interval_s
     station.on_close.append(bench.close)
@@ -429,6 +479,7 @@ def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], 
             port.close()
         finally:
             bench.close()
+
     return port, framing, close, bool(section.sim and section.sim_transport == "inprocess")
 
 
@@ -443,8 +494,16 @@ def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:
     lk = cfg.lockin
     if lk.sim:
         world = make_world(cfg)
-        twin = HF2DataServerTwin(world, gyro_params(cfg), cfg.sim.seed, hf2_wiring(cfg), device_id=SIM_DEVICE_ID,
-                                 host=lk.host, port=lk.port, rate_set=cfg.sim.hf2_rate_set)
+        twin = HF2DataServerTwin(
+            world,
+            gyro_params(cfg),
+            cfg.sim.seed,
+            hf2_wiring(cfg),
+            device_id=SIM_DEVICE_ID,
+            host=lk.host,
+            port=lk.port,
+            rate_set=cfg.sim.hf2_rate_set,
+        )
         twin.connectDevice(SIM_DEVICE_ID, "USB")
         return twin, SIM_DEVICE_ID, lambda: None
     session = hf2_session(cfg)

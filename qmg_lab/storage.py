@@ -83,9 +83,25 @@ WRITER_CACHE: dict[str, Any] = {"rdcc_nbytes": 1 << 20, "rdcc_w0": 1.0}
 #: buffers, so a writer's memory does not depend on how much data one wall-clock flush interval carries
 BUFFER_ROWS_MAX = 131072
 
-__all__ = ["RunWriter", "ResumeState", "StorageError", "file_instrument_modes", "status_detail", "RunData", "read_run", "read_window", "writer_flags_set",
-           "FORMAT", "GROUP_UNITS", "LOCKIN_UNITS", "CLSF_UNITS", "TABLE_UNITS", "CHAMBER_UNITS", "TRUTH_UNITS",
-           "STEPS_UNITS"]
+__all__ = [
+    "RunWriter",
+    "ResumeState",
+    "StorageError",
+    "file_instrument_modes",
+    "status_detail",
+    "RunData",
+    "read_run",
+    "read_window",
+    "writer_flags_set",
+    "FORMAT",
+    "GROUP_UNITS",
+    "LOCKIN_UNITS",
+    "CLSF_UNITS",
+    "TABLE_UNITS",
+    "CHAMBER_UNITS",
+    "TRUTH_UNITS",
+    "STEPS_UNITS",
+]
 
 
 @dataclass(frozen=True)
@@ -110,8 +126,9 @@ class RunWriter:
     `with` block marks the run "aborted" with the exception as `abort_reason`, then closes the file.
     """
 
-    def __init__(self, path: Path, h5: h5py.File, *, flush_interval_s: float,
-                 clock: Callable[[], float] = _time.monotonic) -> None:
+    def __init__(
+        self, path: Path, h5: h5py.File, *, flush_interval_s: float, clock: Callable[[], float] = _time.monotonic
+    ) -> None:
         if not flush_interval_s > 0:
             raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
         self.path = path
@@ -122,7 +139,8 @@ class RunWriter:
         self._groups = [g for g in GROUP_UNITS if g in h5]
         # dataset handles looked up once: an h5py lookup by name costs more than a small append
         self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
-            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups}
+            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups
+        }
         self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
         self._buffered_rows = 0
         self._last_time: dict[str, float] = {}
@@ -131,18 +149,32 @@ class RunWriter:
             self._last_time[g] = float(t[t.shape[0] - 1]) if t.shape[0] else -np.inf
         steps = h5["steps"]
         self._completed: set[int] = {
-            int(i) for i, s in zip(steps["index"][:], steps["status"][:], strict=True) if s == b"completed"}
+            int(i) for i, s in zip(steps["index"][:], steps["status"][:], strict=True) if s == b"completed"
+        }
         self._closed = False
 
     # ---- construction ---------------------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, path: str | Path, *, config_text: str, config_sha256: str, mode: str, software_version: str,
-               t0_unix: float, flush_interval_s: float = 1.0, compression: str = "lzf", truth: bool,
-               planned_steps: int = -1, planned_step_kinds: Iterable[str] = (),
-               instrument_modes: Mapping[str, str] | None = None, realtime: bool = False,
-               extra_attrs: Mapping[str, Any] | None = None,
-               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
+    def create(
+        cls,
+        path: str | Path,
+        *,
+        config_text: str,
+        config_sha256: str,
+        mode: str,
+        software_version: str,
+        t0_unix: float,
+        flush_interval_s: float = 1.0,
+        compression: str = "lzf",
+        truth: bool,
+        planned_steps: int = -1,
+        planned_step_kinds: Iterable[str] = (),
+        instrument_modes: Mapping[str, str] | None = None,
+        realtime: bool = False,
+        extra_attrs: Mapping[str, Any] | None = None,
+        clock: Callable[[], float] = _time.monotonic,
+    ) -> RunWriter:
         """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
 
         instrument_modes: "twin" | "hardware" per instrument (root attribute instrument_modes, JSON), what
@@ -158,11 +190,15 @@ class RunWriter:
             raise StorageError(f"{p}: mode must be one of {MODES}, got {mode!r}")
         if compression not in COMPRESSIONS:
             raise StorageError(f"{p}: compression must be one of {COMPRESSIONS}, got {compression!r}")
-        modes = dict(instrument_modes) if instrument_modes is not None else {
-            n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+        modes = (
+            dict(instrument_modes)
+            if instrument_modes is not None
+            else {n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+        )
         if set(modes) != set(INSTRUMENTS) or not set(modes.values()) <= set(INSTRUMENT_MODES):
-            raise StorageError(f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, "
-                               f"got {modes!r}")
+            raise StorageError(
+                f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, got {modes!r}"
+            )
         if not np.isfinite(t0_unix):
             raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
         if p.exists():
@@ -213,8 +249,14 @@ class RunWriter:
                     continue
                 grp = h5.create_group(g)
                 for col, unit in units.items():
-                    ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=np.float64,
-                                            chunks=(rows[g],), **(filt if col in COMPRESSED_COLUMNS.get(g, ()) else {}))
+                    ds = grp.create_dataset(
+                        col,
+                        shape=(0,),
+                        maxshape=(None,),
+                        dtype=np.float64,
+                        chunks=(rows[g],),
+                        **(filt if col in COMPRESSED_COLUMNS.get(g, ()) else {}),
+                    )
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
             grp = h5.create_group("steps")
@@ -233,16 +275,23 @@ class RunWriter:
         return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
 
     @staticmethod
-    def check_resumable(path: str | Path, *, config_sha256: str,
-                        instrument_modes: Mapping[str, str] | None = None) -> RunData:
+    def check_resumable(
+        path: str | Path, *, config_sha256: str, instrument_modes: Mapping[str, str] | None = None
+    ) -> RunData:
         """Read-only: can this file be resumed with this configuration and station? Changes nothing
         (qmg_lab.runfile_resume.check_resumable: completed, configuration, live writer, instruments)."""
         return check_resumable(path, config_sha256=config_sha256, instrument_modes=instrument_modes)
 
     @classmethod
-    def reopen(cls, path: str | Path, *, config_sha256: str, flush_interval_s: float = 1.0,
-               instrument_modes: Mapping[str, str] | None = None,
-               clock: Callable[[], float] = _time.monotonic) -> RunWriter:
+    def reopen(
+        cls,
+        path: str | Path,
+        *,
+        config_sha256: str,
+        flush_interval_s: float = 1.0,
+        instrument_modes: Mapping[str, str] | None = None,
+        clock: Callable[[], float] = _time.monotonic,
+    ) -> RunWriter:
         """Reopen a run file to resume it (after a crash or an abort). Call it once the station is connected:
         this is the first step that changes the file.
 
@@ -288,16 +337,20 @@ class RunWriter:
         """Buffer rows for `group`: every column of the group, 1-D, same length; time non-decreasing."""
         self._check_open()
         if group not in GROUP_UNITS:
-            raise StorageError(f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
-                               f"(steps are written with append_step)")
+            raise StorageError(
+                f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
+                f"(steps are written with append_step)"
+            )
         if group not in self._buffer:
             raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
         expected = GROUP_UNITS[group]
         if columns.keys() != expected.keys():
             missing = sorted(set(expected) - set(columns))
             extra = sorted(set(columns) - set(expected))
-            raise StorageError(f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
-                               f"missing {missing}, unknown {extra}")
+            raise StorageError(
+                f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
+                f"missing {missing}, unknown {extra}"
+            )
         arrays = {c: np.asarray(columns[c], dtype=np.float64) for c in expected}
         for c, arr in arrays.items():
             if arr.ndim == 0:
@@ -305,24 +358,37 @@ class RunWriter:
         n = arrays["time"].shape[0]
         for c, arr in arrays.items():
             if arr.ndim != 1 or arr.shape[0] != n:
-                raise StorageError(f"{self.path}: /{group}/{c} has shape {arr.shape}; every column of the append "
-                                   f"must be 1-D with {n} rows like /{group}/time")
+                raise StorageError(
+                    f"{self.path}: /{group}/{c} has shape {arr.shape}; every column of the append "
+                    f"must be 1-D with {n} rows like /{group}/time"
+                )
         if n == 0:
             return
         t = arrays["time"]
         if not np.all(np.isfinite(t)):
             raise StorageError(f"{self.path}: /{group}/time contains NaN or infinite values")
         if t[0] < self._last_time[group] or (n > 1 and np.any(np.diff(t) < 0)):
-            raise StorageError(f"{self.path}: /{group}/time must not decrease (last stored "
-                               f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)")
+            raise StorageError(
+                f"{self.path}: /{group}/time must not decrease (last stored "
+                f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)"
+            )
         self._last_time[group] = float(t[-1])
         self._buffer[group].append(arrays)
         self._buffered_rows += n
         if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
             self._flush_buffers()
 
-    def append_step(self, *, index: int, kind: str, t_start: float, t_end: float, table_rate: float,
-                    chamber_setpoint: float, status: str) -> None:
+    def append_step(
+        self,
+        *,
+        index: int,
+        kind: str,
+        t_start: float,
+        t_end: float,
+        table_rate: float,
+        chamber_setpoint: float,
+        status: str,
+    ) -> None:
         """Append one /steps row and flush everything: a "completed" row is a checkpoint for --resume."""
         self._check_open()
         kb, sb = kind.encode("utf-8"), status.encode("utf-8")
@@ -333,8 +399,15 @@ class RunWriter:
         if index < 0:
             raise StorageError(f"{self.path}: step index must be >= 0, got {index}")
         self._flush_buffers()
-        row = {"index": int(index), "kind": kb, "t_start": float(t_start), "t_end": float(t_end),
-               "table_rate": float(table_rate), "chamber_setpoint": float(chamber_setpoint), "status": sb}
+        row = {
+            "index": int(index),
+            "kind": kb,
+            "t_start": float(t_start),
+            "t_end": float(t_end),
+            "table_rate": float(table_rate),
+            "chamber_setpoint": float(chamber_setpoint),
+            "status": sb,
+        }
         steps = self._h5["steps"]
         n = steps["index"].shape[0]
         for c, v in row.items():
@@ -380,12 +453,14 @@ class RunWriter:
 
         ref = self._h5.attrs.get("clsf_reference")
         has_data = bool(np.isfinite(self._last_time.get("lockin", -np.inf)))
-        return ResumeState(last_time=self.last_time() if has_data else None,
-                           rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
-                           gain_correction=last("clsf", "gain_correction"),
-                           chamber_setpoint_c=last("chamber", "setpoint"),
-                           chamber_temperature_c=last("chamber", "temperature"),
-                           gyro_temperature_c=last("truth", "temperature"))
+        return ResumeState(
+            last_time=self.last_time() if has_data else None,
+            rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
+            gain_correction=last("clsf", "gain_correction"),
+            chamber_setpoint_c=last("chamber", "setpoint"),
+            chamber_temperature_c=last("chamber", "temperature"),
+            gyro_temperature_c=last("truth", "temperature"),
+        )
 
     # ---- flushing and status --------------------------------------------------------------------------------
 
@@ -416,8 +491,10 @@ class RunWriter:
         self._check_open()
         kinds = list(planned_step_kinds)
         if planned_steps < 0 or (kinds and len(kinds) != planned_steps):
-            raise StorageError(f"{self.path}: planned_steps ({planned_steps}) must be >= 0 and match the "
-                               f"{len(kinds)} planned step kinds")
+            raise StorageError(
+                f"{self.path}: planned_steps ({planned_steps}) must be >= 0 and match the "
+                f"{len(kinds)} planned step kinds"
+            )
         self._h5.attrs["planned_steps"] = int(planned_steps)
         self._h5.attrs["planned_step_kinds"] = json.dumps(kinds)
         self._flush_file()
@@ -439,8 +516,9 @@ class RunWriter:
     def __enter__(self) -> RunWriter:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is not None and not self._closed:
             try:
                 if _text(self._h5.attrs["status"]) == "running":

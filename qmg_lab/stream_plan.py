@@ -78,15 +78,21 @@ class StreamPlan:
         gap = self.worst_edge_phase_gap()
         if gap > MAX_EDGE_PHASE_GAP:
             n = self.samples_per_period
-            return (f"{n:.4f} samples per dither period ({self.rate_hz:g} Sa/s / {self.dither_hz:g} Hz) is too close "
-                    f"to a simple fraction: the dither's edges keep landing at the same places between samples (phase "
-                    f"gap {gap:.2f} > {MAX_EDGE_PHASE_GAP} within {FIT_EDGES} edges, DS345 offsets up to "
-                    f"+-{DS345_WORST_OFFSET_PPM:g} ppm), so their timing cannot be refined; shift "
-                    "dither.frequency_hz by a few percent")
+            return (
+                f"{n:.4f} samples per dither period ({self.rate_hz:g} Sa/s / {self.dither_hz:g} Hz) is too close "
+                f"to a simple fraction: the dither's edges keep landing at the same places between samples (phase "
+                f"gap {gap:.2f} > {MAX_EDGE_PHASE_GAP} within {FIT_EDGES} edges, DS345 offsets up to "
+                f"+-{DS345_WORST_OFFSET_PPM:g} ppm), so their timing cannot be refined; shift "
+                "dither.frequency_hz by a few percent"
+            )
         return None
 
     def summary(self) -> dict[str, float]:
         att = self.harmonic_attenuation()
-        return {"rate_hz": self.rate_hz, "samples_per_period": self.samples_per_period,
-                "edge_phase_gap": self.worst_edge_phase_gap(), "filter_delay_s": self.filter_order * self.filter_tc_s,
-                **{f"filter_gain_h{h}": g for h, g in att.items()}}
+        return {
+            "rate_hz": self.rate_hz,
+            "samples_per_period": self.samples_per_period,
+            "edge_phase_gap": self.worst_edge_phase_gap(),
+            "filter_delay_s": self.filter_order * self.filter_tc_s,
+            **{f"filter_gain_h{h}": g for h, g in att.items()},
+        }

@@ -92,14 +92,21 @@ class Tuning:
 
     def device_values(self) -> dict[str, float]:
         """The [device] keys tune writes, rounded to what the measurements resolve."""
-        return {"f0_hz": round(self.resonance.f0_hz, 4), "q_factor": float(f"{self.ringdown.q_factor:.5g}"),
-                "drive_voltage_v": float(f"{self.resonance.drive_voltage_v:.6g}"),
-                "drive_amplitude_vrms": float(f"{self.resonance.drive_amplitude_vrms:.6g}"),
-                "sf_nominal_v_per_dps": float(f"{self.scale_factor.sf_v_per_dps:.7g}")}
+        return {
+            "f0_hz": round(self.resonance.f0_hz, 4),
+            "q_factor": float(f"{self.ringdown.q_factor:.5g}"),
+            "drive_voltage_v": float(f"{self.resonance.drive_voltage_v:.6g}"),
+            "drive_amplitude_vrms": float(f"{self.resonance.drive_amplitude_vrms:.6g}"),
+            "sf_nominal_v_per_dps": float(f"{self.scale_factor.sf_v_per_dps:.7g}"),
+        }
 
     def as_dict(self) -> dict[str, Any]:
-        return {"resonance": asdict(self.resonance), "ringdown": asdict(self.ringdown),
-                "scale_factor": asdict(self.scale_factor), "device": self.device_values()}
+        return {
+            "resonance": asdict(self.resonance),
+            "ringdown": asdict(self.ringdown),
+            "scale_factor": asdict(self.scale_factor),
+            "device": self.device_values(),
+        }
 
 
 # ------------------------------------------------------------------------------------------------ recording
@@ -116,7 +123,8 @@ def _record(station: Station, seconds: float, fields: tuple[str, ...] = LockInBl
             rate = (len(block.time) - 1) / float(block.time[-1] - block.time[0])
         got += len(block) / rate if rate > 0 else station.poll_interval_s
     return {f: np.concatenate([getattr(b, f) for b in blocks]) for f in fields} | {
-        "locked": np.array([all(b.pll_locked for b in blocks)])}
+        "locked": np.array([all(b.pll_locked for b in blocks)])
+    }
 
 
 def _close_loops_and_settle(cfg: Config, station: Station) -> None:
@@ -133,8 +141,10 @@ def _close_loops_and_settle(cfg: Config, station: Station) -> None:
         ok = bool(d["locked"][0]) and np.all(np.abs(d["drive_amplitude"] / setpoint - 1) < AMPLITUDE_SETTLED_REL)
         settled = settled + span if ok else 0.0
         if waited > lp.lock_timeout_s + lp.lock_settle_s:
-            raise TuningError(f"the PLL did not lock and settle within loops.lock_timeout_s = {lp.lock_timeout_s:g} s "
-                              f"with device.f0_hz = {cfg.device.f0_hz:g} Hz: is the resonance within the PLL's range?")
+            raise TuningError(
+                f"the PLL did not lock and settle within loops.lock_timeout_s = {lp.lock_timeout_s:g} s "
+                f"with device.f0_hz = {cfg.device.f0_hz:g} Hz: is the resonance within the PLL's range?"
+            )
 
 
 def _prepare(cfg: Config, station: Station) -> None:
@@ -150,9 +160,13 @@ def measure_resonance(cfg: Config, station: Station, record_s: float = 20.0) -> 
     _close_loops_and_settle(cfg, station)
     d = _record(station, record_s, ("drive_frequency", "drive_amplitude"))
     agc = station.lockin.state()["pids"]["agc"]
-    result = Resonance(f0_hz=float(np.mean(d["drive_frequency"])), f0_std_hz=float(np.std(d["drive_frequency"])),
-                       drive_amplitude_vrms=float(np.mean(d["drive_amplitude"])),
-                       drive_voltage_v=float(agc["center"] + agc["shift"]), record_s=record_s)
+    result = Resonance(
+        f0_hz=float(np.mean(d["drive_frequency"])),
+        f0_std_hz=float(np.std(d["drive_frequency"])),
+        drive_amplitude_vrms=float(np.mean(d["drive_amplitude"])),
+        drive_voltage_v=float(agc["center"] + agc["shift"]),
+        record_s=record_s,
+    )
     log.info("resonance: %s", result)
     return result
 
@@ -172,14 +186,26 @@ def measure_ringdown(cfg: Config, station: Station, f0_hz: float, record_s: floa
     if not slope < 0:
         raise TuningError(f"no ring-down: ln R grows at {slope:.3g} per s")
     tau = -1.0 / slope
-    result = Ringdown(tau_s=tau, q_factor=math.pi * f0_hz * tau, start_amplitude_vrms=float(r[0]),
-                      end_amplitude_vrms=float(r[-1]), record_s=record)
+    result = Ringdown(
+        tau_s=tau,
+        q_factor=math.pi * f0_hz * tau,
+        start_amplitude_vrms=float(r[0]),
+        end_amplitude_vrms=float(r[-1]),
+        record_s=record,
+    )
     log.info("ring-down: %s", result)
     return result
 
 
-def measure_scale_factor(cfg: Config, station: Station, *, rate_dps: float | None = None, pairs: int = 2,
-                         dwell_s: float = 30.0, settle_s: float = 10.0) -> ScaleFactor:
+def measure_scale_factor(
+    cfg: Config,
+    station: Station,
+    *,
+    rate_dps: float | None = None,
+    pairs: int = 2,
+    dwell_s: float = 30.0,
+    settle_s: float = 10.0,
+) -> ScaleFactor:
     """Table steps +r, -r, ... (2 pairs + 1 step): SF from each neighbouring pair (see the module docstring)."""
     r = rate_dps if rate_dps is not None else cfg.plan.table_rate_dps
     if not r > 0:
@@ -193,8 +219,12 @@ def measure_scale_factor(cfg: Config, station: Station, *, rate_dps: float | Non
     station.table.stop()
     est = [(means[i][1] - means[i + 1][1]) / (means[i][0] - means[i + 1][0]) for i in range(len(means) - 1)]
     sf = float(np.mean(est))
-    result = ScaleFactor(sf_v_per_dps=sf, estimates_v_per_dps=[float(e) for e in est],
-                         spread_ppm=float((max(est) - min(est)) / sf * 1e6), rate_dps=r)
+    result = ScaleFactor(
+        sf_v_per_dps=sf,
+        estimates_v_per_dps=[float(e) for e in est],
+        spread_ppm=float((max(est) - min(est)) / sf * 1e6),
+        rate_dps=r,
+    )
     log.info("scale factor: %s", result)
     return result
 
@@ -208,20 +238,33 @@ def measure_noise(cfg: Config, station: Station, record_s: float = 1800.0) -> No
     n = (d["rate_output"].shape[0] // per) * per
     y = d["rate_output"][:n].reshape(-1, per).mean(axis=1) / cfg.device.sf_nominal_v_per_dps * 3600.0
     adev = overlapping_adev(y, fs / per)
-    return Noise(arw_deg_per_rt_h=arw_deg_per_rt_h(adev), bias_instability_deg_per_h=bias_instability_deg_per_h(adev),
-                 record_s=record_s, adev=adev.rows())
+    return Noise(
+        arw_deg_per_rt_h=arw_deg_per_rt_h(adev),
+        bias_instability_deg_per_h=bias_instability_deg_per_h(adev),
+        record_s=record_s,
+        adev=adev.rows(),
+    )
 
 
-def tune(cfg: Config, station: Station, *, resonance_s: float = 20.0, ringdown_s: float | None = None,
-         dwell_s: float = 30.0, settle_s: float = 10.0, pairs: int = 2) -> Tuning:
+def tune(
+    cfg: Config,
+    station: Station,
+    *,
+    resonance_s: float = 20.0,
+    ringdown_s: float | None = None,
+    dwell_s: float = 30.0,
+    settle_s: float = 10.0,
+    pairs: int = 2,
+) -> Tuning:
     """Resonance and ring-down with the configured constants, then the scale factor with the measured ones;
     the station is left in its safe state."""
     try:
         _prepare(cfg, station)
         res = measure_resonance(cfg, station, resonance_s)
         ring = measure_ringdown(cfg, station, res.f0_hz, ringdown_s)
-        dev = cfg.device.model_copy(update={"f0_hz": res.f0_hz, "q_factor": ring.q_factor,
-                                            "drive_voltage_v": res.drive_voltage_v})
+        dev = cfg.device.model_copy(
+            update={"f0_hz": res.f0_hz, "q_factor": ring.q_factor, "drive_voltage_v": res.drive_voltage_v}
+        )
         tuned = cfg.model_copy(update={"device": dev})
         _close_loops_and_settle(tuned, station)
         sf = measure_scale_factor(tuned, station, pairs=pairs, dwell_s=dwell_s, settle_s=settle_s)
@@ -267,8 +310,10 @@ def tuned_config_text(text: str, values: dict[str, float], header: list[str] | N
             key = stripped.split("=")[0].strip() if "=" in stripped and not stripped.startswith("#") else ""
             if key in values:
                 old, _, note = stripped.split("=", 1)[1].partition("#")
-                out.append(f"{key} = {values[key]!r}  # tuned; was {old.strip()}"
-                           + (f" ({note.strip()})" if note.strip() else ""))
+                out.append(
+                    f"{key} = {values[key]!r}  # tuned; was {old.strip()}"
+                    + (f" ({note.strip()})" if note.strip() else "")
+                )
                 written.add(key)
                 continue
         out.append(line)
@@ -286,10 +331,12 @@ def tuned_config_text(text: str, values: dict[str, float], header: list[str] | N
 def header_lines(t: Tuning, source: str) -> list[str]:
     """The comment written above the tuned [device] section: what was measured, when, how well."""
     r, g, s = t.resonance, t.ringdown, t.scale_factor
-    return [f"[device] tuned by qmg-lab tune from {source} on {datetime.now(UTC).isoformat(timespec='seconds')}",
-            f"f0: locked PLL frequency, mean of {r.record_s:g} s, std {r.f0_std_hz:.3g} Hz",
-            f"q_factor: ring-down tau = {g.tau_s:.4g} s over {g.record_s:g} s (R {g.start_amplitude_vrms:.4g} -> "
-            f"{g.end_amplitude_vrms:.4g} Vrms), Q = pi f0 tau",
-            f"drive_voltage_v: AGC output at R = {r.drive_amplitude_vrms:.6g} Vrms",
-            f"sf_nominal_v_per_dps: +-{s.rate_dps:g} deg/s steps, {len(s.estimates_v_per_dps)} pairs, spread "
-            f"{s.spread_ppm:.1f} ppm"]
+    return [
+        f"[device] tuned by qmg-lab tune from {source} on {datetime.now(UTC).isoformat(timespec='seconds')}",
+        f"f0: locked PLL frequency, mean of {r.record_s:g} s, std {r.f0_std_hz:.3g} Hz",
+        f"q_factor: ring-down tau = {g.tau_s:.4g} s over {g.record_s:g} s (R {g.start_amplitude_vrms:.4g} -> "
+        f"{g.end_amplitude_vrms:.4g} Vrms), Q = pi f0 tau",
+        f"drive_voltage_v: AGC output at R = {r.drive_amplitude_vrms:.6g} Vrms",
+        f"sf_nominal_v_per_dps: +-{s.rate_dps:g} deg/s steps, {len(s.estimates_v_per_dps)} pairs, spread "
+        f"{s.spread_ppm:.1f} ppm",
+    ]

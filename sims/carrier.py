@@ -34,7 +34,8 @@ class CarrierGyroSim(_TwinBase):
         if abs(ratio - m) > 1e-6 * m or m < MIN_SAMPLES_PER_CYCLE:
             raise ValueError(
                 f"dt_s = {dt_s!r} s gives {ratio:.6g} samples per f0 cycle: the carrier model needs "
-                f"dt_s = 1/(M f0) with an integer M >= {MIN_SAMPLES_PER_CYCLE} (e.g. {1.0 / (32 * params.f0_hz)!r})")
+                f"dt_s = 1/(M f0) with an integer M >= {MIN_SAMPLES_PER_CYCLE} (e.g. {1.0 / (32 * params.f0_hz)!r})"
+            )
         self.samples_per_cycle = m
         super().__init__(params, dt_s, seed, step_s=m * dt_s)
 
@@ -51,7 +52,29 @@ class CarrierGyroSim(_TwinBase):
         s[gk.S_QX], s[gk.S_QY] = s[gk.S_CX], s[gk.S_CY]
         s[gk.S_UX], s[gk.S_UY] = wr_over_w0 * s[gk.S_SX], wr_over_w0 * s[gk.S_SY]
 
-    def _kernel(self, temp: np.ndarray, rate: np.ndarray, dither: np.ndarray, noise: np.ndarray,
-                gm: np.ndarray, out: np.ndarray, loops_vec: np.ndarray) -> int:
-        return int(gk.carrier_kernel(self._S, self._P, loops_vec, self._gm_a, self._gm_b, self.samples_per_cycle,
-                                     temp, rate, dither, noise, gm, out))
+    def _kernel(
+        self,
+        temp: np.ndarray,
+        rate: np.ndarray,
+        dither: np.ndarray,
+        noise: np.ndarray,
+        gm: np.ndarray,
+        out: np.ndarray,
+        loops_vec: np.ndarray,
+    ) -> int:
+        return int(
+            gk.carrier_kernel(
+                self._S,
+                self._P,
+                loops_vec,
+                self._gm_a,
+                self._gm_b,
+                self.samples_per_cycle,
+                temp,
+                rate,
+                dither,
+                noise,
+                gm,
+                out,
+            )
+        )

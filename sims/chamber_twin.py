@@ -38,9 +38,16 @@ class _Refused(Exception):
 class ChamberTwin(FaultableTwin):
     """The EC1x controller. hardware_min_c/hardware_max_c: the controller's own range; max_ramp_c_per_min."""
 
-    def __init__(self, world: World, *, hardware_min_c: float = -70.0, hardware_max_c: float = 180.0,
-                 max_ramp_c_per_min: float = 60.0, command_end: bytes = b"\r\n",
-                 reply_end: bytes = REPLY_END) -> None:
+    def __init__(
+        self,
+        world: World,
+        *,
+        hardware_min_c: float = -70.0,
+        hardware_max_c: float = 180.0,
+        max_ramp_c_per_min: float = 60.0,
+        command_end: bytes = b"\r\n",
+        reply_end: bytes = REPLY_END,
+    ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")
         self.command_end, self.reply_end = command_end, reply_end
@@ -55,9 +62,14 @@ class ChamberTwin(FaultableTwin):
             self._ramp = world.chamber.ramp_c_per_min
         self.commands_seen = 0
         self._settings = {"SET": self._set, "RATE": self._rate, "LTL": self._ltl, "UTL": self._utl}
-        self._queries = {"SET?": self._q_set, "RATE?": lambda: f"{self._ramp:.3f}",
-                         "LTL?": lambda: f"{self.ltl_c:.2f}", "UTL?": lambda: f"{self.utl_c:.2f}",
-                         "C1?": lambda: f"{self.world.chamber_air_c():.2f}", "STATUS?": self._status}
+        self._queries = {
+            "SET?": self._q_set,
+            "RATE?": lambda: f"{self._ramp:.3f}",
+            "LTL?": lambda: f"{self.ltl_c:.2f}",
+            "UTL?": lambda: f"{self.utl_c:.2f}",
+            "C1?": lambda: f"{self.world.chamber_air_c():.2f}",
+            "STATUS?": self._status,
+        }
 
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1

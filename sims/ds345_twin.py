@@ -119,9 +119,13 @@ class DS345Twin:
         self.identity = f"StanfordResearchSystems,DS345,{serial},{firmware}"
         self.lock = threading.RLock()
         d = world.dither
-        self.settings = DS345Settings(function=d.function if d.function in FREQ_MAX_HZ else 0,
-                                      frequency_hz=d.frequency_hz, amplitude_vpp=d.amplitude_vpp,
-                                      offset_v=d.offset_v, phase_deg=d.phase_deg)
+        self.settings = DS345Settings(
+            function=d.function if d.function in FREQ_MAX_HZ else 0,
+            frequency_hz=d.frequency_hz,
+            amplitude_vpp=d.amplitude_vpp,
+            offset_v=d.offset_v,
+            phase_deg=d.phase_deg,
+        )
         self.esr = ESR_POWER_ON
         self.ese = 0
         self.reply_hook: Callable[[bytes], bytes | None] | None = None
@@ -202,9 +206,13 @@ class DS345Twin:
         s = self.settings
         simulated = s.function in CREST
         phase = s.phase_ref_deg + s.phase_deg + (180.0 if s.invert else 0.0)
-        self.world.set_dither(function=s.function, frequency_hz=s.frequency_hz,
-                              amplitude_vpp=s.amplitude_vpp if simulated else 0.0,
-                              offset_v=s.offset_v, phase_deg=phase % 360.0)
+        self.world.set_dither(
+            function=s.function,
+            frequency_hz=s.frequency_hz,
+            amplitude_vpp=s.amplitude_vpp if simulated else 0.0,
+            offset_v=s.offset_v,
+            phase_deg=phase % 360.0,
+        )
 
     # ---------------------------------------------------------------- commands
     def _func(self, query: bool, arg: str) -> None:
@@ -376,8 +384,19 @@ class DS345Twin:
         self._reply(str(stb if bit is None else (stb >> bit) & 1))
 
     _HANDLERS: dict[str, Callable[[DS345Twin, bool, str], None]] = {
-        "FUNC": _func, "FREQ": _freq, "AMPL": _ampl, "OFFS": _offs, "PHSE": _phse, "PCLR": _pclr,
-        "INVT": _invt, "*IDN": _idn, "*RST": _rst, "*CLS": _cls, "*ESR": _esr, "*ESE": _ese, "*STB": _stb,
+        "FUNC": _func,
+        "FREQ": _freq,
+        "AMPL": _ampl,
+        "OFFS": _offs,
+        "PHSE": _phse,
+        "PCLR": _pclr,
+        "INVT": _invt,
+        "*IDN": _idn,
+        "*RST": _rst,
+        "*CLS": _cls,
+        "*ESR": _esr,
+        "*ESE": _ese,
+        "*STB": _stb,
     }
 
 

@@ -81,8 +81,9 @@ class FaultPlan:
             if getattr(self, a) + getattr(self, b) > 1.0:
                 raise ValueError(f"FaultPlan.{a} + {b} must not exceed 1")
         if self.disconnect_instrument not in _CHANNELS:
-            raise ValueError(f"FaultPlan.disconnect_instrument = {self.disconnect_instrument!r} must be one of "
-                             f"{sorted(_CHANNELS)}")
+            raise ValueError(
+                f"FaultPlan.disconnect_instrument = {self.disconnect_instrument!r} must be one of {sorted(_CHANNELS)}"
+            )
         if self.sample_loss_count < 1:
             raise ValueError(f"FaultPlan.sample_loss_count = {self.sample_loss_count!r} must be >= 1")
         if self.chamber_overshoot_decay_s <= 0:
@@ -91,10 +92,18 @@ class FaultPlan:
     @property
     def any(self) -> bool:
         """True if this plan injects anything at all."""
-        return bool(self.serial_timeout_prob or self.serial_garble_prob or self.visa_timeout_prob
-                    or self.visa_garble_prob or self.disconnect_at_s or self.interlock_trip_at_s is not None
-                    or self.chamber_overshoot_at_s is not None or self.chamber_dropout_at_s is not None
-                    or self.sample_loss_at_s or self.pll_unlock_at_s is not None)
+        return bool(
+            self.serial_timeout_prob
+            or self.serial_garble_prob
+            or self.visa_timeout_prob
+            or self.visa_garble_prob
+            or self.disconnect_at_s
+            or self.interlock_trip_at_s is not None
+            or self.chamber_overshoot_at_s is not None
+            or self.chamber_dropout_at_s is not None
+            or self.sample_loss_at_s
+            or self.pll_unlock_at_s is not None
+        )
 
 
 @dataclass(frozen=True)
@@ -127,8 +136,9 @@ class FaultInjector:
     events: list[FaultEvent] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self._rngs = {name: np.random.default_rng([int(self.plan.seed), 0x6661756C, ch])
-                      for name, ch in _CHANNELS.items()}
+        self._rngs = {
+            name: np.random.default_rng([int(self.plan.seed), 0x6661756C, ch]) for name, ch in _CHANNELS.items()
+        }
         self._hf2: Any = None
         self._timed: list[_Timed] = []
         self._overshoot_active = False
@@ -164,10 +174,12 @@ class FaultInjector:
 
     def visa_link(self, name: str, open_resource: Callable[[], Any]) -> Callable[[], Any]:
         """A resource opener that fails while the link is down and yields resources that fail while it is."""
+
         def opener() -> Any:
             if self.link_down(name):
                 raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_resource_not_found)
             return _VisaGate(self, name, open_resource())
+
         return opener
 
     # ================================================================== state queries
@@ -190,7 +202,8 @@ class FaultInjector:
     def sensor_dropout(self, t: float) -> bool:
         p = self.plan
         return p.chamber_dropout_at_s is not None and (
-            p.chamber_dropout_at_s <= t < p.chamber_dropout_at_s + p.chamber_dropout_duration_s)
+            p.chamber_dropout_at_s <= t < p.chamber_dropout_at_s + p.chamber_dropout_duration_s
+        )
 
     def count(self, kind: str | None = None) -> int:
         """Number of faults injected (of one kind); link_restored edges are not faults."""
@@ -211,18 +224,19 @@ class FaultInjector:
     def _damage(self, name: str, reply: bytes, kind: str, terminator: bytes) -> bytes:
         if kind == "garbled":
             i = int(self._rngs[name].integers(0, max(1, len(reply) - len(terminator))))
-            return reply[:i] + bytes([GARBLE_BYTE]) + reply[i + 1:]
+            return reply[:i] + bytes([GARBLE_BYTE]) + reply[i + 1 :]
         cut = reply.find(terminator)
         cut = len(reply) if cut < 0 else cut
-        return reply[:int(self._rngs[name].integers(0, cut + 1))]
+        return reply[: int(self._rngs[name].integers(0, cut + 1))]
 
     def _serial_reply(self, name: str, line: bytes, reply: bytes) -> bytes:
         with self.world.lock:
             t = self.world.now()
         if name == "chamber" and line.rstrip(b"\r") == b"C1?" and self.sensor_dropout(t):
             if not any(e.kind == "sensor_dropout" for e in self.events):
-                self._log(t, "sensor_dropout", name, f"C1? answers ?SENSOR for "
-                                                      f"{self.plan.chamber_dropout_duration_s:g} s")
+                self._log(
+                    t, "sensor_dropout", name, f"C1? answers ?SENSOR for {self.plan.chamber_dropout_duration_s:g} s"
+                )
             return SENSOR_FAULT_REPLY
         if not reply:
             return reply
@@ -253,8 +267,7 @@ class FaultInjector:
                 ev.fire(t0)
         p = self.plan
         if self._overshoot_active and p.chamber_overshoot_at_s is not None:
-            d = p.chamber_overshoot_c * math.exp(-max(0.0, t0 - p.chamber_overshoot_at_s)
-                                                 / p.chamber_overshoot_decay_s)
+            d = p.chamber_overshoot_c * math.exp(-max(0.0, t0 - p.chamber_overshoot_at_s) / p.chamber_overshoot_decay_s)
             if d < OVERSHOOT_FLOOR_C:
                 d, self._overshoot_active = 0.0, False
             self.world.chamber.disturbance_c = d
@@ -265,8 +278,12 @@ class FaultInjector:
 
     def _overshoot_start(self, t: float) -> None:
         self._overshoot_active = True
-        self._log(t, "chamber_overshoot", "chamber", f"+{self.plan.chamber_overshoot_c:g} degC, decay "
-                                                     f"{self.plan.chamber_overshoot_decay_s:g} s")
+        self._log(
+            t,
+            "chamber_overshoot",
+            "chamber",
+            f"+{self.plan.chamber_overshoot_c:g} degC, decay {self.plan.chamber_overshoot_decay_s:g} s",
+        )
 
     def _sample_loss(self, t: float) -> None:
         if self._hf2 is None:

@@ -85,22 +85,36 @@ def _as_inputs(inputs: BlockInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     if n == 0:
         raise ValueError("BlockInputs must hold at least one step")
     if any(a.shape[0] != n for a in arrays):
-        raise ValueError("BlockInputs arrays must all have the same length "
-                         f"(gyro_c {n}, table_rate_dps {arrays[1].shape[0]}, dither_v {arrays[2].shape[0]})")
+        raise ValueError(
+            "BlockInputs arrays must all have the same length "
+            f"(gyro_c {n}, table_rate_dps {arrays[1].shape[0]}, dither_v {arrays[2].shape[0]})"
+        )
     return arrays[0], arrays[1], arrays[2]
 
 
-def held_inputs(n: int, dt_s: float, *, rate_dps: float | np.ndarray = 0.0, temperature_c: float | np.ndarray = 25.0,
-                dither_v: float | np.ndarray = 0.0, t0_s: float = 0.0) -> BlockInputs:
+def held_inputs(
+    n: int,
+    dt_s: float,
+    *,
+    rate_dps: float | np.ndarray = 0.0,
+    temperature_c: float | np.ndarray = 25.0,
+    dither_v: float | np.ndarray = 0.0,
+    t0_s: float = 0.0,
+) -> BlockInputs:
     """BlockInputs for n steps of dt_s without a World (tests, benchmarks): scalars are held, arrays used as is."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n!r}")
     z = np.zeros(n)
     rate = z + rate_dps
     temp = z + temperature_c
-    return BlockInputs(t=t0_s + dt_s * np.arange(n), table_rate_dps=rate,
-                       table_angle_deg=np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt_s)),
-                       chamber_c=temp, gyro_c=temp, dither_v=z + dither_v)
+    return BlockInputs(
+        t=t0_s + dt_s * np.arange(n),
+        table_rate_dps=rate,
+        table_angle_deg=np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt_s)),
+        chamber_c=temp,
+        gyro_c=temp,
+        dither_v=z + dither_v,
+    )
 
 
 class _TwinBase:
@@ -137,14 +151,14 @@ class _TwinBase:
         self._S[:] = 0.0
         sig = gm_sigmas_rad_s(self.params.bias_instability_deg_per_h)
         gm0 = self._noise.gm(1, self._bias_on)[0] * sig
-        self._S[gk.S_GM:gk.S_GM + gk.N_GM] = gm0
+        self._S[gk.S_GM : gk.S_GM + gk.N_GM] = gm0
         self._S[gk.S_BIAS] = float(gm0.sum())
         self._pending = "settle" if settled else "rest"
 
     def set_modal_state(self, cx: float, sx: float, cy: float, sy: float) -> None:
         """Set the slow variables C + iS of both axes (displacement units, G_px = 1 V/unit), e.g. for a
         ring-down. The demod filters are set to match; call after reset and before run."""
-        self._S[gk.S_CX:gk.S_SY + 1] = (cx, sx, cy, sy)
+        self._S[gk.S_CX : gk.S_SY + 1] = (cx, sx, cy, sy)
         if self._pending == "none":
             self._init_filters()
         else:
@@ -155,13 +169,20 @@ class _TwinBase:
         """A snapshot of the physical and controller state (units in the keys)."""
         s = self._S
         return {
-            "c_x": s[gk.S_CX], "s_x": s[gk.S_SX], "c_y": s[gk.S_CY], "s_y": s[gk.S_SY],
-            "pll_frequency_hz": s[gk.S_FREF], "drive_output_v": s[gk.S_VD], "rate_output_v": s[gk.S_VR],
-            "quadrature_output_v": s[gk.S_VQ], "bias_dps": s[gk.S_BIAS] / RAD_PER_DEG,
+            "c_x": s[gk.S_CX],
+            "s_x": s[gk.S_SX],
+            "c_y": s[gk.S_CY],
+            "s_y": s[gk.S_SY],
+            "pll_frequency_hz": s[gk.S_FREF],
+            "drive_output_v": s[gk.S_VD],
+            "rate_output_v": s[gk.S_VR],
+            "quadrature_output_v": s[gk.S_VQ],
+            "bias_dps": s[gk.S_BIAS] / RAD_PER_DEG,
         }
 
-    def true_scale_factor(self, temperature_c: float, forcer_gain: float = 1.0,
-                          drive_amplitude_vrms: float | None = None) -> float:
+    def true_scale_factor(
+        self, temperature_c: float, forcer_gain: float = 1.0, drive_amplitude_vrms: float | None = None
+    ) -> float:
         """True FTR SF, V per deg/s (GyroParams.true_scale_factor)."""
         return self.params.true_scale_factor(temperature_c, forcer_gain, drive_amplitude_vrms)
 
@@ -181,8 +202,10 @@ class _TwinBase:
         two_w = 2.0 * p.stiffness_axis_deg * RAD_PER_DEG
         dw = 2.0 * math.pi * p.freq_mismatch_hz
         if pll.enabled:
-            f = min(max(p.omega_x_rad_s(temp0) / (2.0 * math.pi), pll.center_hz - pll.range_hz),
-                    pll.center_hz + pll.range_hz)
+            f = min(
+                max(p.omega_x_rad_s(temp0) / (2.0 * math.pi), pll.center_hz - pll.range_hz),
+                pll.center_hz + pll.range_hz,
+            )
             s[gk.S_PLLI] = (f - pll.center_hz) / pll.i if pll.i != 0.0 else 0.0
         else:
             f = pll.center_hz
@@ -229,19 +252,31 @@ class _TwinBase:
         """Demod filters at the demod values of the current slow variables (no start-up transient)."""
         s = self._S
         g_py = 1.0  # temperature is not known before the first step; a ppm-level start transient at most
-        raws = (s[gk.S_CX] / math.sqrt(2.0), -s[gk.S_SX] / math.sqrt(2.0),
-                g_py * s[gk.S_CY] / math.sqrt(2.0), -g_py * s[gk.S_SY] / math.sqrt(2.0))
+        raws = (
+            s[gk.S_CX] / math.sqrt(2.0),
+            -s[gk.S_SX] / math.sqrt(2.0),
+            g_py * s[gk.S_CY] / math.sqrt(2.0),
+            -g_py * s[gk.S_SY] / math.sqrt(2.0),
+        )
         for ch, r in enumerate(raws):
             base = gk.S_FILT + gk.FILT_STRIDE * ch
-            s[base:base + gk.FILT_STRIDE] = r
+            s[base : base + gk.FILT_STRIDE] = r
         self._init_carrier()
 
     def _init_carrier(self) -> None:
         """Carrier model only: displacement and velocity from the slow variables."""
 
     # ------------------------------------------------------------------ running
-    def _kernel(self, temp: np.ndarray, rate: np.ndarray, dither: np.ndarray, noise: np.ndarray,
-                gm: np.ndarray, out: np.ndarray, loops_vec: np.ndarray) -> int:
+    def _kernel(
+        self,
+        temp: np.ndarray,
+        rate: np.ndarray,
+        dither: np.ndarray,
+        noise: np.ndarray,
+        gm: np.ndarray,
+        out: np.ndarray,
+        loops_vec: np.ndarray,
+    ) -> int:
         raise NotImplementedError
 
     def run(self, inputs: BlockInputs, loops: LoopSettings) -> GyroBlock:
@@ -270,10 +305,19 @@ class _TwinBase:
         err = out[gk.O_PLLE]
         locked = bool(loops.pll.enabled and float(np.abs(err).max()) < PLL_LOCK_DEG)
         return GyroBlock(
-            x_drive=out[gk.O_XD], y_drive=out[gk.O_YD], x_sense=out[gk.O_XS], y_sense=out[gk.O_YS],
-            frequency_hz=out[gk.O_F], drive_output_v=out[gk.O_VD], rate_output_v=out[gk.O_VR],
-            quadrature_output_v=out[gk.O_VQ], pll_error_deg=out[gk.O_PLLE], sf_true_v_per_dps=out[gk.O_SF],
-            rate_true_dps=rate.copy(), pll_locked=locked, rate_auxout_v=out[gk.O_AUX],
+            x_drive=out[gk.O_XD],
+            y_drive=out[gk.O_YD],
+            x_sense=out[gk.O_XS],
+            y_sense=out[gk.O_YS],
+            frequency_hz=out[gk.O_F],
+            drive_output_v=out[gk.O_VD],
+            rate_output_v=out[gk.O_VR],
+            quadrature_output_v=out[gk.O_VQ],
+            pll_error_deg=out[gk.O_PLLE],
+            sf_true_v_per_dps=out[gk.O_SF],
+            rate_true_dps=rate.copy(),
+            pll_locked=locked,
+            rate_auxout_v=out[gk.O_AUX],
         )
 
 
@@ -285,7 +329,16 @@ class GyroSim(_TwinBase):
             raise ValueError(f"dt_s = {dt_s!r} s is too coarse for the loops (PLL 15 Hz): use <= 0.01 s")
         super().__init__(params, dt_s, seed, step_s=dt_s)
 
-    def _kernel(self, temp: np.ndarray, rate: np.ndarray, dither: np.ndarray, noise: np.ndarray,
-                gm: np.ndarray, out: np.ndarray, loops_vec: np.ndarray) -> int:
-        return int(gk.averaged_kernel(self._S, self._P, loops_vec, self._gm_a, self._gm_b,
-                                      temp, rate, dither, noise, gm, out))
+    def _kernel(
+        self,
+        temp: np.ndarray,
+        rate: np.ndarray,
+        dither: np.ndarray,
+        noise: np.ndarray,
+        gm: np.ndarray,
+        out: np.ndarray,
+        loops_vec: np.ndarray,
+    ) -> int:
+        return int(
+            gk.averaged_kernel(self._S, self._P, loops_vec, self._gm_a, self._gm_b, temp, rate, dither, noise, gm, out)
+        )

@@ -55,7 +55,19 @@ from numba import njit
 # ---- parameter vector P
 P_W0, P_Q, P_DMIS, P_C2T, P_S2T, P_DW, P_C2W, P_S2W, P_K, P_ARW, P_PICK = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0 = (
-    11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22)
+    11,
+    12,
+    13,
+    14,
+    15,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
+    22,
+)
 N_PARAMS = 23
 
 # ---- loop vector L (sims/gyro_params.pack_loops)
@@ -231,7 +243,7 @@ def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
         if x > 1e-3:
             fr[m - 1] = 1.0 - m / x + ex * r_sum / x
         else:  # series of the ramp response for a slow filter: x^m / (m + 1)! (1 - (m + 1) x / (m + 2) ...)
-            fr[m - 1] = x ** m / math.gamma(m + 2.0) * (1.0 - (m + 1.0) * x / (m + 2.0))
+            fr[m - 1] = x**m / math.gamma(m + 2.0) * (1.0 - (m + 1.0) * x / (m + 2.0))
     delay = P[P_DELAY]
     sections = order
     a_d, c_d = 0.0, 1.0
@@ -292,8 +304,9 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
         kf = P[P_KF] * g_f / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
-        uy = complex(kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - arw * noise[i, 0],
-                     kf * S[S_VQ] - arw * noise[i, 1])
+        uy = complex(
+            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - arw * noise[i, 0], kf * S[S_VQ] - arw * noise[i, 1]
+        )
         # input term M^-1 (I - Phi) u
         v1 = (1.0 - p11) * ux - p12 * uy
         v2 = -p21 * ux + (1.0 - p22) * uy
@@ -430,8 +443,14 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
             fx = fxs * sm
             fy = fyc * cm + fys * sm
             for r in range(4):
-                qn[r] = (phi_m[r, 0] * q[0] + phi_m[r, 1] * q[1] + phi_m[r, 2] * q[2] + phi_m[r, 3] * q[3]
-                         + psi[r, 2] * fx + psi[r, 3] * fy)
+                qn[r] = (
+                    phi_m[r, 0] * q[0]
+                    + phi_m[r, 1] * q[1]
+                    + phi_m[r, 2] * q[2]
+                    + phi_m[r, 3] * q[3]
+                    + psi[r, 2] * fx
+                    + psi[r, 3] * fy
+                )
             for r in range(4):
                 q[r] = qn[r]
             sxc += q[0] * ce

@@ -61,25 +61,36 @@ class GyroParams:
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter that cannot be simulated."""
-        positive = ("f0_hz", "q_factor", "angular_gain", "drive_voltage_v", "sf_true_v_per_dps",
-                    "drive_amplitude_vrms")
+        positive = ("f0_hz", "q_factor", "angular_gain", "drive_voltage_v", "sf_true_v_per_dps", "drive_amplitude_vrms")
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"GyroParams.{name} must be a finite number > 0, got {v!r}")
-        non_negative = ("arw_deg_per_rt_h", "bias_instability_deg_per_h", "pickoff_noise_vrms_per_rt_hz",
-                        "loop_delay_us", "freq_mismatch_hz")
+        non_negative = (
+            "arw_deg_per_rt_h",
+            "bias_instability_deg_per_h",
+            "pickoff_noise_vrms_per_rt_hz",
+            "loop_delay_us",
+            "freq_mismatch_hz",
+        )
         for name in non_negative:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"GyroParams.{name} must be a finite number >= 0, got {v!r}")
-        if self.arw_dps_per_rt_hz is not None and not (math.isfinite(self.arw_dps_per_rt_hz)
-                                                       and self.arw_dps_per_rt_hz >= 0):
+        if self.arw_dps_per_rt_hz is not None and not (
+            math.isfinite(self.arw_dps_per_rt_hz) and self.arw_dps_per_rt_hz >= 0
+        ):
             raise ValueError(f"GyroParams.arw_dps_per_rt_hz must be None or >= 0, got {self.arw_dps_per_rt_hz!r}")
         if not 0.0 <= self.damping_mismatch < 1.0:
             raise ValueError(f"GyroParams.damping_mismatch must lie in [0, 1), got {self.damping_mismatch!r}")
-        for name in ("damping_axis_deg", "stiffness_axis_deg", "forcer_tempco_ppm_per_c",
-                     "frequency_tempco_ppm_per_c", "pickoff_ratio_tempco_ppm_per_c", "reference_temperature_c"):
+        for name in (
+            "damping_axis_deg",
+            "stiffness_axis_deg",
+            "forcer_tempco_ppm_per_c",
+            "frequency_tempco_ppm_per_c",
+            "pickoff_ratio_tempco_ppm_per_c",
+            "reference_temperature_c",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v)):
                 raise ValueError(f"GyroParams.{name} must be a finite number, got {v!r}")
@@ -118,8 +129,9 @@ class GyroParams:
 
     def omega_rad_s(self, temperature_c: float) -> float:
         """Mean resonance omega(T) = omega0 (1 + alpha_w (T - T_ref))."""
-        return self.omega0_rad_s * (1.0 + self.frequency_tempco_ppm_per_c * 1e-6
-                                    * (temperature_c - self.reference_temperature_c))
+        return self.omega0_rad_s * (
+            1.0 + self.frequency_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
+        )
 
     def omega_x_rad_s(self, temperature_c: float) -> float:
         """Drive-mode resonance sqrt(K_xx) = sqrt(omega^2 + omega Delta_omega cos 2 theta_omega)."""
@@ -135,12 +147,18 @@ class GyroParams:
         """G_py(T) = 1 + alpha_p (T - T_ref) (G_px = 1)."""
         return 1.0 + self.pickoff_ratio_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
 
-    def true_scale_factor(self, temperature_c: float, forcer_gain: float = 1.0,
-                          drive_amplitude_vrms: float | None = None) -> float:
+    def true_scale_factor(
+        self, temperature_c: float, forcer_gain: float = 1.0, drive_amplitude_vrms: float | None = None
+    ) -> float:
         """SF_true(T) = sf_true (omega_x/omega0) (a/a0) / (G_f(T) g), V per deg/s; a = sqrt2 R_sp / G_px."""
         r = self.drive_amplitude_vrms if drive_amplitude_vrms is None else drive_amplitude_vrms
-        return (self.sf_true_v_per_dps * self.omega_x_rad_s(temperature_c) / self.omega0_rad_s
-                * (r / self.drive_amplitude_vrms) / (self.forcer_gain_factor(temperature_c) * forcer_gain))
+        return (
+            self.sf_true_v_per_dps
+            * self.omega_x_rad_s(temperature_c)
+            / self.omega0_rad_s
+            * (r / self.drive_amplitude_vrms)
+            / (self.forcer_gain_factor(temperature_c) * forcer_gain)
+        )
 
 
 @dataclass
@@ -159,8 +177,15 @@ class PidSettings:
     @classmethod
     def from_gains(cls, gains: Any, enabled: bool = True) -> PidSettings:
         """From any object with p, i, d, setpoint, center, range attributes (e.g. qmg_lab PidGains)."""
-        return cls(enabled=enabled, p=float(gains.p), i=float(gains.i), d=float(getattr(gains, "d", 0.0)),
-                   setpoint=float(gains.setpoint), center=float(gains.center), range=float(gains.range))
+        return cls(
+            enabled=enabled,
+            p=float(gains.p),
+            i=float(gains.i),
+            d=float(getattr(gains, "d", 0.0)),
+            setpoint=float(gains.setpoint),
+            center=float(gains.center),
+            range=float(gains.range),
+        )
 
 
 @dataclass
@@ -177,8 +202,14 @@ class PllSettings:
     @classmethod
     def from_gains(cls, gains: Any, enabled: bool = True) -> PllSettings:
         """From any object with p, i, setpoint (deg), center (Hz), range (Hz) attributes (qmg_lab PidGains)."""
-        return cls(enabled=enabled, p=float(gains.p), i=float(gains.i), setpoint_deg=float(gains.setpoint),
-                   center_hz=float(gains.center), range_hz=float(gains.range))
+        return cls(
+            enabled=enabled,
+            p=float(gains.p),
+            i=float(gains.i),
+            setpoint_deg=float(gains.setpoint),
+            center_hz=float(gains.center),
+            range_hz=float(gains.range),
+        )
 
 
 @dataclass

@@ -63,15 +63,25 @@ class HF2Wiring:
     forcer_mixer_channel: int = 1
 
     def __post_init__(self) -> None:
-        for name, hi in (("drive_sigin", 1), ("sense_sigin", 1), ("drive_sigout", 1), ("forcer_sigout", 1),
-                         ("rate_auxout", 3), ("quadrature_auxout", 3), ("rate_auxin", 1), ("dither_auxin", 1),
-                         ("forcer_mixer_channel", 7)):
+        for name, hi in (
+            ("drive_sigin", 1),
+            ("sense_sigin", 1),
+            ("drive_sigout", 1),
+            ("forcer_sigout", 1),
+            ("rate_auxout", 3),
+            ("quadrature_auxout", 3),
+            ("rate_auxin", 1),
+            ("dither_auxin", 1),
+            ("forcer_mixer_channel", 7),
+        ):
             v = getattr(self, name)
             if not isinstance(v, int) or not 0 <= v <= hi:
                 raise ValueError(f"HF2Wiring.{name} = {v!r} must be an integer in [0, {hi}]")
         if not 0.0 < self.forcer_carrier_amplitude <= 1.0:
-            raise ValueError(f"HF2Wiring.forcer_carrier_amplitude = {self.forcer_carrier_amplitude!r} "
-                             "must be in (0, 1] (fraction of the output range)")
+            raise ValueError(
+                f"HF2Wiring.forcer_carrier_amplitude = {self.forcer_carrier_amplitude!r} "
+                "must be in (0, 1] (fraction of the output range)"
+            )
         if self.drive_sigin == self.sense_sigin:
             raise ValueError("HF2Wiring.drive_sigin and sense_sigin must differ")
         if self.rate_auxin == self.dither_auxin:
@@ -94,17 +104,26 @@ class LoopPlan:
 
 
 def _demod_ok(nodes: NodeReader, d: int, sigin: int, ref_osc: int) -> bool:
-    return (0 <= d < N_DEMODS and int(nodes.peek(f"demods/{d}/adcselect")) == sigin
-            and int(nodes.peek(f"demods/{d}/oscselect")) == ref_osc
-            and int(nodes.peek(f"demods/{d}/harmonic")) == 1
-            and abs(float(nodes.peek(f"demods/{d}/phaseshift"))) < 1e-9)
+    return (
+        0 <= d < N_DEMODS
+        and int(nodes.peek(f"demods/{d}/adcselect")) == sigin
+        and int(nodes.peek(f"demods/{d}/oscselect")) == ref_osc
+        and int(nodes.peek(f"demods/{d}/harmonic")) == 1
+        and abs(float(nodes.peek(f"demods/{d}/phaseshift"))) < 1e-9
+    )
 
 
 def _pid(nodes: NodeReader, n: int, *, enabled: bool | None = None, center: float | None = None) -> PidSettings:
     g = lambda leaf: float(nodes.peek(f"pids/{n}/{leaf}"))  # noqa: E731
-    return PidSettings(enabled=bool(int(nodes.peek(f"pids/{n}/enable"))) if enabled is None else enabled,
-                       p=g("p"), i=g("i"), d=g("d"), setpoint=g("setpoint"),
-                       center=g("center") if center is None else center, range=g("range"))
+    return PidSettings(
+        enabled=bool(int(nodes.peek(f"pids/{n}/enable"))) if enabled is None else enabled,
+        p=g("p"),
+        i=g("i"),
+        d=g("d"),
+        setpoint=g("setpoint"),
+        center=g("center") if center is None else center,
+        range=g("range"),
+    )
 
 
 def _find_pid(nodes: NodeReader, want: dict[str, int], check_in: Any, check_out: Any) -> int | None:
@@ -126,30 +145,42 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
     """Read the node values and return the LoopSettings the physics runs under (rules in the module doc)."""
     reasons: dict[str, str] = {}
     pll_on = bool(int(nodes.peek("plls/0/enable")))
-    pll_closed = (pll_on and int(nodes.peek("plls/0/adcselect")) == wiring.drive_sigin
-                  and int(nodes.peek("plls/0/harmonic")) == 1)
+    pll_closed = (
+        pll_on and int(nodes.peek("plls/0/adcselect")) == wiring.drive_sigin and int(nodes.peek("plls/0/harmonic")) == 1
+    )
     drive_candidates = [d for d in range(N_DEMODS) if int(nodes.peek(f"demods/{d}/adcselect")) == wiring.drive_sigin]
     if pll_closed:
         ref_osc = int(nodes.peek("plls/0/oscselect"))
-        pll = PllSettings(enabled=True, p=float(nodes.peek("plls/0/p")), i=float(nodes.peek("plls/0/i")),
-                          setpoint_deg=float(nodes.peek("plls/0/setpoint")),
-                          center_hz=float(nodes.peek("plls/0/freqcenter")),
-                          range_hz=float(nodes.peek("plls/0/freqrange")))
+        pll = PllSettings(
+            enabled=True,
+            p=float(nodes.peek("plls/0/p")),
+            i=float(nodes.peek("plls/0/i")),
+            setpoint_deg=float(nodes.peek("plls/0/setpoint")),
+            center_hz=float(nodes.peek("plls/0/freqcenter")),
+            range_hz=float(nodes.peek("plls/0/freqrange")),
+        )
     else:
         reasons["pll"] = "plls/0 disabled or not on the drive input with harmonic 1"
         d0 = drive_candidates[0] if drive_candidates else 0
         ref_osc = int(nodes.peek(f"demods/{d0}/oscselect"))
-        pll = PllSettings(enabled=False, center_hz=float(nodes.peek(f"oscs/{ref_osc}/freq")),
-                          range_hz=float(nodes.peek("plls/0/freqrange")))
+        pll = PllSettings(
+            enabled=False,
+            center_hz=float(nodes.peek(f"oscs/{ref_osc}/freq")),
+            range_hz=float(nodes.peek("plls/0/freqrange")),
+        )
 
     drive_ok = lambda d: _demod_ok(nodes, d, wiring.drive_sigin, ref_osc)  # noqa: E731
     sense_ok = lambda d: _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)  # noqa: E731
     dso = wiring.drive_sigout
 
     def drive_channel_ok(m: int) -> bool:
-        return (0 <= m < 8 and int(nodes.peek(f"sigouts/{dso}/on")) == 1
-                and int(nodes.peek(f"sigouts/{dso}/enables/{m}")) in (1, 3)
-                and m < N_DEMODS and int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc)
+        return (
+            0 <= m < 8
+            and int(nodes.peek(f"sigouts/{dso}/on")) == 1
+            and int(nodes.peek(f"sigouts/{dso}/enables/{m}")) in (1, 3)
+            and m < N_DEMODS
+            and int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
+        )
 
     # AGC
     agc_n = _find_pid(nodes, {"input": PID_INPUT_R, "output": dso}, drive_ok, drive_channel_ok)
@@ -159,8 +190,15 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
         reasons["agc"] = "no enabled PID on R of a drive demod writing an enabled drive mixer channel"
         on = int(nodes.peek(f"sigouts/{dso}/on"))
         rng = float(nodes.peek(f"sigouts/{dso}/range"))
-        v = sum(float(nodes.peek(f"sigouts/{dso}/amplitudes/{m}")) * rng
-                for m in range(min(8, N_DEMODS)) if drive_channel_ok(m)) if on else 0.0
+        v = (
+            sum(
+                float(nodes.peek(f"sigouts/{dso}/amplitudes/{m}")) * rng
+                for m in range(min(8, N_DEMODS))
+                if drive_channel_ok(m)
+            )
+            if on
+            else 0.0
+        )
         agc = PidSettings(enabled=False, center=v)
 
     def aux_manual(ch: int) -> bool:
@@ -171,16 +209,18 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
 
     loops: dict[str, PidSettings] = {}
     pid_of: dict[str, int | None] = {"agc": agc_n}
-    for name, inp, ch in (("rate", PID_INPUT_X, wiring.rate_auxout),
-                          ("quadrature", PID_INPUT_Y, wiring.quadrature_auxout)):
-        n = _find_pid(nodes, {"input": inp, "output": PID_OUTPUT_AUXOUT}, sense_ok,
-                      lambda c, ch=ch: c == ch and aux_manual(ch))
+    for name, inp, ch in (
+        ("rate", PID_INPUT_X, wiring.rate_auxout),
+        ("quadrature", PID_INPUT_Y, wiring.quadrature_auxout),
+    ):
+        n = _find_pid(
+            nodes, {"input": inp, "output": PID_OUTPUT_AUXOUT}, sense_ok, lambda c, ch=ch: c == ch and aux_manual(ch)
+        )
         pid_of[name] = n
         if n is not None:
             loops[name] = _pid(nodes, n)
         else:
-            reasons[name] = (f"no enabled PID on {'XY'[inp]} of a sense demod writing AuxOut {ch} "
-                             "in manual mode")
+            reasons[name] = f"no enabled PID on {'XY'[inp]} of a sense demod writing AuxOut {ch} in manual mode"
             loops[name] = PidSettings(enabled=False, center=aux_open_value(ch))
 
     # demod filter: that of the sense demod the rate PID reads
@@ -189,20 +229,39 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
     else:
         cands = [d for d in range(N_DEMODS) if int(nodes.peek(f"demods/{d}/adcselect")) == wiring.sense_sigin]
         sense_demod = cands[0] if cands else 1
-    drive_demod = int(nodes.peek(f"pids/{agc_n}/inputchannel")) if agc_n is not None else (
-        drive_candidates[0] if drive_candidates else 0)
+    drive_demod = (
+        int(nodes.peek(f"pids/{agc_n}/inputchannel"))
+        if agc_n is not None
+        else (drive_candidates[0] if drive_candidates else 0)
+    )
 
     fso, m = wiring.forcer_sigout, wiring.forcer_mixer_channel
     coherent = m >= N_DEMODS or int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
     if not coherent:
         reasons["forcer"] = f"mixer channel {m} of the forcer output does not run on the reference oscillator"
-    gain = (float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}")) / wiring.forcer_carrier_amplitude
-            * int(nodes.peek(f"sigouts/{fso}/on")) * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
-            * coherent)
+    gain = (
+        float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}"))
+        / wiring.forcer_carrier_amplitude
+        * int(nodes.peek(f"sigouts/{fso}/on"))
+        * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
+        * coherent
+    )
 
-    settings = LoopSettings(pll=pll, agc=agc, rate=loops["rate"], quadrature=loops["quadrature"],
-                            forcer_gain=float(gain),
-                            demod_timeconstant_s=float(nodes.peek(f"demods/{sense_demod}/timeconstant")),
-                            demod_order=int(nodes.peek(f"demods/{sense_demod}/order")))
-    return LoopPlan(settings=settings, ref_osc=ref_osc, pll_closed=pll_closed, pid_of=pid_of,
-                    open_reasons=reasons, sense_demod=sense_demod, drive_demod=drive_demod)
+    settings = LoopSettings(
+        pll=pll,
+        agc=agc,
+        rate=loops["rate"],
+        quadrature=loops["quadrature"],
+        forcer_gain=float(gain),
+        demod_timeconstant_s=float(nodes.peek(f"demods/{sense_demod}/timeconstant")),
+        demod_order=int(nodes.peek(f"demods/{sense_demod}/order")),
+    )
+    return LoopPlan(
+        settings=settings,
+        ref_osc=ref_osc,
+        pll_closed=pll_closed,
+        pid_of=pid_of,
+        open_reasons=reasons,
+        sense_demod=sense_demod,
+        drive_demod=drive_demod,
+    )

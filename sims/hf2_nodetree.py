@@ -28,24 +28,59 @@ from typing import Any
 # How many instances each indexed branch has on an HF2LI with MF, PLL and PID options. Key: the generic path
 # up to (and including) the ``n`` being expanded, relative to the device.
 INSTANCE_COUNTS: dict[str, int] = {
-    "demods/n": 6, "oscs/n": 6, "plls/n": 2, "pids/n": 4, "sigouts/n": 2, "sigouts/n/enables/n": 8,
-    "sigouts/n/amplitudes/n": 8, "sigouts/n/waveforms/n": 8, "sigins/n": 2, "auxouts/n": 4, "auxins/n": 1,
-    "mods/n": 2, "mods/n/sidebands/n": 2, "scopes/n": 1, "dios/n": 1, "cpus/n": 1, "cpus/n/userregs/n": 64,
-    "zctrls/n": 2, "zctrls/n/tamp/n": 2, "status/flags/mixerclip/n": 2, "status/flags/adcclip/n": 2,
+    "demods/n": 6,
+    "oscs/n": 6,
+    "plls/n": 2,
+    "pids/n": 4,
+    "sigouts/n": 2,
+    "sigouts/n/enables/n": 8,
+    "sigouts/n/amplitudes/n": 8,
+    "sigouts/n/waveforms/n": 8,
+    "sigins/n": 2,
+    "auxouts/n": 4,
+    "auxins/n": 1,
+    "mods/n": 2,
+    "mods/n/sidebands/n": 2,
+    "scopes/n": 1,
+    "dios/n": 1,
+    "cpus/n": 1,
+    "cpus/n/userregs/n": 64,
+    "zctrls/n": 2,
+    "zctrls/n/tamp/n": 2,
+    "status/flags/mixerclip/n": 2,
+    "status/flags/adcclip/n": 2,
 }
 
 # Power-on values of the twin, by generic relative path (fnmatch on the concrete relative path). First match wins.
 POWER_ON: list[tuple[str, Any]] = [
-    ("demods/*/rate", 1800.0), ("demods/*/order", 4), ("demods/*/timeconstant", 0.0101),
-    ("demods/*/harmonic", 1), ("oscs/*/freq", 100e3),
-    ("plls/*/freqcenter", 100e3), ("plls/*/freqrange", 1e3), ("plls/*/harmonic", 1), ("plls/*/order", 4),
-    ("plls/*/timeconstant", 1e-3), ("plls/*/rate", 1e5), ("pids/*/range", 1.0), ("pids/*/rate", 1e5),
-    ("pids/*/demod/harmonic", 1), ("pids/*/demod/order", 4), ("pids/*/demod/timeconstant", 0.0101),
-    ("pids/*/monitorscale", 1.0), ("sigouts/*/range", 1.0), ("sigins/*/range", 1.0),
-    ("auxouts/*/scale", 1.0), ("system/activeinterface", "USB"), ("system/hwrevision", 1),
-    ("system/properties/minfreq", 0.0), ("system/properties/maxfreq", 100e6),
-    ("system/properties/negativefreq", 0), ("system/properties/freqresolution", 48),
-    ("system/properties/mintimeconstant", 780e-9), ("system/properties/maxtimeconstant", 500.0),
+    ("demods/*/rate", 1800.0),
+    ("demods/*/order", 4),
+    ("demods/*/timeconstant", 0.0101),
+    ("demods/*/harmonic", 1),
+    ("oscs/*/freq", 100e3),
+    ("plls/*/freqcenter", 100e3),
+    ("plls/*/freqrange", 1e3),
+    ("plls/*/harmonic", 1),
+    ("plls/*/order", 4),
+    ("plls/*/timeconstant", 1e-3),
+    ("plls/*/rate", 1e5),
+    ("pids/*/range", 1.0),
+    ("pids/*/rate", 1e5),
+    ("pids/*/demod/harmonic", 1),
+    ("pids/*/demod/order", 4),
+    ("pids/*/demod/timeconstant", 0.0101),
+    ("pids/*/monitorscale", 1.0),
+    ("sigouts/*/range", 1.0),
+    ("sigins/*/range", 1.0),
+    ("auxouts/*/scale", 1.0),
+    ("system/activeinterface", "USB"),
+    ("system/hwrevision", 1),
+    ("system/properties/minfreq", 0.0),
+    ("system/properties/maxfreq", 100e6),
+    ("system/properties/negativefreq", 0),
+    ("system/properties/freqresolution", 48),
+    ("system/properties/mintimeconstant", 780e-9),
+    ("system/properties/maxtimeconstant", 500.0),
     ("stats/physical/temp", 45.0),
 ]
 
@@ -136,9 +171,15 @@ class HF2NodeTree:
             props = entry.get("Properties", "")
             for rel in _expand(rel_generic):
                 path = f"/{self.device_id}/{rel}"
-                meta = NodeMeta(path=path, type=entry["Type"], readable="Read" in props,
-                                writable="Write" in props, setting="Setting" in props,
-                                stream="Stream" in props, options=_options(entry))
+                meta = NodeMeta(
+                    path=path,
+                    type=entry["Type"],
+                    readable="Read" in props,
+                    writable="Write" in props,
+                    setting="Setting" in props,
+                    stream="Stream" in props,
+                    options=_options(entry),
+                )
                 self.meta[path] = meta
                 if meta.is_value:
                     self.values[path] = _power_on(rel, meta)
@@ -218,7 +259,14 @@ class HF2NodeTree:
         """Twin-internal read. Paths in lower case."""
         return self.values[rel_or_abs if rel_or_abs[0] == "/" else self._prefix + rel_or_abs]
 
-    def list(self, pattern: str, *, settings_only: bool = False, streaming_only: bool = False, exclude_streaming: bool = False) -> list[str]:
+    def list(
+        self,
+        pattern: str,
+        *,
+        settings_only: bool = False,
+        streaming_only: bool = False,
+        exclude_streaming: bool = False,
+    ) -> list[str]:
         """Upper-case leaf paths like the server's listNodes(recursive, leavesonly), optionally filtered."""
         hits = self.resolve(pattern)
         out = []

@@ -59,24 +59,41 @@ __all__ = ["HF2DataServerTwin", "HF2Wiring", "NodeError"]
 DEMOD_FIELDS = ("timestamp", "x", "y", "frequency", "phase", "dio", "trigger", "auxin0", "auxin1")
 PLL_LOCKED_BITS = (1 << 20, 1 << 21)
 HF2_RATE_BASE_HZ = 921.6e3  # the binary ladder of demodulator rates: 921.6 kSa/s / 2^k (assumed, see above)
-AUXIN_ADC_RATE_HZ = 400e3   # AuxIn ADC sample rate (assumed, see above)
+AUXIN_ADC_RATE_HZ = 400e3  # AuxIn ADC sample rate (assumed, see above)
 RATE_SETS = ("hf2", "ticks")
 SERVER_VERSION = "26.07"
 SERVER_REVISION = 26070250
 
 
 def _zi_nodes(port: int, clockbase_hz: float) -> dict[str, Any]:
-    return {"/zi/about/version": SERVER_VERSION, "/zi/about/revision": SERVER_REVISION,
-            "/zi/about/commit": "twin", "/zi/about/fwrevision": SERVER_REVISION,
-            "/zi/about/copyright": "qmg-lab HF2 twin", "/zi/about/dataserver": "HF2DataServer",
-            "/zi/config/port": port, "/zi/config/open": 0, "/zi/mds/groups/0/devices": "",
-            "/zi/mds/groups/0/status": 0, "/zi/mds/groups/0/locked": 0, "/zi/debug/level": 3,
-            "/zi/debug/logpath": "", "/zi/debug/log": "", "/zi/clockbase": int(round(clockbase_hz))}
+    return {
+        "/zi/about/version": SERVER_VERSION,
+        "/zi/about/revision": SERVER_REVISION,
+        "/zi/about/commit": "twin",
+        "/zi/about/fwrevision": SERVER_REVISION,
+        "/zi/about/copyright": "qmg-lab HF2 twin",
+        "/zi/about/dataserver": "HF2DataServer",
+        "/zi/config/port": port,
+        "/zi/config/open": 0,
+        "/zi/mds/groups/0/devices": "",
+        "/zi/mds/groups/0/status": 0,
+        "/zi/mds/groups/0/locked": 0,
+        "/zi/debug/level": 3,
+        "/zi/debug/logpath": "",
+        "/zi/debug/log": "",
+        "/zi/clockbase": int(round(clockbase_hz)),
+    }
 
 
 def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
-    return BlockInputs(t=inp.t[sl], table_rate_dps=inp.table_rate_dps[sl], table_angle_deg=inp.table_angle_deg[sl],
-                       chamber_c=inp.chamber_c[sl], gyro_c=inp.gyro_c[sl], dither_v=inp.dither_v[sl])
+    return BlockInputs(
+        t=inp.t[sl],
+        table_rate_dps=inp.table_rate_dps[sl],
+        table_angle_deg=inp.table_angle_deg[sl],
+        chamber_c=inp.chamber_c[sl],
+        gyro_c=inp.gyro_c[sl],
+        dither_v=inp.dither_v[sl],
+    )
 
 
 class HF2DataServerTwin:
@@ -84,9 +101,18 @@ class HF2DataServerTwin:
 
     api_level = 1
 
-    def __init__(self, world: World, gyro_params: GyroParams, seed: int, wiring: HF2Wiring,
-                 device_id: str = "dev1234", clockbase_hz: float = 210e6, host: str = "localhost",
-                 port: int = 8005, rate_set: str = "hf2") -> None:
+    def __init__(
+        self,
+        world: World,
+        gyro_params: GyroParams,
+        seed: int,
+        wiring: HF2Wiring,
+        device_id: str = "dev1234",
+        clockbase_hz: float = 210e6,
+        host: str = "localhost",
+        port: int = 8005,
+        rate_set: str = "hf2",
+    ) -> None:
         if clockbase_hz <= 0:
             raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")
         if rate_set not in RATE_SETS:
@@ -142,8 +168,9 @@ class HF2DataServerTwin:
         """Device detection on Linux HF2 servers: nothing to do for the twin."""
 
     def listNodesJSON(self, path: str, *args: Any, **kwargs: Any) -> str:  # noqa: N802
-        raise NodeError("ZIAPINotSupportedException: listNodesJSON is not available on the HF2 data server "
-                        "(API level 1)")
+        raise NodeError(
+            "ZIAPINotSupportedException: listNodesJSON is not available on the HF2 data server (API level 1)"
+        )
 
     def listNodes(self, path: str, *args: Any, **kwargs: Any) -> list[str]:  # noqa: N802
         p = path.lower()
@@ -151,9 +178,12 @@ class HF2DataServerTwin:
             pat = p if any(c in p for c in "*?[") else p.rstrip("/") + "/*"
             return [k.upper() for k in self._zi if fnmatch.fnmatchcase(k, pat)]
         self._check_device(p)
-        return self.nodes.list(p, settings_only=kwargs.get("settingsonly", False),
-                               streaming_only=kwargs.get("streamingonly", False),
-                               exclude_streaming=kwargs.get("excludestreaming", False))
+        return self.nodes.list(
+            p,
+            settings_only=kwargs.get("settingsonly", False),
+            streaming_only=kwargs.get("streamingonly", False),
+            exclude_streaming=kwargs.get("excludestreaming", False),
+        )
 
     def _read(self, path: str) -> Any:
         p = path.lower()
@@ -295,8 +325,9 @@ class HF2DataServerTwin:
     def unsubscribe(self, path: Any, group_id: int = 1) -> None:
         self.subscribed.difference_update(self._stream_paths(path))
 
-    def poll(self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False,
-             group_id: int = 1) -> dict:
+    def poll(
+        self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False, group_id: int = 1
+    ) -> dict:
         """Advance the world by the recording time and return the subscribed demodulators' samples."""
         if recording_time_s <= 0:
             raise NodeError(f"ZIAPIException: poll recording time {recording_time_s!r} s must be positive")
@@ -423,8 +454,11 @@ class HF2DataServerTwin:
                 f_fixed = float(self.nodes.peek(f"oscs/{o}/freq"))
                 self._osc_phase[o] = float(np.mod(self._osc_phase[o] + 2 * np.pi * f_fixed * n * dt, 2 * np.pi))
                 continue
-            f_o = (np.asarray(blk.frequency_hz, dtype=float) if o == plan.ref_osc
-                   else np.full(n, float(self.nodes.peek(f"oscs/{o}/freq"))))
+            f_o = (
+                np.asarray(blk.frequency_hz, dtype=float)
+                if o == plan.ref_osc
+                else np.full(n, float(self.nodes.peek(f"oscs/{o}/freq")))
+            )
             ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f_o) * dt
             freqs[o], phases[o] = f_o, ph
             self._osc_phase[o] = float(np.mod(ph[-1], 2 * np.pi))
@@ -438,7 +472,7 @@ class HF2DataServerTwin:
         dropped = min(self._drop_next, max(0, n - 2))
         if dropped:
             i0 = (n - dropped) // 2
-            keep[i0:i0 + dropped] = False
+            keep[i0 : i0 + dropped] = False
         self._drop_next = 0
         out: dict[str, dict[str, np.ndarray]] = {}
         for path in demods:
@@ -454,22 +488,41 @@ class HF2DataServerTwin:
             shift = math.radians(float(self.nodes.peek(f"demods/{d}/phaseshift")))
             if osc != plan.ref_osc or shift != 0.0:
                 z = z * np.exp(-1j * (phases[osc] + shift - phases[plan.ref_osc]))
-            sample = {"timestamp": timestamps, "x": z.real.copy(), "y": z.imag.copy(),
-                      "frequency": freqs[osc] * harmonic, "phase": np.mod(phases[osc] * harmonic, 2 * np.pi),
-                      "dio": np.zeros(n, dtype=np.uint32), "trigger": np.zeros(n, dtype=np.uint32),
-                      "auxin0": aux[0], "auxin1": aux[1]}
+            sample = {
+                "timestamp": timestamps,
+                "x": z.real.copy(),
+                "y": z.imag.copy(),
+                "frequency": freqs[osc] * harmonic,
+                "phase": np.mod(phases[osc] * harmonic, 2 * np.pi),
+                "dio": np.zeros(n, dtype=np.uint32),
+                "trigger": np.zeros(n, dtype=np.uint32),
+                "auxin0": aux[0],
+                "auxin1": aux[1],
+            }
             sample = {k: v[keep] for k, v in sample.items()}
             out[path] = sample
             self._last_sample[path] = {k: v[-1:].copy() for k, v in sample.items()}
         self._reflect(plan, blk, locked, sense, drive, aux, dropped)
-        self.world.record_truth(TruthRecord(time=timestamps.astype(float) / self.clockbase_hz,
-                                            scale_factor=np.asarray(blk.sf_true_v_per_dps, dtype=float),
-                                            temperature=np.asarray(inputs.gyro_c, dtype=float),
-                                            rate=np.asarray(blk.rate_true_dps, dtype=float)))
+        self.world.record_truth(
+            TruthRecord(
+                time=timestamps.astype(float) / self.clockbase_hz,
+                scale_factor=np.asarray(blk.sf_true_v_per_dps, dtype=float),
+                temperature=np.asarray(inputs.gyro_c, dtype=float),
+                rate=np.asarray(blk.rate_true_dps, dtype=float),
+            )
+        )
         return out
 
-    def _reflect(self, plan: LoopPlan, blk: GyroBlock, locked: np.ndarray, sense: np.ndarray,
-                 drive: np.ndarray, aux: list[np.ndarray], dropped: int) -> None:
+    def _reflect(
+        self,
+        plan: LoopPlan,
+        blk: GyroBlock,
+        locked: np.ndarray,
+        sense: np.ndarray,
+        drive: np.ndarray,
+        aux: list[np.ndarray],
+        dropped: int,
+    ) -> None:
         """Read-only nodes at the end of the block."""
         nd = self.nodes
         pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
@@ -481,9 +534,11 @@ class HF2DataServerTwin:
         nd.poke("status/flags/binary", binary | (PLL_LOCKED_BITS[0] if pll_locked else 0))
         nd.poke("status/flags/demodsampleloss", int(dropped > 0))
         nd.poke("status/time", self.world.now())
-        ends = {"agc": (abs(drive[-1]), float(np.asarray(blk.drive_output_v)[-1])),
-                "rate": (sense[-1].real, float(np.asarray(blk.rate_output_v)[-1])),
-                "quadrature": (sense[-1].imag, float(np.asarray(blk.quadrature_output_v)[-1]))}
+        ends = {
+            "agc": (abs(drive[-1]), float(np.asarray(blk.drive_output_v)[-1])),
+            "rate": (sense[-1].real, float(np.asarray(blk.rate_output_v)[-1])),
+            "quadrature": (sense[-1].imag, float(np.asarray(blk.quadrature_output_v)[-1])),
+        }
         for name, n in plan.pid_of.items():
             if n is None:
                 continue
@@ -496,6 +551,17 @@ class HF2DataServerTwin:
             nd.poke(f"auxins/0/values/{k}", float(aux[k][-1]))
 
 
-_ARRAY_FIELDS = ("x_drive", "y_drive", "x_sense", "y_sense", "frequency_hz", "drive_output_v", "rate_output_v",
-                 "rate_auxout_v",
-                 "quadrature_output_v", "pll_error_deg", "sf_true_v_per_dps", "rate_true_dps")
+_ARRAY_FIELDS = (
+    "x_drive",
+    "y_drive",
+    "x_sense",
+    "y_sense",
+    "frequency_hz",
+    "drive_output_v",
+    "rate_output_v",
+    "rate_auxout_v",
+    "quadrature_output_v",
+    "pll_error_deg",
+    "sf_true_v_per_dps",
+    "rate_true_dps",
+)

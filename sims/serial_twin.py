@@ -282,7 +282,7 @@ TERMINATORS: dict[str, bytes] = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}
 
 
 def terminator(name: str) -> bytes:
-    """"CR" | "LF" | "CRLF" -> the bytes."""
+    """ "CR" | "LF" | "CRLF" -> the bytes."""
     try:
         return TERMINATORS[name]
     except KeyError:

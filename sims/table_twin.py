@@ -45,9 +45,17 @@ class _Refused(Exception):
 class RateTableTwin(FaultableTwin):
     """The 1291BR controller. max_rate_dps / max_accel_dps2 / max_sine_hz: the controller's own limits."""
 
-    def __init__(self, world: World, *, max_rate_dps: float = 1000.0, max_accel_dps2: float = 1000.0,
-                 max_sine_hz: float = 100.0, command_end: bytes = b"\r\n", reply_end: bytes = b"\r",
-                 prompt_end: bytes = b"\r") -> None:
+    def __init__(
+        self,
+        world: World,
+        *,
+        max_rate_dps: float = 1000.0,
+        max_accel_dps2: float = 1000.0,
+        max_sine_hz: float = 100.0,
+        command_end: bytes = b"\r\n",
+        reply_end: bytes = b"\r",
+        prompt_end: bytes = b"\r",
+    ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")
         if prompt_end not in (b"", b"\r", b"\n", b"\r\n"):
@@ -64,8 +72,16 @@ class RateTableTwin(FaultableTwin):
         self._frequency = 0.0
         self.commands_seen = 0
         self._handlers = {
-            "ACL": self._acl, "JOG": self._jog, "STO": self._sto, "PPO": self._ppo, "PVE": self._pve,
-            "STA": self._sta, "MCO": self._mco, "AMP": self._amp, "FRQ": self._frq, "SGO": self._sgo,
+            "ACL": self._acl,
+            "JOG": self._jog,
+            "STO": self._sto,
+            "PPO": self._ppo,
+            "PVE": self._pve,
+            "STA": self._sta,
+            "MCO": self._mco,
+            "AMP": self._amp,
+            "FRQ": self._frq,
+            "SGO": self._sgo,
         }
 
     # ---------------------------------------------------------------- framing

@@ -165,9 +165,15 @@ class World:
                 self.advance(n, dt)
 
     # ------------------------------------------------------------------ commands from the twins
-    def set_dither(self, *, function: int | None = None, frequency_hz: float | None = None,
-                   amplitude_vpp: float | None = None, offset_v: float | None = None,
-                   phase_deg: float | None = None) -> None:
+    def set_dither(
+        self,
+        *,
+        function: int | None = None,
+        frequency_hz: float | None = None,
+        amplitude_vpp: float | None = None,
+        offset_v: float | None = None,
+        phase_deg: float | None = None,
+    ) -> None:
         """Change the generator's settings. A new frequency restarts the phase origin at the current time."""
         with self.lock:
             d = self.dither
@@ -246,8 +252,9 @@ class World:
             recs.append(self._truth.popleft())
         if not recs:
             return None
-        return TruthRecord(*(np.concatenate([getattr(r, f) for r in recs])
-                             for f in ("time", "scale_factor", "temperature", "rate")))
+        return TruthRecord(
+            *(np.concatenate([getattr(r, f) for r in recs]) for f in ("time", "scale_factor", "temperature", "rate"))
+        )
 
     # ------------------------------------------------------------------ dynamics
     def _freeze_table_profile(self) -> None:
@@ -255,7 +262,8 @@ class World:
         if self.table.mode == "sine":
             tab = self.table
             tab.rate_dps = tab.sine_amplitude_dps * math.sin(
-                2 * math.pi * tab.sine_frequency_hz * (self.t - tab.sine_start_s))
+                2 * math.pi * tab.sine_frequency_hz * (self.t - tab.sine_start_s)
+            )
             tab.rate_command_dps = tab.rate_dps
 
     def _table_profile(self, tau: np.ndarray) -> np.ndarray:
@@ -263,7 +271,8 @@ class World:
         tab = self.table
         if tab.mode == "sine":
             return tab.sine_amplitude_dps * np.sin(
-                2 * np.pi * tab.sine_frequency_hz * (self.t + tau - tab.sine_start_s))
+                2 * np.pi * tab.sine_frequency_hz * (self.t + tau - tab.sine_start_s)
+            )
         r0, r1, a = tab.rate_dps, tab.rate_command_dps, tab.accel_dps2
         if r0 == r1:
             return np.full_like(tau, r0)
@@ -272,8 +281,11 @@ class World:
     def ds345_time(self, t: np.ndarray | float) -> np.ndarray:
         """tau(t): the DS345 timebase's reading at World (HF2) time t, s (module docstring)."""
         p = self.params
-        e0, ew, per = p.ds345_timebase_offset_ppm * 1e-6, p.ds345_timebase_wander_ppm * 1e-6, \
-            p.ds345_timebase_wander_period_s
+        e0, ew, per = (
+            p.ds345_timebase_offset_ppm * 1e-6,
+            p.ds345_timebase_wander_ppm * 1e-6,
+            p.ds345_timebase_wander_period_s,
+        )
         tt = np.asarray(t, dtype=np.float64)
         return tt * (1.0 + e0) + (ew * per / (2 * np.pi)) * (1.0 - np.cos(2 * np.pi * tt / per))
 
@@ -384,6 +396,6 @@ class World:
             tb = self.t + dt * np.arange(n + 1, dtype=np.float64)  # step boundaries: one phase evaluation each
             dither = self._step_means(tb)
             self.t = self.t + end
-            return BlockInputs(t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas,
-                               gyro_c=gyro, dither_v=dither)
-
+            return BlockInputs(
+                t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas, gyro_c=gyro, dither_v=dither
+            )

@@ -31,8 +31,13 @@ class ProtocolPort:
 
     def __init__(self, pairs: Sequence[Pair], *, port: str = "protocol://fake", timeout: float = 1.0) -> None:
         for i, pair in enumerate(pairs):
-            if not (isinstance(pair, tuple) and len(pair) == 2 and isinstance(pair[0], bytes) and pair[0]
-                    and (pair[1] is None or isinstance(pair[1], bytes))):
+            if not (
+                isinstance(pair, tuple)
+                and len(pair) == 2
+                and isinstance(pair[0], bytes)
+                and pair[0]
+                and (pair[1] is None or isinstance(pair[1], bytes))
+            ):
                 raise TypeError(f"pair {i} must be (non-empty command bytes, reply bytes or None), got {pair!r}")
         self._pairs = list(pairs)
         self._next = 0
@@ -55,7 +60,7 @@ class ProtocolPort:
         return b"".join(self.log) + bytes(self._written)
 
     def assert_complete(self) -> None:
-        unused = self._pairs[self._next:]
+        unused = self._pairs[self._next :]
         assert not unused, f"{len(unused)} expected command(s) never sent, first {unused[0][0]!r}"
         assert not self._written, f"bytes written but not matching a whole command: {bytes(self._written)!r}"
         assert not self._rx, f"reply bytes never read by the driver: {bytes(self._rx)!r}"
@@ -74,7 +79,8 @@ class ProtocolPort:
         command, reply = self._pairs[self._next]
         if not command.startswith(bytes(self._written)):
             raise AssertionError(
-                f"command {self._next}: expected {command!r}, the driver wrote {bytes(self._written)!r}")
+                f"command {self._next}: expected {command!r}, the driver wrote {bytes(self._written)!r}"
+            )
         if len(self._written) == len(command):
             self.log.append(bytes(self._written))
             self._written.clear()

@@ -33,8 +33,12 @@ class ProtocolError(AssertionError):
 class ProtocolResource:
     """A fake VISA resource that replays an expected list of (command, reply) pairs."""
 
-    def __init__(self, pairs: Sequence[tuple[bytes, bytes | object | None]], terminator: bytes = b"\n",
-                 resource_name: str = "GPIB0::19::INSTR") -> None:
+    def __init__(
+        self,
+        pairs: Sequence[tuple[bytes, bytes | object | None]],
+        terminator: bytes = b"\n",
+        resource_name: str = "GPIB0::19::INSTR",
+    ) -> None:
         for cmd, reply in pairs:
             if not isinstance(cmd, bytes) or not (reply is None or reply is TIMEOUT or isinstance(reply, bytes)):
                 raise TypeError(f"protocol pair ({cmd!r}, {reply!r}) must be (bytes, bytes | None | TIMEOUT)")
@@ -106,8 +110,9 @@ class ProtocolResource:
 
 
 @contextmanager
-def expected_protocol(pairs: Sequence[tuple[bytes, bytes | object | None]],
-                      terminator: bytes = b"\n") -> Iterator[ProtocolResource]:
+def expected_protocol(
+    pairs: Sequence[tuple[bytes, bytes | object | None]], terminator: bytes = b"\n"
+) -> Iterator[ProtocolResource]:
     """Yield a ProtocolResource; on a clean exit, check the whole conversation was used."""
     resource = ProtocolResource(pairs, terminator)
     yield resource

@@ -24,8 +24,15 @@ SF0 = 0.06  # V per deg/s
 DITHER_LEAK_V = 0.08  # square wave at 7 Hz leaking into the rate output (removed by whole-period means)
 
 
-def _config(kind: str, dwell: float, settle: float, mode: str = "observe", rate_hz: float = FS,
-            dither_hz: float = F_D, extra: str = "") -> str:
+def _config(
+    kind: str,
+    dwell: float,
+    settle: float,
+    mode: str = "observe",
+    rate_hz: float = FS,
+    dither_hz: float = F_D,
+    extra: str = "",
+) -> str:
     return textwrap.dedent(f"""
         [campaign]
         kind = "{kind}"
@@ -43,9 +50,17 @@ def _config(kind: str, dwell: float, settle: float, mode: str = "observe", rate_
 
 
 def _writer(path: Path, config: str, planned_kinds: list[str], truth: bool, mode: str = "sim") -> RunWriter:
-    return RunWriter.create(path, config_text=config, config_sha256=hashlib.sha256(config.encode()).hexdigest(),
-                            mode=mode, software_version="test", t0_unix=1.7e9, truth=truth,
-                            planned_steps=len(planned_kinds), planned_step_kinds=planned_kinds)
+    return RunWriter.create(
+        path,
+        config_text=config,
+        config_sha256=hashlib.sha256(config.encode()).hexdigest(),
+        mode=mode,
+        software_version="test",
+        t0_unix=1.7e9,
+        truth=truth,
+        planned_steps=len(planned_kinds),
+        planned_step_kinds=planned_kinds,
+    )
 
 
 def square(t: np.ndarray, f_hz: float = F_D, fs: float = FS) -> np.ndarray:
@@ -60,8 +75,16 @@ def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: flo
     fs = round(1.0 / float(np.median(np.diff(t))), 6) if t.shape[0] > 1 else FS
     sq = square(t, dither_hz, fs)
     z = np.zeros_like(t)
-    w.append("lockin", time=t, x_sense=z, y_sense=z, rate_output=rate_output, drive_amplitude=z + 0.5,
-             drive_frequency=z + 2200.0, dither=0.6 * sq)
+    w.append(
+        "lockin",
+        time=t,
+        x_sense=z,
+        y_sense=z,
+        rate_output=rate_output,
+        drive_amplitude=z + 0.5,
+        drive_frequency=z + 2200.0,
+        dither=0.6 * sq,
+    )
 
 
 # ---- the temperature sweep --------------------------------------------------------------------------------------
@@ -91,21 +114,27 @@ def write_sweep(path: Path, pairs_written: int = N_PAIRS, truth: bool = True, ki
         temp = temperature(t)
         sf = SF0 * (1 + ALPHA * (temp - 25.0))
         omega = rate + (prev_rate - rate) * np.exp(-(t - a) / 0.08)  # the rate loop's first-order response
-        out = sf * omega + 2e-3 + DITHER_LEAK_V * square(t) \
-            + SIGMA_O * rng.standard_normal(t.shape[0])
+        out = sf * omega + 2e-3 + DITHER_LEAK_V * square(t) + SIGMA_O * rng.standard_normal(t.shape[0])
         _lockin(w, t, out)
         tc = np.arange(math.ceil(a * F_D), math.floor(b * F_D)) / F_D + 1 / F_D
         tc = tc[tc <= b]
         s = (ALPHA + BETA) * (temperature(tc) - 25.0) + 20e-6 * rng.standard_normal(tc.shape[0])
-        w.append("clsf", time=tc, eta=1 / (1 + s) - 1, sf_change_estimate=s, gain_correction=np.ones_like(tc),
-                 rate_output_mean=SF0 * rate + 0 * tc)
+        w.append(
+            "clsf",
+            time=tc,
+            eta=1 / (1 + s) - 1,
+            sf_change_estimate=s,
+            gain_correction=np.ones_like(tc),
+            rate_output_mean=SF0 * rate + 0 * tc,
+        )
         tt = np.arange(a + 0.5, b + 1e-9, 0.5)
         w.append("table", time=tt, rate_command=rate + 0 * tt, rate_measured=rate + 0 * tt, position=0 * tt)
         w.append("chamber", time=tt, setpoint=35.0 + 0 * tt, temperature=temperature(tt))
         if truth:
             w.append("truth", time=t, scale_factor=sf, temperature=temp, rate=omega)
-        w.append_step(index=index, kind=kind, t_start=a, t_end=b, table_rate=rate, chamber_setpoint=35.0,
-                      status="completed")
+        w.append_step(
+            index=index, kind=kind, t_start=a, t_end=b, table_rate=rate, chamber_setpoint=35.0, status="completed"
+        )
         prev_rate = rate
     if kill:
         w.flush()
@@ -146,13 +175,21 @@ def test_sweep_recovers_sf_changes_tempco_and_clsf_accuracy(tmp_path: Path) -> N
     c = ((1 + s) / (1 + s[0]) - 1) * 1e6
     d = (c - e)[1:]
     assert r.clsf_accuracy_rms_ppm == pytest.approx(np.sqrt(np.mean(d**2)), abs=tol_ppm + 1.0)
-    assert r.clsf_accuracy_rms_ppm_mean_removed == pytest.approx(np.sqrt(np.mean((d - d.mean())**2)),
-                                                                 abs=tol_ppm + 1.0)
+    assert r.clsf_accuracy_rms_ppm_mean_removed == pytest.approx(
+        np.sqrt(np.mean((d - d.mean()) ** 2)), abs=tol_ppm + 1.0
+    )
     assert r.truth_check_rms_ppm is not None and r.truth_check_rms_ppm < tol_ppm
     js = r.to_json()
     json.dumps(js)  # valid JSON (no NaN)
-    for key in ("sf_nominal_v_per_dps", "n_step_pairs", "sf_true_change_ppm", "clsf_accuracy_rms_ppm",
-                "clsf_accuracy_rms_ppm_mean_removed", "adev", "truth_check_rms_ppm"):
+    for key in (
+        "sf_nominal_v_per_dps",
+        "n_step_pairs",
+        "sf_true_change_ppm",
+        "clsf_accuracy_rms_ppm",
+        "clsf_accuracy_rms_ppm_mean_removed",
+        "adev",
+        "truth_check_rms_ppm",
+    ):
         assert key in js
     assert js["sf_nominal_v_per_dps"] == 0.06
     assert {"tau_s", "ppm", "ppm_low", "ppm_high"} <= set(js["adev"][0])
@@ -169,9 +206,11 @@ def test_hardware_file_without_truth(tmp_path: Path) -> None:
 
 def test_killed_file_is_analysed_and_names_missing_steps(tmp_path: Path) -> None:
     p = tmp_path / "killed.h5"
-    code = (f"import sys; sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]\n"
-            f"from pathlib import Path\nfrom test_analysis import write_sweep\n"
-            f"write_sweep(Path({str(p)!r}), pairs_written=3, kill=True)\n")
+    code = (
+        f"import sys; sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]\n"
+        f"from pathlib import Path\nfrom test_analysis import write_sweep\n"
+        f"write_sweep(Path({str(p)!r}), pairs_written=3, kill=True)\n"
+    )
     proc = subprocess.run([sys.executable, "-c", code], timeout=60)
     assert proc.returncode == -signal.SIGKILL
     r = analyze(p)
@@ -198,10 +237,17 @@ def test_adev_of_white_clsf_and_rate_noise(tmp_path: Path) -> None:
     tc = np.arange(1, int(dur * fd) + 1) / fd
     s = sig_c * rng.standard_normal(tc.shape[0])
     g = np.exp(1e-4 * np.cumsum(rng.standard_normal(tc.shape[0])) * 0 + 0.01 * tc / dur)
-    w.append("clsf", time=tc, eta=1 / (1 + s) - 1, sf_change_estimate=s, gain_correction=g,
-             rate_output_mean=SF0 * sig_r * rng.standard_normal(tc.shape[0]))
-    w.append_step(index=0, kind="hold", t_start=0.0, t_end=dur, table_rate=0.0, chamber_setpoint=25.0,
-                  status="completed")
+    w.append(
+        "clsf",
+        time=tc,
+        eta=1 / (1 + s) - 1,
+        sf_change_estimate=s,
+        gain_correction=g,
+        rate_output_mean=SF0 * sig_r * rng.standard_normal(tc.shape[0]),
+    )
+    w.append_step(
+        index=0, kind="hold", t_start=0.0, t_end=dur, table_rate=0.0, chamber_setpoint=25.0, status="completed"
+    )
     w.set_status("completed")
     w.close()
     r = analyze(p)
@@ -265,8 +311,15 @@ def test_bandwidth_phase_and_settling_of_a_first_order_loop(tmp_path: Path, trut
         _lockin(w, t, SF0 * y + DITHER_LEAK_V * square(t))
         if truth:
             w.append("truth", time=t, scale_factor=SF0 + 0 * t, temperature=25 + 0 * t, rate=rate_to + 0 * t)
-        w.append_step(index=idx, kind=kinds[idx], t_start=t_now, t_end=t_now + dwell, table_rate=rate_to,
-                      chamber_setpoint=25.0, status="completed")
+        w.append_step(
+            index=idx,
+            kind=kinds[idx],
+            t_start=t_now,
+            t_end=t_now + dwell,
+            table_rate=rate_to,
+            chamber_setpoint=25.0,
+            status="completed",
+        )
         idx, t_now = idx + 1, t_now + dwell
     for f in freqs:
         dur = 10 / f + max(settle, 2 / f) + 2 / f
@@ -274,12 +327,18 @@ def test_bandwidth_phase_and_settling_of_a_first_order_loop(tmp_path: Path, trut
         h = 1 / (1 + 1j * f / FB)
         omega = amp * np.sin(2 * np.pi * f * (t - t_now))
         y = amp * abs(h) * np.sin(2 * np.pi * f * (t - t_now) + np.angle(h))
-        _lockin(w, t, SF0 * y + DITHER_LEAK_V * square(t)
-                + 1e-4 * rng.standard_normal(t.shape[0]))
+        _lockin(w, t, SF0 * y + DITHER_LEAK_V * square(t) + 1e-4 * rng.standard_normal(t.shape[0]))
         if truth:
             w.append("truth", time=t, scale_factor=SF0 + 0 * t, temperature=25 + 0 * t, rate=omega)
-        w.append_step(index=idx, kind=kinds[idx], t_start=t_now, t_end=t_now + dur, table_rate=amp,
-                      chamber_setpoint=25.0, status="completed")
+        w.append_step(
+            index=idx,
+            kind=kinds[idx],
+            t_start=t_now,
+            t_end=t_now + dur,
+            table_rate=amp,
+            chamber_setpoint=25.0,
+            status="completed",
+        )
         idx, t_now = idx + 1, t_now + dur
     w.set_status("completed")
     w.close()
@@ -303,15 +362,28 @@ def test_linearity_of_a_quadratic_response(tmp_path: Path) -> None:
     rates = [float(r) for r in range(-5, 6)]
     p = tmp_path / "lin.h5"
     dwell, settle = 4.0, 1.0
-    w = _writer(p, _config("linearity", dwell, settle, extra=f"linearity_rates_dps = {rates}"),
-                ["level"] * len(rates), truth=False, mode="hardware")
+    w = _writer(
+        p,
+        _config("linearity", dwell, settle, extra=f"linearity_rates_dps = {rates}"),
+        ["level"] * len(rates),
+        truth=False,
+        mode="hardware",
+    )
     for i, r in enumerate(rates):
         t = np.arange(round(i * dwell * FS), round((i + 1) * dwell * FS)) / FS
         _lockin(w, t, SF0 * r + 1e-3 + k * r * r + DITHER_LEAK_V * square(t))
-        w.append("table", time=t[::700], rate_command=r + 0 * t[::700], rate_measured=r + 0 * t[::700],
-                 position=0 * t[::700])
-        w.append_step(index=i, kind="level", t_start=i * dwell, t_end=(i + 1) * dwell, table_rate=r,
-                      chamber_setpoint=25.0, status="completed")
+        w.append(
+            "table", time=t[::700], rate_command=r + 0 * t[::700], rate_measured=r + 0 * t[::700], position=0 * t[::700]
+        )
+        w.append_step(
+            index=i,
+            kind="level",
+            t_start=i * dwell,
+            t_end=(i + 1) * dwell,
+            table_rate=r,
+            chamber_setpoint=25.0,
+            status="completed",
+        )
     w.close()
     lin = analyze(p).linearity
     assert lin["sf_v_per_dps"] == pytest.approx(SF0, rel=1e-9)

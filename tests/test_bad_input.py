@@ -42,8 +42,12 @@ def _numeric_fields() -> list[tuple[str, str, type, dict[str, float]]]:
             base = [a for a in getattr(ann, "__args__", (ann,)) if a is not type(None)]
             if len(base) != 1 or base[0] not in (int, float) or not prefix:
                 continue
-            bounds = {attr: getattr(m, attr) for m in info.metadata for attr in ("ge", "gt", "le", "lt")
-                      if getattr(m, attr, None) is not None}
+            bounds = {
+                attr: getattr(m, attr)
+                for m in info.metadata
+                for attr in ("ge", "gt", "le", "lt")
+                if getattr(m, attr, None) is not None
+            }
             if bounds:
                 out.append((prefix, key, base[0], bounds))
 
@@ -202,7 +206,7 @@ def good_config(tmp_path_factory) -> Path:
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(rate=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6)))
+@given(rate=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-(10**6), 10**6)))
 def test_manual_table_rate_outside_the_limits_is_refused(good_config, rate):
     assume(not (isinstance(rate, (int, float)) and math.isfinite(rate) and abs(rate) <= 100.0))
     # "--" ends the options, so that a negative rate is not read as an option
@@ -219,15 +223,18 @@ def test_non_numeric_cli_arguments_are_usage_errors(good_config, word):
     assert result.exit_code == 2 and "setpoint_c" in result.output and "Traceback" not in result.output
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["run", "{cfg}", "--sim", "--resume", "{tmp}/missing.h5"], "no such run file"),
-    (["run", "{cfg}", "--sim", "--resume", "{cfg}"], "not an HDF5 file"),
-    (["run", "{cfg}", "--sim", "-o", "{tmp}/a.h5", "--resume", "{tmp}/b.h5"], "name different files"),
-    (["run", "{cfg}", "--sim", "--bogus"], "No such option"),
-    (["analyze", "{tmp}/missing.h5"], "no such run file"),
-    (["analyze", "{cfg}"], "not an HDF5 file"),
-    (["characterize", "sideways", "{cfg}"], "sideways"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["run", "{cfg}", "--sim", "--resume", "{tmp}/missing.h5"], "no such run file"),
+        (["run", "{cfg}", "--sim", "--resume", "{cfg}"], "not an HDF5 file"),
+        (["run", "{cfg}", "--sim", "-o", "{tmp}/a.h5", "--resume", "{tmp}/b.h5"], "name different files"),
+        (["run", "{cfg}", "--sim", "--bogus"], "No such option"),
+        (["analyze", "{tmp}/missing.h5"], "no such run file"),
+        (["analyze", "{cfg}"], "not an HDF5 file"),
+        (["characterize", "sideways", "{cfg}"], "sideways"),
+    ],
+)
 def test_bad_arguments_and_files(tmp_path, good_config, args, fragment):
     argv = [a.format(cfg=good_config, tmp=tmp_path) for a in args]
     _assert_bad_input(RUNNER.invoke(app, argv), fragment)
@@ -240,16 +247,23 @@ def test_existing_output_is_not_overwritten(tmp_path, good_config):
     assert out.read_bytes() == b"precious"
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("[plan]\ndwell_s = 'long'\n", "plan.dwell_s"),
-    ("[sim.faults]\nserial_timeout_prob = 2\n", "sim.faults.serial_timeout_prob"),
-    ("[recovery]\ntimeout_s = -1\n", "recovery.timeout_s"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("[plan]\ndwell_s = 'long'\n", "plan.dwell_s"),
+        ("[sim.faults]\nserial_timeout_prob = 2\n", "sim.faults.serial_timeout_prob"),
+        ("[recovery]\ntimeout_s = -1\n", "recovery.timeout_s"),
+    ],
+)
 def test_real_exit_code_2_from_the_installed_command(tmp_path, text, fragment):
     path = tmp_path / "c.toml"
     path.write_text(text)
-    done = subprocess.run([sys.executable, "-m", "qmg_lab", "run", str(path), "--sim", "-o", str(tmp_path / "r.h5")],
-                          capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "run", str(path), "--sim", "-o", str(tmp_path / "r.h5")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 2
     assert fragment in done.stderr and "allowed:" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "r.h5").exists()

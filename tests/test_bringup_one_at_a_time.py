@@ -28,8 +28,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def qmg(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
 
 
 class RealTable:
@@ -82,10 +83,12 @@ def test_table_rate_and_stop_reach_the_real_table_over_socket(tmp_path: Path, re
 def test_table_bring_up_connects_nothing_else(tmp_path: Path, real_table: RealTable) -> None:
     """The other three are 'hardware' at addresses where nothing answers: table rate must not touch them."""
     dead = closed_port()
-    text = (f'[campaign]\nname = "table only"\n[lockin]\nsim = false\nhost = "127.0.0.1"\nport = {dead}\n'
-            f'[generator]\nsim = false\nresource = "ASRL/dev/nonexistent-qmg::INSTR"\nvisa_backend = "@py"\n'
-            f'[chamber]\nsim = false\nport = "socket://127.0.0.1:{dead}"\n'
-            f'[table]\nsim = false\nport = "{real_table.url}"\n')
+    text = (
+        f'[campaign]\nname = "table only"\n[lockin]\nsim = false\nhost = "127.0.0.1"\nport = {dead}\n'
+        f'[generator]\nsim = false\nresource = "ASRL/dev/nonexistent-qmg::INSTR"\nvisa_backend = "@py"\n'
+        f'[chamber]\nsim = false\nport = "socket://127.0.0.1:{dead}"\n'
+        f'[table]\nsim = false\nport = "{real_table.url}"\n'
+    )
     cfg = tmp_path / "bench.toml"
     cfg.write_text(text, encoding="utf-8")
     proc = qmg("table", "rate", str(cfg), "--", "-2.5")
@@ -136,8 +139,12 @@ def test_a_whole_run_with_only_the_table_real(tmp_path: Path, real_table: RealTa
     with h5py.File(out, "r") as f:
         assert f.attrs["status"] == "completed"
         assert f.attrs["mode"] == "hardware"  # a real instrument took part
-        assert json.loads(f.attrs["instrument_modes"]) == {"lockin": "twin", "generator": "twin",
-                                                           "table": "hardware", "chamber": "twin"}
+        assert json.loads(f.attrs["instrument_modes"]) == {
+            "lockin": "twin",
+            "generator": "twin",
+            "table": "hardware",
+            "chamber": "twin",
+        }
         measured = f["table/rate_measured"][:]
         command = f["table/rate_command"][:]
         assert f["steps/status"].shape[0] == 5

@@ -24,8 +24,9 @@ ADEV = ROOT / "configs" / "clsf_adev.toml"
 
 
 def qmg(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.run([sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
     if check and proc.returncode != 0:
         raise AssertionError(f"qmg-lab {' '.join(args)} exited {proc.returncode}:\n{proc.stdout}\n{proc.stderr}")
     return proc
@@ -113,8 +114,17 @@ def rms(x: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------------ contract
 
 
-ROOT_ATTRS = ("format", "created", "t0_unix", "software_version", "mode", "config_toml", "config_sha256", "status",
-              "abort_reason")
+ROOT_ATTRS = (
+    "format",
+    "created",
+    "t0_unix",
+    "software_version",
+    "mode",
+    "config_toml",
+    "config_sha256",
+    "status",
+    "abort_reason",
+)
 CONTRACT = {
     "lockin": ("time", "x_sense", "y_sense", "rate_output", "drive_amplitude", "drive_frequency", "dither"),
     "clsf": ("time", "eta", "sf_change_estimate", "gain_correction"),
@@ -238,8 +248,9 @@ def test_clsf_correct_mode_allan_deviation(tmp_path: Path) -> None:
     sec = np.floor(tt[keep] - tt[keep][0]).astype(np.int64)  # whole seconds, at whatever rate the HF2 streams
     counts = np.bincount(sec)
     per_s = (np.bincount(sec, weights=sf[keep]) / np.maximum(counts, 1))[counts >= 0.9 * np.median(counts)]
-    taus, ad, _, _ = allantools.oadev(per_s / per_s.mean() - 1, rate=1.0, data_type="freq",
-                                      taus=np.array([60.0, 2000.0]))
+    taus, ad, _, _ = allantools.oadev(
+        per_s / per_s.mean() - 1, rate=1.0, data_type="freq", taus=np.array([60.0, 2000.0])
+    )
     assert ad[0] <= 30e-6 and ad[1] <= 2e-6, (taus, ad)
     k = ct >= t0
     rate = 1.0 / float(np.median(np.diff(ct[k])))

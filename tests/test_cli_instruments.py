@@ -12,8 +12,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_instruments_json_identifies_every_twin_through_its_driver():
-    proc = subprocess.run([sys.executable, "-m", "qmg_lab", "instruments", "configs/paper_campaign.toml", "--sim",
-                           "--json"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "instruments", "configs/paper_campaign.toml", "--sim", "--json"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)
     assert set(report) == {"lockin", "generator", "table", "chamber"}
@@ -32,8 +37,13 @@ def test_instruments_json_identifies_every_twin_through_its_driver():
 def test_instruments_on_hardware_addresses_that_do_not_answer_exit_3():
     """Without --sim the station tries the configured bench; on this machine nothing answers: exit 3, a message
     naming what could not be reached, no traceback."""
-    proc = subprocess.run([sys.executable, "-m", "qmg_lab", "instruments", "configs/paper_campaign.toml", "--json"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "instruments", "configs/paper_campaign.toml", "--json"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 3, (proc.stdout, proc.stderr)
     assert "Traceback" not in proc.stderr
     assert "could not connect" in proc.stderr

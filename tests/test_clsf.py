@@ -24,18 +24,28 @@ from qmg_lab.demod_filter import DemodFilter
 
 TAU = 2 * 1.2e6 / (2 * math.pi * 2200)
 B = 0.8 * 0.5 / (0.06 * 180 / math.pi)  # beta = k R_d / SF, Vrms/s per V
-P = 2 * math.pi * 2.0 / B                # rate PI: 2 Hz bandwidth, zero on 1/tau
+P = 2 * math.pi * 2.0 / B  # rate PI: 2 Hz bandwidth, zero on 1/tau
 I = P / TAU
-KAPPA = 0.8 * 0.5                        # k R_d: X rate per rad/s of Omega
+KAPPA = 0.8 * 0.5  # k R_d: X rate per rad/s of Omega
 SUB = 2
 
 
 class Bench:
     """The closed FTR loop on a bench whose clocks share nothing (module docstring)."""
 
-    def __init__(self, rate_hz: float = 1800.0, dither_hz: float = 7.0, offset_ppm: float = 0.0,
-                 phase0: float = 0.37, order: int = 1, tc_s: float = 1e-4, dither_vpp: float = 0.6,
-                 arw: float = 0.0, pickoff: float = 0.0, seed: int = 0) -> None:
+    def __init__(
+        self,
+        rate_hz: float = 1800.0,
+        dither_hz: float = 7.0,
+        offset_ppm: float = 0.0,
+        phase0: float = 0.37,
+        order: int = 1,
+        tc_s: float = 1e-4,
+        dither_vpp: float = 0.6,
+        arw: float = 0.0,
+        pickoff: float = 0.0,
+        seed: int = 0,
+    ) -> None:
         self.dt = 1.0 / rate_hz
         self.h = self.dt / SUB
         self.f = dither_hz * (1 + offset_ppm * 1e-6)
@@ -63,6 +73,7 @@ class Bench:
         def w_int(u: float) -> float:
             fr = u - math.floor(u)
             return fr if fr < 0.5 else 1.0 - fr
+
         u0, u1 = self.f * t0 + self.phase0, self.f * t1 + self.phase0
         return self.amp * (w_int(u1) - w_int(u0)) / (u1 - u0)
 
@@ -70,8 +81,9 @@ class Bench:
         u = self.f * t + self.phase0
         return self.amp if (u - math.floor(u)) < 0.5 else -self.amp
 
-    def run(self, n: int, beta: float | np.ndarray = B, omega: float = 0.0, gain: float = 1.0
-            ) -> tuple[np.ndarray, ...]:
+    def run(
+        self, n: int, beta: float | np.ndarray = B, omega: float = 0.0, gain: float = 1.0
+    ) -> tuple[np.ndarray, ...]:
         """n samples: (t, x_sense, rate AuxIn, dither AuxIn)."""
         beta_arr = np.broadcast_to(np.asarray(beta, dtype=float), (n,))
         t_out, x_out, r_out, d_out = (np.empty(n) for _ in range(4))
@@ -88,7 +100,7 @@ class Bench:
             t = self.k * self.dt
             y = self.state[-1] + (self.pickoff * self.rng.standard_normal() if self.pickoff else 0.0)
             t_out[i], x_out[i] = t, y
-            r_out[i] = self.v          # the AuxOut voltage at this instant (end of its ramp)
+            r_out[i] = self.v  # the AuxOut voltage at this instant (end of its ramp)
             d_out[i] = self._square(t)
             e = -y
             self.integ += e * self.dt
@@ -103,22 +115,31 @@ def estimator(bench_order: int = 1, tc_s: float = 1e-4, **kw: object) -> ClsfEst
 
 
 def feed(est: ClsfEstimator, t: np.ndarray, x: np.ndarray, r: np.ndarray, d: np.ndarray, block: int = 900):
-    outs = [est.process(t[i:i + block], x[i:i + block], r[i:i + block], d[i:i + block])
-            for i in range(0, t.size, block)]
-    return (np.concatenate([o.time for o in outs]), np.concatenate([o.sf_change_estimate for o in outs]),
-            np.concatenate([o.rate_output_mean for o in outs]), np.concatenate([o.eta for o in outs]))
+    outs = [
+        est.process(t[i : i + block], x[i : i + block], r[i : i + block], d[i : i + block])
+        for i in range(0, t.size, block)
+    ]
+    return (
+        np.concatenate([o.time for o in outs]),
+        np.concatenate([o.sf_change_estimate for o in outs]),
+        np.concatenate([o.rate_output_mean for o in outs]),
+        np.concatenate([o.eta for o in outs]),
+    )
 
 
-@pytest.mark.parametrize(("rate_hz", "dither_hz", "offset_ppm", "order", "tc_s"), [
-    (1800.0, 7.0, 0.0, 1, 1e-4),       # 257.14 samples per period, edges between samples
-    (3600.0, 7.3, 50.0, 4, 1e-3),      # incommensurate, fast DS345, 4th-order 1 ms filter
-    (1800.0, 8.5, -50.0, 8, 1e-3),     # slow DS345, 8th-order 1 ms filter: 8 ms of filter lag
-    (900.0, 5.3, 20.0, 2, 3e-4),
-])
+@pytest.mark.parametrize(
+    ("rate_hz", "dither_hz", "offset_ppm", "order", "tc_s"),
+    [
+        (1800.0, 7.0, 0.0, 1, 1e-4),  # 257.14 samples per period, edges between samples
+        (3600.0, 7.3, 50.0, 4, 1e-3),  # incommensurate, fast DS345, 4th-order 1 ms filter
+        (1800.0, 8.5, -50.0, 8, 1e-3),  # slow DS345, 8th-order 1 ms filter: 8 ms of filter lag
+        (900.0, 5.3, 20.0, 2, 3e-4),
+    ],
+)
 def test_gain_step_reads_exact_sf_change_on_an_asynchronous_bench(rate_hz, dither_hz, offset_ppm, order, tc_s):
     n = int(rate_hz * 24)
     beta = np.full(n, B)
-    beta[n // 2:] = B * 1.01
+    beta[n // 2 :] = B * 1.01
     bench = Bench(rate_hz, dither_hz, offset_ppm, order=order, tc_s=tc_s)
     t, x, r, d = bench.run(n, beta)
     est = estimator(order, tc_s, reference_periods=20)
@@ -159,7 +180,7 @@ def test_noisy_record_is_unbiased():
     rate_hz = 1800.0
     n = int(rate_hz * 60)
     beta = np.full(n, B)
-    beta[n // 2:] = B * 1.005
+    beta[n // 2 :] = B * 1.005
     bench = Bench(rate_hz, 7.3, -20.0, arw=2e-4, pickoff=2e-6, seed=3)
     t, x, r, d = bench.run(n, beta)
     est = estimator(reference_periods=100)
@@ -200,7 +221,7 @@ def test_a_gap_in_the_stream_restarts_cleanly():
     t, x, r, d = Bench(1800.0, 7.0).run(1800 * 12)
     est = estimator(reference_periods=10)
     keep = np.ones(t.size, dtype=bool)
-    keep[1800 * 6:1800 * 6 + 50] = False  # 50 samples lost mid-run
+    keep[1800 * 6 : 1800 * 6 + 50] = False  # 50 samples lost mid-run
     tt, sf, _, _ = feed(est, t[keep], x[keep], r[keep], d[keep])
     assert abs(sf.mean()) < 2e-5 and np.max(np.abs(sf)) < 2e-4
     assert np.any(tt > 7.0)

@@ -50,10 +50,12 @@ def test_filter_gain_and_bandwidth() -> None:
 # ---------------------------------------------------------------------------------------------- edges
 def _square_record(t: np.ndarray, period: float, t0: float, window: float) -> np.ndarray:
     """AuxIn readings of a +-1 square wave (high on [t0 + k T, t0 + (k + 1/2) T)), each the mean over [t - W, t]."""
+
     def integral(x: np.ndarray) -> np.ndarray:  # of the square wave from t0
         u = (x - t0) / period
         fr = u - np.floor(u)
         return period * np.where(fr < 0.5, fr, 1.0 - fr)
+
     if window == 0:
         u = (t - t0) / period
         return np.where(u - np.floor(u) < 0.5, 1.0, -1.0)
@@ -76,7 +78,7 @@ def test_edges_between_instantaneous_readings_are_refined_by_the_line_fit() -> N
     t = np.arange(1, 1800 * 30) * dt
     d = _square_record(t, period, t0, 0.0)
     tracker = EdgeTracker()
-    parts = [tracker.process(t[i:i + 3600], d[i:i + 3600]) for i in range(0, t.size, 3600)]
+    parts = [tracker.process(t[i : i + 3600], d[i : i + 3600]) for i in range(0, t.size, 3600)]
     rising = np.concatenate([p[0] for p in parts])
     falling = np.concatenate([p[1] for p in parts])
     true_r = t0 + period * np.round((rising - t0) / period)

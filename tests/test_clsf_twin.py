@@ -31,15 +31,20 @@ def _config(order: int, tc_s: float, rate_hz: float, dither_hz: float, offset_pp
     text = (ROOT / "configs" / "paper_campaign.toml").read_text()
     text = text.replace("demod_rate_hz = 1800.0", f"demod_rate_hz = {rate_hz}")
     text = text.replace("frequency_hz = 7.0", f"frequency_hz = {dither_hz}")
-    text = text.replace("[lockin]                       # HF2LI via the HF2 data server (port 8005)",
-                        f"[lockin]\ndemod_order = {order}\ndemod_timeconstant_s = {tc_s}")
-    text += (f"arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
-             f"ds345_timebase_offset_ppm = {offset_ppm}\n")
+    text = text.replace(
+        "[lockin]                       # HF2LI via the HF2 data server (port 8005)",
+        f"[lockin]\ndemod_order = {order}\ndemod_timeconstant_s = {tc_s}",
+    )
+    text += (
+        f"arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
+        f"ds345_timebase_offset_ppm = {offset_ppm}\n"
+    )
     return parse_config(text).with_all_sim()
 
 
-def measured_sensitivity(order: int, tc_s: float, rate_hz: float = 1800.0, dither_hz: float = 7.0,
-                         offset_ppm: float = 3.0) -> float:
+def measured_sensitivity(
+    order: int, tc_s: float, rate_hz: float = 1800.0, dither_hz: float = 7.0, offset_ppm: float = 3.0
+) -> float:
     cfg = _config(order, tc_s, rate_hz, dither_hz, offset_ppm)
     station = build_station(cfg)
     try:
@@ -76,8 +81,13 @@ def test_sensitivity_is_one_for_every_filter_setting(order, tc_s):
     assert measured_sensitivity(order, tc_s) == pytest.approx(1.0, abs=1e-3)
 
 
-@pytest.mark.parametrize(("rate_hz", "dither_hz", "offset_ppm"), [
-    (3600.0, 7.3, 50.0), (900.0, 5.3, -50.0), (1800.0, 9.7, -20.0),
-])
+@pytest.mark.parametrize(
+    ("rate_hz", "dither_hz", "offset_ppm"),
+    [
+        (3600.0, 7.3, 50.0),
+        (900.0, 5.3, -50.0),
+        (1800.0, 9.7, -20.0),
+    ],
+)
 def test_sensitivity_is_one_at_other_rates_and_incommensurate_dithers(rate_hz, dither_hz, offset_ppm):
     assert measured_sensitivity(4, 3e-4, rate_hz, dither_hz, offset_ppm) == pytest.approx(1.0, abs=1e-3)

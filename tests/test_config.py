@@ -17,19 +17,22 @@ def test_shipped_configs_validate(name):
     assert text and cfg.device.f0_hz > 0
 
 
-@pytest.mark.parametrize("text, fragment", [
-    ("[loops]\nrate_bandwidth_hz = -1\n", "loops.rate_bandwidth_hz"),
-    ("[loops]\nrate_bandwidth_hz = 8\n", "must be below dither.frequency_hz"),
-    ("[plan]\ndwell_s = 5\nsettle_s = 10\n", "plan.settle_s"),
-    ("[plan]\nbogus = 1\n", "plan.bogus: unknown key"),
-    ("[nosuchsection]\n", "nosuchsection: unknown key"),
-    ("[clsf]\nmode = 'sometimes'\n", "clsf.mode"),
-    ("[lockin]\ndevice = 'hf2'\n", "lockin.device"),
-    ("[lockin]\nrate_auxin = 1\ndither_auxin = 1\n", "must be different AuxIn"),
-    ("[chamber]\nmin_c = 50\nmax_c = 40\n", "chamber.min_c"),
-    ("[device]\nf0_hz = 'fast'\n", "device.f0_hz"),
-    ("[table\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("[loops]\nrate_bandwidth_hz = -1\n", "loops.rate_bandwidth_hz"),
+        ("[loops]\nrate_bandwidth_hz = 8\n", "must be below dither.frequency_hz"),
+        ("[plan]\ndwell_s = 5\nsettle_s = 10\n", "plan.settle_s"),
+        ("[plan]\nbogus = 1\n", "plan.bogus: unknown key"),
+        ("[nosuchsection]\n", "nosuchsection: unknown key"),
+        ("[clsf]\nmode = 'sometimes'\n", "clsf.mode"),
+        ("[lockin]\ndevice = 'hf2'\n", "lockin.device"),
+        ("[lockin]\nrate_auxin = 1\ndither_auxin = 1\n", "must be different AuxIn"),
+        ("[chamber]\nmin_c = 50\nmax_c = 40\n", "chamber.min_c"),
+        ("[device]\nf0_hz = 'fast'\n", "device.f0_hz"),
+        ("[table\n", "not valid TOML"),
+    ],
+)
 def test_bad_values_name_the_field(text, fragment):
     with pytest.raises(ConfigError) as err:
         parse_config(text, "x.toml")

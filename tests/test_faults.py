@@ -113,8 +113,9 @@ def test_a_dropped_visa_link_fails_io_and_reopening():
 
     world = World()
     twin = DS345Twin(world)
-    inj = FaultInjector(world, FaultPlan(disconnect_at_s=(1.0,), disconnect_duration_s=2.0,
-                                         disconnect_instrument="generator"))
+    inj = FaultInjector(
+        world, FaultPlan(disconnect_at_s=(1.0,), disconnect_duration_s=2.0, disconnect_instrument="generator")
+    )
     opener = inj.visa_link("generator", twin.resource)
     res = opener()
     res.read_termination = "\n"
@@ -130,8 +131,9 @@ def test_a_dropped_visa_link_fails_io_and_reopening():
 
 def test_chamber_overshoot_decays_exponentially_from_the_block_that_contains_it():
     world = World()
-    FaultInjector(world, FaultPlan(chamber_overshoot_at_s=10.5, chamber_overshoot_c=5.0,
-                                   chamber_overshoot_decay_s=30.0))
+    FaultInjector(
+        world, FaultPlan(chamber_overshoot_at_s=10.5, chamber_overshoot_c=5.0, chamber_overshoot_decay_s=30.0)
+    )
     advance_to(world, 10.0)
     assert world.chamber.disturbance_c == 0.0
     advance_to(world, 11.0)  # the block [10, 11) contains 10.5: set at its start, d = 5 exp(-0) (t0 < at)
@@ -205,17 +207,20 @@ def test_sample_loss_is_counted_and_leaves_a_gap(tmp_path, baseline):
     assert gaps == pytest.approx([101 * DT_S, 101 * DT_S], rel=1e-3)
 
 
-@pytest.mark.parametrize("faults, extra_s", [
-    # link down [40, 45): the table read at 41 fails, blocks ending 43 and 45 are logged suspended; the retry at
-    # 45 succeeds; the three blocks [39, 45) do not count -> +6 s
-    ("disconnect_at_s = [40.0]\ndisconnect_duration_s = 5.0", 6.0),
-    # the same grid for the chamber link and for the chamber's sensor (C1? refused in [40, 45))
-    ("disconnect_at_s = [40.0]\ndisconnect_duration_s = 5.0\ndisconnect_instrument = 'chamber'", 6.0),
-    ("chamber_dropout_at_s = 40.0\nchamber_dropout_duration_s = 5.0", 6.0),
-    # generator down [1, 5): the dither step's FUNC at t = 2 fails; retries after the blocks ending 4 and 6;
-    # the one at 6 succeeds -> the two blocks [2, 6) do not count -> +4 s
-    ("disconnect_at_s = [1.0]\ndisconnect_duration_s = 4.0\ndisconnect_instrument = 'generator'", 4.0),
-])
+@pytest.mark.parametrize(
+    "faults, extra_s",
+    [
+        # link down [40, 45): the table read at 41 fails, blocks ending 43 and 45 are logged suspended; the retry at
+        # 45 succeeds; the three blocks [39, 45) do not count -> +6 s
+        ("disconnect_at_s = [40.0]\ndisconnect_duration_s = 5.0", 6.0),
+        # the same grid for the chamber link and for the chamber's sensor (C1? refused in [40, 45))
+        ("disconnect_at_s = [40.0]\ndisconnect_duration_s = 5.0\ndisconnect_instrument = 'chamber'", 6.0),
+        ("chamber_dropout_at_s = 40.0\nchamber_dropout_duration_s = 5.0", 6.0),
+        # generator down [1, 5): the dither step's FUNC at t = 2 fails; retries after the blocks ending 4 and 6;
+        # the one at 6 succeeds -> the two blocks [2, 6) do not count -> +4 s
+        ("disconnect_at_s = [1.0]\ndisconnect_duration_s = 4.0\ndisconnect_instrument = 'generator'", 4.0),
+    ],
+)
 def test_a_link_that_comes_back_is_recovered(tmp_path, baseline, faults, extra_s):
     out = run_inprocess(tmp_path, config_text(faults))
     assert out.error is None, out.error
@@ -235,8 +240,10 @@ def test_no_reading_is_invented_while_the_table_is_away(tmp_path):
 
 
 def test_chamber_overshoot_suspends_until_back_in_band(tmp_path, baseline):
-    out = run_inprocess(tmp_path, config_text("chamber_overshoot_at_s = 40.0\nchamber_overshoot_c = 5.0\n"
-                                              "chamber_overshoot_decay_s = 30.0"))
+    out = run_inprocess(
+        tmp_path,
+        config_text("chamber_overshoot_at_s = 40.0\nchamber_overshoot_c = 5.0\nchamber_overshoot_decay_s = 30.0"),
+    )
     assert out.error is None and out.summary.status == "completed" and out.summary.suspensions == 1
     _steps_once(out)
     # the air physics is the same in both runs (every rate step targets 26 degC); the reading at the end of
@@ -253,8 +260,12 @@ def test_chamber_overshoot_suspends_until_back_in_band(tmp_path, baseline):
 
 
 def test_random_transaction_faults_are_all_recovered(tmp_path):
-    out = run_inprocess(tmp_path, config_text("serial_timeout_prob = 0.02\nserial_garble_prob = 0.02\n"
-                                              "visa_timeout_prob = 0.05\nvisa_garble_prob = 0.05"))
+    out = run_inprocess(
+        tmp_path,
+        config_text(
+            "serial_timeout_prob = 0.02\nserial_garble_prob = 0.02\nvisa_timeout_prob = 0.05\nvisa_garble_prob = 0.05"
+        ),
+    )
     assert out.error is None and out.summary.status == "completed"
     kinds = {f["kind"] for f in out.summary.faults_injected}
     assert {"serial_timeout", "serial_garbled", "serial_truncated"} <= kinds
@@ -284,8 +295,10 @@ def test_a_link_that_stays_down_aborts_after_the_recovery_timeout(tmp_path):
 
 
 def test_an_unreachable_instrument_is_reported_not_confirmed(tmp_path):
-    text = config_text("disconnect_at_s = [40.0]\ndisconnect_duration_s = 3600.0",
-                       extra="[recovery]\ntimeout_s = 4.0\nsafe_state_timeout_s = 4.0\n")
+    text = config_text(
+        "disconnect_at_s = [40.0]\ndisconnect_duration_s = 3600.0",
+        extra="[recovery]\ntimeout_s = 4.0\nsafe_state_timeout_s = 4.0\n",
+    )
     out = run_inprocess(tmp_path, text)
     assert isinstance(out.error, CampaignAborted)
     assert not out.summary.safe_state_confirmed

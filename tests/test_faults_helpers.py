@@ -71,13 +71,23 @@ class Outcome:
     def world_is_safe(self) -> bool:
         """Safe state on the twins: table commanded to 0, DS345 muted, chamber at its safe setpoint, HF2
         signal outputs off."""
-        return (self.world.table.rate_command_dps == 0.0 and self.world.dither.amplitude_vpp == 0.0
-                and self.world.chamber.target_c == SAFE_SETPOINT_C
-                and self.lockin_state["sigouts_on"] == {"drive": 0, "forcer": 0})
+        return (
+            self.world.table.rate_command_dps == 0.0
+            and self.world.dither.amplitude_vpp == 0.0
+            and self.world.chamber.target_c == SAFE_SETPOINT_C
+            and self.lockin_state["sigouts_on"] == {"drive": 0, "forcer": 0}
+        )
 
 
-def run_inprocess(tmp_path: Path, text: str, *, name: str = "run.h5", resume: bool = False,
-                  progress: Any = None, writer_cls: type[RunWriter] = RunWriter) -> Outcome:
+def run_inprocess(
+    tmp_path: Path,
+    text: str,
+    *,
+    name: str = "run.h5",
+    resume: bool = False,
+    progress: Any = None,
+    writer_cls: type[RunWriter] = RunWriter,
+) -> Outcome:
     """Run the campaign of `text` on the twins in this process; never raises (the error is returned)."""
     cfg = parse_config(text)
     world = make_world(cfg)
@@ -87,9 +97,17 @@ def run_inprocess(tmp_path: Path, text: str, *, name: str = "run.h5", resume: bo
     if resume:
         writer = writer_cls.reopen(path, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s)
     else:
-        writer = writer_cls.create(path, config_text=text, config_sha256=sha, mode="sim", software_version="test",
-                                   t0_unix=0.0, flush_interval_s=cfg.storage.flush_interval_s,
-                                   compression="none", truth=True)
+        writer = writer_cls.create(
+            path,
+            config_text=text,
+            config_sha256=sha,
+            mode="sim",
+            software_version="test",
+            t0_unix=0.0,
+            flush_interval_s=cfg.storage.flush_interval_s,
+            compression="none",
+            truth=True,
+        )
     runner = CampaignRunner(cfg, station, writer, progress=progress, resume=resume)
     error: BaseException | None = None
     try:

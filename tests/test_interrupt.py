@@ -81,8 +81,9 @@ def test_cli_exits_130_on_sigint(tmp_path):
     cfg = tmp_path / "long.toml"
     cfg.write_text(long_config())
     path = tmp_path / "run.h5"
-    proc = subprocess.Popen(qmg("run", str(cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        qmg("run", str(cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     while completed_steps(path) < 5:
         try:
             proc.wait(timeout=0.02)
@@ -101,9 +102,18 @@ def test_cli_exits_130_on_sigint(tmp_path):
 def test_main_maps_a_stray_keyboard_interrupt_to_130():
     # SIGINT back to Python's default handler first: a suite started in the background (nohup, '&' without job
     # control) hands its children SIGINT ignored, and the kill below would then do nothing
-    done = subprocess.run([sys.executable, "-c", "import signal, os\n"
-                           "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
-                           "from qmg_lab import cli\n"
-                           "cli.app = lambda: os.kill(os.getpid(), signal.SIGINT)\n"
-                           "cli.main()"], capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import signal, os\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+            "from qmg_lab import cli\n"
+            "cli.app = lambda: os.kill(os.getpid(), signal.SIGINT)\n"
+            "cli.main()",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 130

@@ -16,8 +16,10 @@ def cfg(text: str = "") -> Config:
 
 
 def test_paper_sweep_alternates_rates_over_ramp_and_end_hold():
-    c = cfg("[plan]\nchamber_start_c = 25\nchamber_end_c = 35\nchamber_ramp_c_per_min = 0.25\n"
-            "chamber_end_hold_s = 600\ndwell_s = 60\n")
+    c = cfg(
+        "[plan]\nchamber_start_c = 25\nchamber_end_c = 35\nchamber_ramp_c_per_min = 0.25\n"
+        "chamber_end_hold_s = 600\ndwell_s = 60\n"
+    )
     steps = build_plan(c)
     kinds = [s.kind for s in steps]
     assert kinds[:3] == ["lock", "dither", "soak"] and kinds[-1] == "return"
@@ -49,14 +51,17 @@ def test_dither_amplitude_is_twice_virtual_rate_times_sf():
     assert dither_amplitude_vpp(c) == pytest.approx(1.8)
 
 
-@pytest.mark.parametrize("text, what", [
-    ("[plan]\ntable_rate_dps = 150\n[table]\nmax_rate_dps = 100\n", "table rate"),
-    ("[plan]\ntable_accel_dps2 = 800\n[table]\nmax_accel_dps2 = 500\n", "table acceleration"),
-    ("[plan]\nchamber_end_c = 90\n[chamber]\nmax_c = 85\n", "chamber setpoint (highest)"),
-    ("[plan]\nchamber_ramp_c_per_min = 10\n[chamber]\nmax_ramp_c_per_min = 5\n", "chamber ramp"),
-    ("[dither]\nvirtual_rate_dps = 90\n", "dither amplitude"),
-    ("[plan]\ntable_rate_dps = 170\n[table]\nmax_rate_dps = 200\n", "peak forcer command"),
-])
+@pytest.mark.parametrize(
+    "text, what",
+    [
+        ("[plan]\ntable_rate_dps = 150\n[table]\nmax_rate_dps = 100\n", "table rate"),
+        ("[plan]\ntable_accel_dps2 = 800\n[table]\nmax_accel_dps2 = 500\n", "table acceleration"),
+        ("[plan]\nchamber_end_c = 90\n[chamber]\nmax_c = 85\n", "chamber setpoint (highest)"),
+        ("[plan]\nchamber_ramp_c_per_min = 10\n[chamber]\nmax_ramp_c_per_min = 5\n", "chamber ramp"),
+        ("[dither]\nvirtual_rate_dps = 90\n", "dither amplitude"),
+        ("[plan]\ntable_rate_dps = 170\n[table]\nmax_rate_dps = 200\n", "peak forcer command"),
+    ],
+)
 def test_limits_refused_with_the_limit_named(text, what):
     c = cfg(text)
     steps = build_plan(c)

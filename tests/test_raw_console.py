@@ -24,8 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def qmg(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT,
-                          timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
 
 
 def write(tmp: Path, text: str) -> Path:
@@ -34,13 +35,17 @@ def write(tmp: Path, text: str) -> Path:
     return p
 
 
-@pytest.mark.parametrize(("reply_end", "prompt_end", "received"), [
-    (b"\r", b"\r", b"10\r>\r"),
-    (b"\r\n", b"\r\n", b"10\r\n>\r\n"),
-    (b"\n", b"", b"10\n>"),
-])
-def test_table_raw_prints_the_bytes_of_a_real_serial_exchange(tmp_path: Path, reply_end: bytes, prompt_end: bytes,
-                                                              received: bytes) -> None:
+@pytest.mark.parametrize(
+    ("reply_end", "prompt_end", "received"),
+    [
+        (b"\r", b"\r", b"10\r>\r"),
+        (b"\r\n", b"\r\n", b"10\r\n>\r\n"),
+        (b"\n", b"", b"10\n>"),
+    ],
+)
+def test_table_raw_prints_the_bytes_of_a_real_serial_exchange(
+    tmp_path: Path, reply_end: bytes, prompt_end: bytes, received: bytes
+) -> None:
     twin = RateTableTwin(World(WorldParams(), clock="wall"), reply_end=reply_end, prompt_end=prompt_end)
     url, stop = serve_socket(twin, "127.0.0.1")
     try:
@@ -96,12 +101,15 @@ def test_lockin_set_then_get_on_the_twin() -> None:
     assert "<< getDouble('/dev1234/oscs/0/freq') -> 2201.5" in proc.stdout
 
 
-@pytest.mark.parametrize(("args", "code", "message"), [
-    (("table", "raw", "configs/paper_campaign.toml", "", "--sim"), 2, "the command is empty"),
-    (("table", "raw", "configs/paper_campaign.toml", "STA", "--sim", "--idle", "0"), 2, "--idle 0 s"),
-    (("lockin", "get", "configs/paper_campaign.toml", "oscs/0/nosuchnode", "--sim"), 2, "oscs/0/nosuchnode"),
-    (("table", "raw", "configs/paper_campaign.toml", "STA"), 3, "could not open the table's port"),
-])
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (("table", "raw", "configs/paper_campaign.toml", "", "--sim"), 2, "the command is empty"),
+        (("table", "raw", "configs/paper_campaign.toml", "STA", "--sim", "--idle", "0"), 2, "--idle 0 s"),
+        (("lockin", "get", "configs/paper_campaign.toml", "oscs/0/nosuchnode", "--sim"), 2, "oscs/0/nosuchnode"),
+        (("table", "raw", "configs/paper_campaign.toml", "STA"), 3, "could not open the table's port"),
+    ],
+)
 def test_raw_console_bad_input_and_absent_instrument(args: tuple[str, ...], code: int, message: str) -> None:
     proc = qmg(*args)
     assert proc.returncode == code, (proc.stdout, proc.stderr)

@@ -31,6 +31,7 @@ from qmg_lab.plan import build_plan
 from qmg_lab.storage import RunWriter, read_run
 from tests.test_faults_helpers import config_text, run_inprocess
 
+
 def long_config() -> str:
     """The short plan with 17 pairs of 10 s table steps (ceil((30 s ramp + 300 s hold) / 20 s)) and lock, dither, soak, return: 38 steps."""
     text = config_text()
@@ -59,8 +60,10 @@ def wait_for_steps(proc: subprocess.Popen, path: Path, n: int) -> int:
         except subprocess.TimeoutExpired:
             pass
         else:
-            pytest.fail(f"the run ended (exit {proc.returncode}) before {n} steps were recorded; "
-                        f"stderr: {proc.stderr.read() if proc.stderr else ''}")
+            pytest.fail(
+                f"the run ended (exit {proc.returncode}) before {n} steps were recorded; "
+                f"stderr: {proc.stderr.read() if proc.stderr else ''}"
+            )
         seen = completed_steps(path)
     return seen
 
@@ -73,8 +76,13 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
     assert len(planned) == 3 + 34 + 1
 
     path = tmp_path / "killed.h5"
-    proc = subprocess.Popen(qmg("run", str(cfg_path), "-o", str(path), "-q"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    proc = subprocess.Popen(
+        qmg("run", str(cfg_path), "-o", str(path), "-q"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
     seen = wait_for_steps(proc, path, 12)
     os.kill(proc.pid, signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL
@@ -89,8 +97,7 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
         assert len(steps_before) < len(planned)  # killed in the middle
 
     # the analysis reads the killed file and names exactly the steps the plan has and the file lacks
-    an = subprocess.run(qmg("analyze", str(path), "--json"), capture_output=True, text=True, cwd=tmp_path,
-                        timeout=120)
+    an = subprocess.run(qmg("analyze", str(path), "--json"), capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert an.returncode == 0, an.stderr
     res = json.loads(an.stdout)
     assert res["status"] == "running" and res["status_detail"] == "interrupted (process died)"
@@ -98,8 +105,13 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
     assert [m["index"] for m in res["missing_steps"]] == missing
     assert [m["kind"] for m in res["missing_steps"]] == [planned[i].kind for i in missing]
 
-    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
-                          cwd=tmp_path, timeout=120)
+    done = subprocess.run(
+        qmg("run", str(cfg_path), "--resume", str(path), "-q"),
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
 
     ref = run_inprocess(tmp_path, text, name="reference.h5")
@@ -143,8 +155,9 @@ def test_resume_refuses_another_configuration(tmp_path):
     assert out.run().status == "aborted"
     other = tmp_path / "other.toml"
     other.write_text(config_text(seed=4))
-    done = subprocess.run(qmg("run", str(other), "--resume", str(out.path), "-q"), capture_output=True, text=True,
-                          timeout=60)
+    done = subprocess.run(
+        qmg("run", str(other), "--resume", str(out.path), "-q"), capture_output=True, text=True, timeout=60
+    )
     assert done.returncode == 2
     assert "resume with the configuration the run was started with" in done.stderr
     assert "Traceback" not in done.stderr
@@ -161,8 +174,9 @@ def test_resuming_a_completed_run_is_refused_and_changes_nothing(tmp_path):
     cfg_path = tmp_path / "short.toml"
     cfg_path.write_text(text)
     before = file_digest(out.path)
-    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(out.path), "-q"), capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run(
+        qmg("run", str(cfg_path), "--resume", str(out.path), "-q"), capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2, done.stderr
     assert "already completed" in " ".join(done.stderr.split()) and "Traceback" not in done.stderr
     assert file_digest(out.path) == before
@@ -176,15 +190,24 @@ def test_resume_that_cannot_connect_changes_nothing(tmp_path):
     cfg_path = tmp_path / "bench.toml"
     cfg_path.write_text(text)
     path = tmp_path / "bench.h5"
-    w = RunWriter.create(path, config_text=text, config_sha256=config_fingerprint(text), mode="hardware",
-                         software_version="test", t0_unix=0.0, truth=False)
-    w.append_step(index=0, kind="lock", t_start=0.0, t_end=2.0, table_rate=0.0, chamber_setpoint=25.0,
-                  status="completed")
+    w = RunWriter.create(
+        path,
+        config_text=text,
+        config_sha256=config_fingerprint(text),
+        mode="hardware",
+        software_version="test",
+        t0_unix=0.0,
+        truth=False,
+    )
+    w.append_step(
+        index=0, kind="lock", t_start=0.0, t_end=2.0, table_rate=0.0, chamber_setpoint=25.0, status="completed"
+    )
     w.set_status("aborted", "power cut")
     w.close()
     before = file_digest(path)
-    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 3, done.stderr
     assert "could not connect" in " ".join(done.stderr.split()) and "Traceback" not in done.stderr
     assert file_digest(path) == before
@@ -197,12 +220,14 @@ def test_a_twin_run_is_not_resumed_on_the_hardware(tmp_path):
     cfg_path = tmp_path / "bench.toml"
     cfg_path.write_text(text)
     path = tmp_path / "twins.h5"
-    first = subprocess.run(qmg("run", str(cfg_path), "--sim", "-o", str(path), "-q"), capture_output=True,
-                           text=True, timeout=120)
+    first = subprocess.run(
+        qmg("run", str(cfg_path), "--sim", "-o", str(path), "-q"), capture_output=True, text=True, timeout=120
+    )
     assert first.returncode == 3, first.stderr  # the interlock
     before = file_digest(path)
-    done = subprocess.run(qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        qmg("run", str(cfg_path), "--resume", str(path), "-q"), capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2, done.stderr
     message = " ".join(done.stderr.split())  # the console wraps long lines
     assert "lockin was twin, now hardware" in message and "resume it with --sim" in message

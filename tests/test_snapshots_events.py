@@ -31,8 +31,11 @@ def test_every_run_file_holds_the_four_snapshots(tmp_path: Path) -> None:
     assert docs["generator"]["identity"].startswith("StanfordResearchSystems,DS345,")
     assert docs["generator"]["firmware"] == docs["generator"]["identity"].split(",")[3]
     assert "1291BR" in docs["table"]["identity"]
-    assert docs["table"]["settings"]["framing"] == {"command_terminator": "CRLF", "reply_terminator": "auto",
-                                                    "prompt": ">"}
+    assert docs["table"]["settings"]["framing"] == {
+        "command_terminator": "CRLF",
+        "reply_terminator": "auto",
+        "prompt": ">",
+    }
     assert docs["chamber"]["settings"]["safe_setpoint_c"] == 20.0  # SHORT_TOML
     assert "HF2LI" in docs["lockin"]["identity"]
     assert docs["lockin"]["state"]["pll"]["enable"] == 1  # taken after the loops were configured
@@ -46,8 +49,9 @@ def test_every_run_file_holds_the_four_snapshots(tmp_path: Path) -> None:
 
 def test_faults_reconnects_and_suspensions_are_logged_with_run_time(tmp_path: Path) -> None:
     # the table's link drops at 40 s for 6 s: reconnects fail, the campaign suspends, recovers, completes
-    out = run_inprocess(tmp_path, config_text("disconnect_at_s = [40.0]\ndisconnect_duration_s = 6.0\n"
-                                              "disconnect_instrument = \"table\""))
+    out = run_inprocess(
+        tmp_path, config_text('disconnect_at_s = [40.0]\ndisconnect_duration_s = 6.0\ndisconnect_instrument = "table"')
+    )
     assert out.error is None, out.error
     with h5py.File(out.path, "r", swmr=True) as f:
         events = read_events(f)

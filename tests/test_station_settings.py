@@ -39,8 +39,10 @@ def test_output_safe_v_reaches_the_lockin_safe_state() -> None:
 
 
 def test_build_station_passes_output_safe_v() -> None:
-    cfg = cfg_from("[lockin]\nsim = true\noutput_safe_v = -0.75\n[generator]\nsim = true\n[table]\nsim = true\n"
-                   "[chamber]\nsim = true\n")
+    cfg = cfg_from(
+        "[lockin]\nsim = true\noutput_safe_v = -0.75\n[generator]\nsim = true\n[table]\nsim = true\n"
+        "[chamber]\nsim = true\n"
+    )
     station = build_station(cfg)
     try:
         assert station.lockin.output_safe_v == -0.75  # type: ignore[attr-defined]
@@ -91,8 +93,13 @@ def test_a_controller_that_refuses_the_limits_is_an_instrument_fault(tmp_path: P
     root = Path(__file__).resolve().parents[1]
     cfg = tmp_path / "c.toml"
     cfg.write_text("[chamber]\nsim = true\nmin_c = -90.0\n", encoding="utf-8")
-    proc = subprocess.run([sys.executable, "-m", "qmg_lab", "chamber", "setpoint", str(cfg), "25"], cwd=root,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "chamber", "setpoint", str(cfg), "25"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 3
     assert "'LTL=-90.00' refused: '?RANGE'" in " ".join(proc.stderr.split())  # rich wraps at 80 columns
     assert "Traceback" not in proc.stderr
@@ -111,8 +118,10 @@ def test_a_reply_lost_while_writing_the_limits_is_retried_at_connect(chamber_con
         return reply
 
     twin.fault_hook = drop_first_ltl
-    cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 5.0\nmax_c = 45.0\ntimeout_s = 0.3\n'
-                   "[recovery]\nreconnect_attempts = 1\n")
+    cfg = cfg_from(
+        f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 5.0\nmax_c = 45.0\ntimeout_s = 0.3\n'
+        "[recovery]\nreconnect_attempts = 1\n"
+    )
     conn = connect_instrument(cfg, "chamber")
     try:
         assert len(lost) == 1 and lost[0].startswith(b"LTL=5.00")  # one reply was lost (the line as framed)

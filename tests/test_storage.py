@@ -24,31 +24,62 @@ FS = 1400.0  # Sa/s
 
 # The contract, written out from DESIGN.md section 5 (not imported from the code under test).
 CONTRACT = {
-    "lockin": {"time": "s", "x_sense": "V", "y_sense": "V", "rate_output": "V", "drive_amplitude": "V",
-               "drive_frequency": "Hz", "dither": "V"},
-    "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1",
-             "rate_output_mean": "V"},
+    "lockin": {
+        "time": "s",
+        "x_sense": "V",
+        "y_sense": "V",
+        "rate_output": "V",
+        "drive_amplitude": "V",
+        "drive_frequency": "Hz",
+        "dither": "V",
+    },
+    "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"},
     "table": {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"},
     "chamber": {"time": "s", "setpoint": "degC", "temperature": "degC"},
-    "steps": {"index": "1", "kind": "text", "t_start": "s", "t_end": "s", "table_rate": "deg/s",
-              "chamber_setpoint": "degC", "status": "text"},
+    "steps": {
+        "index": "1",
+        "kind": "text",
+        "t_start": "s",
+        "t_end": "s",
+        "table_rate": "deg/s",
+        "chamber_setpoint": "degC",
+        "status": "text",
+    },
     "truth": {"time": "s", "scale_factor": "V/(deg/s)", "temperature": "degC", "rate": "deg/s"},
 }
-ROOT_ATTRS = ["format", "created", "t0_unix", "software_version", "mode", "config_toml", "config_sha256",
-              "status", "abort_reason", "completed_steps", "resume_count", "planned_steps", "planned_step_kinds"]
+ROOT_ATTRS = [
+    "format",
+    "created",
+    "t0_unix",
+    "software_version",
+    "mode",
+    "config_toml",
+    "config_sha256",
+    "status",
+    "abort_reason",
+    "completed_steps",
+    "resume_count",
+    "planned_steps",
+    "planned_step_kinds",
+]
 
 
 def lockin_block(k: int, n: int = 700) -> dict[str, np.ndarray]:
     """Block k of n samples at 1400 Sa/s; every column a known function of time."""
     t = (k * n + np.arange(n)) / FS
-    return {"time": t, "x_sense": 1e-3 * np.sin(t), "y_sense": 2e-3 * np.cos(t), "rate_output": 0.06 * 5 + 0 * t,
-            "drive_amplitude": 0.5 + 0 * t, "drive_frequency": 2200.0 + 1e-3 * t,
-            "dither": np.sign(np.sin(2 * np.pi * 7 * t))}
+    return {
+        "time": t,
+        "x_sense": 1e-3 * np.sin(t),
+        "y_sense": 2e-3 * np.cos(t),
+        "rate_output": 0.06 * 5 + 0 * t,
+        "drive_amplitude": 0.5 + 0 * t,
+        "drive_frequency": 2200.0 + 1e-3 * t,
+        "dither": np.sign(np.sin(2 * np.pi * 7 * t)),
+    }
 
 
 def new_writer(path: Path, **kw) -> RunWriter:
-    args = dict(config_text=CONFIG, config_sha256=SHA, mode="sim", software_version="0.1.0",
-                t0_unix=1.7e9, truth=True)
+    args = dict(config_text=CONFIG, config_sha256=SHA, mode="sim", software_version="0.1.0", t0_unix=1.7e9, truth=True)
     args.update(kw)
     return RunWriter.create(path, **args)
 
@@ -84,8 +115,14 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
     now = [0.0]
     w = new_writer(p, clock=lambda: now[0], flush_interval_s=1.0)
     w.append("lockin", **lockin_block(0))
-    w.append("clsf", time=[1 / 7, 2 / 7], eta=[1e-4, 2e-4], sf_change_estimate=[-1e-4, -2e-4],
-             gain_correction=[1.0, 1.0], rate_output_mean=[0.3, 0.3])
+    w.append(
+        "clsf",
+        time=[1 / 7, 2 / 7],
+        eta=[1e-4, 2e-4],
+        sf_change_estimate=[-1e-4, -2e-4],
+        gain_correction=[1.0, 1.0],
+        rate_output_mean=[0.3, 0.3],
+    )
     w.append("table", time=0.25, rate_command=5.0, rate_measured=5.0001, position=1.25)
     assert w.last_time() == pytest.approx(699 / FS)
     assert w._h5["lockin/time"].shape == (0,)  # buffered: nothing written before the interval
@@ -96,8 +133,9 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
     w.maybe_flush()
     assert w._h5["lockin/time"].shape == (700,)
     w.append("lockin", **lockin_block(1))
-    w.append_step(index=0, kind="rate", t_start=0.0, t_end=1.0, table_rate=5.0, chamber_setpoint=25.0,
-                  status="completed")
+    w.append_step(
+        index=0, kind="rate", t_start=0.0, t_end=1.0, table_rate=5.0, chamber_setpoint=25.0, status="completed"
+    )
     assert w._h5["lockin/time"].shape == (1400,)  # a step row is a checkpoint: everything before it is written
     w.set_status("completed")
     w.close()
@@ -126,8 +164,7 @@ def test_compression_choices(tmp_path: Path, compression: str) -> None:
             assert f[f"lockin/{col}"].shuffle == (compression != "none")
         for col in ("x_sense", "y_sense", "rate_output", "drive_amplitude"):  # noise: stored plain
             assert f[f"lockin/{col}"].compression is None
-        assert all(f[f"truth/{c}"].compression == (None if compression == "none" else compression)
-                   for c in f["truth"])
+        assert all(f[f"truth/{c}"].compression == (None if compression == "none" else compression) for c in f["truth"])
     for col, values in lockin_block(0).items():
         np.testing.assert_array_equal(read_run(p).groups["lockin"][col], values)
 
@@ -149,8 +186,7 @@ def test_bad_appends_and_arguments_are_named(tmp_path: Path) -> None:
     with pytest.raises(StorageError, match="must not decrease"):
         w.append("lockin", **lockin_block(0))
     with pytest.raises(StorageError, match="step kind"):
-        w.append_step(index=1, kind="x" * 49, t_start=0, t_end=1, table_rate=0, chamber_setpoint=25,
-                      status="completed")
+        w.append_step(index=1, kind="x" * 49, t_start=0, t_end=1, table_rate=0, chamber_setpoint=25, status="completed")
     with pytest.raises(StorageError, match="status must be one of"):
         w.set_status("done")
     w.close()
@@ -203,10 +239,8 @@ def test_reopen_drops_incomplete_steps_and_equalizes_columns(tmp_path: Path) -> 
     for k in range(4):
         w.append("lockin", **lockin_block(k))
     w.append_step(index=0, kind="lock", t_start=0, t_end=0.5, table_rate=0, chamber_setpoint=25, status="completed")
-    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.0, table_rate=5, chamber_setpoint=25,
-                  status="started")
-    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.5, table_rate=5, chamber_setpoint=25,
-                  status="aborted")
+    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.0, table_rate=5, chamber_setpoint=25, status="started")
+    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.5, table_rate=5, chamber_setpoint=25, status="aborted")
     w.set_status("aborted", "power cut")
     w.close()
     with h5py.File(p, "r+") as f:  # what a kill between two resizes leaves: one column a block longer
@@ -215,8 +249,7 @@ def test_reopen_drops_incomplete_steps_and_equalizes_columns(tmp_path: Path) -> 
     assert w.completed_steps() == {0}
     assert w.last_time() == pytest.approx(2799 / FS)
     w.append("lockin", **lockin_block(4))
-    w.append_step(index=1, kind="rate", t_start=1.6, t_end=3.0, table_rate=5, chamber_setpoint=25,
-                  status="completed")
+    w.append_step(index=1, kind="rate", t_start=1.6, t_end=3.0, table_rate=5, chamber_setpoint=25, status="completed")
     w.set_status("completed")
     w.close()
     run = read_run(p)
@@ -275,8 +308,13 @@ def _child(tmp_path: Path, mode: str) -> tuple[subprocess.Popen, Path]:
     script = tmp_path / "child.py"
     script.write_text(CHILD.format(repo=str(REPO), config=CONFIG, sha=SHA))
     path = tmp_path / "live.h5"
-    proc = subprocess.Popen([sys.executable, str(script), str(path), mode], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True, bufsize=1)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(path), mode],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+    )
     return proc, path
 
 
@@ -346,8 +384,16 @@ def test_sigkill_mid_write_leaves_a_readable_file_then_resumes(tmp_path: Path, f
     assert w.completed_steps() == set(range(n_steps))
     k0 = int(round((w.last_time() + 1 / FS) * FS))
     t_new = (k0 + np.arange(700)) / FS
-    w.append("lockin", time=t_new, x_sense=0 * t_new, y_sense=0 * t_new, rate_output=0.3 + 1e-3 * t_new,
-             drive_amplitude=0 * t_new, drive_frequency=0 * t_new, dither=0 * t_new)
+    w.append(
+        "lockin",
+        time=t_new,
+        x_sense=0 * t_new,
+        y_sense=0 * t_new,
+        rate_output=0.3 + 1e-3 * t_new,
+        drive_amplitude=0 * t_new,
+        drive_frequency=0 * t_new,
+        dither=0 * t_new,
+    )
     w.set_status("completed")
     w.close()
     run = read_run(path)
@@ -380,8 +426,7 @@ def test_reopen_drops_a_checkpoint_whose_data_is_not_on_disk(tmp_path: Path) -> 
     for k in range(2):
         w.append("lockin", **lockin_block(k))  # up to 1399/1400 s
     w.append_step(index=0, kind="lock", t_start=0, t_end=0.5, table_rate=0, chamber_setpoint=25, status="completed")
-    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.2, table_rate=5, chamber_setpoint=25,
-                  status="completed")
+    w.append_step(index=1, kind="rate", t_start=0.5, t_end=1.2, table_rate=5, chamber_setpoint=25, status="completed")
     w.close()
     with h5py.File(p, "r+") as f:  # the lock-in data of step 1 lost: the file ends at 0.75 s
         for c in f["lockin"]:
@@ -414,14 +459,18 @@ def test_reopen_keeps_truth_aligned_with_the_lockin(tmp_path: Path) -> None:
 
 def test_resume_checks_change_nothing_and_name_the_instruments(tmp_path: Path) -> None:
     p = tmp_path / "run.h5"
-    w = new_writer(p, instrument_modes={"lockin": "twin", "generator": "twin", "table": "hardware",
-                                        "chamber": "twin"}, mode="hardware")
+    w = new_writer(
+        p,
+        instrument_modes={"lockin": "twin", "generator": "twin", "table": "hardware", "chamber": "twin"},
+        mode="hardware",
+    )
     w.append("lockin", **lockin_block(0))
     w.close()
     before = p.read_bytes()
     with pytest.raises(StorageError) as err:
-        RunWriter.reopen(p, config_sha256=SHA, instrument_modes={n: "twin" for n in
-                                                                 ("lockin", "generator", "table", "chamber")})
+        RunWriter.reopen(
+            p, config_sha256=SHA, instrument_modes={n: "twin" for n in ("lockin", "generator", "table", "chamber")}
+        )
     assert "table was hardware, now twin" in str(err.value) and "(lockin, generator, chamber)" in str(err.value)
     assert p.read_bytes() == before
     w = RunWriter.reopen(p, config_sha256=SHA)

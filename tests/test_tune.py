@@ -26,18 +26,24 @@ TWINS = "[lockin]\nsim = true\n[generator]\nsim = true\n[table]\nsim = true\n[ch
 
 
 def qmg(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
 
 
-@pytest.mark.parametrize(("f0", "q", "drive_v", "sf", "seed"), [
-    (2207.3, 9.0e5, 0.07, 0.055, 1),
-    (2192.8, 1.5e6, 0.04, 0.065, 2),
-    (2213.05, 6.0e5, 0.09, 0.048, 3),
-])
+@pytest.mark.parametrize(
+    ("f0", "q", "drive_v", "sf", "seed"),
+    [
+        (2207.3, 9.0e5, 0.07, 0.055, 1),
+        (2192.8, 1.5e6, 0.04, 0.065, 2),
+        (2213.05, 6.0e5, 0.09, 0.048, 3),
+    ],
+)
 def test_tune_recovers_the_twins_constants(f0: float, q: float, drive_v: float, sf: float, seed: int) -> None:
-    cfg = parse_config(TWINS + f"[sim]\nseed = {seed}\nf0_hz = {f0}\nq_factor = {q}\ndrive_voltage_v = {drive_v}\n"
-                               f"sf_true_v_per_dps = {sf}\n")
+    cfg = parse_config(
+        TWINS + f"[sim]\nseed = {seed}\nf0_hz = {f0}\nq_factor = {q}\ndrive_voltage_v = {drive_v}\n"
+        f"sf_true_v_per_dps = {sf}\n"
+    )
     station = build_station(cfg)
     try:
         result = tune(cfg, station)
@@ -61,7 +67,8 @@ def test_tuned_config_text_keeps_the_rest_and_is_valid() -> None:
     parse_config(tuned)
     # no [device] section: one is appended
     assert tomllib.loads(tuned_config_text("[plan]\ndwell_s = 30.0\n", {"f0_hz": 2201.0}, None))["device"] == {
-        "f0_hz": 2201.0}
+        "f0_hz": 2201.0
+    }
 
 
 def test_tune_cli_writes_a_configuration_that_runs_the_paper_campaign(tmp_path: Path) -> None:

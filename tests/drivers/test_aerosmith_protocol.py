@@ -100,8 +100,13 @@ def test_unknown_command_error_names_command_and_code() -> None:
 
 
 def test_set_sinusoid_sequence() -> None:
-    pairs = [(b"ACL300.000\r\n", P), (b"AMP5.000000\r\n", P), (b"FRQ2.000000\r\n", P), (b"SGO\r\n", P),
-             (b"STA\r\n", b"25\r" + P)]
+    pairs = [
+        (b"ACL300.000\r\n", P),
+        (b"AMP5.000000\r\n", P),
+        (b"FRQ2.000000\r\n", P),
+        (b"SGO\r\n", P),
+        (b"STA\r\n", b"25\r" + P),
+    ]
     with expected_protocol(table, pairs) as t:
         t.set_sinusoid(5.0, 2.0, 300.0)
 
@@ -139,15 +144,18 @@ def test_motion_complete() -> None:
 # ------------------------------------------------------------------------------------------ bad replies
 
 
-@pytest.mark.parametrize(("reply", "match"), [
-    (b"5.0O03\r" + P, r"garbled reply to 'PVE'.*5\.0O03"),
-    (b"5.00", r"truncated reply to 'PVE'.*b'5\.00'"),
-    (b"5.0\xff3\r" + P, r"garbled reply to 'PVE'.*xff"),
-    (b"5.000300\r", r"missing prompt after 'PVE'.*timeout: no reply"),
-    (b"5.000300\r<\r", r"missing prompt after 'PVE'.*'<'"),
-    (None, r"timeout: no reply to 'PVE'"),
-    (b"\r" + P, r"garbled reply to 'PVE'"),
-])
+@pytest.mark.parametrize(
+    ("reply", "match"),
+    [
+        (b"5.0O03\r" + P, r"garbled reply to 'PVE'.*5\.0O03"),
+        (b"5.00", r"truncated reply to 'PVE'.*b'5\.00'"),
+        (b"5.0\xff3\r" + P, r"garbled reply to 'PVE'.*xff"),
+        (b"5.000300\r", r"missing prompt after 'PVE'.*timeout: no reply"),
+        (b"5.000300\r<\r", r"missing prompt after 'PVE'.*'<'"),
+        (None, r"timeout: no reply to 'PVE'"),
+        (b"\r" + P, r"garbled reply to 'PVE'"),
+    ],
+)
 def test_bad_replies_raise_instrument_error_naming_the_command(reply: bytes | None, match: str) -> None:
     port = ProtocolPort([(b"PVE\r\n", reply)])
     with pytest.raises(InstrumentError, match=match):
@@ -172,14 +180,17 @@ def test_stale_bytes_are_discarded_before_the_next_command() -> None:
 # ------------------------------------------------------------------------------------------ limits
 
 
-@pytest.mark.parametrize(("rate", "accel", "match"), [
-    (100.5, 300.0, r"table rate = 100\.5 deg/s is outside the limit \[-100, 100\]"),
-    (-101.0, 300.0, r"table rate = -101"),
-    (5.0, 600.0, r"table acceleration = 600 deg/s\^2 is outside the limit \[0, 500\]"),
-    (5.0, 0.0, r"table acceleration = 0 deg/s\^2 must be positive"),
-    (5.0, 0.0004, r"table acceleration = 0 deg/s\^2 must be positive"),  # ACL 3 decimals would send 0.000
-    (float("nan"), 300.0, r"table rate = nan is not a finite number"),
-])
+@pytest.mark.parametrize(
+    ("rate", "accel", "match"),
+    [
+        (100.5, 300.0, r"table rate = 100\.5 deg/s is outside the limit \[-100, 100\]"),
+        (-101.0, 300.0, r"table rate = -101"),
+        (5.0, 600.0, r"table acceleration = 600 deg/s\^2 is outside the limit \[0, 500\]"),
+        (5.0, 0.0, r"table acceleration = 0 deg/s\^2 must be positive"),
+        (5.0, 0.0004, r"table acceleration = 0 deg/s\^2 must be positive"),  # ACL 3 decimals would send 0.000
+        (float("nan"), 300.0, r"table rate = nan is not a finite number"),
+    ],
+)
 def test_set_rate_outside_limits_sends_nothing(rate: float, accel: float, match: str) -> None:
     port = ProtocolPort([])
     with pytest.raises(LimitError, match=match):
@@ -187,11 +198,14 @@ def test_set_rate_outside_limits_sends_nothing(rate: float, accel: float, match:
     assert port.bytes_written == b""
 
 
-@pytest.mark.parametrize(("amp", "freq", "accel", "match"), [
-    (150.0, 0.1, 300.0, "sinusoid amplitude"),
-    (5.0, 0.0, 300.0, "must be positive"),
-    (5.0, 1.0, 900.0, "table acceleration"),
-])
+@pytest.mark.parametrize(
+    ("amp", "freq", "accel", "match"),
+    [
+        (150.0, 0.1, 300.0, "sinusoid amplitude"),
+        (5.0, 0.0, 300.0, "must be positive"),
+        (5.0, 1.0, 900.0, "table acceleration"),
+    ],
+)
 def test_set_sinusoid_outside_limits_sends_nothing(amp: float, freq: float, accel: float, match: str) -> None:
     port = ProtocolPort([])
     with pytest.raises(LimitError, match=match):
@@ -226,22 +240,28 @@ def test_reconnect_without_factory_is_an_instrument_error() -> None:
 # ------------------------------------------------------------------------------------------ framing
 
 
-@pytest.mark.parametrize("reply", [
-    b"5.000300\r>",  # prompt without its terminator
-    b" 5.000300 \r> \r",  # blanks around the content
-    b"\r\n5.000300\r\n>\r\n",  # a blank line first
-    b"5.000300\n\r>\n\r",  # LF CR
-])
+@pytest.mark.parametrize(
+    "reply",
+    [
+        b"5.000300\r>",  # prompt without its terminator
+        b" 5.000300 \r> \r",  # blanks around the content
+        b"\r\n5.000300\r\n>\r\n",  # a blank line first
+        b"5.000300\n\r>\n\r",  # LF CR
+    ],
+)
 def test_tolerated_framings_parse_the_same_value(reply: bytes) -> None:
     with expected_protocol(table, [(b"PVE\r\n", reply)]) as t:
         assert t._transact("velocity") == 5.0003
 
 
-@pytest.mark.parametrize(("reply", "match"), [
-    (b"5.0 03\r" + P, r"garbled reply to 'PVE'.*'5\.0 03'"),  # content still strict: no inner blank
-    (b"+5.0003e0x\r" + P, r"garbled reply to 'PVE'"),
-    (b"> 5.0\r", r"garbled reply to 'PVE'.*'>'"),  # a prompt where the value belongs
-])
+@pytest.mark.parametrize(
+    ("reply", "match"),
+    [
+        (b"5.0 03\r" + P, r"garbled reply to 'PVE'.*'5\.0 03'"),  # content still strict: no inner blank
+        (b"+5.0003e0x\r" + P, r"garbled reply to 'PVE'"),
+        (b"> 5.0\r", r"garbled reply to 'PVE'.*'>'"),  # a prompt where the value belongs
+    ],
+)
 def test_content_is_still_parsed_strictly(reply: bytes, match: str) -> None:
     with pytest.raises(InstrumentError, match=match):
         table(ProtocolPort([(b"PVE\r\n", reply)])).read()
@@ -250,21 +270,28 @@ def test_content_is_still_parsed_strictly(reply: bytes, match: str) -> None:
 @pytest.mark.parametrize(("terminator", "sent"), [("CR", b"STA\r"), ("LF", b"STA\n"), ("CRLF", b"STA\r\n")])
 def test_command_terminator_from_the_framing(terminator: str, sent: bytes) -> None:
     def build(port: ProtocolPort) -> Aerosmith1291BR:
-        return Aerosmith1291BR(port, max_rate_dps=100.0, max_accel_dps2=500.0,
-                               framing=Framing(command_terminator=terminator, prompt=">"))
+        return Aerosmith1291BR(
+            port, max_rate_dps=100.0, max_accel_dps2=500.0, framing=Framing(command_terminator=terminator, prompt=">")
+        )
+
     with expected_protocol(build, [(sent, b"8\r" + P)]) as t:
         assert "STA=8" in t.identify()
 
 
-@pytest.mark.parametrize(("reply_terminator", "reply"), [("CR", b"8\r>\r"), ("LF", b"8\n>\n"),
-                                                         ("CRLF", b"8\r\n>\r\n")])
-def test_an_exact_reply_terminator_is_honoured(reply_terminator: str, reply: bytes,
-                                              monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("reply_terminator", "reply"), [("CR", b"8\r>\r"), ("LF", b"8\n>\n"), ("CRLF", b"8\r\n>\r\n")])
+def test_an_exact_reply_terminator_is_honoured(
+    reply_terminator: str, reply: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(ProtocolPort, "reply_framing", None)
 
     def build(port: ProtocolPort) -> Aerosmith1291BR:
-        return Aerosmith1291BR(port, max_rate_dps=100.0, max_accel_dps2=500.0,
-                               framing=Framing(reply_terminator=reply_terminator, prompt=">"))
+        return Aerosmith1291BR(
+            port,
+            max_rate_dps=100.0,
+            max_accel_dps2=500.0,
+            framing=Framing(reply_terminator=reply_terminator, prompt=">"),
+        )
+
     with expected_protocol(build, [(b"STA\r\n", reply)]) as t:
         assert "STA=8" in t.identify()
     # a CR-only reply never ends a line when LF is required: the driver says so instead of guessing

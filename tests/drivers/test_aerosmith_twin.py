@@ -104,8 +104,7 @@ def test_sinusoid(bench: Bench) -> None:
     assert reading.rate_dps == pytest.approx(5.0 * SCALE, abs=PVE_RES)
     assert reading.status & 16
     bench.run(0.05)
-    assert bench.table.read().rate_dps == pytest.approx(5.0 * math.sin(2 * math.pi * 2.0 * 0.175) * SCALE,
-                                                        abs=PVE_RES)
+    assert bench.table.read().rate_dps == pytest.approx(5.0 * math.sin(2 * math.pi * 2.0 * 0.175) * SCALE, abs=PVE_RES)
 
 
 def test_stop_and_motion_complete(bench: Bench) -> None:
@@ -165,12 +164,15 @@ def _inprocess() -> tuple[World, RateTableTwin, Aerosmith1291BR]:
     return world, twin, Aerosmith1291BR(InProcessSerial(twin), max_rate_dps=100.0, max_accel_dps2=500.0)
 
 
-@pytest.mark.parametrize(("hook", "match"), [
-    (lambda line, reply: b"", "timeout: no reply to 'PVE'"),
-    (lambda line, reply: reply[:3], "truncated reply to 'PVE'"),
-    (lambda line, reply: reply.replace(b".", b"#"), "garbled reply to 'PVE'"),
-    (lambda line, reply: reply[:-2], "missing prompt after 'PVE'"),
-])
+@pytest.mark.parametrize(
+    ("hook", "match"),
+    [
+        (lambda line, reply: b"", "timeout: no reply to 'PVE'"),
+        (lambda line, reply: reply[:3], "truncated reply to 'PVE'"),
+        (lambda line, reply: reply.replace(b".", b"#"), "garbled reply to 'PVE'"),
+        (lambda line, reply: reply[:-2], "missing prompt after 'PVE'"),
+    ],
+)
 def test_fault_hook_faults_reach_the_driver_as_instrument_errors(hook, match) -> None:  # type: ignore[no-untyped-def]
     _, twin, table = _inprocess()
     twin.fault_hook = lambda line, reply: hook(line, reply) if line == b"PVE\r" else reply
@@ -192,8 +194,12 @@ def test_reconnect_over_socket_keeps_the_motion() -> None:
     twin = RateTableTwin(world)
     url, stop = serve_socket(twin)
     try:
-        table = Aerosmith1291BR(serial.serial_for_url(url, timeout=2.0), max_rate_dps=100.0, max_accel_dps2=500.0,
-                                port_factory=lambda: serial.serial_for_url(url, timeout=2.0))
+        table = Aerosmith1291BR(
+            serial.serial_for_url(url, timeout=2.0),
+            max_rate_dps=100.0,
+            max_accel_dps2=500.0,
+            port_factory=lambda: serial.serial_for_url(url, timeout=2.0),
+        )
         table.set_rate(3.0, 300.0)
         world.advance(100, 1e-3)
         table.reconnect()
@@ -207,10 +213,15 @@ def test_reconnect_over_socket_keeps_the_motion() -> None:
 
 
 @settings(max_examples=80, deadline=None)
-@given(rate=st.floats(-100.0, 100.0), accel=st.floats(1e-4, 500.0), amp=st.floats(1e-4, 100.0),
-       headroom=st.floats(0.0, 1.2))
-def test_every_command_the_driver_accepts_is_understood_by_the_twin(rate: float, accel: float, amp: float,
-                                                                    headroom: float) -> None:
+@given(
+    rate=st.floats(-100.0, 100.0),
+    accel=st.floats(1e-4, 500.0),
+    amp=st.floats(1e-4, 100.0),
+    headroom=st.floats(0.0, 1.2),
+)
+def test_every_command_the_driver_accepts_is_understood_by_the_twin(
+    rate: float, accel: float, amp: float, headroom: float
+) -> None:
     """Two independent implementations of the documented syntax agree. The table receives the values rounded
     to the documented formats (JOG/AMP/FRQ %.6f, ACL %.3f); the driver refuses exactly what the controller
     would refuse on those values (ACL must stay > 0, AMP * 2 pi * FRQ <= ACL), and whatever it sends is
@@ -237,8 +248,12 @@ def test_reconnect_over_pty_reopens_the_same_device() -> None:
     world = World(WorldParams(table_rate_scale_error_ppm=E_PPM))
     path, stop = serve_pty(RateTableTwin(world))
     try:
-        table = Aerosmith1291BR(serial.Serial(path, 9600, timeout=2.0), max_rate_dps=100.0, max_accel_dps2=500.0,
-                                port_factory=lambda: serial.Serial(path, 9600, timeout=2.0))
+        table = Aerosmith1291BR(
+            serial.Serial(path, 9600, timeout=2.0),
+            max_rate_dps=100.0,
+            max_accel_dps2=500.0,
+            port_factory=lambda: serial.Serial(path, 9600, timeout=2.0),
+        )
         table.set_rate(-2.0, 100.0)
         world.advance(100, 1e-3)
         table.reconnect()

@@ -59,8 +59,14 @@ def test_safe_state_sets_safe_setpoint_and_stays_on() -> None:
 
 
 def test_write_limits_identify_power() -> None:
-    pairs = [(b"LTL=-40.00\r\n", OK), (b"UTL=85.00\r\n", OK), (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"),
-             (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"), (b"RATE?\r\n", b"2.000\r\n"), (b"OFF\r\n", OK)]
+    pairs = [
+        (b"LTL=-40.00\r\n", OK),
+        (b"UTL=85.00\r\n", OK),
+        (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"),
+        (b"STATUS?\r\n", b"NNNNNNNNNNNNNNNN\r\n"),
+        (b"RATE?\r\n", b"2.000\r\n"),
+        (b"OFF\r\n", OK),
+    ]
     with expected_protocol(chamber, pairs) as c:
         c.write_limits()
         assert "EC1x" in c.identify()
@@ -76,23 +82,29 @@ def test_refusal_names_the_command() -> None:
     port.assert_complete()
 
 
-@pytest.mark.parametrize(("reply", "match"), [
-    (b"27.5O\r\n", r"garbled reply to 'C1\?'.*27\.5O"),
-    (b"27.5", r"truncated reply to 'C1\?'.*b'27\.5'"),
-    (b"2\x007.5\r\n", r"garbled reply to 'C1\?'"),
-    (None, r"timeout: no reply to 'C1\?'"),
-    (b"OK\r\n", r"garbled reply to 'C1\?'.*'OK'"),
-])
+@pytest.mark.parametrize(
+    ("reply", "match"),
+    [
+        (b"27.5O\r\n", r"garbled reply to 'C1\?'.*27\.5O"),
+        (b"27.5", r"truncated reply to 'C1\?'.*b'27\.5'"),
+        (b"2\x007.5\r\n", r"garbled reply to 'C1\?'"),
+        (None, r"timeout: no reply to 'C1\?'"),
+        (b"OK\r\n", r"garbled reply to 'C1\?'.*'OK'"),
+    ],
+)
 def test_bad_query_replies(reply: bytes | None, match: str) -> None:
     port = ProtocolPort([(b"C1?\r\n", reply)])
     with pytest.raises(InstrumentError, match=match):
         chamber(port).read()
 
 
-@pytest.mark.parametrize(("reply", "match"), [
-    (b"YYY\r\n", r"garbled reply to 'STATUS\?'.*'YYY'"),
-    (b"YYYNNNNNXNNNNNNN\r\n", r"garbled reply to 'STATUS\?'"),
-])
+@pytest.mark.parametrize(
+    ("reply", "match"),
+    [
+        (b"YYY\r\n", r"garbled reply to 'STATUS\?'.*'YYY'"),
+        (b"YYYNNNNNXNNNNNNN\r\n", r"garbled reply to 'STATUS\?'"),
+    ],
+)
 def test_bad_status(reply: bytes, match: str) -> None:
     port = ProtocolPort([(b"STATUS?\r\n", reply)])
     with pytest.raises(InstrumentError, match=match):
@@ -105,16 +117,19 @@ def test_setting_not_acknowledged_ok() -> None:
         chamber(port).safe_state()
 
 
-@pytest.mark.parametrize(("setpoint", "ramp", "match"), [
-    (90.0, 1.0, r"chamber setpoint = 90 deg C is outside the limit \[-40, 85\]"),
-    (-41.0, 1.0, r"chamber setpoint = -41"),
-    (30.0, 6.0, r"chamber ramp = 6 deg C/min is outside the limit \[0, 5\]"),
-    (30.0, 0.0, r"chamber ramp = 0 deg C/min must be positive"),
-    (30.0, -1.0, r"chamber ramp = -1"),
-    (30.0, 0.0004, r"chamber ramp = 0 deg C/min must be positive"),  # RATE= 3 decimals would send 0.000
-    (85.006, 1.0, r"chamber setpoint = 85.01 deg C is outside"),  # SET= 2 decimals would send 85.01
-    (float("inf"), 1.0, r"chamber setpoint = inf is not a finite number"),
-])
+@pytest.mark.parametrize(
+    ("setpoint", "ramp", "match"),
+    [
+        (90.0, 1.0, r"chamber setpoint = 90 deg C is outside the limit \[-40, 85\]"),
+        (-41.0, 1.0, r"chamber setpoint = -41"),
+        (30.0, 6.0, r"chamber ramp = 6 deg C/min is outside the limit \[0, 5\]"),
+        (30.0, 0.0, r"chamber ramp = 0 deg C/min must be positive"),
+        (30.0, -1.0, r"chamber ramp = -1"),
+        (30.0, 0.0004, r"chamber ramp = 0 deg C/min must be positive"),  # RATE= 3 decimals would send 0.000
+        (85.006, 1.0, r"chamber setpoint = 85.01 deg C is outside"),  # SET= 2 decimals would send 85.01
+        (float("inf"), 1.0, r"chamber setpoint = inf is not a finite number"),
+    ],
+)
 def test_limits_refused_before_sending(setpoint: float, ramp: float, match: str) -> None:
     port = ProtocolPort([])
     with pytest.raises(LimitError, match=match):
@@ -131,11 +146,19 @@ def test_constructor_rejects_inconsistent_limits() -> None:
 
 def test_reconnect_identifies_rewrites_limits_and_restores_setpoint() -> None:
     first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
-    second = ProtocolPort([(b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"), (b"LTL=-40.00\r\n", OK),
-                           (b"UTL=85.00\r\n", OK), (b"RATE=1.000\r\n", OK),
-                           (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
-    c = SunEC1xChamber(first, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0,
-                       port_factory=lambda: second)
+    second = ProtocolPort(
+        [
+            (b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"),
+            (b"LTL=-40.00\r\n", OK),
+            (b"UTL=85.00\r\n", OK),
+            (b"RATE=1.000\r\n", OK),
+            (b"SET=30.00\r\n", OK),
+            (b"ON\r\n", OK),
+        ]
+    )
+    c = SunEC1xChamber(
+        first, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0, port_factory=lambda: second
+    )
     c.set_setpoint(30.0, 1.0)
     c.reconnect()
     assert not first.is_open

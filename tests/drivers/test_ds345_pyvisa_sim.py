@@ -39,8 +39,11 @@ def test_yaml_ships_with_sims_and_lists_gpib_and_serial(rm: pyvisa.ResourceManag
 def test_serial_framing_is_8n2(rm: pyvisa.ResourceManager) -> None:
     resource = rm.open_resource("ASRL1::INSTR")
     DS345(resource)
-    assert (resource.data_bits, resource.parity, resource.stop_bits) == \
-        (8, pyvisa.constants.Parity.none, pyvisa.constants.StopBits.two)
+    assert (resource.data_bits, resource.parity, resource.stop_bits) == (
+        8,
+        pyvisa.constants.Parity.none,
+        pyvisa.constants.StopBits.two,
+    )
     resource.close()
 
 
@@ -50,8 +53,15 @@ def test_identify(generator: DS345) -> None:
 
 def test_settings_round_trip(generator: DS345) -> None:
     generator.set_square(7, 0.6)
-    assert generator.state() == {"function": "square", "function_code": 1, "frequency_hz": 7.0,
-                                 "amplitude": 0.6, "amplitude_unit": "VP", "amplitude_vpp": 0.6, "offset_v": 0.0}
+    assert generator.state() == {
+        "function": "square",
+        "function_code": 1,
+        "frequency_hz": 7.0,
+        "amplitude": 0.6,
+        "amplitude_unit": "VP",
+        "amplitude_vpp": 0.6,
+        "offset_v": 0.0,
+    }
     generator.set_sine(1234.5, 2.5, -1.25)
     st = generator.state()
     assert (st["function"], st["frequency_hz"], st["amplitude_vpp"], st["offset_v"]) == ("sine", 1234.5, 2.5, -1.25)
@@ -69,8 +79,9 @@ def test_mute_is_amplitude_zero(generator: DS345) -> None:
     assert generator.state()["amplitude_vpp"] == 0.0
 
 
-def test_out_of_range_past_the_driver_limit_surfaces_through_esr(generator: DS345,
-                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_out_of_range_past_the_driver_limit_surfaces_through_esr(
+    generator: DS345, monkeypatch: pytest.MonkeyPatch
+) -> None:
     generator.set_sine(1000.0, 1.0)
     monkeypatch.setattr(drivers.ds345, "FREQ_MAX_HZ", 1e9)  # relax the driver's own limit
     with pytest.raises(InstrumentError) as err:

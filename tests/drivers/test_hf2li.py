@@ -43,9 +43,22 @@ def bench(cfg: Config | None = None) -> tuple[Config, World, CountingTwin, HF2LI
     cfg = cfg or Config()
     lk = cfg.lockin
     world = World()
-    wiring = HF2Wiring(**{f: getattr(lk, f) for f in (
-        "drive_sigin", "sense_sigin", "drive_sigout", "forcer_sigout", "forcer_carrier_amplitude",
-        "rate_auxout", "quadrature_auxout", "rate_auxin", "dither_auxin")})
+    wiring = HF2Wiring(
+        **{
+            f: getattr(lk, f)
+            for f in (
+                "drive_sigin",
+                "sense_sigin",
+                "drive_sigout",
+                "forcer_sigout",
+                "forcer_carrier_amplitude",
+                "rate_auxout",
+                "quadrature_auxout",
+                "rate_auxin",
+                "dither_auxin",
+            )
+        }
+    )
     twin = CountingTwin(world, GyroParams(), seed=7, wiring=wiring)
     session = Session("localhost", hf2=True, connection=twin)
     li = HF2LI(session, "dev1234", lk, output_safe_v=lk.output_safe_v)
@@ -68,12 +81,16 @@ def test_configure_writes_the_loop_gains_in_one_transaction() -> None:
     li.configure(lockin_setup(cfg))
     assert len(twin.set_calls) == 1 and len(twin.set_calls[0]) > 50
     dev, lp = cfg.device, cfg.loops
-    expected = {0: agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz), 1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
-                2: quadrature_pi(dev, lp.quadrature_bandwidth_hz)}
+    expected = {
+        0: agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
+        1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
+        2: quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+    }
     for n, g in expected.items():
         got = pid_nodes(twin, n)
-        assert got == pytest.approx({"p": g.p, "i": g.i, "setpoint": g.setpoint, "center": g.center,
-                                     "range": g.range}, rel=1e-12)
+        assert got == pytest.approx(
+            {"p": g.p, "i": g.i, "setpoint": g.setpoint, "center": g.center, "range": g.range}, rel=1e-12
+        )
         assert twin.getInt(f"{DEV}/pids/{n}/enable") == 1
     # rate PID: P = 2 pi f_bw SF / (k R_d) = 2 pi 2 * (0.06 * 180/pi) / (0.8 * 0.5) = 108 V/Vrms
     assert twin.getDouble(f"{DEV}/pids/1/p") == pytest.approx(108.0, rel=1e-12)
@@ -90,12 +107,24 @@ def test_configure_wires_inputs_outputs_and_auxouts_as_documented() -> None:
     cfg, _, twin, li = bench()
     li.configure(lockin_setup(cfg))
     g = twin.getInt
-    assert (g(f"{DEV}/pids/0/input"), g(f"{DEV}/pids/0/inputchannel"), g(f"{DEV}/pids/0/output"),
-            g(f"{DEV}/pids/0/outputchannel")) == (2, 0, 0, 0)  # R of demod 0 -> SigOut1 amplitude, channel 0
-    assert (g(f"{DEV}/pids/1/input"), g(f"{DEV}/pids/1/inputchannel"), g(f"{DEV}/pids/1/output"),
-            g(f"{DEV}/pids/1/outputchannel")) == (0, 1, 3, 0)  # X of demod 1 -> AuxOut 1
-    assert (g(f"{DEV}/pids/2/input"), g(f"{DEV}/pids/2/inputchannel"), g(f"{DEV}/pids/2/output"),
-            g(f"{DEV}/pids/2/outputchannel")) == (1, 1, 3, 1)  # Y of demod 1 -> AuxOut 2
+    assert (
+        g(f"{DEV}/pids/0/input"),
+        g(f"{DEV}/pids/0/inputchannel"),
+        g(f"{DEV}/pids/0/output"),
+        g(f"{DEV}/pids/0/outputchannel"),
+    ) == (2, 0, 0, 0)  # R of demod 0 -> SigOut1 amplitude, channel 0
+    assert (
+        g(f"{DEV}/pids/1/input"),
+        g(f"{DEV}/pids/1/inputchannel"),
+        g(f"{DEV}/pids/1/output"),
+        g(f"{DEV}/pids/1/outputchannel"),
+    ) == (0, 1, 3, 0)  # X of demod 1 -> AuxOut 1
+    assert (
+        g(f"{DEV}/pids/2/input"),
+        g(f"{DEV}/pids/2/inputchannel"),
+        g(f"{DEV}/pids/2/output"),
+        g(f"{DEV}/pids/2/outputchannel"),
+    ) == (1, 1, 3, 1)  # Y of demod 1 -> AuxOut 2
     assert g(f"{DEV}/demods/0/adcselect") == 0 and g(f"{DEV}/demods/1/adcselect") == 1
     osc = g(f"{DEV}/plls/0/oscselect")
     assert g(f"{DEV}/demods/0/oscselect") == osc and g(f"{DEV}/demods/1/oscselect") == osc
@@ -112,8 +141,12 @@ def test_configure_wires_inputs_outputs_and_auxouts_as_documented() -> None:
 def test_commands_outside_limits_are_refused_before_anything_is_sent() -> None:
     cfg, _, twin, li = bench()
     good = lockin_setup(cfg)
-    bad = [replace(good, forcer_gain=2.5), replace(good, demod_order=9),
-           replace(good, rate=replace(good.rate, range=12.0)), replace(good, demod_rate_hz=0.0)]
+    bad = [
+        replace(good, forcer_gain=2.5),
+        replace(good, demod_order=9),
+        replace(good, rate=replace(good.rate, range=12.0)),
+        replace(good, demod_rate_hz=0.0),
+    ]
     for setup in bad:
         with pytest.raises(LimitError):
             li.configure(setup)

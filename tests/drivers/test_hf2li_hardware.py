@@ -16,13 +16,16 @@ from qmg_lab.config import LockInSection
 HOST = os.environ.get("QMG_HF2_HOST")
 DEVICE = os.environ.get("QMG_HF2_DEVICE")
 
-pytestmark = [pytest.mark.hardware,
-              pytest.mark.skipif(not (HOST and DEVICE), reason="set QMG_HF2_HOST and QMG_HF2_DEVICE")]
+pytestmark = [
+    pytest.mark.hardware,
+    pytest.mark.skipif(not (HOST and DEVICE), reason="set QMG_HF2_HOST and QMG_HF2_DEVICE"),
+]
 
 
 def test_identify_state_and_safe_state_on_the_instrument() -> None:
-    li = HF2LI(str(HOST), str(DEVICE), LockInSection(device=str(DEVICE)),
-               port=int(os.environ.get("QMG_HF2_PORT", "8005")))
+    li = HF2LI(
+        str(HOST), str(DEVICE), LockInSection(device=str(DEVICE)), port=int(os.environ.get("QMG_HF2_PORT", "8005"))
+    )
     assert "HF2" in li.identify()
     st = li.state()
     assert st["clockbase_hz"] > 0

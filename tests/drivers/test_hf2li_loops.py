@@ -45,9 +45,11 @@ def bench(setup_edit=None) -> tuple[World, HF2DataServerTwin, HF2LI]:
 
 def poll_for(li: HF2LI, seconds: float) -> LockInBlock:
     blocks = [li.poll(0.5) for _ in range(int(round(seconds / 0.5)))]
-    return LockInBlock(*(np.concatenate([getattr(b, f) for b in blocks]) for f in LockInBlock.FIELDS),
-                       pll_locked=all(b.pll_locked for b in blocks),
-                       samples_lost=sum(b.samples_lost for b in blocks))
+    return LockInBlock(
+        *(np.concatenate([getattr(b, f) for b in blocks]) for f in LockInBlock.FIELDS),
+        pll_locked=all(b.pll_locked for b in blocks),
+        samples_lost=sum(b.samples_lost for b in blocks),
+    )
 
 
 def time_constant_s(block: LockInBlock, t_step: float, before: float) -> float:

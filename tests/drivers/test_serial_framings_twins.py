@@ -19,13 +19,18 @@ from qmg_lab.station import connect_instrument
 TERMS = ("CR", "LF", "CRLF")
 
 
-@pytest.mark.parametrize(("command", "reply", "prompt", "transport"), [
-    *[(c, r, p, "inprocess") for c, r, p in itertools.product(TERMS, TERMS, ("CR", "none"))],
-    *[("CRLF", r, p, "socket") for r, p in itertools.product(TERMS, ("CRLF", "none"))],
-])
+@pytest.mark.parametrize(
+    ("command", "reply", "prompt", "transport"),
+    [
+        *[(c, r, p, "inprocess") for c, r, p in itertools.product(TERMS, TERMS, ("CR", "none"))],
+        *[("CRLF", r, p, "socket") for r, p in itertools.product(TERMS, ("CRLF", "none"))],
+    ],
+)
 def test_table_under_every_framing(command: str, reply: str, prompt: str, transport: str) -> None:
-    cfg = parse_config(f'[table]\nsim = true\nsim_transport = "{transport}"\ncommand_terminator = "{command}"\n'
-                       f'sim_reply_terminator = "{reply}"\nsim_prompt_terminator = "{prompt}"\n')
+    cfg = parse_config(
+        f'[table]\nsim = true\nsim_transport = "{transport}"\ncommand_terminator = "{command}"\n'
+        f'sim_reply_terminator = "{reply}"\nsim_prompt_terminator = "{prompt}"\n'
+    )
     conn = connect_instrument(cfg, "table")
     table = conn.instrument
     try:
@@ -40,8 +45,10 @@ def test_table_under_every_framing(command: str, reply: str, prompt: str, transp
 
 @pytest.mark.parametrize("reply", TERMS)
 def test_table_with_the_exact_reply_terminator(reply: str) -> None:
-    cfg = parse_config(f'[table]\nsim = true\nreply_terminator = "{reply}"\nsim_reply_terminator = "{reply}"\n'
-                       f'sim_prompt_terminator = "{reply}"\n')
+    cfg = parse_config(
+        f'[table]\nsim = true\nreply_terminator = "{reply}"\nsim_reply_terminator = "{reply}"\n'
+        f'sim_prompt_terminator = "{reply}"\n'
+    )
     conn = connect_instrument(cfg, "table")
     try:
         assert conn.instrument.identify().endswith("STA=10)")
@@ -50,13 +57,18 @@ def test_table_with_the_exact_reply_terminator(reply: str) -> None:
         conn.close()
 
 
-@pytest.mark.parametrize(("command", "reply", "transport"), [
-    *[(c, r, "inprocess") for c, r in itertools.product(TERMS, TERMS)],
-    *[("CRLF", r, "socket") for r in TERMS],
-])
+@pytest.mark.parametrize(
+    ("command", "reply", "transport"),
+    [
+        *[(c, r, "inprocess") for c, r in itertools.product(TERMS, TERMS)],
+        *[("CRLF", r, "socket") for r in TERMS],
+    ],
+)
 def test_chamber_under_every_framing(command: str, reply: str, transport: str) -> None:
-    cfg = parse_config(f'[chamber]\nsim = true\nsim_transport = "{transport}"\ncommand_terminator = "{command}"\n'
-                       f'sim_reply_terminator = "{reply}"\n')
+    cfg = parse_config(
+        f'[chamber]\nsim = true\nsim_transport = "{transport}"\ncommand_terminator = "{command}"\n'
+        f'sim_reply_terminator = "{reply}"\n'
+    )
     conn = connect_instrument(cfg, "chamber")
     chamber = conn.instrument
     try:

@@ -80,8 +80,13 @@ def test_driver_identify_and_state_against_twin() -> None:
     assert gen.identify() == "StanfordResearchSystems,DS345,77777,1.04"
     gen.set_square(7.0, 0.6)
     st = gen.state()
-    assert (st["function"], st["frequency_hz"], st["amplitude"], st["amplitude_unit"], st["offset_v"]) == \
-        ("square", 7.0, 0.6, "VP", 0.0)
+    assert (st["function"], st["frequency_hz"], st["amplitude"], st["amplitude_unit"], st["offset_v"]) == (
+        "square",
+        7.0,
+        0.6,
+        "VP",
+        0.0,
+    )
 
 
 def test_reconnect_restores_the_dither_after_a_reset() -> None:
@@ -167,22 +172,25 @@ def test_several_commands_per_line() -> None:
     assert [res.read() for _ in range(4)] == ["1", "7", "2.5VP", "0"]
 
 
-@pytest.mark.parametrize(("message", "esr"), [
-    ("OUTX 1", 32),  # no output switch: command error
-    ("FREQ", 32),  # missing argument
-    ("FREQ 7 Hz", 32),  # malformed number
-    ("AMPL 1", 32),  # unit required
-    ("FREQ 30300000", 16),  # above 30.2 MHz
-    ("FREQ 0", 16),  # below 1 uHz
-    ("AMPL 0.005VP", 16),  # between mute and 10 mVpp
-    ("AMPL 10.5VP", 16),
-    ("OFFS 5.5", 16),
-    ("PHSE 7200", 16),
-    ("FUNC 6", 16),
-    ("INVT 2", 16),
-    ("*IDN", 32),
-    ("PCLR?", 32),
-])
+@pytest.mark.parametrize(
+    ("message", "esr"),
+    [
+        ("OUTX 1", 32),  # no output switch: command error
+        ("FREQ", 32),  # missing argument
+        ("FREQ 7 Hz", 32),  # malformed number
+        ("AMPL 1", 32),  # unit required
+        ("FREQ 30300000", 16),  # above 30.2 MHz
+        ("FREQ 0", 16),  # below 1 uHz
+        ("AMPL 0.005VP", 16),  # between mute and 10 mVpp
+        ("AMPL 10.5VP", 16),
+        ("OFFS 5.5", 16),
+        ("PHSE 7200", 16),
+        ("FUNC 6", 16),
+        ("INVT 2", 16),
+        ("*IDN", 32),
+        ("PCLR?", 32),
+    ],
+)
 def test_errors_set_the_documented_bits_and_leave_state(message: str, esr: int) -> None:
     world, twin, res = bench()
     before = (world.dither.frequency_hz, world.dither.amplitude_vpp, world.dither.offset_v)

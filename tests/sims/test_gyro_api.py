@@ -19,9 +19,13 @@ QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff
 
 def _loops(gain: float = 1.0) -> LoopSettings:
     su = lockin_setup(Config())
-    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                        rate=PidSettings.from_gains(su.rate), quadrature=PidSettings.from_gains(su.quadrature),
-                        forcer_gain=gain)
+    return LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(su.rate),
+        quadrature=PidSettings.from_gains(su.quadrature),
+        forcer_gain=gain,
+    )
 
 
 def test_from_mapping_takes_the_config_section_and_ignores_unknown_keys() -> None:
@@ -30,8 +34,14 @@ def test_from_mapping_takes_the_config_section_and_ignores_unknown_keys() -> Non
     assert p.arw_rad_per_rt_s == pytest.approx(0.02 / 60.0 * math.pi / 180.0)
 
 
-@pytest.mark.parametrize("kwargs, word", [({"q_factor": -1.0}, "q_factor"), ({"damping_mismatch": 1.5},
-                                          "damping_mismatch"), ({"arw_deg_per_rt_h": float("nan")}, "arw")])
+@pytest.mark.parametrize(
+    "kwargs, word",
+    [
+        ({"q_factor": -1.0}, "q_factor"),
+        ({"damping_mismatch": 1.5}, "damping_mismatch"),
+        ({"arw_deg_per_rt_h": float("nan")}, "arw"),
+    ],
+)
 def test_bad_params_are_named(kwargs: dict[str, float], word: str) -> None:
     with pytest.raises(ValueError, match=word):
         GyroParams(**kwargs)

@@ -34,9 +34,13 @@ SECONDS = 4.0
 
 def _loops(gain: float) -> LoopSettings:
     su = lockin_setup(Config())
-    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                        rate=PidSettings.from_gains(su.rate), quadrature=PidSettings.from_gains(su.quadrature),
-                        forcer_gain=gain)
+    return LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(su.rate),
+        quadrature=PidSettings.from_gains(su.quadrature),
+        forcer_gain=gain,
+    )
 
 
 def _campaign(sim: GyroSim | CarrierGyroSim) -> dict[str, float]:

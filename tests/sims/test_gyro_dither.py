@@ -26,10 +26,14 @@ V_DITHER = 0.3
 
 def _open_loops(forcer_gain: float = 1.0) -> LoopSettings:
     su = lockin_setup(Config())
-    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                        rate=PidSettings.from_gains(su.rate, enabled=False),
-                        quadrature=PidSettings.from_gains(su.quadrature, enabled=False),
-                        forcer_gain=forcer_gain, demod_timeconstant_s=1e-7)  # no demod lag on the triangle
+    return LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(su.rate, enabled=False),
+        quadrature=PidSettings.from_gains(su.quadrature, enabled=False),
+        forcer_gain=forcer_gain,
+        demod_timeconstant_s=1e-7,
+    )  # no demod lag on the triangle
 
 
 def _square(n: int) -> np.ndarray:
@@ -65,6 +69,10 @@ def test_dither_response_scales_as_gpy_gf_g_over_omega() -> None:
     base = np.mean(np.abs(_half_period_swings(25.0, 1.0)))
     hot = np.mean(np.abs(_half_period_swings(t_hot, g)))
     d = t_hot - p.reference_temperature_c
-    expected = ((1 + p.pickoff_ratio_tempco_ppm_per_c * 1e-6 * d) * (1 + p.forcer_tempco_ppm_per_c * 1e-6 * d) * g
-                / (1 + p.frequency_tempco_ppm_per_c * 1e-6 * d))
+    expected = (
+        (1 + p.pickoff_ratio_tempco_ppm_per_c * 1e-6 * d)
+        * (1 + p.forcer_tempco_ppm_per_c * 1e-6 * d)
+        * g
+        / (1 + p.frequency_tempco_ppm_per_c * 1e-6 * d)
+    )
     assert hot / base == pytest.approx(expected, rel=2e-5)

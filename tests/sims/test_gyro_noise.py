@@ -28,8 +28,12 @@ AVG = 140  # 0.1 s bins (exact for ADEV at tau = multiples of 0.1 s)
 @pytest.fixture(scope="module")
 def adev() -> tuple[np.ndarray, np.ndarray]:
     su = lockin_setup(Config())
-    loops = LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                         rate=PidSettings.from_gains(su.rate), quadrature=PidSettings.from_gains(su.quadrature))
+    loops = LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(su.rate),
+        quadrature=PidSettings.from_gains(su.quadrature),
+    )
     sim = GyroSim(GyroParams(), DT, seed=1)
     blk = int(round(BLOCK_S / DT))
     bins = []

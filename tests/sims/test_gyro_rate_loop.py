@@ -22,8 +22,12 @@ BW_HZ = 2.0
 def _loops() -> LoopSettings:
     su = lockin_setup(Config())
     rate = rate_pi(DeviceSection(), BW_HZ)
-    return LoopSettings(pll=PllSettings.from_gains(su.pll), agc=PidSettings.from_gains(su.agc),
-                        rate=PidSettings.from_gains(rate), quadrature=PidSettings.from_gains(su.quadrature))
+    return LoopSettings(
+        pll=PllSettings.from_gains(su.pll),
+        agc=PidSettings.from_gains(su.agc),
+        rate=PidSettings.from_gains(rate),
+        quadrature=PidSettings.from_gains(su.quadrature),
+    )
 
 
 def _response(freq_hz: float, amp_dps: float = 5.0) -> complex:
@@ -40,8 +44,9 @@ def _response(freq_hz: float, amp_dps: float = 5.0) -> complex:
     b = sim.run(inp, loops)
     t_end = inp.t + DT  # outputs are at the end of each step
     w = 2 * math.pi * freq_hz
-    basis = np.column_stack([np.sin(w * (t_end - world.table.sine_start_s)),
-                             np.cos(w * (t_end - world.table.sine_start_s))])
+    basis = np.column_stack(
+        [np.sin(w * (t_end - world.table.sine_start_s)), np.cos(w * (t_end - world.table.sine_start_s))]
+    )
     coef = np.linalg.lstsq(basis, b.rate_output_v / QUIET.sf_true_v_per_dps, rcond=None)[0]
     return complex(coef[0], coef[1]) / amp_dps  # in-phase + i quadrature relative to the input sine
 

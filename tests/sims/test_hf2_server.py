@@ -26,8 +26,15 @@ def make_twin(rate_set: str = "ticks", **wiring: int) -> tuple[World, HF2DataSer
 
 
 def stream_demods(twin: HF2DataServerTwin, rate_hz: float = 1400.0) -> None:
-    twin.set([(f"{DEV}/demods/0/rate", rate_hz), (f"{DEV}/demods/1/rate", rate_hz), (f"{DEV}/demods/1/adcselect", 1),
-              (f"{DEV}/demods/0/enable", 1), (f"{DEV}/demods/1/enable", 1)])
+    twin.set(
+        [
+            (f"{DEV}/demods/0/rate", rate_hz),
+            (f"{DEV}/demods/1/rate", rate_hz),
+            (f"{DEV}/demods/1/adcselect", 1),
+            (f"{DEV}/demods/0/enable", 1),
+            (f"{DEV}/demods/1/enable", 1),
+        ]
+    )
     twin.subscribe([f"{DEV}/demods/0/sample", f"{DEV}/demods/1/sample"])
 
 
@@ -96,8 +103,10 @@ def test_demod_rate_is_rounded_to_whole_clock_ticks(asked: float, ticks: int) ->
     assert twin.getDouble(f"{DEV}/demods/1/rate") == pytest.approx(210e6 / ticks, rel=1e-15)
 
 
-@pytest.mark.parametrize("asked, rung", [(1800.0, 1800.0), (1400.0, 1800.0), (1000.0, 900.0), (3000.0, 3600.0),
-                                         (28800.0, 28800.0), (2e6, 460800.0)])
+@pytest.mark.parametrize(
+    "asked, rung",
+    [(1800.0, 1800.0), (1400.0, 1800.0), (1000.0, 900.0), (3000.0, 3600.0), (28800.0, 28800.0), (2e6, 460800.0)],
+)
 def test_hf2_rate_ladder(asked: float, rung: float) -> None:
     # the HF2 twin offers 921.6 kSa/s / 2^k (k >= 1), the nearest in ratio, each a whole number of 210 MHz ticks
     _, twin = make_twin(rate_set="hf2")

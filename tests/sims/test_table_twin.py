@@ -21,8 +21,7 @@ P = b">\r"
 
 @pytest.fixture
 def twin() -> RateTableTwin:
-    return RateTableTwin(World(WorldParams(table_rate_scale_error_ppm=100.0)), max_rate_dps=500.0,
-                         max_accel_dps2=800.0)
+    return RateTableTwin(World(WorldParams(table_rate_scale_error_ppm=100.0)), max_rate_dps=500.0, max_accel_dps2=800.0)
 
 
 def test_settings_answer_the_prompt_and_reach_the_world(twin: RateTableTwin) -> None:
@@ -37,22 +36,25 @@ def test_settings_answer_the_prompt_and_reach_the_world(twin: RateTableTwin) -> 
     assert tab.rate_command_dps == 0.0 and tab.accel_dps2 == 250.0
 
 
-@pytest.mark.parametrize(("line", "reply"), [
-    (b"XYZ\r", b"E01 UNKNOWN COMMAND\r" + P),
-    (b"jog5\r", b"E01 UNKNOWN COMMAND\r" + P),
-    (b"\xff\xfe\r", b"E01 UNKNOWN COMMAND\r" + P),
-    (b"JOG\r", b"E02 BAD ARGUMENT\r" + P),
-    (b"JOG5,0\r", b"E02 BAD ARGUMENT\r" + P),
-    (b"JOG 5\r", b"E02 BAD ARGUMENT\r" + P),
-    (b"JOGnan\r", b"E02 BAD ARGUMENT\r" + P),
-    (b"STO1\r", b"E02 BAD ARGUMENT\r" + P),
-    (b"JOG500.1\r", b"E03 RANGE\r" + P),
-    (b"ACL0\r", b"E03 RANGE\r" + P),
-    (b"ACL800.5\r", b"E03 RANGE\r" + P),
-    (b"FRQ0\r", b"E03 RANGE\r" + P),
-    (b"MCO-1\r", b"E03 RANGE\r" + P),
-    (b"JOG5", b"E05 FRAMING\r" + P),
-])
+@pytest.mark.parametrize(
+    ("line", "reply"),
+    [
+        (b"XYZ\r", b"E01 UNKNOWN COMMAND\r" + P),
+        (b"jog5\r", b"E01 UNKNOWN COMMAND\r" + P),
+        (b"\xff\xfe\r", b"E01 UNKNOWN COMMAND\r" + P),
+        (b"JOG\r", b"E02 BAD ARGUMENT\r" + P),
+        (b"JOG5,0\r", b"E02 BAD ARGUMENT\r" + P),
+        (b"JOG 5\r", b"E02 BAD ARGUMENT\r" + P),
+        (b"JOGnan\r", b"E02 BAD ARGUMENT\r" + P),
+        (b"STO1\r", b"E02 BAD ARGUMENT\r" + P),
+        (b"JOG500.1\r", b"E03 RANGE\r" + P),
+        (b"ACL0\r", b"E03 RANGE\r" + P),
+        (b"ACL800.5\r", b"E03 RANGE\r" + P),
+        (b"FRQ0\r", b"E03 RANGE\r" + P),
+        (b"MCO-1\r", b"E03 RANGE\r" + P),
+        (b"JOG5", b"E05 FRAMING\r" + P),
+    ],
+)
 def test_refusals(twin: RateTableTwin, line: bytes, reply: bytes) -> None:
     assert twin.respond(line) == reply
     assert twin.world.table.rate_command_dps == 0.0

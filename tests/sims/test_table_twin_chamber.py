@@ -27,20 +27,23 @@ def test_settings_reach_the_world(twin: ChamberTwin) -> None:
     assert twin.respond(b"C1?\r") == f"{twin.world.chamber.air_c:.2f}\r\n".encode()
 
 
-@pytest.mark.parametrize(("line", "reply"), [
-    (b"FOO\r", b"?UNKNOWN COMMAND\r\n"),
-    (b"set=30\r", b"?UNKNOWN COMMAND\r\n"),
-    (b"C5?\r", b"?UNKNOWN COMMAND\r\n"),
-    (b"\xc3\xa9\r", b"?UNKNOWN COMMAND\r\n"),
-    (b"SET=abc\r", b"?BAD VALUE\r\n"),
-    (b"SET=\r", b"?BAD VALUE\r\n"),
-    (b"SET=1e3\r", b"?BAD VALUE\r\n"),
-    (b"SET=200\r", b"?LIMIT\r\n"),
-    (b"RATE=0\r", b"?RANGE\r\n"),
-    (b"RATE=10.5\r", b"?RANGE\r\n"),
-    (b"LTL=-80\r", b"?RANGE\r\n"),
-    (b"C1?", b"?FRAMING\r\n"),
-])
+@pytest.mark.parametrize(
+    ("line", "reply"),
+    [
+        (b"FOO\r", b"?UNKNOWN COMMAND\r\n"),
+        (b"set=30\r", b"?UNKNOWN COMMAND\r\n"),
+        (b"C5?\r", b"?UNKNOWN COMMAND\r\n"),
+        (b"\xc3\xa9\r", b"?UNKNOWN COMMAND\r\n"),
+        (b"SET=abc\r", b"?BAD VALUE\r\n"),
+        (b"SET=\r", b"?BAD VALUE\r\n"),
+        (b"SET=1e3\r", b"?BAD VALUE\r\n"),
+        (b"SET=200\r", b"?LIMIT\r\n"),
+        (b"RATE=0\r", b"?RANGE\r\n"),
+        (b"RATE=10.5\r", b"?RANGE\r\n"),
+        (b"LTL=-80\r", b"?RANGE\r\n"),
+        (b"C1?", b"?FRAMING\r\n"),
+    ],
+)
 def test_refusals(twin: ChamberTwin, line: bytes, reply: bytes) -> None:
     assert twin.respond(line) == reply
     assert twin.world.chamber.target_c == 22.0

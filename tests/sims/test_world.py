@@ -68,24 +68,32 @@ def test_chamber_setpoint_ramps_and_air_lags_first_order():
 
 def _ds345_phase_cycles(t: np.ndarray, f: float, p: WorldParams, t_cmd: float = 0.0) -> np.ndarray:
     """u(t) from the DS345 timebase equation, written out here: rate error e0 + e_w sin(2 pi t/P)."""
-    e0, ew, per = p.ds345_timebase_offset_ppm * 1e-6, p.ds345_timebase_wander_ppm * 1e-6, \
-        p.ds345_timebase_wander_period_s
+    e0, ew, per = (
+        p.ds345_timebase_offset_ppm * 1e-6,
+        p.ds345_timebase_wander_ppm * 1e-6,
+        p.ds345_timebase_wander_period_s,
+    )
 
     def tau(x: np.ndarray | float) -> np.ndarray:
         x = np.asarray(x, dtype=float)
         return x * (1 + e0) + ew * per / (2 * math.pi) * (1 - np.cos(2 * math.pi * x / per))
+
     return f * (tau(t) - tau(t_cmd + p.ds345_command_latency_s))
 
 
 def test_square_dither_runs_on_the_ds345_timebase_with_exact_step_means():
     # a fast crystal (+50 ppm) and a large wander, so that edges drift through the step grid measurably
-    p = WorldParams(ds345_timebase_offset_ppm=50.0, ds345_timebase_wander_ppm=20.0,
-                    ds345_timebase_wander_period_s=30.0, ds345_command_latency_s=0.37e-3)
+    p = WorldParams(
+        ds345_timebase_offset_ppm=50.0,
+        ds345_timebase_wander_ppm=20.0,
+        ds345_timebase_wander_period_s=30.0,
+        ds345_command_latency_s=0.37e-3,
+    )
     w = World(p)
     w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6, offset_v=0.0, phase_deg=0.0)
     b = w.advance(1400 * 20, DT)
     # expected: on a fine grid (1000 points per step) the fraction of each step spent high, from u(t) directly
-    fine = (b.t[:, None] + DT * (np.arange(1000) + 0.5)[None, :] / 1000)
+    fine = b.t[:, None] + DT * (np.arange(1000) + 0.5)[None, :] / 1000
     u = _ds345_phase_cycles(fine, 7.0, p)
     high = ((u - np.floor(u)) < 0.5).mean(axis=1)
     np.testing.assert_allclose(b.dither_v, 0.3 * (2 * high - 1), atol=0.6 / 1000)
