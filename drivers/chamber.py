@@ -21,10 +21,12 @@ import logging
 import math
 import re
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from drivers.serial_link import Framing, SerialLink, SerialPort
 from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError, ThermalChamber, check_limit
+
+T = TypeVar("T")
 
 #: the assumed framing: commands end CR LF, replies are read tolerantly (CR, LF or CR LF), no prompt
 FRAMING = Framing(command_terminator="CRLF", reply_terminator="auto", prompt="")
@@ -64,7 +66,7 @@ def _as_sent(fmt: str, value: float) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:
-        raise LimitError(f"{fmt.split('=')[0]} value {value!r} is not a number") from exc
+        raise LimitError(f"{fmt.split('=', maxsplit=1)[0]} value {value!r} is not a number") from exc
     return float(fmt.format(v).split("=", 1)[1]) if math.isfinite(v) else v
 
 
@@ -127,7 +129,7 @@ class SunEC1xChamber(ThermalChamber):
         if line != ACK:
             raise InstrumentError(f"{self.NAME}: garbled reply to {text!r}: received {line!r} instead of {ACK!r}")
 
-    def _query(self, text: str, parser: Callable[[str], Any]) -> Any:
+    def _query(self, text: str, parser: Callable[[str], T]) -> T:
         line = self._transact(text)
         try:
             return parser(line)

@@ -180,8 +180,8 @@ class DS345(FunctionGenerator):
                 f"max_amplitude_vpp = {max_amplitude_vpp!r} must lie in "
                 f"[{AMPL_MIN_VPP}, {AMPL_MAX_VPP}] Vpp (the DS345's range into 50 ohm)"
             )
-        self.max_amplitude_vpp = float(max_amplitude_vpp)
-        self._reopen = reopen
+        self.max_amplitude_vpp: float = float(max_amplitude_vpp)
+        self._reopen: Callable[[], VisaLikeResource] | None = reopen
         self._resource: VisaLikeResource | None = None
         self._attach(resource)
         self._last: Waveform | None = None  # what the instrument was last told (None: nothing yet)

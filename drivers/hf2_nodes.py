@@ -37,17 +37,26 @@ N_MIXER_CHANNELS = 8
 
 
 class LockInWiring(Protocol):
-    """The cabling fields of qmg_lab.config.LockInSection (or any object with them)."""
+    """The cabling fields of qmg_lab.config.LockInSection (or any object with them), read-only."""
 
-    drive_sigin: int
-    sense_sigin: int
-    drive_sigout: int
-    forcer_sigout: int
-    forcer_carrier_amplitude: float
-    rate_auxout: int
-    quadrature_auxout: int
-    rate_auxin: int
-    dither_auxin: int
+    @property
+    def drive_sigin(self) -> int: ...
+    @property
+    def sense_sigin(self) -> int: ...
+    @property
+    def drive_sigout(self) -> int: ...
+    @property
+    def forcer_sigout(self) -> int: ...
+    @property
+    def forcer_carrier_amplitude(self) -> float: ...
+    @property
+    def rate_auxout(self) -> int: ...
+    @property
+    def quadrature_auxout(self) -> int: ...
+    @property
+    def rate_auxin(self) -> int: ...
+    @property
+    def dither_auxin(self) -> int: ...
 
 
 def forcer_mixer_channel(wiring: LockInWiring) -> int:
@@ -70,7 +79,7 @@ def check_wiring(wiring: LockInWiring) -> None:
         if not isinstance(v, int) or not 0 <= v <= hi:
             raise ValueError(f"lock-in wiring: {name} = {v!r} must be an integer in [0, {hi}]")
     m = forcer_mixer_channel(wiring)
-    if not 0 <= m < N_MIXER_CHANNELS or m == DRIVE_MIXER_CHANNEL and wiring.forcer_sigout == wiring.drive_sigout:
+    if not 0 <= m < N_MIXER_CHANNELS or (m == DRIVE_MIXER_CHANNEL and wiring.forcer_sigout == wiring.drive_sigout):
         raise ValueError(
             f"lock-in wiring: forcer_mixer_channel = {m} must be in [0, 7] and differ from the "
             "drive channel when both use the same output"

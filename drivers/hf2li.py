@@ -131,7 +131,7 @@ class HF2LI(LockIn):
         )
 
     def state(self) -> dict[str, Any]:
-        g = lambda p: self._get(p)  # noqa: E731
+        g = self._get
         w, fm = self.wiring, forcer_mixer_channel(self.wiring)
         pids = {}
         for name, n in (("agc", AGC_PID), ("rate", RATE_PID), ("quadrature", QUAD_PID)):

@@ -164,7 +164,7 @@ class SerialLink:
             del self._rx[:n]
             if prompt and self._rx.startswith(prompt):
                 rest = self._rx[len(prompt) :]
-                if not rest or rest[:1] in (b"\r", b"\n", b" ", b"\t"):
+                if not rest or bytes(rest[:1]) in (b"\r", b"\n", b" ", b"\t"):
                     del self._rx[: len(prompt)]
                     received += prompt
                     self._log.debug("received %r (prompt) for %r", bytes(received), command)

@@ -23,12 +23,13 @@ Fault handling (docs/reliability.md):
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import cast
+from typing import TypeVar
 
 import numpy as np
 
@@ -36,13 +37,10 @@ from qmg_lab.clsf import ClsfEstimator
 from qmg_lab.config import Config
 from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.instruments import (
-    ChamberReading,
     InstrumentError,
     InterlockError,
     LockInBlock,
     Station,
-    StreamTiming,
-    TableReading,
     TruthBlock,
 )
 from qmg_lab.interrupts import InterruptGuard
@@ -50,6 +48,8 @@ from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import Step, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
 from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ class CampaignRunner:
         log.log(level, "t=%.3f s %s %s: %s", self._now(), kind, instrument or "campaign", message)
         try:
             self._records.event(self._now(), kind, instrument, message)
-        except Exception as exc:  # noqa: BLE001 - the log must never stop a campaign
+        except Exception as exc:
             log.error("could not write the event to the run file: %s", exc)
 
     def _snapshots(self) -> None:
@@ -177,7 +177,7 @@ class CampaignRunner:
         for name, doc in station_snapshots(self.cfg, self.station).items():
             try:
                 self._records.snapshot(self._now(), name, occasion, doc)
-            except Exception as exc:  # noqa: BLE001 - a snapshot must never stop a campaign
+            except Exception as exc:
                 log.error("could not write the %s snapshot: %s", name, exc)
 
     # ================================================================== public
@@ -253,7 +253,7 @@ class CampaignRunner:
         setup = lockin_setup(self.cfg, forcer_gain=self.clsf.gain_correction)
         self._event("started", "", "resumed run" if self.resume else "new run", logging.INFO)
         self._call("lockin", lambda: self.station.lockin.configure(setup))
-        timing = cast(StreamTiming, self._call("lockin", self.station.lockin.stream_timing))
+        timing = self._call("lockin", self.station.lockin.stream_timing)
         self.clsf.set_stream_timing(DemodFilter(timing.filter_order, timing.filter_tc_s), timing.auxin_window_s)
         self._dt = 1.0 / timing.rate_hz
         self._snapshots()
@@ -290,7 +290,7 @@ class CampaignRunner:
         failures = self._safe_state()
         try:
             self.station.lockin.stop_stream()
-        except Exception as exc:  # noqa: BLE001 - the stream may be the thing that failed
+        except Exception as exc:
             failures.append(f"lockin stream: {exc}")
         self._safe_confirmed = not failures
         self._event(
@@ -321,7 +321,7 @@ class CampaignRunner:
         for name in SAFE_STATE_ORDER:
             try:
                 insts[name].safe_state()
-            except Exception as exc:  # noqa: BLE001 - every instrument must be tried
+            except Exception as exc:
                 pending[name] = str(exc)
         t0, budget = self._t, self.cfg.recovery.safe_state_timeout_s
         max_blocks = math.ceil(budget / max(self.station.poll_interval_s, 1e-3)) + 1
@@ -330,7 +330,7 @@ class CampaignRunner:
             try:
                 self._recovering.update({n: f"{n} safe state pending" for n in pending})
                 self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
-            except Exception:  # noqa: BLE001 - no clock left: try once more below, then report
+            except Exception:
                 blocks = max_blocks
             blocks += 1
             for name in list(pending):
@@ -340,13 +340,13 @@ class CampaignRunner:
                     insts[name].reconnect()
                     insts[name].safe_state()
                     del pending[name]
-                except Exception as exc:  # noqa: BLE001
+                except Exception as exc:
                     pending[name] = str(exc)
         self._recovering.clear()
         failures = [f"{n}: {e}" for n, e in pending.items()]
         try:
             insts["lockin"].safe_state()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             failures.append(f"lockin: {exc}")
         return failures
 
@@ -448,7 +448,7 @@ class CampaignRunner:
         t_end = float(t[-1])
         truth = self.station.truth.drain() if self.station.truth is not None else None
         guard = self._guard
-        with guard.protect() if guard is not None else _null():
+        with guard.protect() if guard is not None else contextlib.nullcontext():
             self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
             if len(periods):
                 self.writer.append(
@@ -558,23 +558,25 @@ class CampaignRunner:
         self._suspended = new
 
     # ================================================================== faults
-    def _call(self, name: str, fn: Callable[[], object]) -> object:
+    def _call(self, name: str, fn: Callable[[], T]) -> T:
         """Call an instrument: on InstrumentError reconnect and retry (bounded); if it still fails, suspend and
         recover while logging (not the lock-in: its stream is the clock); else raise CampaignAborted."""
-        ok, result, exc = self._attempt(name, fn)
-        if ok:
-            return result
-        assert exc is not None
-        if name == "lockin" or self._finishing:
-            raise InstrumentError(
-                f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} reconnections)"
-            ) from exc
-        return self._recover(name, fn, exc)
-
-    def _attempt(self, name: str, fn: Callable[[], object]) -> tuple[bool, object, InstrumentError | None]:
-        """fn(); on InstrumentError (not an interlock) up to recovery.reconnect_attempts x (reconnect, fn())."""
         try:
-            return True, fn(), None
+            return self._attempt(name, fn)
+        except InterlockError:
+            raise
+        except InstrumentError as exc:
+            if name == "lockin" or self._finishing:
+                raise InstrumentError(
+                    f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} reconnections)"
+                ) from exc
+            return self._recover(name, fn, exc)
+
+    def _attempt(self, name: str, fn: Callable[[], T]) -> T:
+        """fn(); on InstrumentError (not an interlock) up to recovery.reconnect_attempts x (reconnect, fn()).
+        Raises the last InstrumentError if every try failed."""
+        try:
+            return fn()
         except InterlockError:
             raise
         except InstrumentError as exc:
@@ -582,14 +584,14 @@ class CampaignRunner:
             self._event("fault", name, str(exc))
         for _ in range(self.cfg.recovery.reconnect_attempts):
             try:
-                return True, self._reconnect_and_call(name, fn), None
+                return self._reconnect_and_call(name, fn)
             except InterlockError:
                 raise
             except InstrumentError as exc:
                 last = exc
-        return False, None, last
+        raise last
 
-    def _reconnect_and_call(self, name: str, fn: Callable[[], object]) -> object:
+    def _reconnect_and_call(self, name: str, fn: Callable[[], T]) -> T:
         """One recovery try: close, reopen and re-verify `name` (its driver's reconnect), then fn() again."""
         self._reconnects += 1
         self._event("reconnect", name, "closing, reopening and re-verifying the link", logging.INFO)
@@ -603,20 +605,21 @@ class CampaignRunner:
         self._event("recovered", name, "the call succeeded after reconnecting", logging.INFO)
         return result
 
-    def _read_instrument(self, name: str, fn: Callable[[], object]) -> TableReading | ChamberReading | None:
+    def _read_instrument(self, name: str, fn: Callable[[], T]) -> T | None:
         """A reading inside a block: None while `name` is being recovered, or if it failed after reconnecting
         (then recovered once the block is logged)."""
         if name in self._recovering:
             return None
-        ok, result, exc = self._attempt(name, fn)
-        if ok:
-            return result  # type: ignore[return-value]
-        assert exc is not None
-        if not self._finishing:
-            self._failed[name] = (fn, exc)
-        return None
+        try:
+            return self._attempt(name, fn)
+        except InterlockError:
+            raise
+        except InstrumentError as exc:
+            if not self._finishing:
+                self._failed[name] = (fn, exc)
+            return None
 
-    def _recover(self, name: str, fn: Callable[[], object], exc: InstrumentError) -> object:
+    def _recover(self, name: str, fn: Callable[[], T], exc: InstrumentError) -> T:
         """Suspend the campaign while `name` is recovered: keep polling and logging the lock-in; after each
         block reconnect and call fn() again. Abort after recovery.timeout_s of run time."""
         timeout = self.cfg.recovery.timeout_s
@@ -665,11 +668,3 @@ def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.
         "temperature": truth.temperature[i_truth],
         "rate": truth.rate[i_truth],
     }
-
-
-class _null:
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: object) -> None:
-        return None

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import ErrorDetails
 
 from qmg_lab.stream_plan import StreamPlan, hf2_rate
 
@@ -462,9 +463,9 @@ def _allowed(info: Any) -> str:
     args = [a for a in getattr(ann, "__args__", ()) if a is not type(None)]
     if getattr(ann, "__origin__", None) is Literal:
         return "one of " + ", ".join(repr(a) for a in args)
-    kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
-        ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None), ""
-    )
+    base = ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None)
+    words: dict[object, str] = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    kind = words.get(base, "")
     if getattr(ann, "__origin__", None) is list:
         kind = "a list of numbers"
     bounds = []
@@ -483,7 +484,7 @@ def _allowed(info: Any) -> str:
     return f"{kind} {text}".strip() if kind or text else ""
 
 
-def _describe(error: dict[str, Any]) -> str:
+def _describe(error: ErrorDetails) -> str:
     loc_parts = tuple(error.get("loc", ()))
     loc = ".".join(str(p) for p in loc_parts) or "(top level)"
     kind = error.get("type", "")

@@ -77,10 +77,10 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
         for item in select:
             g, _, c = str(item).strip("/").partition("/")
             if c:
-                cols = wanted.get(g, set())
-                if cols is not None:
-                    cols.add(c)
-                    wanted[g] = cols
+                chosen = wanted.get(g, set())
+                if chosen is not None:
+                    chosen.add(c)
+                    wanted[g] = chosen
             else:
                 wanted[g] = None
     with h5:

@@ -30,7 +30,17 @@ from drivers.ds345 import DS345
 from drivers.hf2li import HF2LI
 from drivers.serial_link import Framing
 from qmg_lab.config import Config
-from qmg_lab.instruments import Instrument, InstrumentError, Station, TruthBlock, TruthSource
+from qmg_lab.instruments import (
+    FunctionGenerator,
+    Instrument,
+    InstrumentError,
+    LockIn,
+    RateTable,
+    Station,
+    ThermalChamber,
+    TruthBlock,
+    TruthSource,
+)
 from sims.chamber_twin import ChamberTwin
 from sims.ds345_twin import DS345Twin
 from sims.faults import FaultInjector, FaultPlan
@@ -213,7 +223,12 @@ def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
     )
     # a transient fault at connect (a reply lost on a noisy line) gets the same bounded reconnects as a fault
     # during a campaign ([recovery] reconnect_attempts); what still fails after them is reported
-    steps = [lambda: (chamber.identify(), chamber.write_limits())]
+
+    def identify_and_limit() -> None:
+        chamber.identify()
+        chamber.write_limits()
+
+    steps: list[Callable[[], None]] = [identify_and_limit]
     steps += [chamber.reconnect] * cfg.recovery.reconnect_attempts  # reopen, identify, write the limits again
     for n, step in enumerate(steps, start=1):
         try:
@@ -322,7 +337,7 @@ class _Bench:
         for stop in self.closers:
             try:
                 stop()
-            except Exception:  # noqa: BLE001 - stop every server
+            except Exception:
                 pass
         self.closers.clear()
 
@@ -340,7 +355,7 @@ class RealTimePacedConnection:
 
     def poll(
         self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False, group_id: int = 1
-    ) -> dict:
+    ) -> dict[str, Any]:
         if self._wall0 is None:
             self._wall0 = time.monotonic() - self._world.t
         data = self._twin.poll(recording_time_s, timeout_ms, flags, flat, group_id)
@@ -410,16 +425,24 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
         for inst in connected.values():
             try:
                 inst.close()
-            except Exception:  # noqa: BLE001 - close everything
+            except Exception:
                 pass
         bench.close()
         raise
     lk = cfg.lockin
+    lockin, generator, table, chamber = (connected[n] for n in ("lockin", "generator", "table", "chamber"))
+    if not (
+        isinstance(lockin, LockIn)
+        and isinstance(generator, FunctionGenerator)
+        and isinstance(table, RateTable)
+        and isinstance(chamber, ThermalChamber)
+    ):
+        raise TypeError(f"the bench's instruments do not implement their interfaces: {connected}")
     station = Station(
-        lockin=connected["lockin"],
-        generator=connected["generator"],  # type: ignore[arg-type]
-        table=connected["table"],
-        chamber=connected["chamber"],  # type: ignore[arg-type]
+        lockin=lockin,
+        generator=generator,
+        table=table,
+        chamber=chamber,
         simulated={n: bool(getattr(cfg, n).sim) for n in INSTRUMENT_NAMES},
         truth=_WorldTruth(world) if (world is not None and lk.sim) else None,
         restore=(lambda state: restore_world(world, state)) if world is not None else None,
@@ -509,6 +532,6 @@ def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:
     session = hf2_session(cfg)
     try:
         session.connect_device(lk.device)
-    except Exception as exc:  # noqa: BLE001 - zhinst raises RuntimeError and its own kinds
+    except Exception as exc:
         raise InstrumentError(f"the HF2 data server does not know device {lk.device}: {exc}") from exc
     return session.daq_server, lk.device, lambda: None

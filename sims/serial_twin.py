@@ -232,15 +232,15 @@ class _SocketServer(_Server):
 
     def _run(self) -> None:
         while True:
-            ready, _, _ = select.select([self.listener, self._wake_r, *self._conns], [], [])
+            watched: list[socket.socket | int] = [self.listener, self._wake_r, *self._conns]
+            ready, _, _ = select.select(watched, [], [])
             if self._wake_r in ready:
                 return
-            for s in ready:
-                if s is self.listener:
-                    conn, _ = self.listener.accept()
-                    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                    self._conns[conn] = LineFramer(line_end(self.twin))
-                    continue
+            if self.listener in ready:
+                conn, _ = self.listener.accept()
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self._conns[conn] = LineFramer(line_end(self.twin))
+            for s in [c for c in self._conns if c in ready]:
                 try:
                     data = s.recv(4096)
                 except OSError:
