@@ -63,7 +63,8 @@ def slower_ramp(tmp: Path, factor: float) -> Path:
         key = line.split("=")[0].strip()
         if key == "chamber_ramp_c_per_min":
             value = float(line.split("=")[1].split("#")[0])
-            line = f"chamber_ramp_c_per_min = {value / factor!r}"
+            out.append(f"chamber_ramp_c_per_min = {value / factor!r}")
+            continue
         out.append(line)
     path = tmp / "paper_slow.toml"
     path.write_text("\n".join(out) + "\n", encoding="utf-8")

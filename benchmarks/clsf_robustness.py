@@ -16,8 +16,9 @@ Printed per case: samples per dither period, CLSF accuracy RMS (CLSF vs table st
 removed, the table-step analysis against the twin's truth (truth_check) and the CLSF against the twin's truth
 (clsf_vs_truth: the estimator's own error, without the table steps' noise). The worst case is the figure of
 merit (target <= 20 ppm). With --noise off the twin's ARW, bias instability and pickoff noise are switched off:
-what remains is the estimator's systematic error on an asynchronous bench. The default grid pairs every rate with every dither and cycles the offsets through
-them (20 campaigns, a few minutes on 2 cores); --full runs the whole product (60).
+what remains is the estimator's systematic error on an asynchronous bench. The default grid pairs every rate
+with every dither and cycles the offsets through them (20 campaigns, a few minutes on 2 cores); --full runs
+the whole product (60).
 
     python benchmarks/clsf_robustness.py [--json] [--full] [--noise on|off] [--workers N]
 """

@@ -40,6 +40,7 @@ kill: at most about storage.flush_interval_s), wall_s.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -174,7 +175,7 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
         runner = CampaignRunner(cfg, station, writer)
         try:
             summary = runner.run()
-        except Exception as exc:  # noqa: BLE001 - aborts are expected outcomes here
+        except Exception as exc:
             summary = runner.summary("aborted", str(exc))
         finally:
             station.close()
@@ -198,7 +199,7 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
             read_run(path)
             injected = sum(int(f["detail"].split()[0]) for f in faults if f["kind"] == "sample_loss")
             fig["samples_lost"] += missing_samples(path, injected)
-        except Exception:  # noqa: BLE001
+        except Exception:
             fig["files_unreadable"] += 1
     return fig
 
@@ -391,10 +392,8 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
                 cwd=ROOT,
             )
             while not path.exists() and proc.poll() is None:  # the station is up and the file created
-                try:
+                with contextlib.suppress(subprocess.TimeoutExpired):
                     proc.wait(timeout=0.01)
-                except subprocess.TimeoutExpired:
-                    pass
             try:
                 proc.wait(timeout=rng.uniform(0.0, 1.0))
             except subprocess.TimeoutExpired:
@@ -433,7 +432,7 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
         fig["kills_by_phase"][phase] += 1  # type: ignore[index]
         try:
             killed = read_run(path)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             fig["files_unreadable"] += 1  # type: ignore[operator]
             fig["mismatch_details"].append(f"kill{i} ({phase}): unreadable after the kill: {exc}")  # type: ignore[attr-defined]
             continue
@@ -461,7 +460,7 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
             continue
         try:
             bad = check_against(path, refs[sd], dt, poll_s)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             fig["files_unreadable"] += 1  # type: ignore[operator]
             bad = [f"unreadable after the resume: {exc}"]
         if bad:

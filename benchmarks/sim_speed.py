@@ -3,8 +3,8 @@
 Every loop (PLL, AGC, rate, quadrature) and every noise source (ARW, bias instability, pickoff) is on, with the
 7 Hz square-wave dither and a slow temperature ramp, so every per-step term is exercised.
 
-* averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls) and of 60 s; real-time factor = simulated
-  seconds per wall second.
+* averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls)
+  and of 60 s; real-time factor = simulated seconds per wall second.
 * carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
 * memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
   HF2 twin would after converting them), peak RSS from resource.getrusage(RUSAGE_SELF).ru_maxrss.
@@ -33,7 +33,7 @@ if str(ROOT) not in sys.path:
 DT = 1.0 / 1800.0
 
 
-def _loops():  # noqa: ANN202 - LoopSettings, imported lazily so the compile probe times the import too
+def _loops():
     from qmg_lab.config import Config
     from qmg_lab.loops import lockin_setup
     from sims.gyro import LoopSettings, PidSettings, PllSettings
@@ -47,7 +47,7 @@ def _loops():  # noqa: ANN202 - LoopSettings, imported lazily so the compile pro
     )
 
 
-def _inputs(n: int, dt: float, t0: float):  # noqa: ANN202 - BlockInputs
+def _inputs(n: int, dt: float, t0: float):
     """Square-wave dither (7 Hz, 0.3 V = 5 deg/s virtual rate), temperature ramping 1 deg C per hour."""
     from sims.gyro import held_inputs
 
@@ -56,7 +56,7 @@ def _inputs(n: int, dt: float, t0: float):  # noqa: ANN202 - BlockInputs
     return held_inputs(n, dt, dither_v=square, temperature_c=25.0 + t / 3600.0, t0_s=t0)
 
 
-def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> float:  # noqa: ANN001
+def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> float:
     loops = _loops()
     n = int(round(block_s / dt))
     blocks = max(1, int(sim_seconds / block_s))

@@ -17,6 +17,7 @@ Sequences:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections.abc import Callable
@@ -109,10 +110,8 @@ class Aerosmith1291BR(RateTable):
         code = int(m.group(1))
         text = raw[: -len(self.framing.command_end)].decode("ascii")
         # the prompt follows the error line; consume it so the link stays in step
-        try:
+        with contextlib.suppress(InstrumentError):
             self._link.read_line(raw)
-        except InstrumentError:
-            pass
         meaning = proto.ERROR_CODES.get(code, "undocumented error code")
         exc_type = InterlockError if code == proto.ERROR_INTERLOCK else InstrumentError
         raise exc_type(f"{self.NAME}: {text!r} refused: E{code:02d} {m.group(2)} ({meaning})")

@@ -3,7 +3,8 @@
 Protocol (reference/instruments.md, DS345 section): 4-letter mnemonics, an optional `?`, arguments; every
 message ends with LF. The driver sends one setting per message and follows every setting with `*ESR?`:
 
-    set_square(7, 0.6)  ->  "FUNC 1\\n" "*ESR?\\n" "FREQ 7\\n" "*ESR?\\n" "AMPL 0.6VP\\n" "*ESR?\\n" "OFFS 0\\n" "*ESR?\\n"
+    set_square(7, 0.6)  ->  "FUNC 1\\n" "*ESR?\\n" "FREQ 7\\n" "*ESR?\\n"
+                            "AMPL 0.6VP\\n" "*ESR?\\n" "OFFS 0\\n" "*ESR?\\n"
     (preceded by one "OFFS?\\n" query while the driver does not yet know the offset, see below)
 
 so a rejected setting is tied to the one command that caused it. Standard event register bits checked:
@@ -44,6 +45,7 @@ Vpp = k Vrms with k = 2 sqrt(2) (sine), 2 (square), 2 sqrt(3) (triangle, ramp); 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import numbers
@@ -314,10 +316,8 @@ class DS345(FunctionGenerator):
         if self._reopen is None:
             raise InstrumentError("DS345 cannot reconnect: no reopen factory was given")
         log.info("DS345: reconnecting")
-        try:
+        with contextlib.suppress(InstrumentError):  # the old link is gone anyway
             self.close()
-        except InstrumentError:
-            pass  # the old link is gone anyway
         try:
             resource = self._reopen()
         except Exception as exc:

@@ -21,6 +21,7 @@ received, and turns transport exceptions (SerialException, OSError) into Instrum
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -218,10 +219,8 @@ class SerialLink:
 
     def close(self) -> None:
         """Close the port; errors on closing an already dead link are ignored."""
-        try:
+        with contextlib.suppress(OSError, ValueError):
             self.port.close()
-        except (OSError, ValueError):
-            pass
 
     def _show(self, command: bytes) -> str:
         """The command as it appears in messages: its text without the terminator."""

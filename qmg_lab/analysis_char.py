@@ -19,6 +19,7 @@ Procedures (IEEE Std 1431 / reference/physics.md section 7):
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -50,7 +51,7 @@ def bandwidth_3db(points: list[BodePoint]) -> float:
     """First frequency where the gain falls through -3.01 dB (linear in log f), NaN if it never does."""
     pts = sorted(points, key=lambda p: p.frequency_hz)
     target = -10 * math.log10(2.0)
-    for p0, p1 in zip(pts, pts[1:], strict=False):
+    for p0, p1 in itertools.pairwise(pts):
         if p0.gain_db >= target > p1.gain_db:
             x0, x1 = math.log(p0.frequency_hz), math.log(p1.frequency_hz)
             return math.exp(x0 + (target - p0.gain_db) * (x1 - x0) / (p1.gain_db - p0.gain_db))

@@ -45,7 +45,7 @@ from qmg_lab.instruments import (
 )
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
-from qmg_lab.plan import Step, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.plan import Step, StepKind, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
 from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
 
@@ -151,7 +151,7 @@ class CampaignRunner:
         self._failed: dict[str, tuple[Callable[[], object], InstrumentError]] = {}  # failed reads of a block
         self._finishing = False
         self._safe_confirmed = True
-        self._step = Step(-1, "lock", 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
+        self._step = Step(-1, StepKind.LOCK, 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
         self._records = self.writer.records()
 
@@ -240,7 +240,7 @@ class CampaignRunner:
 
     # ================================================================== set-up and tear-down
     def _prepare(self) -> None:
-        self.writer.set_plan(len(self.steps), [s.kind for s in self.steps])
+        self.writer.set_plan(len(self.steps), [s.label for s in self.steps])
         if self.resume:
             state = self.writer.resume_state()
             self._offset_target = state.last_time
@@ -262,7 +262,7 @@ class CampaignRunner:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
             self._step = Step(
                 -1,
-                "lock",
+                StepKind.LOCK,
                 self.cfg.loops.lock_settle_s,
                 self.cfg.plan.chamber_start_c,
                 self.cfg.plan.chamber_ramp_c_per_min,
@@ -354,14 +354,14 @@ class CampaignRunner:
     def _run_step(self, step: Step) -> None:
         t_start = self._t
         self._step, self._step_elapsed = step, 0.0
-        if step.kind == "lock":
+        if step.kind is StepKind.LOCK:
             self._wait_for_lock(step)
         else:
             self._apply(step)
             self._dwell(step)
         self.writer.append_step(
             index=step.index,
-            kind=step.kind,
+            kind=step.label,
             t_start=t_start,
             t_end=self._t,
             table_rate=step.table_rate_dps,
@@ -375,19 +375,19 @@ class CampaignRunner:
         """Commands at the start of a step (idempotent, so a resumed step can re-apply them)."""
         st, p = self.station, self.cfg.plan
         self._call("chamber", lambda: st.chamber.set_setpoint(step.chamber_target_c, step.chamber_ramp_c_per_min))
-        if step.kind == "dither":
+        if step.kind is StepKind.DITHER:
             self._start_dither()
         previous = self._read.table_cmd
-        if step.kind in ("rate", "level"):
+        if step.kind in (StepKind.RATE, StepKind.LEVEL):
             self._call("table", lambda: st.table.set_rate(step.table_rate_dps, p.table_accel_dps2))
             self._read.table_cmd = step.table_rate_dps
-        elif step.kind.startswith("sine"):
+        elif step.kind is StepKind.SINE:
             self._call(
                 "table", lambda: st.table.set_sinusoid(step.table_rate_dps, step.sine_frequency_hz, p.table_accel_dps2)
             )
             self._read.table_cmd = 0.0
             self.clsf.hold(self._t, self._t + step.duration_s)
-        elif step.kind in ("return", "hold", "soak") and previous != 0.0:
+        elif step.kind in (StepKind.RETURN, StepKind.HOLD, StepKind.SOAK) and previous != 0.0:
             self._call("table", st.table.stop)
             self._read.table_cmd = 0.0
         if step.moves_table or previous != self._read.table_cmd:
@@ -542,10 +542,10 @@ class CampaignRunner:
     def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
         """Pause the step's clock while the PLL is unlocked or the chamber is out of its band."""
         reasons = list(self._recovering.values())
-        if step.kind != "lock" and not self._last_locked:
+        if step.kind is not StepKind.LOCK and not self._last_locked:
             reasons.append("PLL unlocked")
         band = self.cfg.plan.chamber_band_c
-        if step.kind != "lock" and math.isfinite(chamber_c) and abs(chamber_c - chamber_sp) > band:
+        if step.kind is not StepKind.LOCK and math.isfinite(chamber_c) and abs(chamber_c - chamber_sp) > band:
             reasons.append(f"chamber {chamber_c:.2f} degC outside {chamber_sp:.2f} +- {band:g} degC")
         new = "; ".join(reasons)
         if new and not self._suspended:

@@ -209,7 +209,7 @@ def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
         rows.append(
             (
                 f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}",
-                s.kind,
+                s.label,
                 dur,
                 rate,
                 f"{s.chamber_target_c:g} degC",
@@ -441,7 +441,7 @@ def with_campaign_kind(text: str, kind: str) -> str:
         out_lines.append(f'kind = "{kind}"')
         done = True
     if not done:
-        out_lines = ["[campaign]", f'kind = "{kind}"', ""] + out_lines
+        out_lines = ["[campaign]", f'kind = "{kind}"', "", *out_lines]
     return "\n".join(out_lines) + "\n"
 
 

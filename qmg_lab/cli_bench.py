@@ -48,7 +48,7 @@ def _bring_up(config: Path, sim: bool, name: str) -> Iterator[Any]:
     except InstrumentError as exc:
         try:
             conn.instrument.safe_state()
-        except Exception as again:  # noqa: BLE001 - report both
+        except Exception as again:
             _fail(EXIT_FAULT, f"{exc}; safe state not confirmed: {again}")
         _fail(EXIT_FAULT, str(exc))
     finally:
@@ -232,7 +232,7 @@ def generator_raw(
         _fail(EXIT_FAULT, f"could not open the generator: {exc}")
     try:
         ex = visa_exchange(resource, command)
-    except Exception as exc:  # noqa: BLE001 - pyvisa's VisaIOError and its kin: show, do not trace
+    except Exception as exc:
         _fail(EXIT_FAULT, f"generator: {command!r}: {type(exc).__name__}: {exc}")
     finally:
         close()
@@ -264,7 +264,7 @@ def _raw_node(config: Path, sim: bool, path: str, value: str | None) -> None:
     node = _node_path(path, device)
     try:
         ex, _ = node_get(connection, node) if value is None else node_set(connection, node, value)
-    except Exception as exc:  # noqa: BLE001 - zhinst's RuntimeError or the twin's NodeError: no traceback
+    except Exception as exc:
         _fail(EXIT_BAD_INPUT if "not" in str(exc).lower() else EXIT_FAULT, f"HF2 {node}: {exc}")
     finally:
         close()

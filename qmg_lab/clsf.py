@@ -192,10 +192,8 @@ class ClsfEstimator:
         mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
         self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
         dt = self._sample_dt(tt)
-        if (
-            self._sos is None
-            and self.demod_filter.tc_s > 0.0
-            or (self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt)
+        if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
+            self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
             self._sos = self.demod_filter.foh_sos(dt)
             self._sos_dt = dt
@@ -247,7 +245,7 @@ class ClsfEstimator:
         r_prev, r0, r1, k0, k1, fa = r_prev[use], r0[use], r1[use], k0[use], k1[use], fa[use]
         edges = np.stack((r_prev, falling[fa], r0, falling[fa + 1], r1), axis=1)
         lengths = k1 - k0
-        idx = np.concatenate([np.arange(a, b) for a, b in zip(k0, k1)])
+        idx = np.concatenate([np.arange(a, b) for a, b in zip(k0, k1, strict=False)])
         seg = np.repeat(np.arange(lengths.size), lengths)
         starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
         tk = t[idx]

@@ -10,6 +10,7 @@ second squared, *_deg degrees, *_c degrees Celsius, *_s seconds.
 from __future__ import annotations
 
 import abc
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -304,19 +305,15 @@ class Station:
         for name in ("table", "generator", "chamber", "lockin"):
             try:
                 self.instruments()[name].safe_state()
-            except Exception as exc:  # noqa: BLE001 - every instrument must be tried
+            except Exception as exc:
                 failures.append(f"{name}: {exc}")
         return failures
 
     def close(self) -> None:
         for inst in self.instruments().values():
-            try:
+            with contextlib.suppress(Exception):
                 inst.close()
-            except Exception:  # noqa: BLE001 - close everything even if one fails
-                pass
         for fn in self.on_close:
-            try:
+            with contextlib.suppress(Exception):
                 fn()
-            except Exception:  # noqa: BLE001
-                pass
         self.on_close.clear()

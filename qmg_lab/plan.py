@@ -7,7 +7,8 @@ A plan is built and shown (`qmg-lab check`) before anything moves. Step kinds (s
     soak      chamber to the start temperature, table at rest
     rate      a table dwell at table_rate_dps (the paper campaign alternates +R/-R while the chamber ramps)
     hold      table at rest, logging (Allan-deviation campaign)
-    sine:F    sinusoidal table rate of amplitude table_rate_dps at F Hz (bandwidth characterization)
+    sine      sinusoidal table rate of amplitude table_rate_dps at sine_frequency_hz (bandwidth
+              characterization; stored in the run file as "sine:<f>Hz")
     level     one constant rate of a linearity sweep
     return    table back to rest
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 from qmg_lab.config import Config
 from qmg_lab.instruments import LimitError
@@ -23,12 +25,29 @@ from qmg_lab.instruments import LimitError
 ALLAN_SEGMENT_S = 600.0  # checkpoint granularity of a long constant-temperature hold
 
 
+class StepKind(StrEnum):
+    """What a step does (the module docstring describes each kind)."""
+
+    LOCK = "lock"
+    DITHER = "dither"
+    SOAK = "soak"
+    RATE = "rate"
+    HOLD = "hold"
+    SINE = "sine"
+    LEVEL = "level"
+    RETURN = "return"
+
+
+TABLE_MOVING_KINDS = frozenset({StepKind.RATE, StepKind.LEVEL, StepKind.RETURN, StepKind.SINE})
+
+
 @dataclass(frozen=True)
 class Step:
-    """One checkpointed step. Times in s, rates in deg/s, temperatures in deg C."""
+    """One checkpointed step. Times in s, rates in deg/s, temperatures in deg C, the sine frequency in Hz
+    (0 unless kind is SINE)."""
 
     index: int
-    kind: str
+    kind: StepKind
     duration_s: float
     chamber_target_c: float
     chamber_ramp_c_per_min: float
@@ -38,7 +57,24 @@ class Step:
 
     @property
     def moves_table(self) -> bool:
-        return self.kind in ("rate", "level", "return") or self.kind.startswith("sine")
+        return self.kind in TABLE_MOVING_KINDS
+
+    @property
+    def label(self) -> str:
+        """The step's name in /steps/kind of the run file: the kind, "sine:<f>Hz" for a sine step."""
+        return f"sine:{self.sine_frequency_hz:.3f}Hz" if self.kind is StepKind.SINE else self.kind.value
+
+
+@dataclass(frozen=True)
+class _Draft:
+    """A step before its index and the campaign-wide chamber ramp are known."""
+
+    kind: StepKind
+    duration_s: float
+    target_c: float
+    rate_dps: float = 0.0
+    sine_frequency_hz: float = 0.0
+    settle_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -72,24 +108,18 @@ def build_plan(cfg: Config) -> list[Step]:
     """The steps of the campaign the configuration describes."""
     p, kind = cfg.plan, cfg.campaign.kind
     t_start, ramp = p.chamber_start_c, p.chamber_ramp_c_per_min
-    steps: list[dict] = [dict(kind="lock", duration_s=cfg.loops.lock_settle_s, target=t_start)]
+    steps = [_Draft(StepKind.LOCK, cfg.loops.lock_settle_s, t_start)]
     if cfg.clsf.mode != "off":
         ref_s = cfg.clsf.reference_periods / cfg.dither.frequency_hz + 2.0
-        steps.append(dict(kind="dither", duration_s=ref_s, target=t_start))
+        steps.append(_Draft(StepKind.DITHER, ref_s, t_start))
     if p.chamber_soak_s > 0:
-        steps.append(dict(kind="soak", duration_s=p.chamber_soak_s, target=t_start))
+        steps.append(_Draft(StepKind.SOAK, p.chamber_soak_s, t_start))
     if kind == "temperature_sweep":
         n_pairs = max(1, math.ceil((ramp_time_s(cfg) + p.chamber_end_hold_s) / (2.0 * p.dwell_s)))
         for _ in range(n_pairs):
             for sign in (1.0, -1.0):
                 steps.append(
-                    dict(
-                        kind="rate",
-                        duration_s=p.dwell_s,
-                        target=p.chamber_end_c,
-                        rate=sign * p.table_rate_dps,
-                        settle=p.settle_s,
-                    )
+                    _Draft(StepKind.RATE, p.dwell_s, p.chamber_end_c, sign * p.table_rate_dps, 0.0, p.settle_s)
                 )
     elif kind == "allan":
         remaining = p.duration_s
@@ -98,66 +128,44 @@ def build_plan(cfg: Config) -> list[Step]:
         while remaining > 1e-9:
             hold = min(remaining, max(seg - pair, 0.0)) if pair else min(remaining, seg)
             if hold > 0:
-                steps.append(dict(kind="hold", duration_s=hold, target=t_start))
+                steps.append(_Draft(StepKind.HOLD, hold, t_start))
                 remaining -= hold
             if pair and remaining > 1e-9:
                 for sign in (1.0, -1.0):
                     d = min(p.dwell_s, remaining)
                     if d <= 0:
                         break
-                    steps.append(
-                        dict(
-                            kind="rate",
-                            duration_s=d,
-                            target=t_start,
-                            rate=sign * p.table_rate_dps,
-                            settle=min(p.settle_s, 0.5 * d),
-                        )
-                    )
+                    settle = min(p.settle_s, 0.5 * d)
+                    steps.append(_Draft(StepKind.RATE, d, t_start, sign * p.table_rate_dps, 0.0, settle))
                     remaining -= d
-                steps.append(dict(kind="return", duration_s=_return_s(cfg), target=t_start))
+                steps.append(_Draft(StepKind.RETURN, _return_s(cfg), t_start))
     elif kind == "bandwidth":
-        steps.append(
-            dict(kind="rate", duration_s=p.dwell_s, target=t_start, rate=p.bandwidth_amplitude_dps, settle=p.settle_s)
-        )
-        steps.append(dict(kind="return", duration_s=p.dwell_s, target=t_start))
+        steps.append(_Draft(StepKind.RATE, p.dwell_s, t_start, p.bandwidth_amplitude_dps, 0.0, p.settle_s))
+        steps.append(_Draft(StepKind.RETURN, p.dwell_s, t_start))
         for f in p.bandwidth_frequencies_hz:
             dur = p.bandwidth_cycles / f + max(p.settle_s, 2.0 / f)
-            steps.append(
-                dict(
-                    kind=f"sine:{f:.3f}Hz",
-                    duration_s=dur,
-                    target=t_start,
-                    rate=p.bandwidth_amplitude_dps,
-                    freq=f,
-                    settle=max(p.settle_s, 2.0 / f),
-                )
-            )
+            settle = max(p.settle_s, 2.0 / f)
+            steps.append(_Draft(StepKind.SINE, dur, t_start, p.bandwidth_amplitude_dps, f, settle))
     elif kind == "linearity":
         for r in p.linearity_rates_dps:
-            steps.append(dict(kind="level", duration_s=p.dwell_s, target=t_start, rate=r, settle=p.settle_s))
-    steps.append(
-        dict(
-            kind="return",
-            duration_s=_return_s(cfg),
-            target=cfg.chamber.safe_setpoint_c if kind == "temperature_sweep" else t_start,
-        )
-    )
+            steps.append(_Draft(StepKind.LEVEL, p.dwell_s, t_start, r, 0.0, p.settle_s))
+    end_c = cfg.chamber.safe_setpoint_c if kind == "temperature_sweep" else t_start
+    steps.append(_Draft(StepKind.RETURN, _return_s(cfg), end_c))
     # merge: a "return" directly after another "return" adds nothing
     out: list[Step] = []
-    for s in steps:
-        if out and s["kind"] == "return" and out[-1].kind == "return":
+    for draft in steps:
+        if out and draft.kind is StepKind.RETURN and out[-1].kind is StepKind.RETURN:
             continue
         out.append(
             Step(
                 index=len(out),
-                kind=s["kind"],
-                duration_s=float(s["duration_s"]),
-                chamber_target_c=float(s["target"]),
+                kind=draft.kind,
+                duration_s=float(draft.duration_s),
+                chamber_target_c=float(draft.target_c),
                 chamber_ramp_c_per_min=ramp,
-                table_rate_dps=float(s.get("rate", 0.0)),
-                sine_frequency_hz=float(s.get("freq", 0.0)),
-                settle_s=float(s.get("settle", 0.0)),
+                table_rate_dps=float(draft.rate_dps),
+                sine_frequency_hz=float(draft.sine_frequency_hz),
+                settle_s=float(draft.settle_s),
             )
         )
     return out
@@ -217,12 +225,12 @@ def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
 
 
 __all__ = [
-    "Step",
     "LimitCheck",
-    "build_plan",
-    "plan_duration_s",
-    "limit_checks",
+    "Step",
     "assert_within_limits",
+    "build_plan",
     "dither_amplitude_vpp",
+    "limit_checks",
+    "plan_duration_s",
     "ramp_time_s",
 ]

@@ -55,8 +55,9 @@ class ProgressView:
         else:
             self.console.print(
                 f"step {p.step.index + 1}/{p.n_steps} {p.step.kind} {p.step_elapsed_s:.0f}/{p.step.duration_s:.0f} s"
-                f" | chamber {p.chamber_c:.2f} (sp {p.chamber_setpoint_c:.2f}) degC | table {p.table_rate_dps:+.3f} deg/s"
-                f" | SF change {p.sf_change_ppm:+.1f} ppm | elapsed {_fmt_s(p.run_time_s)} remaining {_fmt_s(remaining)}"
+                f" | chamber {p.chamber_c:.2f} (sp {p.chamber_setpoint_c:.2f}) degC"
+                f" | table {p.table_rate_dps:+.3f} deg/s | SF change {p.sf_change_ppm:+.1f} ppm"
+                f" | elapsed {_fmt_s(p.run_time_s)} remaining {_fmt_s(remaining)}"
                 f" | {rate:.0f}x{' | SUSPENDED: ' + p.suspended if p.suspended else ''}",
                 highlight=False,
             )

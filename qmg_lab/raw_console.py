@@ -110,7 +110,7 @@ def node_get(connection: Any, path: str) -> tuple[Exchange, Any]:
     try:
         value: Any = connection.getDouble(path)
         call = "getDouble"
-    except Exception:  # noqa: BLE001 - a string node: ask for its text instead
+    except Exception:
         value = connection.getString(path)
         call = "getString"
     ex.add(time.perf_counter() - t0, "<<", f"{call}({path!r}) -> {value!r}")

@@ -22,11 +22,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from qmg_lab.analysis import AnalysisResult, analyze  # noqa: E402
-from qmg_lab.storage import read_run, read_window  # noqa: E402
+from qmg_lab.analysis import AnalysisResult, analyze
+from qmg_lab.storage import read_run, read_window
 
 MAX_POINTS = 20000
 

@@ -14,6 +14,7 @@ time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -335,10 +336,8 @@ class _Bench:
 
     def close(self) -> None:
         for stop in self.closers:
-            try:
+            with contextlib.suppress(Exception):
                 stop()
-            except Exception:
-                pass
         self.closers.clear()
 
 
@@ -423,10 +422,8 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
                 raise InstrumentError(f"{name}: {exc}") from exc
     except BaseException:
         for inst in connected.values():
-            try:
+            with contextlib.suppress(Exception):
                 inst.close()
-            except Exception:
-                pass
         bench.close()
         raise
     lk = cfg.lockin

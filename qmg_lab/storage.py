@@ -84,23 +84,23 @@ WRITER_CACHE: dict[str, Any] = {"rdcc_nbytes": 1 << 20, "rdcc_w0": 1.0}
 BUFFER_ROWS_MAX = 131072
 
 __all__ = [
-    "RunWriter",
-    "ResumeState",
-    "StorageError",
-    "file_instrument_modes",
-    "status_detail",
-    "RunData",
-    "read_run",
-    "read_window",
-    "writer_flags_set",
+    "CHAMBER_UNITS",
+    "CLSF_UNITS",
     "FORMAT",
     "GROUP_UNITS",
     "LOCKIN_UNITS",
-    "CLSF_UNITS",
-    "TABLE_UNITS",
-    "CHAMBER_UNITS",
-    "TRUTH_UNITS",
     "STEPS_UNITS",
+    "TABLE_UNITS",
+    "TRUTH_UNITS",
+    "ResumeState",
+    "RunData",
+    "RunWriter",
+    "StorageError",
+    "file_instrument_modes",
+    "read_run",
+    "read_window",
+    "status_detail",
+    "writer_flags_set",
 ]
 
 

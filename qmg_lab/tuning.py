@@ -27,6 +27,7 @@ the results into the [device] section of the configuration text, commented with 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import asdict, dataclass
@@ -271,10 +272,8 @@ def tune(
         return Tuning(resonance=res, ringdown=ring, scale_factor=sf)
     finally:
         failures = station.safe_state()
-        try:
+        with contextlib.suppress(InstrumentError):
             station.lockin.stop_stream()
-        except InstrumentError:
-            pass
         if failures:
             log.error("safe state not confirmed after tuning: %s", failures)
 

@@ -44,6 +44,7 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ClassVar
 
 import pyvisa.constants
 import pyvisa.errors
@@ -178,8 +179,8 @@ class DS345Twin:
         except UnicodeDecodeError:
             self.esr |= ESR_COMMAND
             return
-        for part in text.split(";"):
-            part = part.strip()
+        for raw_part in text.split(";"):
+            part = raw_part.strip()
             if not part:
                 continue
             match = _COMMAND_RE.match(part.upper())
@@ -383,7 +384,7 @@ class DS345Twin:
         stb = STB_IDLE | (STB_MAV if self._output else 0) | (STB_ESB if self.esr & self.ese else 0)
         self._reply(str(stb if bit is None else (stb >> bit) & 1))
 
-    _HANDLERS: dict[str, Callable[[DS345Twin, bool, str], None]] = {
+    _HANDLERS: ClassVar[dict[str, Callable[[DS345Twin, bool, str], None]]] = {
         "FUNC": _func,
         "FREQ": _freq,
         "AMPL": _ampl,

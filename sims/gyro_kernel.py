@@ -15,8 +15,9 @@ no numerical integration; omega_r (PLL), Omega (table + bias) and T may change e
 
 Carrier-level plant: q'' + D q' + K q + 2 k Omega J q' = f on state [x, y, x'/omega0, y'/omega0], exact ZOH
 step Phi = expm(A dt) and input matrix int_0^dt expm(A s) ds B from their Taylor series (||A dt|| ~ 2 pi / 32,
-13 terms: truncation < 1e-17; recomputed when T or Omega change). The forces f = F_c cos(phi) + F_s sin(phi) are evaluated at mid-sample phase and
-divided by sinc(omega_r dt / 2) (DAC half-sample and sinc compensation); one-cycle boxcar I/Q demodulation
+13 terms: truncation < 1e-17; recomputed when T or Omega change). The forces f = F_c cos(phi) + F_s sin(phi)
+are evaluated at mid-sample phase and divided by sinc(omega_r dt / 2) (DAC half-sample and sinc compensation);
+one-cycle boxcar I/Q demodulation
 X + iY = sqrt(2) G mean(q e^{-i phi}) gives the same demod convention X + iY = G (C - iS)/sqrt(2).
 
 Controller (both models, once per demod sample of length dt_c):
@@ -101,7 +102,7 @@ RAD_PER_DEG = math.pi / 180.0
 
 
 @njit(cache=True, inline="always")
-def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba kernel
+def _pid(S, L, off, i_int, i_eprev, inp, dt):
     if L[off] == 0.0:
         S[i_int] = 0.0
         S[i_eprev] = 0.0
@@ -124,7 +125,7 @@ def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba ke
 
 
 @njit(cache=True, inline="always")
-def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):  # noqa: ANN001, ANN202
+def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
     """Demod low-pass on the 4 raw demod values (into `filt`), then PLL and the three PIDs."""
     ynew = np.empty(order)
     for ch in range(4):
@@ -177,7 +178,7 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):  # no
 
 
 @njit(cache=True, inline="always")
-def _exp_neg(x):  # noqa: ANN001, ANN202
+def _exp_neg(x):
     """exp(-x) for real x; 5-term series below 1e-3 (error < 1e-18)."""
     if abs(x) < 1e-3:
         return 1.0 - x * (1.0 - x * (0.5 - x * (1.0 / 6.0 - x * (1.0 / 24.0))))
@@ -185,7 +186,7 @@ def _exp_neg(x):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True, inline="always")
-def _exp_neg_i(x):  # noqa: ANN001, ANN202
+def _exp_neg_i(x):
     """exp(-i x) for real x; series below 1e-2 (error < 1e-18)."""
     if abs(x) < 1e-2:
         x2 = x * x
@@ -196,7 +197,7 @@ def _exp_neg_i(x):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True, inline="always")
-def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):  # noqa: ANN001, ANN202 - numba kernel
+def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):
     """Bias instability: the Gauss-Markov sum x_j <- a_j x_j + b_j n_j, updated every gm_steps steps and held in
     S[S_BIAS] (rad/s) between updates. Returns the next row of gm_noise to use."""
     S[S_GMK] += 1.0
@@ -213,7 +214,7 @@ def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True)
-def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
+def _lowpass_sections(P, L, dt):
     """The demodulator low-pass (exact Jordan-chain coefficients) and the loop delay section.
 
     fj[i] = e^-x x^i / i!, fs[m] = S_(m+1), fr[m] = R_(m+1) of the module docstring (x = dt/tc); the loop delay
@@ -255,7 +256,7 @@ def _lowpass_sections(P, L, dt):  # noqa: ANN001, ANN202 - numba kernel
 
 
 @njit(cache=True, error_model="numpy")
-def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
+def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):
     """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
     n = temp_c.shape[0]
     dt = P[P_DT]
@@ -342,7 +343,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
 
 
 @njit(cache=True)
-def _expm_taylor(A, dt, term, tmp, phi_m, psi):  # noqa: ANN001, ANN202
+def _expm_taylor(A, dt, term, tmp, phi_m, psi):
     """phi_m = expm(A dt), psi = int_0^dt expm(A s) ds, Taylor series to (A dt)^13 / 13! (||A dt|| ~ 0.2)."""
     for r in range(4):
         for c in range(4):
@@ -365,7 +366,7 @@ def _expm_taylor(A, dt, term, tmp, phi_m, psi):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True, error_model="numpy")
-def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):  # noqa: ANN001, ANN201
+def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):
     """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT]."""
     n = temp_c.shape[0]
     dt = P[P_DT]
@@ -439,7 +440,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         sxs = 0.0
         syc = 0.0
         sys_ = 0.0
-        for j in range(m_per):
+        for _j in range(m_per):
             fx = fxs * sm
             fy = fyc * cm + fys * sm
             for r in range(4):

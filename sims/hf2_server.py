@@ -152,14 +152,14 @@ class HF2DataServerTwin:
         if not self.connected:
             raise NodeError(f"ZIAPINotFoundException: device {self.device_id} is not connected (connectDevice)")
 
-    def connectDevice(self, dev: str, interface: str = "USB", params: str = "") -> None:  # noqa: N802
+    def connectDevice(self, dev: str, interface: str = "USB", params: str = "") -> None:
         if dev.lower() != self.device_id:
             raise NodeError(f"ZIAPIServerException: device {dev} not found by the HF2 data server")
         if interface.upper() != "USB":
             raise NodeError(f"ZIAPIServerException: HF2 devices connect over USB only, not {interface!r}")
         self.connected = True
 
-    def disconnectDevice(self, dev: str) -> None:  # noqa: N802
+    def disconnectDevice(self, dev: str) -> None:
         if dev.lower() == self.device_id:
             self.connected = False
             self.subscribed.clear()
@@ -167,12 +167,12 @@ class HF2DataServerTwin:
     def update(self) -> None:
         """Device detection on Linux HF2 servers: nothing to do for the twin."""
 
-    def listNodesJSON(self, path: str, *args: Any, **kwargs: Any) -> str:  # noqa: N802
+    def listNodesJSON(self, path: str, *args: Any, **kwargs: Any) -> str:
         raise NodeError(
             "ZIAPINotSupportedException: listNodesJSON is not available on the HF2 data server (API level 1)"
         )
 
-    def listNodes(self, path: str, *args: Any, **kwargs: Any) -> list[str]:  # noqa: N802
+    def listNodes(self, path: str, *args: Any, **kwargs: Any) -> list[str]:
         p = path.lower()
         if p.startswith("/zi"):
             pat = p if any(c in p for c in "*?[") else p.rstrip("/") + "/*"
@@ -194,25 +194,25 @@ class HF2DataServerTwin:
         self._check_device(p)
         return self.nodes.read(p)
 
-    def getInt(self, path: str) -> int:  # noqa: N802
+    def getInt(self, path: str) -> int:
         v = self._read(path)
         if isinstance(v, str):
             raise NodeError(f"ZIAPIException: node {path} holds a string, not an integer")
         return int(v)
 
-    def getDouble(self, path: str) -> float:  # noqa: N802
+    def getDouble(self, path: str) -> float:
         v = self._read(path)
         if isinstance(v, str):
             raise NodeError(f"ZIAPIException: node {path} holds a string, not a number")
         return float(v)
 
-    def getString(self, path: str) -> str:  # noqa: N802
+    def getString(self, path: str) -> str:
         v = self._read(path)
         if not isinstance(v, str):
             raise NodeError(f"ZIAPIException: node {path} is numeric, not a string")
         return v
 
-    def getSample(self, path: str) -> dict[str, np.ndarray]:  # noqa: N802
+    def getSample(self, path: str) -> dict[str, np.ndarray]:
         p = self.nodes.absolute(path)
         self._check_device(p)
         if not fnmatch.fnmatchcase(p, f"/{self.device_id}/demods/*/sample"):
@@ -228,10 +228,10 @@ class HF2DataServerTwin:
         if flags is not None:
             settingsonly = bool(int(flags) & 8)
         out: dict[str, Any] = {}
-        for expr in str(paths).split(","):
-            expr = expr.strip().lower()
+        for raw_expr in str(paths).split(","):
+            expr = raw_expr.strip().lower()
             if expr.startswith("/zi"):
-                pat = expr if any(c in expr for c in "*?[") else expr
+                pat = expr
                 for k, v in self._zi.items():
                     if fnmatch.fnmatchcase(k, pat) or k.startswith(pat.rstrip("/") + "/"):
                         out[k] = [v] if isinstance(v, str) else np.array([v])
@@ -260,8 +260,8 @@ class HF2DataServerTwin:
         """set(path, value) or set([(path, value), ...]); the list is validated whole before any node changes."""
         items = [(path, value)] if isinstance(path, str) else list(path)
         checked = []
-        for p, v in items:
-            p = str(p).lower()
+        for raw_path, v in items:
+            p = str(raw_path).lower()
             if p.startswith("/zi/"):
                 checked.append((p, v))
                 continue
@@ -281,31 +281,31 @@ class HF2DataServerTwin:
             if fnmatch.fnmatchcase(p, "/*/demods/*/rate"):
                 self._round_rate(p)
 
-    def setInt(self, path: str, value: int) -> None:  # noqa: N802
+    def setInt(self, path: str, value: int) -> None:
         self.set(path, int(value))
 
-    def setDouble(self, path: str, value: float) -> None:  # noqa: N802
+    def setDouble(self, path: str, value: float) -> None:
         self.set(path, float(value))
 
-    def setString(self, path: str, value: str) -> None:  # noqa: N802
+    def setString(self, path: str, value: str) -> None:
         self.set(path, str(value))
 
-    def syncSetInt(self, path: str, value: int) -> int:  # noqa: N802
+    def syncSetInt(self, path: str, value: int) -> int:
         self.set(path, int(value))
         return self.getInt(path)
 
-    def syncSetDouble(self, path: str, value: float) -> float:  # noqa: N802
+    def syncSetDouble(self, path: str, value: float) -> float:
         self.set(path, float(value))
         return self.getDouble(path)
 
-    def syncSetString(self, path: str, value: str) -> str:  # noqa: N802
+    def syncSetString(self, path: str, value: str) -> str:
         self.set(path, str(value))
         return self.getString(path)
 
     def sync(self) -> None:
         """All sets are applied at once and nothing is buffered between polls: nothing to flush."""
 
-    def echoDevice(self, dev: str) -> None:  # noqa: N802
+    def echoDevice(self, dev: str) -> None:
         self._check_device(f"/{dev}")
 
     def _stream_paths(self, path: Any) -> list[str]:

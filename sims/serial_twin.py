@@ -171,7 +171,7 @@ class _Server:
     def _run_guarded(self) -> None:
         try:
             self._run()
-        except BaseException as exc:  # noqa: BLE001 - surfaced through .error for tests
+        except BaseException as exc:
             self.error = exc
 
     def _run(self) -> None:

@@ -93,7 +93,7 @@ def step_pairs(path: Path, settle_s: float = 5.0) -> dict[str, np.ndarray]:
         tab_t, tab_cmd = f["table/time"][:], f["table/rate_command"][:]
     rows = [i for i, k in enumerate(kinds) if k == "rate"]
     out: dict[str, list[float]] = {k: [] for k in ("sf", "clsf", "truth", "temp")}
-    for a, b in zip(rows[0::2], rows[1::2]):
+    for a, b in zip(rows[0::2], rows[1::2], strict=False):
         # commanded rates as the file's /table records them during each dwell
         w_a = _mean(tab_t, tab_cmd, ts[a] + settle_s, te[a])
         w_b = _mean(tab_t, tab_cmd, ts[b] + settle_s, te[b])

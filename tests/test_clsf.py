@@ -25,7 +25,7 @@ from qmg_lab.demod_filter import DemodFilter
 TAU = 2 * 1.2e6 / (2 * math.pi * 2200)
 B = 0.8 * 0.5 / (0.06 * 180 / math.pi)  # beta = k R_d / SF, Vrms/s per V
 P = 2 * math.pi * 2.0 / B  # rate PI: 2 Hz bandwidth, zero on 1/tau
-I = P / TAU
+I_GAIN = P / TAU
 KAPPA = 0.8 * 0.5  # k R_d: X rate per rad/s of Omega
 SUB = 2
 
@@ -104,7 +104,7 @@ class Bench:
             d_out[i] = self._square(t)
             e = -y
             self.integ += e * self.dt
-            self.v_prev, self.v = self.v, P * e + I * self.integ
+            self.v_prev, self.v = self.v, P * e + I_GAIN * self.integ
         return t_out, x_out, r_out, d_out
 
 
@@ -168,7 +168,7 @@ def test_constant_table_rate_does_not_bias_and_rate_is_dither_free():
     tt, sf, rate, _ = feed(est, t, x, r, d)
     est0 = estimator(reference_periods=20)
     ta, xa, ra, da = Bench(rate_hz, 7.0, 30.0).run(n)
-    _, sf0, _, _ = feed(est0, ta, xa, ra, da)
+    _, _sf0, _, _ = feed(est0, ta, xa, ra, da)
     assert est.rho_ref == pytest.approx(est0.rho_ref, rel=1e-5)  # same beta, 5 deg/s vs rest
     assert abs(sf[tt > 4].mean()) < 2e-5 and sf[tt > 4].std() < 5e-5
     # steady FTR output = kappa Omega / beta = 0.06 V/(deg/s) * 5 deg/s, dither averaged out over whole periods

@@ -112,7 +112,7 @@ def run_inprocess(
     error: BaseException | None = None
     try:
         summary = runner.run()
-    except Exception as exc:  # noqa: BLE001 - the tests look at it
+    except Exception as exc:
         error = exc
         summary = runner.summary("aborted", str(exc))
     try:

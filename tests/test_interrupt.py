@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+from typing import ClassVar
 
 import h5py
 import pytest
@@ -48,7 +49,7 @@ class _SecondCtrlCInsideAWrite(RunWriter):
 
     armed_at_s = 40.0
     fired = False
-    finished_writes_after: list[str] = []
+    finished_writes_after: ClassVar[list[str]] = []
 
     def append(self, group, **columns):  # type: ignore[override]
         if group == "table" and not self.fired and columns["time"][0] >= self.armed_at_s:

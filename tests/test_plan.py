@@ -8,7 +8,7 @@ import pytest
 
 from qmg_lab.config import Config, parse_config
 from qmg_lab.instruments import LimitError
-from qmg_lab.plan import assert_within_limits, build_plan, dither_amplitude_vpp, limit_checks, plan_duration_s
+from qmg_lab.plan import StepKind, assert_within_limits, build_plan, dither_amplitude_vpp, limit_checks, plan_duration_s
 
 
 def cfg(text: str = "") -> Config:
@@ -41,7 +41,8 @@ def test_allan_plan_covers_duration_with_step_pairs():
 
 def test_bandwidth_plan_has_one_sine_step_per_frequency():
     c = cfg("[campaign]\nkind = 'bandwidth'\n[plan]\nbandwidth_frequencies_hz = [0.5, 2.0]\nbandwidth_cycles = 4\n")
-    sines = [s for s in build_plan(c) if s.kind.startswith("sine")]
+    sines = [s for s in build_plan(c) if s.kind is StepKind.SINE]
+    assert [s.label for s in sines] == ["sine:0.500Hz", "sine:2.000Hz"]
     assert [s.sine_frequency_hz for s in sines] == [0.5, 2.0]
     assert sines[1].duration_s >= 4 / 2.0
 

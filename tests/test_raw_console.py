@@ -57,7 +57,7 @@ def test_table_raw_prints_the_bytes_of_a_real_serial_exchange(
     assert f"sent 5 bytes {b'STA' + bytes([13, 10])!r}; received {len(received)} bytes {received!r}" in proc.stdout
     # every chunk: time in ms since the write, direction, bytes
     chunks = re.findall(r"^\s+(\d+\.\d) ms  << (b'.*')$", proc.stdout, flags=re.M)
-    assert chunks and b"".join(eval(c) for _, c in chunks) == received  # noqa: S307 - our own repr output
+    assert chunks and b"".join(eval(c) for _, c in chunks) == received
     assert twin.commands_seen == 1
 
 

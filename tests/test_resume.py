@@ -33,7 +33,8 @@ from tests.test_faults_helpers import config_text, run_inprocess
 
 
 def long_config() -> str:
-    """The short plan with 17 pairs of 10 s table steps (ceil((30 s ramp + 300 s hold) / 20 s)) and lock, dither, soak, return: 38 steps."""
+    """The short plan with 17 pairs of 10 s table steps (ceil((30 s ramp + 300 s hold) / 20 s)) and lock,
+    dither, soak, return: 38 steps."""
     text = config_text()
     return text.replace("chamber_end_hold_s = 50.0", "chamber_end_hold_s = 300.0")
 

@@ -71,7 +71,7 @@ def test_faults_reconnects_and_suspensions_are_logged_with_run_time(tmp_path: Pa
 def test_a_resume_adds_four_resume_snapshots(tmp_path: Path) -> None:
     text = config_text()
 
-    def stop_at_30_s(p) -> None:  # noqa: ANN001 - Progress
+    def stop_at_30_s(p) -> None:
         if p.run_time_s >= 30.0:
             raise KeyboardInterrupt  # what Ctrl-C raises inside a block
 
@@ -97,7 +97,7 @@ def test_a_file_from_before_the_records_gets_them_when_resumed(tmp_path: Path) -
     resumed run records its four resume snapshots."""
     text = config_text()
 
-    def stop_at_20_s(p) -> None:  # noqa: ANN001 - Progress
+    def stop_at_20_s(p) -> None:
         if p.run_time_s >= 20.0:
             raise KeyboardInterrupt
 

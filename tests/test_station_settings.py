@@ -22,7 +22,7 @@ from sims.world import World, WorldParams
 DEV = f"/{SIM_DEVICE_ID}"
 
 
-def cfg_from(text: str):  # noqa: ANN201 - a Config
+def cfg_from(text: str):
     return parse_config(text)
 
 
@@ -51,7 +51,7 @@ def test_build_station_passes_output_safe_v() -> None:
 
 
 @pytest.fixture
-def chamber_controller():  # noqa: ANN201
+def chamber_controller():
     world = World(WorldParams(), clock="wall")
     twin = ChamberTwin(world)
     url, stop = serve_socket(twin, "127.0.0.1")
@@ -59,7 +59,7 @@ def chamber_controller():  # noqa: ANN201
     stop()
 
 
-def test_chamber_limits_are_written_to_the_controller(chamber_controller) -> None:  # noqa: ANN001
+def test_chamber_limits_are_written_to_the_controller(chamber_controller) -> None:
     twin, url = chamber_controller
     assert (twin.ltl_c, twin.utl_c) == (-70.0, 180.0)  # the controller's own range before qmg-lab connects
     cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 10.0\nmax_c = 40.0\nsafe_setpoint_c = 20.0\n')
@@ -73,7 +73,7 @@ def test_chamber_limits_are_written_to_the_controller(chamber_controller) -> Non
         conn.close()
 
 
-def test_chamber_limits_are_written_again_on_reconnect(chamber_controller) -> None:  # noqa: ANN001
+def test_chamber_limits_are_written_again_on_reconnect(chamber_controller) -> None:
     twin, url = chamber_controller
     cfg = cfg_from(f'[chamber]\nsim = false\nport = "{url}"\nmin_c = 0.0\nmax_c = 50.0\n')
     conn = connect_instrument(cfg, "chamber")
@@ -105,7 +105,7 @@ def test_a_controller_that_refuses_the_limits_is_an_instrument_fault(tmp_path: P
     assert "Traceback" not in proc.stderr
 
 
-def test_a_reply_lost_while_writing_the_limits_is_retried_at_connect(chamber_controller) -> None:  # noqa: ANN001
+def test_a_reply_lost_while_writing_the_limits_is_retried_at_connect(chamber_controller) -> None:
     """The first LTL= reply is lost (a timeout); the connect reconnects once ([recovery] reconnect_attempts) and
     writes the limits, instead of failing the whole station on one lost reply."""
     twin, url = chamber_controller

@@ -89,14 +89,16 @@ def test_set_rate_sees_interlock_in_status() -> None:
 
 def test_jog_refused_with_e04_raises_interlock_error_and_consumes_prompt() -> None:
     pairs = [(b"ACL300.000\r\n", P), (b"JOG5.000000\r\n", b"E04 INTERLOCK\r" + P)]
-    with expected_protocol(table, pairs) as t, pytest.raises(InterlockError, match="JOG5.000000.*E04"):
+    with expected_protocol(table, pairs) as t, pytest.raises(InterlockError, match=r"JOG5\.000000.*E04"):
         t.set_rate(5.0, 300.0)
 
 
 def test_unknown_command_error_names_command_and_code() -> None:
-    with expected_protocol(table, [(b"PVE\r\n", b"E01 UNKNOWN COMMAND\r" + P)]) as t:
-        with pytest.raises(InstrumentError, match=r"'PVE' refused: E01 UNKNOWN COMMAND \(unknown command\)"):
-            t.read()
+    with (
+        expected_protocol(table, [(b"PVE\r\n", b"E01 UNKNOWN COMMAND\r" + P)]) as t,
+        pytest.raises(InstrumentError, match=r"'PVE' refused: E01 UNKNOWN COMMAND \(unknown command\)"),
+    ):
+        t.read()
 
 
 def test_set_sinusoid_sequence() -> None:
@@ -113,9 +115,8 @@ def test_set_sinusoid_sequence() -> None:
 
 def test_set_sinusoid_refused_when_peak_acceleration_exceeds_accel() -> None:
     # peak acceleration of 5 sin(2 pi 10 t) is 5 * 2 pi * 10 = 314.16 deg/s^2 > 300
-    with expected_protocol(table, []) as t:
-        with pytest.raises(LimitError, match=r"314\.159.*acceleration limit 300"):
-            t.set_sinusoid(5.0, 10.0, 300.0)
+    with expected_protocol(table, []) as t, pytest.raises(LimitError, match=r"314\.159.*acceleration limit 300"):
+        t.set_sinusoid(5.0, 10.0, 300.0)
     assert 5.0 * 2 * math.pi * 10.0 > 300.0
 
 

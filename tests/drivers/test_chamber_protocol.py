@@ -169,4 +169,4 @@ def test_reconnect_identifies_rewrites_limits_and_restores_setpoint() -> None:
 @pytest.mark.parametrize("reply", [b"27.50\r", b"27.50\n", b"27.50\r\n", b"  27.50 \r\n", b"\n27.50\r"])
 def test_tolerated_framings_parse_the_same_temperature(reply: bytes) -> None:
     with expected_protocol(chamber, [(b"C1?\r\n", reply)]) as c:
-        assert c._query("C1?", lambda text: float(text)) == 27.5
+        assert c._query("C1?", float) == 27.5

@@ -39,15 +39,10 @@ def test_set_square_sends_documented_bytes() -> None:
 
 
 def test_second_setting_needs_no_offset_query_and_formats_numbers() -> None:
-    pairs = square_7hz_0v6() + [
-        (b"FUNC 0", None),
-        OK,
-        (b"FREQ 0.333333", None),
-        OK,
-        (b"AMPL 0.01VP", None),
-        OK,
-        (b"OFFS -0.5", None),
-        OK,
+    pairs = [
+        *square_7hz_0v6(),
+        *[(b"FUNC 0", None), OK, (b"FREQ 0.333333", None), OK],
+        *[(b"AMPL 0.01VP", None), OK, (b"OFFS -0.5", None), OK],
     ]
     with expected_protocol(pairs) as res:
         gen = DS345(res)
@@ -281,8 +276,8 @@ def test_constructor_sets_lf_terminations_and_sends_nothing() -> None:
 
 def test_reconnect_checks_identity_and_reapplies_settings() -> None:
     idn = b"StanfordResearchSystems,DS345,12345,1.04"
-    first = ProtocolResource([(b"*IDN?", idn)] + square_7hz_0v6())
-    second = ProtocolResource([(b"*IDN?", idn), (b"*CLS", None)] + square_7hz_0v6())
+    first = ProtocolResource([(b"*IDN?", idn), *square_7hz_0v6()])
+    second = ProtocolResource([(b"*IDN?", idn), (b"*CLS", None), *square_7hz_0v6()])
     gen = DS345(first, reopen=lambda: second)
     gen.identify()
     gen.set_square(7, 0.6)

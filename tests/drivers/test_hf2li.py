@@ -160,7 +160,7 @@ def test_commands_outside_limits_are_refused_before_anything_is_sent() -> None:
 def test_forcer_amplitude_above_full_range_is_refused() -> None:
     cfg = Config().model_copy(update={"lockin": Config().lockin.model_copy(update={"forcer_carrier_amplitude": 0.8})})
     _, _, twin, li = bench(cfg)
-    with pytest.raises(LimitError, match="above the limit 1.0"):
+    with pytest.raises(LimitError, match=r"above the limit 1\.0"):
         li.set_forcer_gain(1.5)  # 0.8 * 1.5 = 1.2 of range
     assert twin.set_calls == []
 
@@ -176,7 +176,7 @@ def test_set_forcer_gain_scales_the_carrier() -> None:
 
 
 def test_poll_yields_samples_at_the_rate_with_monotonic_time() -> None:
-    cfg, world, twin, li = bench()
+    cfg, world, _twin, li = bench()
     li.configure(lockin_setup(cfg))
     li.start_stream()
     blocks = [li.poll(0.5) for _ in range(3)]

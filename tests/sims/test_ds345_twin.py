@@ -133,7 +133,7 @@ def test_driver_surfaces_twin_range_error(monkeypatch: pytest.MonkeyPatch) -> No
 
 
 def test_device_clear_flushes_a_partial_reply() -> None:
-    world, twin, res = bench()
+    _world, twin, res = bench()
     twin.reply_hook = lambda framed: framed[:-1]  # LF lost
     with pytest.raises(pyvisa.errors.VisaIOError):
         res.query("FREQ?")
@@ -163,7 +163,7 @@ def test_twin_creation_keeps_the_world_dither() -> None:
 
 
 def test_several_commands_per_line() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("FUNC 1;FREQ 7;AMPL 2.5VP;OFFS 0")
     assert res.query("*ESR?") == "0"
     d = world.dither
@@ -192,7 +192,7 @@ def test_several_commands_per_line() -> None:
     ],
 )
 def test_errors_set_the_documented_bits_and_leave_state(message: str, esr: int) -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     before = (world.dither.frequency_hz, world.dither.amplitude_vpp, world.dither.offset_v)
     res.write(message)
     assert res.query("*ESR?") == str(esr)
@@ -200,7 +200,7 @@ def test_errors_set_the_documented_bits_and_leave_state(message: str, esr: int) 
 
 
 def test_ac_peak_plus_dc_rule_both_ways() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("AMPL 4VP;OFFS 3")  # 2 + 3 = 5 V: allowed
     assert res.query("*ESR?") == "0"
     res.write("OFFS 3.5")  # 2 + 3.5 > 5 V
@@ -211,14 +211,14 @@ def test_ac_peak_plus_dc_rule_both_ways() -> None:
 
 
 def test_mute_is_accepted_exactly() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("AMPL 0VP")
     assert res.query("*ESR?") == "0" and res.query("AMPL?") == "0VP"
     assert world.dither.amplitude_vpp == 0.0
 
 
 def test_amplitude_units() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("FUNC 0;AMPL 1VR")  # sine: Vpp = 2 sqrt 2 Vrms
     assert world.dither.amplitude_vpp == pytest.approx(2 * math.sqrt(2), rel=1e-12)
     assert res.query("AMPL?") == "1VR"
@@ -231,7 +231,7 @@ def test_amplitude_units() -> None:
 
 
 def test_triangle_frequency_limit() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("FREQ 200000")
     res.write("FUNC 2")  # triangle only to 100 kHz
     assert res.query("*ESR?") == "16" and world.dither.function == 0
@@ -240,7 +240,7 @@ def test_triangle_frequency_limit() -> None:
 
 
 def test_invert_and_phase() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("FUNC 1;FREQ 7;AMPL 2VP;INVT 1")
     v = world.advance(200, DT).dither_v
     assert np.allclose(v[:100], -1.0, atol=1e-9) and np.allclose(v[100:], 1.0, atol=1e-9)  # inverted: low first
@@ -253,7 +253,7 @@ def test_invert_and_phase() -> None:
 
 
 def test_reset_and_lower_case() -> None:
-    world, twin, res = bench()
+    world, _twin, res = bench()
     res.write("func 1;freq 7;ampl 0.6vp")
     res.write("*RST")
     d = world.dither
@@ -261,7 +261,7 @@ def test_reset_and_lower_case() -> None:
 
 
 def test_empty_read_times_out_and_sets_query_error() -> None:
-    world, twin, res = bench()
+    _world, _twin, res = bench()
     with pytest.raises(pyvisa.errors.VisaIOError) as err:
         res.read()
     assert err.value.error_code == pyvisa.constants.StatusCode.error_timeout
@@ -269,7 +269,7 @@ def test_empty_read_times_out_and_sets_query_error() -> None:
 
 
 def test_status_byte() -> None:
-    world, twin, res = bench()
+    _world, _twin, res = bench()
     assert res.query("*STB?") == "128"  # idle, nothing pending
     res.write("*ESE 16;FREQ 0")  # execution error, enabled in ESE -> ESB
     assert res.query("*STB?") == str(128 | 32)
@@ -277,7 +277,7 @@ def test_status_byte() -> None:
 
 
 def test_closed_resource_raises() -> None:
-    world, twin, res = bench()
+    _world, _twin, res = bench()
     res.close()
     with pytest.raises(pyvisa.errors.InvalidSession):
         res.write("*IDN?")

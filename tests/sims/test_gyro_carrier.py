@@ -52,11 +52,11 @@ def _campaign(sim: GyroSim | CarrierGyroSim) -> dict[str, float]:
     r = tri.reshape(-1, PERIOD) - tri.reshape(-1, PERIOD).mean(axis=1, keepdims=True)
     last = int(1.5 * F0 / PERIOD)  # periods averaged at the end of each phase
 
-    def clsf(b) -> float:  # noqa: ANN001
+    def clsf(b) -> float:
         d = (b.x_sense.reshape(-1, PERIOD) * r).sum(axis=1)
         return float(d[-last:].mean())
 
-    def rate_out(b) -> tuple[float, float]:  # noqa: ANN001
+    def rate_out(b) -> tuple[float, float]:
         m = last * PERIOD
         return float(b.rate_output_v[-m:].mean()), float(b.sf_true_v_per_dps[-m:].mean())
 
