@@ -30,7 +30,6 @@ Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import asdict, dataclass, field
@@ -550,8 +549,3 @@ def render_table(result: AnalysisResult) -> Any:
     for row in rows:
         tab.add_row(*row)
     return tab
-
-
-def result_json_text(result: AnalysisResult) -> str:
-    """The JSON text `qmg-lab analyze --json` prints."""
-    return json.dumps(result.to_json(), indent=2)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from qmg_lab.config import Config, DeviceSection, LoopsSection
+from qmg_lab.config import Config, DeviceSection
 from qmg_lab.instruments import LockInSetup, PidGains
 
 DEG_PER_RAD = 180.0 / math.pi
@@ -98,11 +98,6 @@ def pll_pi(f0_hz: float, bandwidth_hz: float, damping: float) -> PidGains:
     )
 
 
-def rate_bandwidth_hz(gains: PidGains, device: DeviceSection) -> float:
-    """Closed-loop rate bandwidth that gains P produce on the nominal plant: b P / 2 pi."""
-    return rate_plant(device).b * gains.p / (2.0 * math.pi)
-
-
 def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
     """The complete lock-in setup for a configuration."""
     dev, lp = cfg.device, cfg.loops
@@ -120,10 +115,3 @@ def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
         forcer_gain=forcer_gain,
         auxin_averaging=cfg.lockin.auxin_averaging,
     )
-
-
-def paper_k_cy(device: DeviceSection, loops: LoopsSection) -> float:
-    """The paper's eq. 5 gain K_cy = 4 omega omega_Omega tau_cy... reported for comparison only: with
-    tau_cy = tau/2 the bandwidth omega_Omega = K_cy/(4 omega tau_cy) gives K_cy = 2 omega_Omega omega tau."""
-    w = 2.0 * math.pi * device.f0_hz
-    return 2.0 * (2.0 * math.pi * loops.rate_bandwidth_hz) * w * device.tau_s
