@@ -2,8 +2,9 @@
 
 Every section is a strict model (unknown keys are errors) whose fields carry their unit in the name or in
 the description, and their allowed range as constraints. `load_config(path)` reads and validates a file;
-`ConfigError` carries a message that names the offending field and its allowed range, for the CLI to print
-with exit code 2.
+`ConfigError` carries a message that names the offending field and its allowed range (worded by
+qmg_lab/config_errors.py), for the CLI to print with exit code 2. docs/configuration.md is generated from this
+schema by qmg_lab/config_docs.py.
 """
 
 from __future__ import annotations
@@ -12,11 +13,11 @@ import hashlib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from pydantic_core import ErrorDetails
 
+from qmg_lab.config_errors import describe_error
 from qmg_lab.stream_plan import StreamPlan, hf2_rate
 
 
@@ -441,68 +442,6 @@ class Config(_Section):
         return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
 
 
-def _field_at(loc: tuple[Any, ...]) -> tuple[type[BaseModel] | None, Any]:
-    """The model owning the field at `loc` (list indices skipped) and the field's FieldInfo (None if unknown)."""
-    model: Any = Config
-    owner, info = None, None
-    for part in loc:
-        if isinstance(part, int):
-            break
-        if not (isinstance(model, type) and issubclass(model, BaseModel)):
-            return owner, None
-        owner, info = model, model.model_fields.get(str(part))
-        if info is None:
-            return owner, None
-        model = info.annotation
-    return owner, info
-
-
-def _allowed(info: Any) -> str:
-    """What a field accepts, in words: its type and bounds (e.g. "a number > 0 and <= 86400")."""
-    ann = info.annotation
-    args = [a for a in getattr(ann, "__args__", ()) if a is not type(None)]
-    if getattr(ann, "__origin__", None) is Literal:
-        return "one of " + ", ".join(repr(a) for a in args)
-    base = ann if isinstance(ann, type) else (args[0] if len(args) == 1 else None)
-    words: dict[object, str] = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
-    kind = words.get(base, "")
-    if getattr(ann, "__origin__", None) is list:
-        kind = "a list of numbers"
-    bounds = []
-    for m in info.metadata:
-        for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
-            v = getattr(m, attr, None)
-            if v is not None:
-                bounds.append(f"{sym} {v:g}")
-        if getattr(m, "pattern", None):
-            bounds.append(f"matching {m.pattern}")
-        if getattr(m, "min_length", None):
-            bounds.append("not empty")
-    text = " and ".join(bounds)
-    if type(None) in getattr(ann, "__args__", ()):
-        kind = kind + " (or absent)" if kind else kind
-    return f"{kind} {text}".strip() if kind or text else ""
-
-
-def _describe(error: ErrorDetails) -> str:
-    loc_parts = tuple(error.get("loc", ()))
-    loc = ".".join(str(p) for p in loc_parts) or "(top level)"
-    kind = error.get("type", "")
-    ctx = error.get("ctx") or {}
-    msg = error.get("msg", "invalid")
-    owner, info = _field_at(loc_parts)
-    if kind == "extra_forbidden":
-        known = f"; known keys: {', '.join(owner.model_fields)}" if owner is not None and info is None else ""
-        return f"{loc}: unknown key (check the spelling; see docs/configuration.md{known})"
-    if ctx.get("error") is not None and kind == "value_error":
-        return f"{ctx['error']}" if str(ctx["error"]).startswith(loc.split(".")[0]) else f"{loc}: {ctx['error']}"
-    allowed = _allowed(info) if info is not None else ""
-    if info is not None and isinstance(info.annotation, type) and issubclass(info.annotation, BaseModel):
-        allowed = f"a [{loc}] section (a TOML table)"
-    suffix = f"; allowed: {allowed}" if allowed else ""
-    return f"{loc}: {msg} (got {error.get('input')!r}){suffix}"
-
-
 def parse_config(text: str, source: str = "<string>") -> Config:
     """Validate TOML text into a Config; raise ConfigError naming every bad field and its allowed range."""
     try:
@@ -512,7 +451,7 @@ def parse_config(text: str, source: str = "<string>") -> Config:
     try:
         return Config.model_validate(data)
     except ValidationError as exc:
-        lines = [_describe(e) for e in exc.errors(include_url=False)]
+        lines = [describe_error(e, Config) for e in exc.errors(include_url=False)]
         raise ConfigError(f"{source}: invalid configuration:\n  " + "\n  ".join(lines)) from None
 
 
@@ -533,61 +472,6 @@ def load_config(path: str | Path) -> tuple[Config, str]:
 def config_fingerprint(text: str) -> str:
     """SHA-256 of the configuration text, hex: the identity `--resume` checks."""
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def reference_markdown() -> str:
-    """docs/configuration.md, generated from the schema (a test keeps the file equal to this)."""
-    lines = [
-        "# Configuration reference",
-        "",
-        "Generated from `qmg_lab/config.py` by `python -m qmg_lab.config > docs/configuration.md`.",
-        "Every section is strict: an unknown key is an error that names it. Units are in the names",
-        "(`_s` seconds, `_hz` hertz, `_dps` deg/s, `_dps2` deg/s², `_c` °C, `_v` volts, `_vrms` volts rms).",
-        "",
-    ]
-
-    def section(name: str, model: type[BaseModel]) -> None:
-        lines.extend(
-            [
-                f"## [{name}]",
-                "",
-                (model.__doc__ or "").strip().split("\n\n")[0],
-                "",
-                "| key | default | allowed | meaning |",
-                "|---|---|---|---|",
-            ]
-        )
-        for key, f in model.model_fields.items():
-            ann = f.annotation
-            if isinstance(ann, type) and issubclass(ann, BaseModel):
-                continue
-            default = f.get_default(call_default_factory=True)
-            bounds = []
-            for m in f.metadata:
-                for attr, sym in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
-                    v = getattr(m, attr, None)
-                    if v is not None:
-                        bounds.append(f"{sym} {v:g}" if isinstance(v, (int, float)) else f"{sym} {v}")
-                pattern = getattr(m, "pattern", None)
-                if pattern:
-                    bounds.append(f"pattern `{pattern}`")
-            args = getattr(ann, "__args__", ())
-            if getattr(ann, "__origin__", None) is Literal:
-                bounds.append(" \\| ".join(repr(a) for a in args))
-            lines.append(f"| `{key}` | `{default!r}` | {', '.join(bounds) or '—'} | {f.description or ''} |")
-        lines.append("")
-
-    for name, f in Config.model_fields.items():
-        model = f.annotation
-        assert isinstance(model, type)
-        section(name, model)
-        if name == "sim":
-            section("sim.faults", SimFaultsSection)
-    return "\n".join(lines)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(reference_markdown(), end="")
 
 
 def stream_timing_problem(cfg: Config) -> str | None:
