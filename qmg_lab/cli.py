@@ -23,6 +23,7 @@ from rich.table import Table
 
 from qmg_lab import __version__
 from qmg_lab.config import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
+from qmg_lab.config_edit import with_values
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
 app = typer.Typer(
@@ -396,7 +397,7 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
     from qmg_lab.analysis import analyze
 
     cfg, text = _load(config, sim, campaign=True)
-    text = with_campaign_kind(text, kind)
+    text = with_values(text, {"campaign.kind": kind})
     cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
     tmp = None
     if output is None:
@@ -420,29 +421,6 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
         for k, v in picked.items():
             if not isinstance(v, list):
                 out.print(f"{k}: {v}")
-
-
-def with_campaign_kind(text: str, kind: str) -> str:
-    """The configuration text with [campaign] kind set to `kind` (what the run file stores as config_toml)."""
-    lines = text.splitlines()
-    out_lines: list[str] = []
-    section, done = "", False
-    for line in lines:
-        stripped = line.strip()
-        if stripped.startswith("[") and not stripped.startswith("[["):
-            if section == "campaign" and not done:
-                out_lines.append(f'kind = "{kind}"')
-                done = True
-            section = stripped.strip("[]").strip()
-        elif section == "campaign" and stripped.split("=")[0].strip() == "kind":
-            continue
-        out_lines.append(line)
-    if section == "campaign" and not done:
-        out_lines.append(f'kind = "{kind}"')
-        done = True
-    if not done:
-        out_lines = ["[campaign]", f'kind = "{kind}"', "", *out_lines]
-    return "\n".join(out_lines) + "\n"
 
 
 @characterize_app.command("bandwidth")
