@@ -464,18 +464,12 @@ def _faulty(faults: FaultInjector | None, name: str, twin: Any) -> Any:
 def restore_world(world: World, state: dict[str, Any]) -> None:
     """A resumed simulated run: the physical world did not stop when the host process died. Put the twins'
     world back where the file says it was (time, chamber setpoint and air, gyro temperature)."""
-    with world.lock:
-        t = state.get("last_time")
-        if t is not None and world.clock == "virtual":
-            world.t = float(t)
-        sp, air, gyro = (state.get(k) for k in ("chamber_setpoint_c", "chamber_temperature_c", "gyro_temperature_c"))
-        if sp is not None:
-            world.chamber.controller_setpoint_c = float(sp)
-            world.chamber.target_c = float(sp)
-        if air is not None:
-            world.chamber.air_c = float(air)
-        if gyro is not None:
-            world.chamber.gyro_c = float(gyro)
+    world.restore(
+        time_s=state.get("last_time"),
+        chamber_setpoint_c=state.get("chamber_setpoint_c"),
+        chamber_air_c=state.get("chamber_temperature_c"),
+        gyro_c=state.get("gyro_temperature_c"),
+    )
 
 
 # ---------------------------------------------------------------------------------------- raw transports

@@ -224,6 +224,27 @@ class World:
             if ramp_c_per_min is not None:
                 self.chamber.ramp_c_per_min = float(ramp_c_per_min)
 
+    def restore(
+        self,
+        time_s: float | None = None,
+        chamber_setpoint_c: float | None = None,
+        chamber_air_c: float | None = None,
+        gyro_c: float | None = None,
+    ) -> None:
+        """Put the world back where a resumed run's file says it was: the physical bench did not stop when the
+        host process died. The time is restored only on the virtual clock (a wall clock runs on by itself); the
+        chamber controller's setpoint and target, its air and the gyro temperature as given (None: unchanged)."""
+        with self.lock:
+            if time_s is not None and self.clock == "virtual":
+                self.t = float(time_s)
+            if chamber_setpoint_c is not None:
+                self.chamber.controller_setpoint_c = float(chamber_setpoint_c)
+                self.chamber.target_c = float(chamber_setpoint_c)
+            if chamber_air_c is not None:
+                self.chamber.air_c = float(chamber_air_c)
+            if gyro_c is not None:
+                self.chamber.gyro_c = float(gyro_c)
+
     def set_forcer_gain(self, gain: float) -> None:
         with self.lock:
             self.forcer_gain = float(gain)

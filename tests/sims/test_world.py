@@ -145,3 +145,17 @@ def test_interlock_brakes_the_table_to_rest():
     w.trip_interlock()
     w.advance(1400, DT)
     assert w.table.interlock and w.table_rate_dps() == 0.0
+
+
+def test_restore_puts_back_time_chamber_and_gyro_but_not_the_time_of_a_wall_clock() -> None:
+    w = World()
+    w.restore(time_s=1234.5, chamber_setpoint_c=31.0, chamber_air_c=30.2, gyro_c=29.9)
+    assert w.t == 1234.5
+    assert w.chamber.controller_setpoint_c == w.chamber.target_c == 31.0
+    assert (w.chamber.air_c, w.chamber.gyro_c) == (30.2, 29.9)
+    w.restore(gyro_c=28.0)  # None leaves a quantity as it is
+    assert (w.t, w.chamber.air_c, w.chamber.gyro_c) == (1234.5, 30.2, 28.0)
+    wall = World(clock="wall")
+    t0 = wall.t
+    wall.restore(time_s=1e6)
+    assert wall.t == t0
