@@ -90,7 +90,7 @@ def make_world(cfg: Config, clock: str | None = None) -> World:
 
 def gyro_params(cfg: Config) -> GyroParams:
     """The twin's physics from [sim] (the device's true constants, which the [device] section only estimates)."""
-    values = cfg.sim.model_dump(exclude={"seed", "faults"})
+    values = cfg.sim.model_dump(include=set(GyroParams.field_names()))  # [sim] also holds the world's and faults'
     values["drive_amplitude_vrms"] = cfg.device.drive_amplitude_vrms
     return GyroParams.from_mapping(values)
 

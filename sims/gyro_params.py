@@ -54,10 +54,19 @@ class GyroParams:
         self.validate()
 
     @classmethod
+    def field_names(cls) -> frozenset[str]:
+        """The names of the parameters (what `from_mapping` accepts)."""
+        return frozenset(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> GyroParams:
-        """Build from a mapping (e.g. SimSection.model_dump()); keys this class does not know are ignored."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        """Build from a mapping of parameter names (a subset; the rest keep their defaults). A key this class
+        does not know is an error that names it: a misspelt parameter must not be silently simulated as its
+        default."""
+        unknown = sorted(set(d) - cls.field_names())
+        if unknown:
+            raise ValueError(f"GyroParams: unknown parameters {unknown}; known: {sorted(cls.field_names())}")
+        return cls(**d)
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter that cannot be simulated."""

@@ -28,9 +28,12 @@ def _loops(gain: float = 1.0) -> LoopSettings:
     )
 
 
-def test_from_mapping_takes_the_config_section_and_ignores_unknown_keys() -> None:
-    p = GyroParams.from_mapping({**SimSection(q_factor=1e6).model_dump(), "not_a_param": 3})
+def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_keys() -> None:
+    section = SimSection(q_factor=1e6).model_dump(include=set(GyroParams.field_names()))
+    p = GyroParams.from_mapping(section)
     assert p.q_factor == 1e6
+    with pytest.raises(ValueError, match=r"unknown parameters \['q_facter'\]"):
+        GyroParams.from_mapping({"q_facter": 1e6})
     assert p.arw_rad_per_rt_s == pytest.approx(0.02 / 60.0 * math.pi / 180.0)
 
 
