@@ -40,8 +40,9 @@ import numpy as np
 
 from qmg_lab.adev import AllanResult, arw_deg_per_rt_h, bias_instability_deg_per_h, overlapping_adev
 from qmg_lab.analysis_char import BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average, settling_time_s
-from qmg_lab.config import Config, ConfigError, parse_config
+from qmg_lab.config import Config
 from qmg_lab.dither_edges import EdgeTracker
+from qmg_lab.runfile_reader import stored_config
 from qmg_lab.storage import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
@@ -145,12 +146,8 @@ class _Ctx:
 
 def _load(path: str | Path) -> _Ctx:
     run = read_run(path, select=["lockin/rate_output", "lockin/dither", "clsf", "table", "chamber", "truth"])
-    notes: list[str] = []
-    try:
-        cfg = parse_config(str(run.attrs.get("config_toml", "")), f"{run.path}:config_toml")
-    except ConfigError as exc:
-        cfg = Config()
-        notes.append(f"stored configuration not usable ({exc}); defaults assumed")
+    cfg, note = stored_config(run)
+    notes: list[str] = [note] if note else []
     t = run.groups["lockin"]["time"]
     fs = 1.0 / float(np.median(np.diff(t))) if t.shape[0] > 2 else cfg.lockin.demod_rate_hz
     period = 1

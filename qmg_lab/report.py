@@ -26,6 +26,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from qmg_lab.analysis import AnalysisResult, analyze
+from qmg_lab.runfile_reader import stored_config
 from qmg_lab.storage import read_run, read_window
 
 MAX_POINTS = 20000
@@ -244,12 +245,7 @@ def make_figures(path: str | Path, outdir: str | Path, result: AnalysisResult | 
     r = result if result is not None else analyze(p)
     run = read_run(p, select=["clsf", "chamber", "lockin/time"])
     out = FigureSet()
-    from qmg_lab.config import Config, ConfigError, parse_config
-
-    try:
-        cfg = parse_config(str(run.attrs.get("config_toml", "")))
-    except ConfigError:
-        cfg = Config()
+    cfg, _ = stored_config(run)
     # a quiet window for Fig. 4: the middle of the first hold/soak/level/rate step after the dither started
     t_from = 0.0
     for i in range(run.steps["index"].shape[0]):
