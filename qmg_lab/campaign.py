@@ -37,6 +37,7 @@ from qmg_lab.clsf import ClsfEstimator
 from qmg_lab.config import Config
 from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.instruments import (
+    SAFE_STATE_ORDER,
     InstrumentError,
     InterlockError,
     LockInBlock,
@@ -45,15 +46,13 @@ from qmg_lab.instruments import (
 )
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
-from qmg_lab.plan import Step, StepKind, assert_within_limits, build_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
 from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
 
 T = TypeVar("T")
 
 log = logging.getLogger(__name__)
-
-SAFE_STATE_ORDER = ("table", "generator", "chamber")  # the lock-in last: its stream keeps time meanwhile
 
 
 class CampaignAborted(RuntimeError):
@@ -126,11 +125,10 @@ class CampaignRunner:
     writer: RunWriter
     progress: Callable[[Progress], None] | None = None
     resume: bool = False
-    steps: list[Step] = field(default_factory=list)
+    plan: CheckedPlan | None = None  # None: made (and checked) here from cfg
 
     def __post_init__(self) -> None:
-        self.steps = self.steps or build_plan(self.cfg)
-        assert_within_limits(self.cfg, self.steps)
+        self.steps: list[Step] = list((self.plan or checked_plan(self.cfg)).steps)
         self.clsf = ClsfEstimator(
             tau_s=self.cfg.device.tau_s,
             mode=self.cfg.clsf.mode,
@@ -313,12 +311,13 @@ class CampaignRunner:
         return failures
 
     def _safe_state(self) -> list[str]:
-        """Safe state of every instrument, the lock-in last. An instrument that refuses is reconnected and
-        retried between lock-in blocks (the stream keeps the clock and the log running) for up to
-        recovery.safe_state_timeout_s of run time. Returns what is still not confirmed."""
+        """Safe state of every instrument in SAFE_STATE_ORDER (the lock-in last). An instrument that refuses is
+        reconnected and retried between lock-in blocks (the stream keeps the clock and the log running) for up
+        to recovery.safe_state_timeout_s of run time. Returns what is still not confirmed."""
         insts = self.station.instruments()
+        *others, clock = SAFE_STATE_ORDER
         pending: dict[str, str] = {}
-        for name in SAFE_STATE_ORDER:
+        for name in others:
             try:
                 insts[name].safe_state()
             except Exception as exc:
@@ -345,9 +344,9 @@ class CampaignRunner:
         self._recovering.clear()
         failures = [f"{n}: {e}" for n, e in pending.items()]
         try:
-            insts["lockin"].safe_state()
+            insts[clock].safe_state()
         except Exception as exc:
-            failures.append(f"lockin: {exc}")
+            failures.append(f"{clock}: {exc}")
         return failures
 
     # ================================================================== steps

@@ -143,7 +143,7 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
                     "config": str(config),
                     "config_sha256": config_fingerprint(text),
                     "kind": cfg.campaign.kind,
-                    "steps": [s.__dict__ for s in steps],
+                    "steps": [{**s.__dict__, "kind": s.label} for s in steps],
                     "duration_s": plan_duration_s(steps),
                     "limits": [
                         dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok) for c in checks
@@ -256,13 +256,12 @@ def _execute(
     or change the file. The file's final close is protected from a second Ctrl-C."""
     from qmg_lab.campaign import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.interrupts import InterruptGuard
-    from qmg_lab.plan import assert_within_limits, build_plan
+    from qmg_lab.plan import checked_plan
     from qmg_lab.progress import ProgressView
     from qmg_lab.storage import RunWriter, StorageError
 
     try:
-        steps = build_plan(cfg)
-        assert_within_limits(cfg, steps)
+        plan = checked_plan(cfg)
     except LimitError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
@@ -315,7 +314,7 @@ def _execute(
         try:
             with view:
                 runner = CampaignRunner(
-                    cfg, station, writer, progress=view.update, resume=resume is not None, steps=steps
+                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan
                 )
                 return runner.run()
         except CampaignInterrupted as exc:

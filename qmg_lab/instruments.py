@@ -277,6 +277,11 @@ class TruthSource(abc.ABC):
         """Truth since the last call (None if nothing new)."""
 
 
+SAFE_STATE_ORDER: tuple[str, ...] = ("table", "generator", "chamber", "lockin")
+"""The one order in which a bench is made safe: the table first (it can hurt someone), the lock-in last (its
+stream is the clock that keeps the run log going while the others are made safe and, if they refuse, retried)."""
+
+
 @dataclass
 class Station:
     """The four instruments of a bench (built by qmg_lab/station.py)."""
@@ -300,9 +305,9 @@ class Station:
         return {"lockin": self.lockin, "generator": self.generator, "table": self.table, "chamber": self.chamber}
 
     def safe_state(self) -> list[str]:
-        """Every instrument to its safe state; table first (it can hurt someone). Returns the failures."""
+        """Every instrument to its safe state, in SAFE_STATE_ORDER, each tried once. Returns the failures."""
         failures: list[str] = []
-        for name in ("table", "generator", "chamber", "lockin"):
+        for name in SAFE_STATE_ORDER:
             try:
                 self.instruments()[name].safe_state()
             except Exception as exc:

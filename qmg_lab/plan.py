@@ -214,6 +214,25 @@ def limit_checks(cfg: Config, steps: list[Step]) -> list[LimitCheck]:
     return checks
 
 
+@dataclass(frozen=True)
+class CheckedPlan:
+    """A configuration's steps that passed every limit check (made only by `checked_plan`): what a campaign
+    runner executes. Checked once, where the plan is made, before any instrument is touched."""
+
+    steps: tuple[Step, ...]
+
+    @property
+    def duration_s(self) -> float:
+        return plan_duration_s(list(self.steps))
+
+
+def checked_plan(cfg: Config) -> CheckedPlan:
+    """build_plan, then assert_within_limits: LimitError names every limit the plan would break."""
+    steps = build_plan(cfg)
+    assert_within_limits(cfg, steps)
+    return CheckedPlan(tuple(steps))
+
+
 def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
     """Raise LimitError naming every limit the plan would break."""
     bad = [ch for ch in limit_checks(cfg, steps) if not ch.ok]
@@ -225,10 +244,12 @@ def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
 
 
 __all__ = [
+    "CheckedPlan",
     "LimitCheck",
     "Step",
     "assert_within_limits",
     "build_plan",
+    "checked_plan",
     "dither_amplitude_vpp",
     "limit_checks",
     "plan_duration_s",
