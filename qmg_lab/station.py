@@ -15,6 +15,7 @@ time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -105,18 +106,11 @@ def fault_plan(cfg: Config) -> FaultPlan:
 
 
 def hf2_wiring(cfg: Config) -> HF2Wiring:
+    """How the twin's bench is cabled: the [lockin] wiring fields, taken by name (the twin's own fields that the
+    configuration does not have, e.g. forcer_mixer_channel, keep their defaults)."""
     lk = cfg.lockin
-    return HF2Wiring(
-        drive_sigin=lk.drive_sigin,
-        sense_sigin=lk.sense_sigin,
-        drive_sigout=lk.drive_sigout,
-        forcer_sigout=lk.forcer_sigout,
-        forcer_carrier_amplitude=lk.forcer_carrier_amplitude,
-        rate_auxout=lk.rate_auxout,
-        quadrature_auxout=lk.quadrature_auxout,
-        rate_auxin=lk.rate_auxin,
-        dither_auxin=lk.dither_auxin,
-    )
+    names = {f.name for f in dataclasses.fields(HF2Wiring)} & set(type(lk).model_fields)
+    return HF2Wiring(**{name: getattr(lk, name) for name in sorted(names)})
 
 
 def _serial_port(url: str, baudrate: int, timeout_s: float) -> Callable[[], Any]:

@@ -128,3 +128,14 @@ def test_a_reply_lost_while_writing_the_limits_is_retried_at_connect(chamber_con
         assert (twin.ltl_c, twin.utl_c) == (5.0, 45.0)
     finally:
         conn.close()
+
+
+def test_the_twins_cabling_is_the_configured_wiring_field_by_field() -> None:
+    text = (
+        "[lockin]\ndrive_sigin = 1\nsense_sigin = 0\nrate_auxout = 2\nquadrature_auxout = 3\n"
+        "rate_auxin = 1\ndither_auxin = 0\nforcer_carrier_amplitude = 0.25\n"
+    )
+    w = hf2_wiring(parse_config(text))
+    assert (w.drive_sigin, w.sense_sigin, w.rate_auxout, w.quadrature_auxout) == (1, 0, 2, 3)
+    assert (w.rate_auxin, w.dither_auxin, w.forcer_carrier_amplitude) == (1, 0, 0.25)
+    assert w.forcer_mixer_channel == 1  # the twin's own field, not in [lockin]: its default
