@@ -368,7 +368,7 @@ def _dc_sf(ctx: _Ctx, res: AnalysisResult) -> float:
 
 
 def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
-    sines = [(idx, s) for idx, s in sorted(ctx.steps.items()) if _SINE.match(str(s["kind"]))]
+    sines = [(idx, s, m) for idx, s in sorted(ctx.steps.items()) if (m := _SINE.match(str(s["kind"])))]
     if not sines:
         return
     lk, truth = ctx.run.groups["lockin"], ctx.run.groups.get("truth")
@@ -379,8 +379,8 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
         if truth is not None and truth["time"].shape[0]
         else "command A sin(2 pi f (t - t_start)): phase zero assumed at the step start"
     )
-    for idx, s in sines:
-        f = float(_SINE.match(str(s["kind"])).group(1))  # type: ignore[union-attr]
+    for idx, s, kind_match in sines:
+        f = float(kind_match.group(1))
         t0, t1 = _window(ctx, s, extra_settle=2.0 / f)
         n_cyc = math.floor((t1 - t0) * f)
         if n_cyc < 1:

@@ -498,4 +498,4 @@ def main() -> None:  # pragma: no cover - console entry
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab import cli_bench, cli_device  # noqa: E402,F401
+from qmg_lab import cli_bench, cli_device  # noqa: E402,F401 - imported for their side effect, after `app` exists

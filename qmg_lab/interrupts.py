@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
+from typing import Any
 
 
 class InterruptGuard:
@@ -22,7 +23,7 @@ class InterruptGuard:
         self._count = 0
         self._protect_depth = 0
         self._pending = False
-        self._previous: object = None
+        self._previous: Callable[[int, FrameType | None], Any] | int | None = None
         self._installed = False
 
     def __enter__(self) -> InterruptGuard:
@@ -33,7 +34,7 @@ class InterruptGuard:
 
     def __exit__(self, *exc: object) -> None:
         if self._installed:
-            signal.signal(signal.SIGINT, self._previous)  # type: ignore[arg-type]
+            signal.signal(signal.SIGINT, self._previous)
             self._installed = False
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:

@@ -288,7 +288,11 @@ class _Bench:
         if g.sim:
             assert world is not None
             ds_twin = DS345Twin(world)
-            open_gen: Callable[[], Any] = lambda: ds_twin.resource(g.resource)  # noqa: E731
+
+            def open_gen_twin() -> Any:
+                return ds_twin.resource(g.resource)
+
+            open_gen: Callable[[], Any] = open_gen_twin
             if faults is not None:
                 faults.attach_ds345(ds_twin)
                 open_gen = faults.visa_link("generator", open_gen)
@@ -494,7 +498,9 @@ def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], 
 def open_raw_visa(cfg: Config) -> tuple[Any, Callable[[], None]]:
     """The DS345's VISA resource (or its twin's), with the driver's terminations and serial framing set."""
     conn = connect_instrument(cfg, "generator")
-    return conn.instrument.resource, conn.close  # type: ignore[attr-defined]
+    if not isinstance(conn.instrument, DS345):
+        raise TypeError(f"the generator is a {type(conn.instrument).__name__}, not the DS345 driver")
+    return conn.instrument.resource, conn.close
 
 
 def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:

@@ -114,7 +114,9 @@ def _demod_ok(nodes: NodeReader, d: int, sigin: int, ref_osc: int) -> bool:
 
 
 def _pid(nodes: NodeReader, n: int, *, enabled: bool | None = None, center: float | None = None) -> PidSettings:
-    g = lambda leaf: float(nodes.peek(f"pids/{n}/{leaf}"))  # noqa: E731
+    def g(leaf: str) -> float:
+        return float(nodes.peek(f"pids/{n}/{leaf}"))
+
     return PidSettings(
         enabled=bool(int(nodes.peek(f"pids/{n}/enable"))) if enabled is None else enabled,
         p=g("p"),
@@ -169,8 +171,12 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
             range_hz=float(nodes.peek("plls/0/freqrange")),
         )
 
-    drive_ok = lambda d: _demod_ok(nodes, d, wiring.drive_sigin, ref_osc)  # noqa: E731
-    sense_ok = lambda d: _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)  # noqa: E731
+    def drive_ok(d: int) -> bool:
+        return _demod_ok(nodes, d, wiring.drive_sigin, ref_osc)
+
+    def sense_ok(d: int) -> bool:
+        return _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)
+
     dso = wiring.drive_sigout
 
     def drive_channel_ok(m: int) -> bool:
