@@ -9,16 +9,8 @@ is out of its band or an instrument is being recovered, the campaign keeps loggi
 Every exit path ends in the safe state (table stopped, chamber to its safe setpoint, dither muted, lock-in outputs
 safe) and with the file's status set: "completed", or "aborted" with the reason.
 
-Fault handling (docs/reliability.md):
-1. A call that raises InstrumentError is retried after `reconnect()` (close, reopen, re-verify the identity,
-   re-apply the settings), up to recovery.reconnect_attempts times at once.
-2. If it still fails (and the instrument is not the lock-in, whose stream is the clock), the campaign suspends:
-   it keeps polling and logging the lock-in, skips the failed instrument's readings and tries reconnect + the
-   call again after every block, for up to recovery.timeout_s of run time. The step's clock does not run.
-3. Still failing, or an interlock (never retried: the hardware protected itself): CampaignAborted with the
-   reason. The safe state is then commanded to every instrument; one that refuses is reconnected and retried
-   between lock-in blocks for up to recovery.safe_state_timeout_s. The file gets status "aborted" and the
-   abort_reason, and the CLI exits with code 3.
+Fault handling is the recovery policy's (qmg_lab/recovery.py, docs/reliability.md): bounded reconnect-and-retry,
+suspension while an instrument is recovered, abort with the reason; the retried safe state on the way out.
 """
 
 from __future__ import annotations
@@ -33,13 +25,12 @@ from typing import TypeVar
 
 import numpy as np
 
+from qmg_lab.campaign_errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.clsf import ClsfEstimator
 from qmg_lab.config import Config
 from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.instruments import (
-    SAFE_STATE_ORDER,
     InstrumentError,
-    InterlockError,
     LockInBlock,
     Station,
     TruthBlock,
@@ -47,20 +38,21 @@ from qmg_lab.instruments import (
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.recovery import RecoveryPolicy
 from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
 
 T = TypeVar("T")
 
+__all__ = [
+    "CampaignAborted",  # re-exported: the runner's callers catch them from here
+    "CampaignInterrupted",
+    "CampaignRunner",
+    "Progress",
+    "RunSummary",
+]
+
 log = logging.getLogger(__name__)
-
-
-class CampaignAborted(RuntimeError):
-    """The campaign stopped on an instrument fault; the station reached its safe state (exit code 3)."""
-
-
-class CampaignInterrupted(RuntimeError):
-    """Ctrl-C: the station reached its safe state (exit code 130)."""
 
 
 @dataclass
@@ -140,14 +132,18 @@ class CampaignRunner:
         self._dt = 1.0 / self.cfg.lockin.demod_rate_hz
         self._read = _Readings()
         self._wall0 = time.monotonic()
-        self._blocks = self._samples = self._lost = self._suspensions = self._recoveries = 0
+        self._blocks = self._samples = self._lost = self._suspensions = 0
         self._suspended = ""
         self._done_s = 0.0
         self._guard: InterruptGuard | None = None
-        self._reconnects = 0
-        self._recovering: dict[str, str] = {}  # instrument -> why it is being recovered (a suspender)
-        self._failed: dict[str, tuple[Callable[[], object], InstrumentError]] = {}  # failed reads of a block
-        self._finishing = False
+        self._recovery = RecoveryPolicy(
+            self.cfg.recovery,
+            self.station.instruments(),
+            poll_interval_s=self.station.poll_interval_s,
+            poll_block=lambda: self._block(self._step, self._step_elapsed, self.station.poll_interval_s),
+            run_time_s=lambda: self._t,
+            event=self._event,
+        )
         self._safe_confirmed = True
         self._step = Step(-1, StepKind.LOCK, 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
@@ -226,12 +222,12 @@ class CampaignRunner:
             samples=self._samples,
             samples_lost=self._lost,
             suspensions=self._suspensions,
-            recoveries=self._recoveries,
+            recoveries=self._recovery.recoveries,
             last_sf_change_ppm=self._read.sf_change * 1e6,
             gain_correction=self.clsf.gain_correction,
             abort_reason=reason,
             resumed=self.resume,
-            reconnects=self._reconnects,
+            reconnects=self._recovery.reconnects,
             safe_state_confirmed=self._safe_confirmed,
             faults_injected=list(self.station.injected_faults()) if self.station.injected_faults else [],
         )
@@ -272,7 +268,7 @@ class CampaignRunner:
     def _finish_protected(self, status: str, reason: str) -> list[str]:
         """_finish with Ctrl-C deferred for its whole length: a second Ctrl-C cannot cut the safe state or the
         file's last writes; one that arrives meanwhile is dropped (the campaign is stopping anyway)."""
-        self._finishing = True
+        self._recovery.finishing = True
         guard = self._guard
         if guard is None:
             return self._finish(status, reason)
@@ -285,7 +281,7 @@ class CampaignRunner:
         return failures
 
     def _finish(self, status: str, reason: str) -> list[str]:
-        failures = self._safe_state()
+        failures = self._recovery.safe_state()
         try:
             self.station.lockin.stop_stream()
         except Exception as exc:
@@ -308,45 +304,6 @@ class CampaignRunner:
             self._event("interrupted" if "Ctrl-C" in reason else "abort", "", reason, logging.ERROR)
         self.writer.set_status(status, reason)
         self.writer.flush()
-        return failures
-
-    def _safe_state(self) -> list[str]:
-        """Safe state of every instrument in SAFE_STATE_ORDER (the lock-in last). An instrument that refuses is
-        reconnected and retried between lock-in blocks (the stream keeps the clock and the log running) for up
-        to recovery.safe_state_timeout_s of run time. Returns what is still not confirmed."""
-        insts = self.station.instruments()
-        *others, clock = SAFE_STATE_ORDER
-        pending: dict[str, str] = {}
-        for name in others:
-            try:
-                insts[name].safe_state()
-            except Exception as exc:
-                pending[name] = str(exc)
-        t0, budget = self._t, self.cfg.recovery.safe_state_timeout_s
-        max_blocks = math.ceil(budget / max(self.station.poll_interval_s, 1e-3)) + 1
-        blocks = 0
-        while pending and self._t - t0 < budget and blocks < max_blocks:
-            try:
-                self._recovering.update({n: f"{n} safe state pending" for n in pending})
-                self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
-            except Exception:
-                blocks = max_blocks
-            blocks += 1
-            for name in list(pending):
-                self._reconnects += 1
-                self._event("reconnect", name, f"safe state pending: {pending[name]}", logging.INFO)
-                try:
-                    insts[name].reconnect()
-                    insts[name].safe_state()
-                    del pending[name]
-                except Exception as exc:
-                    pending[name] = str(exc)
-        self._recovering.clear()
-        failures = [f"{n}: {e}" for n, e in pending.items()]
-        try:
-            insts[clock].safe_state()
-        except Exception as exc:
-            failures.append(f"{clock}: {exc}")
         return failures
 
     # ================================================================== steps
@@ -510,11 +467,7 @@ class CampaignRunner:
                     wall_s=time.monotonic() - self._wall0,
                 )
             )
-        if self._failed and not self._finishing:
-            # a reading failed even after reconnecting: recover it now that this block is logged
-            failed, self._failed = self._failed, {}
-            for name, (fn, exc) in failed.items():
-                self._recover(name, fn, exc)
+        self._recovery.recover_failed_reads()  # a reading failed even after reconnecting: recover it now
         return block_s
 
     _last_locked: bool = True
@@ -540,7 +493,7 @@ class CampaignRunner:
 
     def _update_suspenders(self, step: Step, chamber_c: float, chamber_sp: float) -> None:
         """Pause the step's clock while the PLL is unlocked or the chamber is out of its band."""
-        reasons = list(self._recovering.values())
+        reasons = self._recovery.suspender_reasons()
         if step.kind is not StepKind.LOCK and not self._last_locked:
             reasons.append("PLL unlocked")
         band = self.cfg.plan.chamber_band_c
@@ -557,89 +510,17 @@ class CampaignRunner:
         self._suspended = new
 
     # ================================================================== faults
+    @property
+    def _finishing(self) -> bool:
+        return self._recovery.finishing
+
     def _call(self, name: str, fn: Callable[[], T]) -> T:
-        """Call an instrument: on InstrumentError reconnect and retry (bounded); if it still fails, suspend and
-        recover while logging (not the lock-in: its stream is the clock); else raise CampaignAborted."""
-        try:
-            return self._attempt(name, fn)
-        except InterlockError:
-            raise
-        except InstrumentError as exc:
-            if name == "lockin" or self._finishing:
-                raise InstrumentError(
-                    f"{name}: {exc} (gave up after {self.cfg.recovery.reconnect_attempts} reconnections)"
-                ) from exc
-            return self._recover(name, fn, exc)
-
-    def _attempt(self, name: str, fn: Callable[[], T]) -> T:
-        """fn(); on InstrumentError (not an interlock) up to recovery.reconnect_attempts x (reconnect, fn()).
-        Raises the last InstrumentError if every try failed."""
-        try:
-            return fn()
-        except InterlockError:
-            raise
-        except InstrumentError as exc:
-            last = exc
-            self._event("fault", name, str(exc))
-        for _ in range(self.cfg.recovery.reconnect_attempts):
-            try:
-                return self._reconnect_and_call(name, fn)
-            except InterlockError:
-                raise
-            except InstrumentError as exc:
-                last = exc
-        raise last
-
-    def _reconnect_and_call(self, name: str, fn: Callable[[], T]) -> T:
-        """One recovery try: close, reopen and re-verify `name` (its driver's reconnect), then fn() again."""
-        self._reconnects += 1
-        self._event("reconnect", name, "closing, reopening and re-verifying the link", logging.INFO)
-        try:
-            self.station.instruments()[name].reconnect()
-            result = fn()
-        except InstrumentError as exc:
-            self._event("fault", name, f"after reconnecting: {exc}")
-            raise
-        self._recoveries += 1
-        self._event("recovered", name, "the call succeeded after reconnecting", logging.INFO)
-        return result
+        """An instrument call under the recovery policy."""
+        return self._recovery.call(name, fn)
 
     def _read_instrument(self, name: str, fn: Callable[[], T]) -> T | None:
-        """A reading inside a block: None while `name` is being recovered, or if it failed after reconnecting
-        (then recovered once the block is logged)."""
-        if name in self._recovering:
-            return None
-        try:
-            return self._attempt(name, fn)
-        except InterlockError:
-            raise
-        except InstrumentError as exc:
-            if not self._finishing:
-                self._failed[name] = (fn, exc)
-            return None
-
-    def _recover(self, name: str, fn: Callable[[], T], exc: InstrumentError) -> T:
-        """Suspend the campaign while `name` is recovered: keep polling and logging the lock-in; after each
-        block reconnect and call fn() again. Abort after recovery.timeout_s of run time."""
-        timeout = self.cfg.recovery.timeout_s
-        t0, blocks = self._t, 0
-        max_blocks = math.ceil(timeout / max(self.station.poll_interval_s, 1e-3)) + 1
-        self._recovering[name] = f"{name} being recovered ({exc})"
-        try:
-            while True:
-                if self._t - t0 >= timeout or blocks >= max_blocks:
-                    raise CampaignAborted(f"{name} not recovered within recovery.timeout_s = {timeout:g} s: {exc}")
-                self._block(self._step, self._step_elapsed, self.station.poll_interval_s)
-                blocks += 1
-                try:
-                    return self._reconnect_and_call(name, fn)
-                except InterlockError:
-                    raise
-                except InstrumentError as again:
-                    exc = again
-                    self._recovering[name] = f"{name} being recovered ({exc})"
-        finally:
-            self._recovering.pop(name, None)
+        """A reading inside a block under the recovery policy (None while `name` is being recovered)."""
+        return self._recovery.read(name, fn)
 
 
 def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.ndarray]:
