@@ -18,8 +18,7 @@ import pytest
 
 from qmg_lab.campaign import CampaignInterrupted
 from qmg_lab.storage import RunWriter
-from tests.test_faults_helpers import config_text, run_inprocess
-from tests.test_resume import completed_steps, long_config, qmg
+from tests.support.campaigns import completed_steps, config_text, long_config, qmg, run_inprocess
 
 
 def _ctrl_c() -> None:

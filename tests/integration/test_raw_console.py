@@ -20,7 +20,7 @@ from sims.serial_twin import serve_socket
 from sims.table_twin import RateTableTwin
 from sims.world import World, WorldParams
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def qmg(*args: str) -> subprocess.CompletedProcess[str]:

@@ -21,7 +21,7 @@ from sims.world import DITHER_SQUARE, World, WorldParams
 
 DT = 1.0 / 1400.0  # 200 steps per 7 Hz period
 # The protocol tests look at what the twin tells the World; the DS345's own timebase (offset, wander, command
-# latency: tests/sims/test_world.py) is set ideal here so that levels and periods land on the step grid.
+# latency: tests/unit/sims/test_world.py) is set ideal here so that levels and periods land on the step grid.
 IDEAL = WorldParams(ds345_timebase_offset_ppm=0.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import h5py
 
 from qmg_lab.runfile_records import read_events, read_snapshots
-from tests.test_faults_helpers import config_text, run_inprocess
+from tests.support.campaigns import config_text, run_inprocess
 
 NAMES = {"lockin", "generator", "table", "chamber"}
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib.image as mpimg
 
 from qmg_lab.report import make_figures, write_figures
-from tests.test_analysis import write_sweep
+from tests.support.synthetic_runs import write_sweep
 
 
 def test_sweep_file_gives_figures_and_names_what_it_skips(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ import pytest
 
 from qmg_lab.storage import RunWriter, StorageError, read_run, writer_flags_set
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONFIG = "[campaign]\nname = 'storage test'\n"
 SHA = hashlib.sha256(CONFIG.encode()).hexdigest()
 FS = 1400.0  # Sa/s

@@ -21,7 +21,7 @@ from qmg_lab.config import parse_config
 from qmg_lab.station import build_station
 from qmg_lab.tuning import tune, tuned_config_text
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TWINS = "[lockin]\nsim = true\n[generator]\nsim = true\n[table]\nsim = true\n[chamber]\nsim = true\n"
 
 

@@ -22,9 +22,9 @@ import pytest
 from sims.serial_twin import serve_socket
 from sims.table_twin import RateTableTwin
 from sims.world import World, WorldParams
-from tests.test_faults_helpers import SHORT_TOML
+from tests.support.campaigns import SHORT_TOML
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def qmg(*args: str) -> subprocess.CompletedProcess[str]:

@@ -24,7 +24,7 @@ from sims.ds345_twin import DS345Twin
 from sims.faults import GARBLE_BYTE, SENSOR_FAULT_REPLY, FaultInjector, FaultPlan
 from sims.table_twin import RateTableTwin
 from sims.world import World
-from tests.test_faults_helpers import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
+from tests.support.campaigns import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
 
 DT_S = round(210e6 / 1800.0) / 210e6  # demod sample period at 1800 Sa/s, in whole 210 MHz ticks (the HF2 twin)
 BLOCK_S = round(2.0 / DT_S) * DT_S  # one twin poll of sim_poll_interval_s = 2 s: a whole number of samples

@@ -12,7 +12,7 @@ import pytest
 
 from drivers.chamber import SunEC1xChamber
 from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError
-from tests.protocol_serial import ProtocolPort, expected_protocol
+from tests.support.protocol_serial import ProtocolPort, expected_protocol
 
 OK = b"OK\r\n"
 

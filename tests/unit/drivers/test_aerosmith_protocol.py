@@ -17,7 +17,7 @@ import pytest
 from drivers.aerosmith import Aerosmith1291BR
 from drivers.serial_link import Framing
 from qmg_lab.instruments import InstrumentError, InterlockError, LimitError, TableReading
-from tests.protocol_serial import ProtocolPort, expected_protocol
+from tests.support.protocol_serial import ProtocolPort, expected_protocol
 
 P = b">\r"
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.integrate import trapezoid
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
 ADEV = ROOT / "configs" / "clsf_adev.toml"
 

@@ -8,9 +8,12 @@ The short plan (qmg_lab.plan.build_plan of SHORT_TOML): lock 2 s, dither 21/7 + 
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import h5py
 
 from qmg_lab.campaign import CampaignRunner, RunSummary
 from qmg_lab.config import Config, config_fingerprint, parse_config
@@ -121,3 +124,23 @@ def run_inprocess(
         station.close()
         writer.close()
     return Outcome(cfg, world, station, path, summary, error, lockin_state)
+
+
+def long_config() -> str:
+    """The short plan with 17 pairs of 10 s table steps (ceil((30 s ramp + 300 s hold) / 20 s)) and lock,
+    dither, soak, return: 38 steps."""
+    text = config_text()
+    return text.replace("chamber_end_hold_s = 50.0", "chamber_end_hold_s = 300.0")
+
+
+def qmg(*args: str) -> list[str]:
+    return [sys.executable, "-m", "qmg_lab", *args]
+
+
+def completed_steps(path: Path) -> int:
+    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be opened yet."""
+    try:
+        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
+            return int(h5.attrs["completed_steps"])
+    except (OSError, KeyError):
+        return -1

@@ -8,7 +8,7 @@ import pytest
 
 from qmg_lab.config import ConfigError, config_fingerprint, load_config, parse_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("name", ["paper_campaign.toml", "clsf_adev.toml", "station.example.toml"])

@@ -23,7 +23,7 @@ from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import dither_amplitude_vpp
 from qmg_lab.station import build_station
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 GAIN_STEP = 1.01
 
 

@@ -19,7 +19,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import h5py
@@ -29,27 +28,7 @@ import pytest
 from qmg_lab.config import config_fingerprint, parse_config
 from qmg_lab.plan import build_plan
 from qmg_lab.storage import RunWriter, read_run
-from tests.test_faults_helpers import config_text, run_inprocess
-
-
-def long_config() -> str:
-    """The short plan with 17 pairs of 10 s table steps (ceil((30 s ramp + 300 s hold) / 20 s)) and lock,
-    dither, soak, return: 38 steps."""
-    text = config_text()
-    return text.replace("chamber_end_hold_s = 50.0", "chamber_end_hold_s = 300.0")
-
-
-def qmg(*args: str) -> list[str]:
-    return [sys.executable, "-m", "qmg_lab", *args]
-
-
-def completed_steps(path: Path) -> int:
-    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be opened yet."""
-    try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            return int(h5.attrs["completed_steps"])
-    except (OSError, KeyError):
-        return -1
+from tests.support.campaigns import completed_steps, config_text, long_config, qmg, run_inprocess
 
 
 def wait_for_steps(proc: subprocess.Popen, path: Path, n: int) -> int:

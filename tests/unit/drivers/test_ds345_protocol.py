@@ -12,7 +12,7 @@ import pytest
 
 from drivers.ds345 import DS345, amplitude_to_vpp, format_number
 from qmg_lab.instruments import InstrumentError, LimitError
-from tests.protocol_visa import TIMEOUT, ProtocolResource, expected_protocol
+from tests.support.protocol_visa import TIMEOUT, ProtocolResource, expected_protocol
 
 OK = (b"*ESR?", b"0")
 

@@ -2,145 +2,37 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from qmg_lab.analysis import analyze, render_table
-from qmg_lab.storage import RunWriter
-
-FS = 1400.0
-F_D = 7.0
-SF0 = 0.06  # V per deg/s
-DITHER_LEAK_V = 0.08  # square wave at 7 Hz leaking into the rate output (removed by whole-period means)
-
-
-def _config(
-    kind: str,
-    dwell: float,
-    settle: float,
-    mode: str = "observe",
-    rate_hz: float = FS,
-    dither_hz: float = F_D,
-    extra: str = "",
-) -> str:
-    return textwrap.dedent(f"""
-        [campaign]
-        kind = "{kind}"
-        [clsf]
-        mode = "{mode}"
-        [dither]
-        frequency_hz = {dither_hz}
-        [lockin]
-        demod_rate_hz = {rate_hz}
-        [plan]
-        dwell_s = {dwell}
-        settle_s = {settle}
-        {extra}
-    """)
-
-
-def _writer(path: Path, config: str, planned_kinds: list[str], truth: bool, mode: str = "sim") -> RunWriter:
-    return RunWriter.create(
-        path,
-        config_text=config,
-        config_sha256=hashlib.sha256(config.encode()).hexdigest(),
-        mode=mode,
-        software_version="test",
-        t0_unix=1.7e9,
-        truth=truth,
-        planned_steps=len(planned_kinds),
-        planned_step_kinds=planned_kinds,
-    )
-
-
-def square(t: np.ndarray, f_hz: float = F_D, fs: float = FS) -> np.ndarray:
-    """+-1 square wave of frequency f_hz sampled at sample index k = t fs (exact integer arithmetic at the edges)."""
-    k = np.round(np.asarray(t) * fs)
-    return np.where(np.floor(k * 2 * f_hz / fs) % 2 == 0, 1.0, -1.0)
-
-
-def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: float = F_D) -> None:
-    # the same sample rate the callers' leak terms use (a rate from np.diff carries rounding that moves an edge
-    # that falls exactly on a sample to the next one, so the recorded dither and the leak would disagree)
-    fs = round(1.0 / float(np.median(np.diff(t))), 6) if t.shape[0] > 1 else FS
-    sq = square(t, dither_hz, fs)
-    z = np.zeros_like(t)
-    w.append(
-        "lockin",
-        time=t,
-        x_sense=z,
-        y_sense=z,
-        rate_output=rate_output,
-        drive_amplitude=z + 0.5,
-        drive_frequency=z + 2200.0,
-        dither=0.6 * sq,
-    )
-
-
-# ---- the temperature sweep --------------------------------------------------------------------------------------
-
-DWELL, SETTLE, N_PAIRS, RATE = 20.0, 2.0, 8, 5.0
-ALPHA = -1000e-6  # true SF tempco, 1/degC
-BETA = 50e-6  # what the (synthetic) CLSF gets wrong, 1/degC: its estimate follows (ALPHA + BETA)
-SIGMA_O = 1e-4  # V per sample
-T_PRE = 4.0  # lock + dither steps before the pairs
-
-
-def temperature(t: np.ndarray | float) -> np.ndarray | float:
-    """Chamber ramp 25 -> 35 degC over the pairs."""
-    return 25.0 + 10.0 * np.clip((np.asarray(t) - T_PRE) / (2 * N_PAIRS * DWELL), 0.0, 1.0)
-
-
-def write_sweep(path: Path, pairs_written: int = N_PAIRS, truth: bool = True, kill: bool = False) -> None:
-    rng = np.random.default_rng(7)
-    kinds = ["lock", "dither"] + ["rate"] * (2 * N_PAIRS) + ["return"]
-    w = _writer(path, _config("temperature_sweep", DWELL, SETTLE), kinds, truth, "sim" if truth else "hardware")
-    steps = [(0, "lock", 0.0, 2.0, 0.0), (1, "dither", 2.0, 4.0, 0.0)]
-    for k in range(2 * pairs_written):
-        steps.append((2 + k, "rate", T_PRE + k * DWELL, T_PRE + (k + 1) * DWELL, RATE if k % 2 == 0 else -RATE))
-    prev_rate = 0.0
-    for index, kind, a, b, rate in steps:
-        t = np.arange(round(a * FS), round(b * FS)) / FS
-        temp = temperature(t)
-        sf = SF0 * (1 + ALPHA * (temp - 25.0))
-        omega = rate + (prev_rate - rate) * np.exp(-(t - a) / 0.08)  # the rate loop's first-order response
-        out = sf * omega + 2e-3 + DITHER_LEAK_V * square(t) + SIGMA_O * rng.standard_normal(t.shape[0])
-        _lockin(w, t, out)
-        tc = np.arange(math.ceil(a * F_D), math.floor(b * F_D)) / F_D + 1 / F_D
-        tc = tc[tc <= b]
-        s = (ALPHA + BETA) * (temperature(tc) - 25.0) + 20e-6 * rng.standard_normal(tc.shape[0])
-        w.append(
-            "clsf",
-            time=tc,
-            eta=1 / (1 + s) - 1,
-            sf_change_estimate=s,
-            gain_correction=np.ones_like(tc),
-            rate_output_mean=SF0 * rate + 0 * tc,
-        )
-        tt = np.arange(a + 0.5, b + 1e-9, 0.5)
-        w.append("table", time=tt, rate_command=rate + 0 * tt, rate_measured=rate + 0 * tt, position=0 * tt)
-        w.append("chamber", time=tt, setpoint=35.0 + 0 * tt, temperature=temperature(tt))
-        if truth:
-            w.append("truth", time=t, scale_factor=sf, temperature=temp, rate=omega)
-        w.append_step(
-            index=index, kind=kind, t_start=a, t_end=b, table_rate=rate, chamber_setpoint=35.0, status="completed"
-        )
-        prev_rate = rate
-    if kill:
-        w.flush()
-        os.kill(os.getpid(), signal.SIGKILL)
-    w.set_status("completed")
-    w.close()
+from tests.support.synthetic_runs import (
+    ALPHA,
+    BETA,
+    DITHER_LEAK_V,
+    DWELL,
+    F_D,
+    FS,
+    N_PAIRS,
+    RATE,
+    SETTLE,
+    SF0,
+    SIGMA_O,
+    T_PRE,
+    _config,
+    _lockin,
+    _writer,
+    square,
+    temperature,
+    write_sweep,
+)
 
 
 def expected_pairs() -> tuple[np.ndarray, np.ndarray]:
@@ -207,8 +99,8 @@ def test_hardware_file_without_truth(tmp_path: Path) -> None:
 def test_killed_file_is_analysed_and_names_missing_steps(tmp_path: Path) -> None:
     p = tmp_path / "killed.h5"
     code = (
-        f"import sys; sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]\n"
-        f"from pathlib import Path\nfrom test_analysis import write_sweep\n"
+        f"import sys; sys.path[:0] = [{str(Path(__file__).parents[2])!r}]\n"
+        f"from pathlib import Path\nfrom tests.support.synthetic_runs import write_sweep\n"
         f"write_sweep(Path({str(p)!r}), pairs_written=3, kill=True)\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], timeout=60)

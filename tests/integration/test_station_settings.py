@@ -90,7 +90,7 @@ def test_a_controller_that_refuses_the_limits_is_an_instrument_fault(tmp_path: P
     import subprocess
     import sys
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     cfg = tmp_path / "c.toml"
     cfg.write_text("[chamber]\nsim = true\nmin_c = -90.0\n", encoding="utf-8")
     proc = subprocess.run(
