@@ -31,13 +31,12 @@ from qmg_lab.config import Config
 from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.instruments import (
     InstrumentError,
-    LockInBlock,
     Station,
-    TruthBlock,
 )
 from qmg_lab.interrupts import InterruptGuard
 from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.recorder import BlockRecorder
 from qmg_lab.recovery import RecoveryPolicy
 from qmg_lab.snapshots import station_snapshots
 from qmg_lab.storage import RunWriter
@@ -148,6 +147,7 @@ class CampaignRunner:
         self._step = Step(-1, StepKind.LOCK, 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
         self._records = self.writer.records()
+        self._recorder = BlockRecorder(self.writer)
 
     # ================================================================== run log
     def _now(self) -> float:
@@ -405,38 +405,11 @@ class CampaignRunner:
         truth = self.station.truth.drain() if self.station.truth is not None else None
         guard = self._guard
         with guard.protect() if guard is not None else contextlib.nullcontext():
-            self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
-            if len(periods):
-                self.writer.append(
-                    "clsf",
-                    time=periods.time,
-                    eta=periods.eta,
-                    sf_change_estimate=periods.sf_change_estimate,
-                    gain_correction=periods.gain_correction,
-                    rate_output_mean=periods.rate_output_mean,
-                )
-                self._read.sf_change = float(periods.sf_change_estimate[-1])
-            if self.clsf.rho_ref is not None and self.clsf.rho_ref != self._stored_ref:
-                self.writer.set_clsf_reference(self.clsf.rho_ref)
-                self._stored_ref = self.clsf.rho_ref
-            if tab is not None:
-                self.writer.append(
-                    "table",
-                    time=np.array([t_end]),
-                    rate_command=np.array([self._read.table_cmd]),
-                    rate_measured=np.array([tab.rate_dps]),
-                    position=np.array([tab.position_deg]),
-                )
-            if cham is not None:
-                self.writer.append(
-                    "chamber",
-                    time=np.array([t_end]),
-                    setpoint=np.array([cham.setpoint_c]),
-                    temperature=np.array([cham.temperature_c]),
-                )
-            if truth is not None and len(truth.time):
-                self.writer.append("truth", **_aligned_truth(truth, t, self._dt))
-            self.writer.maybe_flush()
+            self._recorder.record(
+                t, block, periods, tab, self._read.table_cmd, cham, truth, self._dt, clsf_reference=self.clsf.rho_ref
+            )
+        if len(periods):
+            self._read.sf_change = float(periods.sf_change_estimate[-1])
         self._t = t_end
         if tab is not None:
             self._read.table_rate = tab.rate_dps
@@ -474,7 +447,6 @@ class CampaignRunner:
     _offset_target: float | None = None
     _last_stream_t: float | None = None
     _log_t: float = 0.0
-    _stored_ref: float | None = None
 
     def _file_time(self, stream_t: np.ndarray) -> np.ndarray:
         """File time of a block's samples: the lock-in stream's time plus an offset, so that the file's /lockin
@@ -521,30 +493,3 @@ class CampaignRunner:
     def _read_instrument(self, name: str, fn: Callable[[], T]) -> T | None:
         """A reading inside a block under the recovery policy (None while `name` is being recovered)."""
         return self._recovery.read(name, fn)
-
-
-def _aligned_truth(truth: TruthBlock, t: np.ndarray, dt: float) -> dict[str, np.ndarray]:
-    """The twin's truth rows of exactly the lock-in samples of a block, at their file times `t`.
-
-    The truth source records every simulated sample (on the world's clock); the lock-in block holds those the
-    stream delivered (fewer if samples were lost), on the stream's clock. Both end on the same sample, the last
-    of the block (the HF2 twin drops lost samples inside a block, never its last one), so samples are matched by
-    their distance from it in sample periods: /truth gets the rows of the delivered samples only, with /lockin's
-    time values, and stays aligned sample for sample.
-    """
-    if len(truth.time) == len(t) and abs((truth.time[-1] - truth.time[0]) - (t[-1] - t[0])) < 0.5 * dt:
-        # the same samples (the usual case: every simulated sample delivered): row for row
-        return {"time": t, "scale_factor": truth.scale_factor, "temperature": truth.temperature, "rate": truth.rate}
-    if len(truth.time) > 1:  # the stream's true sample period (the configured rate may have been rounded)
-        dt = float(truth.time[-1] - truth.time[0]) / (len(truth.time) - 1)
-    k_truth = np.rint((truth.time[-1] - truth.time) / dt).astype(np.int64)
-    k_lock = np.rint((t[-1] - t) / dt).astype(np.int64)
-    _, i_truth, i_lock = np.intersect1d(k_truth, k_lock, assume_unique=True, return_indices=True)
-    order = np.argsort(i_lock)
-    i_truth, i_lock = i_truth[order], i_lock[order]
-    return {
-        "time": t[i_lock],
-        "scale_factor": truth.scale_factor[i_truth],
-        "temperature": truth.temperature[i_truth],
-        "rate": truth.rate[i_truth],
-    }
