@@ -148,6 +148,10 @@ class CampaignRunner:
         self._step_elapsed = 0.0
         self._records = self.writer.records()
         self._recorder = BlockRecorder(self.writer)
+        self._last_locked = True  # the PLL's lock in the last block
+        self._offset_target: float | None = None  # file time the next stream (re)start continues from
+        self._last_stream_t: float | None = None  # the lock-in stream's time of the last sample
+        self._log_t = 0.0  # the run log's clock: the block being processed
 
     # ================================================================== run log
     def _now(self) -> float:
@@ -442,11 +446,6 @@ class CampaignRunner:
             )
         self._recovery.recover_failed_reads()  # a reading failed even after reconnecting: recover it now
         return block_s
-
-    _last_locked: bool = True
-    _offset_target: float | None = None
-    _last_stream_t: float | None = None
-    _log_t: float = 0.0
 
     def _file_time(self, stream_t: np.ndarray) -> np.ndarray:
         """File time of a block's samples: the lock-in stream's time plus an offset, so that the file's /lockin
