@@ -56,6 +56,8 @@ EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
 SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+OutputOpt = Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")]
 
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -231,9 +233,9 @@ def _default_output(cfg: Config) -> Path:
 def run(
     config: ConfigArg,
     sim: SimOpt = False,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")] = None,
+    output: OutputOpt = None,
     resume: Annotated[Path | None, typer.Option("--resume", help="continue this run file")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")] = False,
+    quiet: QuietOpt = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
@@ -427,8 +429,8 @@ def characterize_bandwidth(
     config: ConfigArg,
     sim: SimOpt = False,
     json_out: JsonOpt = False,
-    output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False,
+    output: OutputOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Sinusoidal table rates: closed-loop FTR response, -3 dB bandwidth and settling time (paper Fig. 3)."""
     _characterize("bandwidth", config, sim, json_out, output, quiet)
@@ -439,8 +441,8 @@ def characterize_linearity(
     config: ConfigArg,
     sim: SimOpt = False,
     json_out: JsonOpt = False,
-    output: Annotated[Path | None, typer.Option("-o", "--output")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q")] = False,
+    output: OutputOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """Constant table rates: scale factor, nonlinearity and asymmetry (paper Fig. 2)."""
     _characterize("linearity", config, sim, json_out, output, quiet)
