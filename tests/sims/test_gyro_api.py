@@ -11,10 +11,13 @@ from qmg_lab.config import Config, SimSection
 from qmg_lab.loops import lockin_setup
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import BlockInputs
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0)
+QUIET = GyroParams(
+    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
+)
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:

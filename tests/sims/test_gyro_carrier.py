@@ -24,8 +24,11 @@ from qmg_lab.config import Config
 from qmg_lab.loops import lockin_setup
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro_params import NONIDEALITIES_OFF
 
-QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0)
+QUIET = GyroParams(
+    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
+)
 F0 = QUIET.f0_hz
 PERIOD = 314  # demod samples per dither period
 V_DITHER = 0.3  # 5 deg/s virtual rate at SF 0.06
@@ -52,11 +55,11 @@ def _campaign(sim: GyroSim | CarrierGyroSim) -> dict[str, float]:
     r = tri.reshape(-1, PERIOD) - tri.reshape(-1, PERIOD).mean(axis=1, keepdims=True)
     last = int(1.5 * F0 / PERIOD)  # periods averaged at the end of each phase
 
-    def clsf(b) -> float:  # noqa: ANN001
+    def clsf(b) -> float:
         d = (b.x_sense.reshape(-1, PERIOD) * r).sum(axis=1)
         return float(d[-last:].mean())
 
-    def rate_out(b) -> tuple[float, float]:  # noqa: ANN001
+    def rate_out(b) -> tuple[float, float]:
         m = last * PERIOD
         return float(b.rate_output_v[-m:].mean()), float(b.sf_true_v_per_dps[-m:].mean())
 
