@@ -352,8 +352,8 @@ class SimSection(_Section):
     q_factor: float = Field(1.2e6, ge=1e2, le=1e8)
     damping_mismatch: float = Field(0.01, ge=0.0, le=0.5, description="Delta(1/tau)/(1/tau), paper dQ/Q = 1 %")
     damping_axis_deg: float = Field(5.0, ge=-90.0, le=90.0)
-    freq_mismatch_hz: float = Field(0.0, ge=0.0, le=10.0)
-    stiffness_axis_deg: float = Field(0.0, ge=-90.0, le=90.0)
+    freq_mismatch_hz: float = Field(0.02, ge=0.0, le=10.0, description="mode split at T_ref, Hz (assumed)")
+    stiffness_axis_deg: float = Field(20.0, ge=-90.0, le=90.0, description="principal axis of the split (assumed)")
     angular_gain: float = Field(0.8, gt=0.0, le=1.0)
     arw_dps_per_rt_hz: float | None = Field(
         None, ge=0.0, description="override ARW directly in (deg/s)/sqrt(Hz); default from arw_deg_per_rt_h"
@@ -380,7 +380,9 @@ class SimSection(_Section):
     damping_mismatch_tempco_per_c: float = Field(
         1e-4, ge=-0.01, le=0.01, description="d(Delta(1/tau)/(1/tau))/dT per degC (assumed)"
     )
-    freq_mismatch_tempco_hz_per_c: float = Field(0.004, ge=-1.0, le=1.0, description="mode split tempco, Hz/degC")
+    freq_mismatch_tempco_hz_per_c: float = Field(
+        -0.002, ge=-1.0, le=1.0, description="mode split tempco, Hz/degC (assumed)"
+    )
     forcer_bias_v: float = Field(5.0, ge=0.0, le=200.0, description="sense forcer polarization V_p, V (assumed)")
     forcer_gap_um: float = Field(2.0, gt=0.0, le=100.0, description="parallel-plate forcer gap, um (assumed)")
     drive_amplitude_um: float = Field(5.0, gt=0.0, le=100.0, description="physical drive amplitude, um (assumed)")

@@ -21,7 +21,8 @@
   - table scale error: a constant factor on both steps: cancels in relative changes (term 0 by construction)
   where P[f] = sum_n w_n |H_n|^2 Re f(j n w_d) / sum_n w_n |H_n|^2 Re(1 - T(j n w_d)) projects a transfer function
   onto the dither's triangle (odd harmonics n, w_n = 1/n^4; H the demodulator filter, T = w_c/(s + w_c) the rate
-  loop's complementary sensitivity, w_c and w_q the rate and quadrature loop bandwidths).
+  loop's complementary sensitivity, w_c and w_q the rate and quadrature loops' actual bandwidths at T: the design
+  bandwidth times the plant's actual gain over its nominal one, loop_bandwidths_rad_s).
 * Nonlinearity. Level j at Omega_j: the rate output O_j = SF Omega_j (1 + e)(1 + rho_j)(1 - beta (U_j^2 +
   3 u_d^2)); a straight-line fit over the levels, RMS residual / (SF FS) in % (qmg_lab/analysis_char.py).
 """
@@ -171,11 +172,19 @@ def _demod_h2(cfg: Config, w: float) -> float:
     return (1.0 + (w * cfg.lockin.demod_timeconstant_s) ** 2) ** (-cfg.lockin.demod_order)
 
 
-def projection(cfg: Config, f: Any) -> float:
+def loop_bandwidths_rad_s(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rate and quadrature loops' actual crossover w_c, w_q at T: the design bandwidth times the plant's actual
+    gain over the nominal one the PIs were designed on, b/b_nom = (k/k_nom)(SF_nom/SF(T)) G_py(T)."""
+    s, d, lp = cfg.sim, cfg.device, cfg.loops
+    g_py = 1.0 + s.pickoff_ratio_tempco_ppm_per_c * 1e-6 * (temp_c - s.reference_temperature_c)
+    ratio = (s.angular_gain / d.angular_gain) * (d.sf_nominal_v_per_dps * DEG_PER_RAD / _sf_rad(cfg, temp_c)) * g_py
+    return 2.0 * math.pi * lp.rate_bandwidth_hz * ratio, 2.0 * math.pi * lp.quadrature_bandwidth_hz * ratio
+
+
+def projection(cfg: Config, f: Any, wc: float) -> float:
     """P[f]: the in-phase part of f(s) m_d on the dither's triangle m_d, over the triangle's projection of the
-    loop's forcer input m = (1 - T) m_d (module docstring); f is called with s = j n w_d."""
+    loop's forcer input m = (1 - T) m_d, T = w_c/(s + w_c) (module docstring); f is called with s = j n w_d."""
     wd = 2.0 * math.pi * cfg.dither.frequency_hz
-    wc = 2.0 * math.pi * cfg.loops.rate_bandwidth_hz
     num = den = 0.0
     for n in HARMONICS:
         s = 1j * n * wd
@@ -219,18 +228,22 @@ def forcer_cubic_per_v2(cfg: Config) -> float:
 
 def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, np.ndarray]:
     """Relative error delta of the CLSF ratio rho at each temperature, per source (table step at rate_dps)."""
-    s, lp = cfg.sim, cfg.loops
+    s = cfg.sim
     dt = temp_c - s.reference_temperature_c
-    wc = 2.0 * math.pi * lp.rate_bandwidth_hz
-    wq = 2.0 * math.pi * lp.quadrature_bandwidth_hz
+    wc_t, wq_t = loop_bandwidths_rad_s(cfg, temp_c)
     w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
     inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
     g0 = 2.0 * math.pi * s.f0_hz / (2.0 * s.q_factor)
     split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
     split *= math.cos(2.0 * math.radians(s.stiffness_axis_deg))
-    p_split = projection(cfg, lambda z: -(z * z) / ((z + g0) ** 2 * (z + wq) * (z + wc)))
-    p_damp = projection(cfg, lambda z: z / ((z + g0) * (z + wc)))
-    p_ft = projection(cfg, lambda z: z * wc / (z + wc))
+    p_split = np.array(
+        [
+            projection(cfg, lambda z, c=c, q=q: -(z * z) / ((z + g0) ** 2 * (z + q) * (z + c)), c)
+            for c, q in zip(wc_t, wq_t, strict=True)
+        ]
+    )
+    p_damp = np.array([projection(cfg, lambda z, c=c: z / ((z + g0) * (z + c)), c) for c in wc_t])
+    p_ft = np.array([projection(cfg, lambda z, c=c: z * c / (z + c), c) for c in wc_t])
     dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
     gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
     tau_n = cfg.device.tau_s
@@ -252,8 +265,11 @@ def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, 
 def loop_tail_errors(
     cfg: Config,
     rates_dps: list[float],
+    *,
     split_rad_s: np.ndarray,
     gamma_y: np.ndarray,
+    wc_rad_s: np.ndarray,
+    wq_rad_s: np.ndarray,
 ) -> np.ndarray:
     """Relative error of each step's window-mean rate output from the slow closed-loop tail (one per step).
 
@@ -265,19 +281,19 @@ def loop_tail_errors(
     transient; a mismatch (g != z) or a split (d != 0) leaves a slow mode near -z in the output, which the
     analysis window [settle, dwell] of each step averages. Exact: x(t) = x_ss + e^{At}(x0 - x_ss) step by step
     (one A per step, from that step's d and g), window mean = y_ss + C A^-1 (e^{A t1} - e^{A t0})(x0 - x_ss)/(t1 -
-    t0). Returned: (mean b u_r - w) / w for each step of rates_dps (the plan's rate steps, back to back).
+    t0). Returned: mean b u_r - w for each step of rates_dps (the plan's table steps, back to back), in the units
+    of rates_dps (w is taken as the step's rate: the tail is linear in the steps).
     """
     lp = cfg.loops
-    wc = 2.0 * math.pi * lp.rate_bandwidth_hz
-    wq = 2.0 * math.pi * lp.quadrature_bandwidth_hz
     z = 1.0 / cfg.device.tau_s + 2.0 * math.pi * lp.rate_zero_offset_hz
     zq = 1.0 / cfg.device.tau_s
     t0, t1 = analysis_settle_s(cfg), cfg.plan.dwell_s
-    c_out = np.array([-wc, 0.0, -wc * z, 0.0])
     x = np.zeros(4)
     out = np.empty(len(rates_dps))
     for k, w in enumerate(rates_dps):
         g, d = float(gamma_y[k]), float(split_rad_s[k])
+        wc, wq = float(wc_rad_s[k]), float(wq_rad_s[k])
+        c_out = np.array([-wc, 0.0, -wc * z, 0.0])
         a = np.array(
             [
                 [-g - wc, d, -wc * z, 0.0],
@@ -290,7 +306,7 @@ def loop_tail_errors(
         dx = x - x_ss
         e0, e1 = expm(a * t0), expm(a * t1)
         mean = float(c_out @ x_ss) + float(c_out @ np.linalg.solve(a, (e1 - e0) @ dx)) / (t1 - t0)
-        out[k] = (mean - w) / w if w != 0.0 else 0.0
+        out[k] = mean - w
         x = x_ss + e1 @ dx
     return out
 
@@ -379,17 +395,38 @@ def _tails(
     split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
     split = split * math.cos(2.0 * math.radians(s.stiffness_axis_deg))
     rates = [st.table_rate_dps for st in rate_steps]
-    with_split = loop_tail_errors(cfg, rates, split, gamma_y)
-    without = loop_tail_errors(cfg, rates, np.zeros_like(split), gamma_y)
+    wc, wq = loop_bandwidths_rad_s(cfg, temp)
+    with_split = loop_tail_errors(cfg, rates, split_rad_s=split, gamma_y=gamma_y, wc_rad_s=wc, wq_rad_s=wq)
+    without = loop_tail_errors(cfg, rates, split_rad_s=np.zeros_like(split), gamma_y=gamma_y, wc_rad_s=wc, wq_rad_s=wq)
     pos = {st.index: k for k, st in enumerate(rate_steps)}
 
-    def per_pair(err: np.ndarray) -> np.ndarray:
-        return np.array([0.5 * (err[pos[wp.index]] + err[pos[wm.index]]) for wp, wm in pairs])
+    def per_pair(err: np.ndarray) -> np.ndarray:  # SF error of the pair: (a+ - a-) / (Omega+ - Omega-)
+        return np.array([(err[pos[wp.index]] - err[pos[wm.index]]) / (wp.rate_dps - wm.rate_dps) for wp, wm in pairs])
 
     return per_pair(with_split) - per_pair(without), per_pair(without)
 
 
-NONLINEARITY_SOURCES = ("forcer_cubic", "table_ripple")
+NONLINEARITY_SOURCES = ("forcer_cubic", "table_ripple", "loop_tail")
+
+
+def _level_tails(cfg: Config, steps: list[Step], wins: list[_Window]) -> np.ndarray:
+    """Loop-tail error (deg/s) of each level's window mean at the plan's start temperature (loop_tail_errors)."""
+    s = cfg.sim
+    t = np.full(len(steps), cfg.plan.chamber_start_c)
+    dt = t - s.reference_temperature_c
+    w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
+    inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
+    dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
+    gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
+    split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
+    split = split * math.cos(2.0 * math.radians(s.stiffness_axis_deg))
+    wc, wq = loop_bandwidths_rad_s(cfg, t)
+    moving = [st for st in steps if st.kind in ("rate", "level", "return")]
+    rates = [st.table_rate_dps if st.kind != "return" else 0.0 for st in moving]
+    k = len(moving)
+    err = loop_tail_errors(cfg, rates, split_rad_s=split[:k], gamma_y=gamma_y[:k], wc_rad_s=wc[:k], wq_rad_s=wq[:k])
+    pos = {st.index: i for i, st in enumerate(moving)}
+    return np.array([err[pos[w_.index]] for w_ in wins])
 
 
 def _nonlinearity(cfg: Config) -> tuple[dict[str, float], float, tuple[float, ...]]:
@@ -405,17 +442,19 @@ def _nonlinearity(cfg: Config) -> tuple[dict[str, float], float, tuple[float, ..
     beta = forcer_cubic_per_v2(lin)
     u_d = lin.dither.virtual_rate_dps * lin.device.sf_nominal_v_per_dps if lin.clsf.mode != "off" else 0.0
     u = rates * sf
-    factors = {
-        "forcer_cubic": 1.0 - beta * (u * u + 3.0 * u_d * u_d),
-        "table_ripple": 1.0 + np.array([_ripple_mean(lin, w) for w in wins]),
-    }
     scale = 1.0 + s.table_rate_scale_error_ppm / PPM
+    errors = {  # each source's error of the level means, deg/s of input rate
+        "forcer_cubic": -rates * beta * (u * u + 3.0 * u_d * u_d),
+        "table_ripple": rates * np.array([_ripple_mean(lin, w) for w in wins]),
+        "loop_tail": _level_tails(lin, steps, wins),
+    }
 
-    def rms_pct(out: np.ndarray) -> float:
+    def rms_pct(err: np.ndarray) -> float:
+        out = sf * scale * (rates + err)
         slope, icpt = np.polyfit(rates, out, 1)
         res = out - (slope * rates + icpt)
         return float(100.0 * np.sqrt(np.mean(res**2)) / abs(slope * np.max(np.abs(rates))))
 
-    terms = {k: rms_pct(sf * rates * scale * f) for k, f in factors.items()}
-    total = rms_pct(sf * rates * scale * np.prod(np.array(list(factors.values())), axis=0))
+    terms = {k: rms_pct(e) for k, e in errors.items()}
+    total = rms_pct(np.sum(np.array(list(errors.values())), axis=0))
     return terms, total, tuple(float(r) for r in rates)

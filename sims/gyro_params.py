@@ -34,8 +34,8 @@ class GyroParams:
     q_factor: float = 1.2e6
     damping_mismatch: float = 0.01  # Delta(1/tau) / (1/tau)
     damping_axis_deg: float = 5.0
-    freq_mismatch_hz: float = 0.0
-    stiffness_axis_deg: float = 0.0
+    freq_mismatch_hz: float = 0.02  # mode split after tuning, Hz; assumed ("mode-matched" in the paper)
+    stiffness_axis_deg: float = 20.0  # its principal axis; assumed (0 would leave the quadrature loop idle)
     angular_gain: float = 0.8
     arw_dps_per_rt_hz: float | None = None  # if None: arw_deg_per_rt_h / 60
     arw_deg_per_rt_h: float = 0.02
@@ -52,7 +52,7 @@ class GyroParams:
     # ---- deterministic non-idealities (docs/accuracy-budget.md: each value's origin and what the paper implies)
     q_tempco_ppm_per_c: float = -2000.0  # dQ/Q per degC; assumed (thermoelastic-limited silicon: Q falls with T)
     damping_mismatch_tempco_per_c: float = 1e-4  # d(Delta(1/tau)/(1/tau))/dT, per degC; assumed
-    freq_mismatch_tempco_hz_per_c: float = 0.004  # d(split)/dT, Hz per degC; assumed (thermal stress)
+    freq_mismatch_tempco_hz_per_c: float = -0.002  # d(split)/dT, Hz per degC; assumed (sign unknown)
     forcer_bias_v: float = 5.0  # proof-mass polarization voltage V_p on the sense forcer; assumed
     forcer_gap_um: float = 2.0  # parallel-plate forcer gap g; assumed (deep-etched silicon class)
     drive_amplitude_um: float = 5.0  # physical drive amplitude a at drive_amplitude_vrms; assumed
