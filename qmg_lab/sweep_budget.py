@@ -40,6 +40,24 @@ from qmg_lab.config import Config
 from qmg_lab.plan import Step, build_plan
 
 PPM = 1e6
+DETERMINISTIC_OFF: dict[str, float] = {
+    "pickoff_ratio_tempco_ppm_per_c": 0.0,
+    "q_tempco_ppm_per_c": 0.0,
+    "damping_mismatch_tempco_per_c": 0.0,
+    "freq_mismatch_hz": 0.0,
+    "freq_mismatch_tempco_hz_per_c": 0.0,
+    "forcer_bias_v": 0.0,
+    "feedthrough_v_per_v": 0.0,
+    "table_rate_ripple_ppm": 0.0,
+}
+"""[sim] values that switch every deterministic accuracy and linearity source of the twin off (the budget is then 0)."""
+
+
+def sim_lines(values: dict[str, float]) -> str:
+    """[sim] key = value lines (TOML) for a mapping of [sim] overrides."""
+    return "".join(f"{k} = {v!r}\n" for k, v in values.items())
+
+
 DEG_PER_RAD = 180.0 / math.pi
 HARMONICS = (1, 3, 5, 7, 9, 11, 13, 15)  # odd harmonics of the square dither used in the projections
 

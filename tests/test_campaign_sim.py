@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 from scipy.integrate import trapezoid
 
+from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
 ADEV = ROOT / "configs" / "clsf_adev.toml"
@@ -32,18 +34,7 @@ def qmg(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return proc
 
 
-IDEAL_SIM_LINES = "\n".join(
-    (
-        "pickoff_ratio_tempco_ppm_per_c = 0.0",
-        "freq_mismatch_hz = 0.0",
-        "freq_mismatch_tempco_hz_per_c = 0.0",
-        "q_tempco_ppm_per_c = 0.0",
-        "damping_mismatch_tempco_per_c = 0.0",
-        "forcer_bias_v = 0.0",
-        "feedthrough_v_per_v = 0.0",
-        "table_rate_ripple_ppm = 0.0",
-    )
-)
+IDEAL_SIM_LINES = sim_lines(DETERMINISTIC_OFF)
 
 
 def config_with(tmp: Path, base: Path, sim_lines: str, name: str) -> Path:

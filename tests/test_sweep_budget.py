@@ -23,23 +23,13 @@ from pathlib import Path
 import pytest
 
 from qmg_lab.config import parse_config
-from qmg_lab.sweep_budget import sweep_accuracy
+from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines, sweep_accuracy
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
 SIM_HEADER = "[sim]                          # the simulated twins (used with --sim); defaults are the paper's QMG"
 
 QUIET = {"arw_deg_per_rt_h": 0.0, "bias_instability_deg_per_h": 0.0, "pickoff_noise_vrms_per_rt_hz": 0.0}
-DETERMINISTIC_OFF = {
-    "pickoff_ratio_tempco_ppm_per_c": 0.0,
-    "q_tempco_ppm_per_c": 0.0,
-    "damping_mismatch_tempco_per_c": 0.0,
-    "freq_mismatch_hz": 0.0,
-    "freq_mismatch_tempco_hz_per_c": 0.0,
-    "forcer_bias_v": 0.0,
-    "feedthrough_v_per_v": 0.0,
-    "table_rate_ripple_ppm": 0.0,
-}
 # each source alone, at a size that stands well above the twin's 0.5 ppm floor
 SOURCES: dict[str, dict[str, float]] = {
     "pickoff_ratio": {"pickoff_ratio_tempco_ppm_per_c": 60.0},
@@ -62,8 +52,7 @@ def config_text(sim: dict[str, float], short: bool = True) -> str:
         ):
             assert old in text
             text = text.replace(old, new)
-    lines = "\n".join(f"{k} = {v}" for k, v in sim.items())
-    return text.replace(SIM_HEADER, "[sim]\n" + lines)
+    return text.replace(SIM_HEADER, "[sim]\n" + sim_lines(sim))
 
 
 def qmg(*args: str) -> str:
