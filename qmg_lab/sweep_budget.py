@@ -244,16 +244,26 @@ def forcer_cubic_per_v2(cfg: Config) -> float:
     return s.forcer_electrode_v_per_v**2 * r / (2.0 * s.forcer_bias_v**2 * (1.0 - r))
 
 
+def sense_axis(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sense mode at T: its damping rate g_y = (omega(T)/2Q(T))(1 - (dmis(T)/2) cos 2 theta_tau) (1/s) and its
+    detuning from the PLL (locked on the drive mode) d = 2 pi Delta_f(T) cos 2 theta_omega (rad/s)."""
+    s = cfg.sim
+    dt = temp_c - s.reference_temperature_c
+    w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
+    inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
+    dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
+    gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
+    split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
+    return gamma_y, split * math.cos(2.0 * math.radians(s.stiffness_axis_deg))
+
+
 def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, np.ndarray]:
     """Relative error delta of the CLSF ratio rho at each temperature, per source (table step at rate_dps)."""
     s = cfg.sim
     dt = temp_c - s.reference_temperature_c
     wc_t, wq_t = loop_bandwidths_rad_s(cfg, temp_c)
-    w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
-    inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
+    gamma_y, split = sense_axis(cfg, temp_c)
     g0 = 2.0 * math.pi * s.f0_hz / (2.0 * s.q_factor)
-    split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
-    split *= math.cos(2.0 * math.radians(s.stiffness_axis_deg))
     p_split = np.array(
         [
             projection(cfg, lambda z, c=c, q=q: -(z * z) / ((z + g0) ** 2 * (z + q) * (z + c)), c)
@@ -262,8 +272,6 @@ def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, 
     )
     p_damp = np.array([projection(cfg, lambda z, c=c: z / ((z + g0) * (z + c)), c) for c in wc_t])
     p_ft = np.array([projection(cfg, lambda z, c=c: z * c / (z + c), c) for c in wc_t])
-    dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
-    gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
     tau_n = cfg.device.tau_s
     a = math.sqrt(2.0) * cfg.device.drive_amplitude_vrms
     b = s.angular_gain * a / _sf_rad(cfg, temp_c)
@@ -400,18 +408,11 @@ def _tails(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The table-measured SF error of each pair from the loop tail (loop_tail_errors): the split's part (tail with
     the split minus tail without) and the damping mismatch's part (tail without the split)."""
-    s = cfg.sim
     rate_steps = [st for st in steps if st.kind == "rate"]
     starts = np.cumsum([0.0] + [st.duration_s for st in steps])
     t_mid = np.array([starts[st.index] + 0.5 * st.duration_s for st in rate_steps])
     temp = gyro_temperature_c(cfg, t_mid, ramp_start)
-    dt = temp - s.reference_temperature_c
-    w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
-    inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
-    dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
-    gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
-    split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
-    split = split * math.cos(2.0 * math.radians(s.stiffness_axis_deg))
+    gamma_y, split = sense_axis(cfg, temp)
     rates = [st.table_rate_dps for st in rate_steps]
     wc, wq = loop_bandwidths_rad_s(cfg, temp)
     with_split = loop_tail_errors(cfg, rates, split_rad_s=split, gamma_y=gamma_y, wc_rad_s=wc, wq_rad_s=wq)
@@ -429,15 +430,8 @@ NONLINEARITY_SOURCES = ("forcer_cubic", "table_ripple", "loop_tail")
 
 def _level_tails(cfg: Config, steps: list[Step], wins: list[_Window]) -> np.ndarray:
     """Loop-tail error (deg/s) of each level's window mean at the plan's start temperature (loop_tail_errors)."""
-    s = cfg.sim
     t = np.full(len(steps), cfg.plan.chamber_start_c)
-    dt = t - s.reference_temperature_c
-    w = 2.0 * math.pi * s.f0_hz * (1.0 + s.frequency_tempco_ppm_per_c * 1e-6 * dt)
-    inv_tau = w / (2.0 * s.q_factor * (1.0 + s.q_tempco_ppm_per_c * 1e-6 * dt))
-    dmis = s.damping_mismatch + s.damping_mismatch_tempco_per_c * dt
-    gamma_y = inv_tau * (1.0 - 0.5 * dmis * math.cos(2.0 * math.radians(s.damping_axis_deg)))
-    split = 2.0 * math.pi * (s.freq_mismatch_hz + s.freq_mismatch_tempco_hz_per_c * dt)
-    split = split * math.cos(2.0 * math.radians(s.stiffness_axis_deg))
+    gamma_y, split = sense_axis(cfg, t)
     wc, wq = loop_bandwidths_rad_s(cfg, t)
     moving = [st for st in steps if st.kind in ("rate", "level", "return")]
     rates = [st.table_rate_dps if st.kind != "return" else 0.0 for st in moving]

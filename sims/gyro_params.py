@@ -249,6 +249,7 @@ class GyroParams:
 
 
 NONIDEALITIES_OFF: dict[str, Any] = {
+    "freq_mismatch_hz": 0.0,
     "q_tempco_ppm_per_c": 0.0,
     "damping_mismatch_tempco_per_c": 0.0,
     "freq_mismatch_tempco_hz_per_c": 0.0,

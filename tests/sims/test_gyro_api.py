@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config, SimSection
-from qmg_lab.loops import lockin_setup
+from qmg_lab.config import SimSection
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import BlockInputs
+from tests.paper_loops import paper_loops
 
 DT = 1.0 / 1400.0
 QUIET = GyroParams(
@@ -21,14 +21,7 @@ QUIET = GyroParams(
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
-    su = lockin_setup(Config())
-    return LoopSettings(
-        pll=PllSettings.from_gains(su.pll),
-        agc=PidSettings.from_gains(su.agc),
-        rate=PidSettings.from_gains(su.rate),
-        quadrature=PidSettings.from_gains(su.quadrature),
-        forcer_gain=gain,
-    )
+    return paper_loops(gain)
 
 
 def test_from_mapping_takes_the_config_section_and_ignores_unknown_keys() -> None:

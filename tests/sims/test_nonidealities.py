@@ -14,12 +14,11 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from qmg_lab.config import Config
-from qmg_lab.loops import lockin_setup
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import DEG_PER_RAD, NONIDEALITIES_OFF
 from sims.world import World, WorldParams
+from tests.paper_loops import paper_loops
 
 DT = 1.0 / 1400.0
 EPS0 = 8.8541878128e-12
@@ -28,14 +27,8 @@ QUIET = GyroParams(
 )
 
 
-def _loops() -> LoopSettings:
-    su = lockin_setup(Config())
-    return LoopSettings(
-        pll=PllSettings.from_gains(su.pll),
-        agc=PidSettings.from_gains(su.agc),
-        rate=PidSettings.from_gains(su.rate),
-        quadrature=PidSettings.from_gains(su.quadrature),
-    )
+def _loops(gain: float = 1.0) -> LoopSettings:
+    return paper_loops(gain)
 
 
 # ------------------------------------------------------------------------------------------ electrostatic forcer
