@@ -1,9 +1,10 @@
 """CLSF accuracy on a bench whose clocks share nothing: the paper campaign over rates, dithers and DS345 offsets.
 
 Every case is the paper campaign (configs/paper_campaign.toml) on the twins, as a user runs it
-(`python -m qmg_lab run ... --sim` then `analyze --json`), with the CLSF-invisible residual drift switched off
-([sim] pickoff_ratio_tempco_ppm_per_c = 0), so that the CLSF estimate must follow the scale factor the table steps
-measure. Each case changes:
+(`python -m qmg_lab run ... --sim` then `analyze --json`), with every deterministic accuracy source switched
+off (qmg_lab.sweep_budget.DETERMINISTIC_OFF: pickoff-ratio drift, mode split, Q and damping drift, forcer
+cubic, feedthrough, table ripple; docs/accuracy-budget.md), so that the CLSF estimate must follow the scale
+factor the table steps measure. Each case changes:
 
 * the lock-in rate: the HF2's own rates (900, 1800, 3600 Sa/s) and, with the twin told to offer any
   clockbase/integer rate ([sim] hf2_rate_set = "ticks"), rates no HF2 offers (1234.5, 2500 Sa/s);
@@ -38,6 +39,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines  # noqa: E402 - after the path set-up
+
 RATES = [(900.0, "hf2"), (1800.0, "hf2"), (3600.0, "hf2"), (1234.5, "ticks"), (2500.0, "ticks")]
 DITHERS = [5.3, 7.0, 8.6, 9.7]
 OFFSETS = [-50.0, 3.0, 50.0]
@@ -57,10 +63,7 @@ def case_config(rate_hz: float, rate_set: str, dither_hz: float, offset_ppm: flo
         text = text.replace(old, new)
     return (
         text
-        + (
-            f"pickoff_ratio_tempco_ppm_per_c = 0.0\nds345_timebase_offset_ppm = {offset_ppm}\n"
-            f'hf2_rate_set = "{rate_set}"\n'
-        )
+        + (sim_lines(DETERMINISTIC_OFF) + f'ds345_timebase_offset_ppm = {offset_ppm}\nhf2_rate_set = "{rate_set}"\n')
         + ("" if noise else NOISE_OFF)
     )
 

@@ -1,7 +1,9 @@
 """Speed, memory and compile time of the QMG twin (sims/gyro.py, sims/carrier.py); prints figures, --json: one object.
 
-Every loop (PLL, AGC, rate, quadrature) and every noise source (ARW, bias instability, pickoff) is on, with the
-7 Hz square-wave dither and a slow temperature ramp, so every per-step term is exercised.
+Every loop (PLL, AGC, rate, quadrature), every noise source (ARW, bias instability, pickoff) and every
+deterministic non-ideality at its default (forcer cubic, feedthrough, Q and damping drift, mode split and its
+tempco; the carrier model's 2-omega demodulator ripple) is on, with the 7 Hz square-wave dither and a slow
+temperature ramp, so every per-step term is exercised.
 
 * averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls)
   and of 60 s; real-time factor = simulated seconds per wall second.

@@ -354,8 +354,8 @@ class SimSection(_Section):
     q_factor: float = Field(1.2e6, ge=1e2, le=1e8)
     damping_mismatch: float = Field(0.01, ge=0.0, le=0.5, description="Delta(1/tau)/(1/tau), paper dQ/Q = 1 %")
     damping_axis_deg: float = Field(5.0, ge=-90.0, le=90.0)
-    freq_mismatch_hz: float = Field(0.0, ge=0.0, le=10.0)
-    stiffness_axis_deg: float = Field(0.0, ge=-90.0, le=90.0)
+    freq_mismatch_hz: float = Field(0.02, ge=0.0, le=10.0, description="mode split at T_ref, Hz (assumed)")
+    stiffness_axis_deg: float = Field(20.0, ge=-90.0, le=90.0, description="principal axis of the split (assumed)")
     angular_gain: float = Field(0.8, gt=0.0, le=1.0)
     arw_dps_per_rt_hz: float | None = Field(
         None, ge=0.0, description="override ARW directly in (deg/s)/sqrt(Hz); default from arw_deg_per_rt_h"
@@ -373,6 +373,29 @@ class SimSection(_Section):
     chamber_time_constant_s: float = Field(60.0, gt=0.0, le=1e5, description="chamber air -> its setpoint, s")
     initial_temperature_c: float = Field(25.0, ge=-60.0, le=150.0)
     table_rate_scale_error_ppm: float = Field(60.0, ge=-1e4, le=1e4, description="1291BR: 100 ppm rate accuracy")
+    # deterministic non-idealities (docs/accuracy-budget.md: origin of each default, what the paper implies)
+    table_rate_ripple_ppm: float = Field(
+        100.0, ge=0.0, le=1e5, description="1291BR once-per-revolution rate ripple, ppm of the rate (assumed)"
+    )
+    table_ripple_phase_deg: float = Field(0.0, ge=-360.0, le=360.0, description="table angle of the ripple's peak")
+    q_tempco_ppm_per_c: float = Field(-2000.0, ge=-1e5, le=1e5, description="dQ/Q per degC (assumed)")
+    damping_mismatch_tempco_per_c: float = Field(
+        1e-4, ge=-0.01, le=0.01, description="d(Delta(1/tau)/(1/tau))/dT per degC (assumed)"
+    )
+    freq_mismatch_tempco_hz_per_c: float = Field(
+        -0.002, ge=-1.0, le=1.0, description="mode split tempco, Hz/degC (assumed)"
+    )
+    forcer_bias_v: float = Field(5.0, ge=0.0, le=200.0, description="sense forcer polarization V_p, V (assumed)")
+    forcer_gap_um: float = Field(2.0, gt=0.0, le=100.0, description="parallel-plate forcer gap, um (assumed)")
+    drive_amplitude_um: float = Field(5.0, gt=0.0, le=100.0, description="physical drive amplitude, um (assumed)")
+    forcer_electrode_v_per_v: float = Field(
+        1.0, ge=0.0, le=100.0, description="forcer electrode AC amplitude per command volt (paper: 10 V at 150 deg/s)"
+    )
+    feedthrough_v_per_v: float = Field(
+        1e-4, ge=0.0, le=1.0, description="sense pickoff volts per forcer-electrode volt (assumed)"
+    )
+    feedthrough_phase_deg: float = Field(90.0, ge=-360.0, le=360.0, description="feedthrough phase vs the force")
+    hf2_demod_ripple: bool = Field(True, description="carrier model: the demod filter's 2-omega residual")
     loop_delay_us: float = Field(0.0, ge=0.0, le=1e4, description="lock-in loop delay, us")
     ds345_timebase_offset_ppm: float = Field(
         3.0, ge=-1000.0, le=1000.0, description="the DS345's crystal timebase against the HF2's clock, ppm (assumed)"

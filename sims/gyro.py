@@ -68,6 +68,14 @@ def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
     v[gk.P_GMSTEPS] = float(steps_per_gm)
     v[gk.P_SF] = p.sf_true_v_per_dps
     v[gk.P_R0] = p.drive_amplitude_vrms
+    v[gk.P_AQ] = p.q_tempco_ppm_per_c * 1e-6
+    v[gk.P_ADM] = p.damping_mismatch_tempco_per_c
+    v[gk.P_ADW] = 2.0 * math.pi * p.freq_mismatch_tempco_hz_per_c
+    v[gk.P_BETA] = p.forcer_cubic_per_v2
+    phi_ft = p.feedthrough_phase_deg * RAD_PER_DEG
+    v[gk.P_FTC] = p.feedthrough_v_per_v * p.forcer_electrode_v_per_v * math.cos(phi_ft)
+    v[gk.P_FTS] = p.feedthrough_v_per_v * p.forcer_electrode_v_per_v * math.sin(phi_ft)
+    v[gk.P_RIP] = 1.0 if p.hf2_demod_ripple else 0.0
     return v
 
 
@@ -196,11 +204,11 @@ class _TwinBase:
             self._init_filters()
             return
         w = p.omega_rad_s(temp0)
-        inv_tau = w / (2.0 * p.q_factor)
-        g = 0.5 * p.damping_mismatch * inv_tau
+        inv_tau = w / (2.0 * p.q_at(temp0))
+        g = 0.5 * p.damping_mismatch_at(temp0) * inv_tau
         two_t = 2.0 * p.damping_axis_deg * RAD_PER_DEG
         two_w = 2.0 * p.stiffness_axis_deg * RAD_PER_DEG
-        dw = 2.0 * math.pi * p.freq_mismatch_hz
+        dw = 2.0 * math.pi * p.freq_mismatch_at_hz(temp0)
         if pll.enabled:
             f = min(
                 max(p.omega_x_rad_s(temp0) / (2.0 * math.pi), pll.center_hz - pll.range_hz),

@@ -69,7 +69,11 @@ P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0
     21,
     22,
 )
-N_PARAMS = 23
+# deterministic non-idealities (docs/accuracy-budget.md): Q tempco, damping-mismatch tempco, split tempco (rad/s
+# per degC), forcer cubic beta (1/V^2), feedthrough into the sense C and S slow variables per command volt,
+# 2-omega ripple switch (carrier model)
+P_AQ, P_ADM, P_ADW, P_BETA, P_FTC, P_FTS, P_RIP = 23, 24, 25, 26, 27, 28, 29
+N_PARAMS = 30
 
 # ---- loop vector L (sims/gyro_params.pack_loops)
 L_PLL = 0  # enabled, p, i, setpoint, center, range
@@ -270,15 +274,16 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     gi = 0
     raws = np.empty(4)
     filt = np.empty(4)
-    dw, c2w, s2w = P[P_DW], P[P_C2W], P[P_S2W]
+    c2w, s2w = P[P_C2W], P[P_S2W]
     c2t, s2t = P[P_C2T], P[P_S2T]
     for i in range(n):
         gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
         dtemp = temp_c[i] - tref
         w = w0 * (1.0 + P[P_AW] * dtemp)
-        inv_tau = w / (2.0 * P[P_Q])
-        g = 0.5 * P[P_DMIS] * inv_tau
+        inv_tau = w / (2.0 * P[P_Q] * (1.0 + P[P_AQ] * dtemp))
+        g = 0.5 * (P[P_DMIS] + P[P_ADM] * dtemp) * inv_tau
         wr = TWO_PI * S[S_FREF]
+        dw = P[P_DW] + P[P_ADW] * dtemp
         h = w * dw / (2.0 * wr)
         delta = (w * w - wr * wr) / (2.0 * wr)
         k_om = k * (rate_dps[i] * RAD_PER_DEG + S[S_BIAS])
@@ -303,11 +308,11 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         # inputs held over the step
         g_f = 1.0 + P[P_AF] * dtemp
         ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
-        kf = P[P_KF] * g_f / (2.0 * wr)
+        u_s = gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])
+        u_c = S[S_VQ]
+        kf = P[P_KF] * g_f * (1.0 + P[P_BETA] * (u_s * u_s + u_c * u_c)) / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
-        uy = complex(
-            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - arw * noise[i, 0], kf * S[S_VQ] - arw * noise[i, 1]
-        )
+        uy = complex(kf * u_s - arw * noise[i, 0], kf * u_c - arw * noise[i, 1])
         # input term M^-1 (I - Phi) u
         v1 = (1.0 - p11) * ux - p12 * uy
         v2 = -p21 * ux + (1.0 - p22) * uy
@@ -321,10 +326,11 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         S[S_CX], S[S_SX] = zx_new.real, zx_new.imag
         S[S_CY], S[S_SY] = zy_new.real, zy_new.imag
         g_py = 1.0 + P[P_AP] * dtemp
+        ft = _feedthrough(P, u_s, u_c)
         raws[0] = zx_new.real / SQRT2 + sig_pick * noise[i, 2]
         raws[1] = -zx_new.imag / SQRT2 + sig_pick * noise[i, 3]
-        raws[2] = g_py * zy_new.real / SQRT2 + sig_pick * noise[i, 4]
-        raws[3] = -g_py * zy_new.imag / SQRT2 + sig_pick * noise[i, 5]
+        raws[2] = g_py * (zy_new.real + ft.real) / SQRT2 + sig_pick * noise[i, 4]
+        raws[3] = -g_py * (zy_new.imag + ft.imag) / SQRT2 + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
@@ -340,6 +346,17 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
         out[O_AUX, i] = S[S_VRP]
     return gi
+
+
+@njit(cache=True, inline="always")
+def _feedthrough(P, u_s, u_c):
+    """Forcer-to-pickoff feedthrough as a sense slow-variable offset C + iS (pickoff units, G_py applied after).
+
+    The forcer electrode carries c_e (u_c cos phi + u_s sin phi) (c_e folded into P_FTC/P_FTS with the coupling
+    kappa); a coupling kappa e^{i phi_ft} puts kappa c_e [(u_c cos phi_ft - u_s sin phi_ft) cos phi
+    + (u_s cos phi_ft + u_c sin phi_ft) sin phi] on the pickoff: C = P_FTC u_c - P_FTS u_s, S = P_FTC u_s + P_FTS u_c
+    with P_FTC = kappa c_e cos phi_ft, P_FTS = kappa c_e sin phi_ft."""
+    return complex(P[P_FTC] * u_c - P[P_FTS] * u_s, P[P_FTC] * u_s + P[P_FTS] * u_c)
 
 
 @njit(cache=True)
@@ -381,7 +398,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     gi = 0
     raws = np.empty(4)
     filt = np.empty(4)
-    dw, c2w, s2w = P[P_DW], P[P_C2W], P[P_S2W]
+    c2w, s2w = P[P_C2W], P[P_S2W]
     c2t, s2t = P[P_C2T], P[P_S2T]
     A = np.zeros((4, 4))
     term = np.empty((4, 4))
@@ -396,8 +413,9 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
         dtemp = temp_c[i] - tref
         w = w0 * (1.0 + P[P_AW] * dtemp)
-        inv_tau = w / (2.0 * P[P_Q])
-        dd = P[P_DMIS] * inv_tau
+        inv_tau = w / (2.0 * P[P_Q] * (1.0 + P[P_AQ] * dtemp))
+        dd = (P[P_DMIS] + P[P_ADM] * dtemp) * inv_tau
+        dw = P[P_DW] + P[P_ADW] * dtemp
         om = rate_dps[i] * RAD_PER_DEG + S[S_BIAS]
         # A on [x, y, x'/w0, y'/w0]
         kxx = w * w + w * dw * c2w
@@ -424,8 +442,11 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         g_py = 1.0 + P[P_AP] * dtemp
         fn = 2.0 * w0 * k * a0 * sig_arw
         fxs = -P[P_KD] * S[S_VD]
-        fys = -P[P_KF] * g_f * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) + fn * noise[i, 0]
-        fyc = P[P_KF] * g_f * S[S_VQ] - fn * noise[i, 1]
+        u_s = gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])
+        u_c = S[S_VQ]
+        kfc = P[P_KF] * g_f * (1.0 + P[P_BETA] * (u_s * u_s + u_c * u_c))
+        fys = -kfc * u_s + fn * noise[i, 0]
+        fyc = kfc * u_c - fn * noise[i, 1]
         half = 0.5 * wr * dt
         inv_sinc = half / math.sin(half)
         fxs *= inv_sinc / w0
@@ -472,15 +493,25 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         S[S_SX] = 2.0 * sxs / m_per
         S[S_CY] = 2.0 * syc / m_per
         S[S_SY] = 2.0 * sys_ / m_per
+        ft = _feedthrough(P, u_s, u_c)
         raws[0] = scale * sxc + sig_pick * noise[i, 2]
         raws[1] = -scale * sxs + sig_pick * noise[i, 3]
-        raws[2] = g_py * scale * syc + sig_pick * noise[i, 4]
-        raws[3] = -g_py * scale * sys_ + sig_pick * noise[i, 5]
+        raws[2] = g_py * (scale * syc + ft.real / SQRT2) + sig_pick * noise[i, 4]
+        raws[3] = -g_py * (scale * sys_ + ft.imag / SQRT2) + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dtc, fj, fs, fr, order, a_d, c_d, sections)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
         out[O_YS, i] = filt[3]
+        if P[P_RIP] != 0.0:  # the 2-omega term the HF2's filter leaves in the streamed sample (docstring)
+            h2 = 1.0 / (1.0 - 2j * wr * L[L_TC]) ** order
+            rot = h2 * complex(math.cos(2.0 * S[S_PHI]), -math.sin(2.0 * S[S_PHI])) / SQRT2
+            rx = rot * complex(S[S_CX], S[S_SX])
+            ry = g_py * rot * complex(S[S_CY], S[S_SY])
+            out[O_XD, i] += rx.real
+            out[O_YD, i] += rx.imag
+            out[O_XS, i] += ry.real
+            out[O_YS, i] += ry.imag
         out[O_F, i] = S[S_FREF]
         out[O_VD, i] = S[S_VD]
         out[O_VR, i] = S[S_VR]

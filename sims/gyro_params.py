@@ -34,8 +34,8 @@ class GyroParams:
     q_factor: float = 1.2e6
     damping_mismatch: float = 0.01  # Delta(1/tau) / (1/tau)
     damping_axis_deg: float = 5.0
-    freq_mismatch_hz: float = 0.0
-    stiffness_axis_deg: float = 0.0
+    freq_mismatch_hz: float = 0.02  # mode split after tuning, Hz; assumed ("mode-matched" in the paper)
+    stiffness_axis_deg: float = 20.0  # its principal axis; assumed (0 would leave the quadrature loop idle)
     angular_gain: float = 0.8
     arw_dps_per_rt_hz: float | None = None  # if None: arw_deg_per_rt_h / 60
     arw_deg_per_rt_h: float = 0.02
@@ -49,6 +49,17 @@ class GyroParams:
     drive_voltage_v: float = 0.05  # sustains drive_amplitude_vrms at T_ref
     sf_true_v_per_dps: float = 0.06  # true FTR SF at T_ref, drive_amplitude_vrms, forcer gain 1
     drive_amplitude_vrms: float = 0.5  # the drive amplitude at which sf_true applies
+    # ---- deterministic non-idealities (docs/accuracy-budget.md: each value's origin and what the paper implies)
+    q_tempco_ppm_per_c: float = -2000.0  # dQ/Q per degC; assumed (thermoelastic-limited silicon: Q falls with T)
+    damping_mismatch_tempco_per_c: float = 1e-4  # d(Delta(1/tau)/(1/tau))/dT, per degC; assumed
+    freq_mismatch_tempco_hz_per_c: float = -0.002  # d(split)/dT, Hz per degC; assumed (sign unknown)
+    forcer_bias_v: float = 5.0  # proof-mass polarization voltage V_p on the sense forcer; assumed
+    forcer_gap_um: float = 2.0  # parallel-plate forcer gap g; assumed (deep-etched silicon class)
+    drive_amplitude_um: float = 5.0  # physical drive amplitude a at drive_amplitude_vrms; assumed
+    forcer_electrode_v_per_v: float = 1.0  # forcer AC amplitude per volt of command (paper: 10 V <-> 150 deg/s)
+    feedthrough_v_per_v: float = 1e-4  # sense pickoff volts per forcer-electrode volt; assumed (EAM-suppressed)
+    feedthrough_phase_deg: float = 90.0  # feedthrough phase against the force (capacitive: into Y); assumed
+    hf2_demod_ripple: bool = True  # carrier model: the demodulator filter's residual 2 omega term in the stream
 
     def __post_init__(self) -> None:
         self.validate()
@@ -70,7 +81,16 @@ class GyroParams:
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter that cannot be simulated."""
-        positive = ("f0_hz", "q_factor", "angular_gain", "drive_voltage_v", "sf_true_v_per_dps", "drive_amplitude_vrms")
+        positive = (
+            "f0_hz",
+            "q_factor",
+            "angular_gain",
+            "drive_voltage_v",
+            "sf_true_v_per_dps",
+            "drive_amplitude_vrms",
+            "forcer_gap_um",
+            "drive_amplitude_um",
+        )
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -81,6 +101,9 @@ class GyroParams:
             "pickoff_noise_vrms_per_rt_hz",
             "loop_delay_us",
             "freq_mismatch_hz",
+            "forcer_bias_v",
+            "forcer_electrode_v_per_v",
+            "feedthrough_v_per_v",
         )
         for name in non_negative:
             v = getattr(self, name)
@@ -99,12 +122,22 @@ class GyroParams:
             "frequency_tempco_ppm_per_c",
             "pickoff_ratio_tempco_ppm_per_c",
             "reference_temperature_c",
+            "q_tempco_ppm_per_c",
+            "damping_mismatch_tempco_per_c",
+            "freq_mismatch_tempco_hz_per_c",
+            "feedthrough_phase_deg",
         ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v)):
                 raise ValueError(f"GyroParams.{name} must be a finite number, got {v!r}")
         if self.freq_mismatch_hz >= 0.1 * self.f0_hz:
             raise ValueError("GyroParams.freq_mismatch_hz must be well below f0_hz (averaged model)")
+        if self.electrostatic_spring_ratio >= 0.5:
+            raise ValueError(
+                "GyroParams: the forcer's electrostatic spring must stay below half the sense stiffness (got k_e/k = "
+                f"{self.electrostatic_spring_ratio:.3g} from forcer_bias_v, forcer_gap_um, drive_amplitude_um): "
+                "near pull-in"
+            )
 
     @property
     def arw_rad_per_rt_s(self) -> float:
@@ -136,16 +169,70 @@ class GyroParams:
         """K_f = 2 omega0 k a0 / SF_rad (SF in V per rad/s)."""
         return 2.0 * self.omega0_rad_s * self.angular_gain * self.a0 / (self.sf_true_v_per_dps * DEG_PER_RAD)
 
+    @property
+    def electrostatic_spring_ratio(self) -> float:
+        """r = k_e / k_m: the forcer's electrostatic spring eps0 A V_p^2 / g^3 against the sense stiffness m omega0^2.
+
+        The forcer's area A is not free: its 1-omega force eps0 A V_p v / g^2 at the electrode amplitude
+        v = c_e u must rebalance the Coriolis force 2 m k omega0 a Omega at the command u = SF Omega, so
+        eps0 A / g^2 = 2 m k omega0 a / (c_e SF_rad V_p) and the mass cancels:
+        r = 2 k a V_p / (c_e SF_rad g omega0)   (a, g in metres; SF_rad in V per rad/s).
+        """
+        if self.forcer_bias_v == 0.0:
+            return 0.0
+        a_m, g_m = self.drive_amplitude_um * 1e-6, self.forcer_gap_um * 1e-6
+        sf_rad = self.sf_true_v_per_dps * DEG_PER_RAD
+        return (
+            2.0
+            * self.angular_gain
+            * a_m
+            * self.forcer_bias_v
+            / (self.forcer_electrode_v_per_v * sf_rad * g_m * self.omega0_rad_s)
+        )
+
+    @property
+    def forcer_cubic_per_v2(self) -> float:
+        """beta: the forcer's gain grows as (1 + beta u^2) with the command amplitude u (V).
+
+        Parallel-plate forcer at gap g, polarization V_p, AC amplitude v = c_e u (c_e = forcer_electrode_v_per_v):
+        F = eps0 A (V_p + v cos wt)^2 / (2 (g - y)^2). Its 1-omega part eps0 A V_p v / (g - y)^2 is the rebalance
+        force; its DC part eps0 A v^2 / (4 g^2) deflects the mass quasi-statically by y = eps0 A v^2 / (4 g^2 k_eff)
+        (k_eff = k_m - k_e, the electrostatically softened stiffness), which narrows the gap:
+        F_1w = (eps0 A V_p v / g^2)(1 + 2 y / g) = F_lin (1 + beta u^2),
+        beta = c_e^2 eps0 A / (2 g^3 k_eff) = c_e^2 r / (2 V_p^2 (1 - r))   (r: electrostatic_spring_ratio)
+             = c_e k a / (SF_rad V_p g omega0 (1 - r)).
+        """
+        if self.forcer_bias_v == 0.0:
+            return 0.0
+        r = self.electrostatic_spring_ratio
+        return self.forcer_electrode_v_per_v**2 * r / (2.0 * self.forcer_bias_v**2 * (1.0 - r))
+
     def omega_rad_s(self, temperature_c: float) -> float:
         """Mean resonance omega(T) = omega0 (1 + alpha_w (T - T_ref))."""
         return self.omega0_rad_s * (
             1.0 + self.frequency_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
         )
 
+    def q_at(self, temperature_c: float) -> float:
+        """Q(T) = Q0 (1 + alpha_Q (T - T_ref))."""
+        return self.q_factor * (1.0 + self.q_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c))
+
+    def damping_mismatch_at(self, temperature_c: float) -> float:
+        """Delta(1/tau)/(1/tau) at T: damping_mismatch + its tempco (T - T_ref)."""
+        return self.damping_mismatch + self.damping_mismatch_tempco_per_c * (
+            temperature_c - self.reference_temperature_c
+        )
+
+    def freq_mismatch_at_hz(self, temperature_c: float) -> float:
+        """Mode split Delta f(T) = freq_mismatch_hz + its tempco (T - T_ref), Hz (signed)."""
+        return self.freq_mismatch_hz + self.freq_mismatch_tempco_hz_per_c * (
+            temperature_c - self.reference_temperature_c
+        )
+
     def omega_x_rad_s(self, temperature_c: float) -> float:
-        """Drive-mode resonance sqrt(K_xx) = sqrt(omega^2 + omega Delta_omega cos 2 theta_omega)."""
+        """Drive-mode resonance sqrt(K_xx) = sqrt(omega^2 + omega Delta_omega(T) cos 2 theta_omega)."""
         w = self.omega_rad_s(temperature_c)
-        dw = 2.0 * math.pi * self.freq_mismatch_hz
+        dw = 2.0 * math.pi * self.freq_mismatch_at_hz(temperature_c)
         return math.sqrt(w * w + w * dw * math.cos(2.0 * self.stiffness_axis_deg * RAD_PER_DEG))
 
     def forcer_gain_factor(self, temperature_c: float) -> float:
@@ -168,6 +255,18 @@ class GyroParams:
             * (r / self.drive_amplitude_vrms)
             / (self.forcer_gain_factor(temperature_c) * forcer_gain)
         )
+
+
+NONIDEALITIES_OFF: dict[str, Any] = {
+    "freq_mismatch_hz": 0.0,
+    "q_tempco_ppm_per_c": 0.0,
+    "damping_mismatch_tempco_per_c": 0.0,
+    "freq_mismatch_tempco_hz_per_c": 0.0,
+    "forcer_bias_v": 0.0,  # no electrostatic cubic (beta = 0)
+    "feedthrough_v_per_v": 0.0,
+    "hf2_demod_ripple": False,
+}
+"""GyroParams overrides that switch every deterministic electronics/physics non-ideality off (ideal-twin tests)."""
 
 
 @dataclass

@@ -8,8 +8,12 @@ Dynamics (all exact for inputs held over a step, evaluated vectorised per block)
 
 * Table, rate mode: rate moves toward the command at the acceleration limit a,
   r(t) = r0 + sign(r1 - r0) * min(a t, |r1 - r0|); sinusoid mode: r(t) = A sin(2 pi f (t - t_s)).
-  The delivered rate is the profile times (1 + e), e the table's rate scale error (1291BR: 100 ppm class).
-  Position is the integral of the rate.
+  The delivered rate is the profile times (1 + e) (1 + r sin(theta + phi_r)): e the table's rate scale error
+  (1291BR: 100 ppm class), r a once-per-revolution rate ripple at the table angle theta (bearing runout and
+  encoder eccentricity: the servo holds the *encoder's* rate, the table turns at that rate times the ripple; a
+  specification "averaged over 360 deg" says nothing of it, so its size is assumed, docs/accuracy-budget.md).
+  theta in the ripple is the angle of the ripple-free profile (the ripple's own angle error is second order,
+  r^2). Position is the integral of the delivered rate.
 * Chamber: the controller setpoint s(t) ramps to the target at the ramp rate (deg C/min); the air follows s with
   a first-order lag tau_air; the gyro follows the air with a first-order lag tau_gyro. Exact ZOH recursion
   y[k+1] = a y[k] + (1 - a) u[k], a = exp(-dt/tau), evaluated in closed form (`first_order_lag`).
@@ -53,6 +57,8 @@ class WorldParams:
     thermal_lag_s: float = 600.0
     initial_temperature_c: float = 25.0
     table_rate_scale_error_ppm: float = 60.0
+    table_rate_ripple_ppm: float = 100.0  # once-per-revolution rate ripple r, ppm of the rate (assumed)
+    table_ripple_phase_deg: float = 0.0  # phi_r: where on the revolution the ripple peaks
     # the DS345's own timebase against the HF2's clock (assumed values: the DS345 specification was not at
     # hand; a crystal timebase of a few ppm is typical of such generators). See docs/simulation.md.
     ds345_timebase_offset_ppm: float = 3.0
@@ -251,9 +257,17 @@ class World:
 
     # ------------------------------------------------------------------ read-backs
     def table_rate_dps(self) -> float:
-        """Delivered table rate now, deg/s."""
+        """Delivered table rate now, deg/s (scale error and ripple at the current angle)."""
         with self.lock:
-            return self.table.rate_dps * (1.0 + self.params.table_rate_scale_error_ppm * 1e-6)
+            ripple = self._ripple_factor(np.array([self.table.angle_deg]))[0]
+            return self.table.rate_dps * (1.0 + self.params.table_rate_scale_error_ppm * 1e-6) * ripple
+
+    def _ripple_factor(self, angle_deg: np.ndarray) -> np.ndarray:
+        """1 + r sin(theta + phi_r): the once-per-revolution rate ripple at table angles theta."""
+        p = self.params
+        if p.table_rate_ripple_ppm == 0.0:
+            return np.ones_like(angle_deg)
+        return 1.0 + p.table_rate_ripple_ppm * 1e-6 * np.sin(np.deg2rad(angle_deg + p.table_ripple_phase_deg))
 
     def table_angle_deg(self) -> float:
         with self.lock:
@@ -397,6 +411,9 @@ class World:
             prof_mid = self._table_profile(tau_mid)
             scale = 1.0 + self.params.table_rate_scale_error_ppm * 1e-6
             rate = prof_mid * scale
+            if self.params.table_rate_ripple_ppm != 0.0:  # ripple at the ripple-free mid-step angle
+                mid = self.table.angle_deg + np.cumsum(rate) * dt - 0.5 * rate * dt
+                rate = rate * self._ripple_factor(mid)
             angle = self.table.angle_deg + np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt))
             # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
             c = self.chamber

@@ -22,6 +22,7 @@ from qmg_lab.demod_filter import DemodFilter
 from qmg_lab.loops import lockin_setup
 from qmg_lab.plan import dither_amplitude_vpp
 from qmg_lab.station import build_station
+from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines
 
 ROOT = Path(__file__).resolve().parents[2]
 GAIN_STEP = 1.01
@@ -39,6 +40,9 @@ def _config(order: int, tc_s: float, rate_hz: float, dither_hz: float, offset_pp
         f"arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
         f"ds345_timebase_offset_ppm = {offset_ppm}\n"
     )
+    # the estimator's own exactness, on a plant without the deterministic non-idealities: a forcer-to-pickoff
+    # feedthrough, for one, scales with the forcer-path gain and moves the sensitivity itself (docs/accuracy-budget.md)
+    text += sim_lines(DETERMINISTIC_OFF)
     return parse_config(text).with_all_sim()
 
 

@@ -38,7 +38,7 @@ class Bench:
 
 @pytest.fixture(params=["inprocess", "pty", "socket"])
 def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM))
+    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
     twin = RateTableTwin(world)
     stop = None
     if request.param == "inprocess":
@@ -190,7 +190,7 @@ def test_closed_port_is_an_instrument_error() -> None:
 
 
 def test_reconnect_over_socket_keeps_the_motion() -> None:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM))
+    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
     twin = RateTableTwin(world)
     url, stop = serve_socket(twin)
     try:
@@ -245,7 +245,7 @@ def test_every_command_the_driver_accepts_is_understood_by_the_twin(
 
 
 def test_reconnect_over_pty_reopens_the_same_device() -> None:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM))
+    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
     path, stop = serve_pty(RateTableTwin(world))
     try:
         table = Aerosmith1291BR(

@@ -7,25 +7,21 @@ import math
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config, SimSection
-from qmg_lab.loops import lockin_setup
+from qmg_lab.config import SimSection
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
+from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import BlockInputs
+from tests.support.paper_loops import paper_loops
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0)
+QUIET = GyroParams(
+    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
+)
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
-    su = lockin_setup(Config())
-    return LoopSettings(
-        pll=PllSettings.from_gains(su.pll),
-        agc=PidSettings.from_gains(su.agc),
-        rate=PidSettings.from_gains(su.rate),
-        quadrature=PidSettings.from_gains(su.quadrature),
-        forcer_gain=gain,
-    )
+    return paper_loops(gain)
 
 
 def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_keys() -> None:

@@ -20,27 +20,22 @@ import dataclasses
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config
-from qmg_lab.loops import lockin_setup
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
+from sims.gyro_params import NONIDEALITIES_OFF
+from tests.support.paper_loops import paper_loops
 
-QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0)
+QUIET = GyroParams(
+    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
+)
 F0 = QUIET.f0_hz
 PERIOD = 314  # demod samples per dither period
 V_DITHER = 0.3  # 5 deg/s virtual rate at SF 0.06
 SECONDS = 4.0
 
 
-def _loops(gain: float) -> LoopSettings:
-    su = lockin_setup(Config())
-    return LoopSettings(
-        pll=PllSettings.from_gains(su.pll),
-        agc=PidSettings.from_gains(su.agc),
-        rate=PidSettings.from_gains(su.rate),
-        quadrature=PidSettings.from_gains(su.quadrature),
-        forcer_gain=gain,
-    )
+def _loops(gain: float = 1.0) -> LoopSettings:
+    return paper_loops(gain)
 
 
 def _campaign(sim: GyroSim | CarrierGyroSim) -> dict[str, float]:

@@ -21,7 +21,11 @@ P = b">\r"
 
 @pytest.fixture
 def twin() -> RateTableTwin:
-    return RateTableTwin(World(WorldParams(table_rate_scale_error_ppm=100.0)), max_rate_dps=500.0, max_accel_dps2=800.0)
+    return RateTableTwin(
+        World(WorldParams(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0)),
+        max_rate_dps=500.0,
+        max_accel_dps2=800.0,
+    )
 
 
 def test_settings_answer_the_prompt_and_reach_the_world(twin: RateTableTwin) -> None:

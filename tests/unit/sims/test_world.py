@@ -24,7 +24,7 @@ def test_first_order_lag_is_the_exact_recursion_across_chunks():
 
 
 def test_table_ramps_at_the_acceleration_limit_then_holds_with_scale_error():
-    w = World(WorldParams(table_rate_scale_error_ppm=100.0))
+    w = World(WorldParams(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0))
     w.set_table_rate(5.0, 300.0)
     b = w.advance(1400, DT)
     scale = 1 + 100e-6
@@ -42,7 +42,7 @@ def test_table_ramps_at_the_acceleration_limit_then_holds_with_scale_error():
 
 
 def test_reversal_passes_through_zero_at_the_acceleration_limit():
-    w = World(WorldParams(table_rate_scale_error_ppm=0.0))
+    w = World(WorldParams(table_rate_scale_error_ppm=0.0, table_rate_ripple_ppm=0.0))
     w.set_table_rate(5.0, 300.0)
     w.advance(700, DT)
     w.set_table_rate(-5.0, 300.0)
