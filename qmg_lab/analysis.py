@@ -17,7 +17,8 @@ Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
   c_i = (1 + s_i)/(1 + s_0) - 1 with s_i the mean /clsf/sf_change_estimate over the same two windows; twin truth
   t_i = mean /truth/scale_factor re-referenced the same way. CLSF accuracy = RMS(c_i - e_i) over pairs 1..n-1
   (pair 0 is zero by construction), reported with and without the mean of (c - e) removed.
-  truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin.
+  truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin; clsf_vs_truth_rms_ppm =
+  RMS(c_i - t_i) over pairs 1..n-1: the estimator against the twin's truth, without the table steps' noise.
 * CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
   closed up), in ppm, with 68 % confidence bounds (qmg_lab/adev.py). In correct mode the same series is the
   residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
@@ -93,6 +94,7 @@ class AnalysisResult:
     sf_tempco_ppm_per_c: float = float("nan")
     clsf_tempco_ppm_per_c: float = float("nan")
     truth_check_rms_ppm: float | None = None
+    clsf_vs_truth_rms_ppm: float | None = None
     adev: list[dict[str, float]] = field(default_factory=list)
     adev_at_60s_ppm: float = float("nan")
     adev_at_2000s_ppm: float = float("nan")
@@ -309,6 +311,7 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
         res.clsf_accuracy_rms_ppm_mean_removed = _rms(d - d.mean())
     if (ctx.run.has_truth or ctx.windows is not None) and np.all(np.isfinite(tr)):
         res.truth_check_rms_ppm = _rms(e - tr)
+        res.clsf_vs_truth_rms_ppm = _rms((c - tr)[1:])
     temps = np.array([p.temperature_c for p in res.pairs])
     ok = np.isfinite(temps)
     if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:
@@ -567,6 +570,7 @@ def render_table(result: AnalysisResult) -> Any:
         ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}"), "ppm"),
         ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}"), "ppm"),
         ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}"), "ppm"),
+        ("CLSF vs truth RMS", f(r.clsf_vs_truth_rms_ppm, "{:.2f}"), "ppm"),
         ("CLSF ADEV at 60 s", f(r.adev_at_60s_ppm, "{:.2f}"), "ppm"),
         ("CLSF ADEV at 2000 s", f(r.adev_at_2000s_ppm, "{:.2f}"), "ppm"),
         ("CLSF ADEV minimum", f(min((x["value"] for x in r.adev), default=None), "{:.2f}"), "ppm"),
