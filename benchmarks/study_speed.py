@@ -70,7 +70,7 @@ def throughput(n_workers: int, tasks: int) -> dict[str, Any]:
     from distributed import Client, LocalCluster, wait
 
     with (
-        LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
         Client(cluster) as client,
     ):
         addresses = list(client.scheduler_info(n_workers=-1)["workers"])

@@ -54,10 +54,11 @@ def collect_rows(out_dir: Path) -> tuple[list[str], list[dict[str, Any]]]:
     rows with status "missing"."""
     meta = load_meta(out_dir)
     axes: list[str] = list(meta["axes"])
-    rows, metric_names = [], {}
+    rows: list[dict[str, Any]] = []
+    metric_names: dict[str, None] = {}  # insertion-ordered set
     for p in meta["points"]:
         path = record_path(out_dir, p["id"])
-        rec = read_record(path) if path.exists() else {"status": "missing", "error": "", "metrics": {}}
+        rec: dict[str, Any] = read_record(path) if path.exists() else {"status": "missing", "error": "", "metrics": {}}
         row: dict[str, Any] = {"point": p["id"], "index": p["index"], "seed": p["seed"]}
         row.update({a: p["axes"][a] for a in axes})
         row.update({c: rec.get(c) for c in RUN_COLUMNS})
@@ -83,8 +84,8 @@ def write_results(out_dir: Path) -> list[Path]:
     written = [out_dir / "results.csv"]
     write_atomic(written[0], buf.getvalue())
     if importlib.util.find_spec("pyarrow") is not None:
-        import pyarrow as pa  # noqa: PLC0415
-        import pyarrow.parquet as pq  # noqa: PLC0415
+        import pyarrow as pa  # type: ignore[import-not-found]  # noqa: PLC0415
+        import pyarrow.parquet as pq  # type: ignore[import-not-found]  # noqa: PLC0415
 
         table = pa.Table.from_pylist([{c: r.get(c) for c in columns} for r in rows])
         pq.write_table(table, out_dir / "results.parquet")
@@ -200,7 +201,7 @@ def summary_table(out_dir: Path) -> Any:
     by_cell: dict[int, list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
         by_cell[int(r["index"])].append(r)
-    counts = defaultdict(int)
+    counts: dict[str, int] = defaultdict(int)
     for r in rows:
         counts[r["status"]] += 1
     status = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))

@@ -109,8 +109,8 @@ def test_the_bandwidth_campaign_needs_the_full_level(tmp_path: Path) -> None:
 # ---- the study file ---------------------------------------------------------------------------------------------
 
 
-def _study(tmp_path: Path, axes: str, extra: str = "", seeds: str = "[1, 2]") -> Path:
-    (tmp_path / "base.toml").write_text(tomli_w.dumps(short_sweep()))
+def _study(tmp_path: Path, axes: str, extra: str = "", seeds: str = "[1, 2]", **plan: float) -> Path:
+    (tmp_path / "base.toml").write_text(tomli_w.dumps(short_sweep(**plan)))
     path = tmp_path / "s.toml"
     path.write_text(f'[study]\nname = "t"\nbase = "base.toml"\nseeds = {seeds}\n{extra}\n[axes]\n{axes}\n')
     return path
@@ -168,7 +168,7 @@ def _runlog(out: Path) -> list[dict[str, Any]]:
 
 
 def test_a_killed_and_resumed_two_worker_study_ends_as_an_uninterrupted_one(tmp_path: Path) -> None:
-    study = _study(tmp_path, KILL_AXES)
+    study = _study(tmp_path, KILL_AXES, chamber_end_c=25.5)  # about 70 simulated seconds per campaign
     # uninterrupted
     whole = tmp_path / "whole"
     r = qmg("study", str(study), "-o", str(whole), "--workers", "2", "-q")
