@@ -3,7 +3,9 @@
 1. Per task: the paper campaign (configs/paper_campaign.toml, 55 simulated minutes) run as a study task runs it
    (`qmg_lab.study_task.run_campaign`: twins, the run file, then `analyze`), in this process after a short warm-up
    campaign (numba's compiled kernels loaded), `--runs` times at the study storage level and once at the full
-   level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis.
+   level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis; also with the
+   twin's blocks 10 s long instead of 2 s ([lockin] sim_poll_interval_s, as the shipped studies set it), and the
+   run file's size at both levels.
 2. Throughput: `--tasks` paper campaigns at the study level on a LocalCluster of 1 and of 2 single-threaded worker
    processes (every worker warmed up by a short campaign first; the cluster's start is not counted): simulated
    campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)).
@@ -31,38 +33,45 @@ import tomli_w
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def paper_text(level: str, **plan: float) -> str:
+def paper_text(level: str, sim_poll_interval_s: float | None = None, **plan: float) -> str:
+    """The paper campaign on the twins at a storage level (plan values and the twin's block length changed)."""
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
     for name in ("lockin", "generator", "table", "chamber"):
         doc[name]["sim"] = True
     doc.setdefault("storage", {})["level"] = level
     doc["plan"].update(plan)
+    if sim_poll_interval_s is not None:
+        doc["lockin"]["sim_poll_interval_s"] = sim_poll_interval_s
     return tomli_w.dumps(doc)
 
 
 WARM_UP = {"chamber_end_c": 25.5, "chamber_soak_s": 10.0, "chamber_end_hold_s": 0.0}
 
 
-def timed_campaign(text: str) -> tuple[float, float]:
-    """(simulated s, wall s) of one campaign and its analysis, as a study task runs it."""
+def timed_campaign(text: str) -> tuple[float, float, float]:
+    """(simulated s, wall s, file MB) of one campaign and its analysis, as a study task runs it."""
     from qmg_lab.study_task import run_campaign
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         _, simulated = run_campaign(text, Path(tmp) / "run.h5")
-        return simulated, time.perf_counter() - t0
+        wall = time.perf_counter() - t0
+        return simulated, wall, (Path(tmp) / "run.h5").stat().st_size / 1e6
 
 
 def per_task(runs: int) -> dict[str, Any]:
     timed_campaign(paper_text("study", **WARM_UP))
     study = [timed_campaign(paper_text("study")) for _ in range(runs)]
+    blocks10 = [timed_campaign(paper_text("study", sim_poll_interval_s=10.0)) for _ in range(runs)]
     full = timed_campaign(paper_text("full"))
-    rtf = [s / w for s, w in study]
     return {
         "simulated_s": study[0][0],
-        "wall_s_study_level": [round(w, 3) for _, w in study],
-        "realtime_factor_study_level": statistics.median(rtf),
+        "wall_s_study_level": [round(w, 3) for _, w, _ in study],
+        "realtime_factor_study_level": statistics.median(s / w for s, w, _ in study),
+        "realtime_factor_study_level_10s_blocks": statistics.median(s / w for s, w, _ in blocks10),
         "realtime_factor_full_level": full[0] / full[1],
+        "file_mb_study_level": study[0][2],
+        "file_mb_full_level": full[2],
     }
 
 
@@ -83,14 +92,14 @@ def throughput(n_workers: int, tasks: int) -> dict[str, Any]:
         futures = [client.submit(timed_campaign, text, pure=False) for _ in range(tasks)]
         results = client.gather(futures)
         wall = time.perf_counter() - t0
-    simulated_h = sum(s for s, _ in results) / 3600.0
+    simulated_h = sum(s for s, _, _ in results) / 3600.0
     return {
         "workers": n_workers,
         "tasks": tasks,
         "wall_s": wall,
         "campaign_hours": simulated_h,
         "campaign_hours_per_wall_hour": simulated_h / (wall / 3600.0),
-        "task_wall_s_median": statistics.median(w for _, w in results),
+        "task_wall_s_median": statistics.median(w for _, w, _ in results),
     }
 
 
@@ -126,7 +135,9 @@ def main() -> None:
     )
     print(
         f"per task (paper campaign, {task['simulated_s']:.0f} s simulated): {task['realtime_factor_study_level']:.0f}x "
-        f"real time at the study level, {task['realtime_factor_full_level']:.0f}x at the full level"
+        f"real time at the study level ({task['realtime_factor_study_level_10s_blocks']:.0f}x with 10 s twin blocks), "
+        f"{task['realtime_factor_full_level']:.0f}x at the full level; file {task['file_mb_study_level']:.1f} MB "
+        f"instead of {task['file_mb_full_level']:.0f} MB"
     )
     for r in (one, two):
         print(

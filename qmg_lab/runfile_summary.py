@@ -234,7 +234,9 @@ class StudyRunWriter(RunWriter):
             super().append(group, **columns)
             return
         self._check_open()
-        block = {c: np.asarray(v, dtype=np.float64) for c, v in columns.items()}
+        keep = self._recording or self._settling_index is not None  # after the settling step: the edges only
+        names = columns if keep else ("time", "dither", "rate_output")
+        block = {c: np.asarray(columns[c], dtype=np.float64) for c in names}
         if block["time"].shape[0] == 0:
             return
         for rising, integral in self._edges.feed(block["time"], block["dither"], block["rate_output"]):
@@ -246,20 +248,12 @@ class StudyRunWriter(RunWriter):
             while len(self._tail) > 1 and self._tail[-1]["time"][-1] - self._tail[1]["time"][0] >= TAIL_S:
                 self._tail.pop(0)
 
-    def append_step(
-        self,
-        *,
-        index: int,
-        kind: str,
-        t_start: float,
-        t_end: float,
-        table_rate: float,
-        chamber_setpoint: float,
-        status: str,
-    ) -> None:
-        """The step's /windows row and the settling step's raw rows, then the /steps row (a checkpoint)."""
+    def append_step(self, **step: Any) -> None:
+        """The step's /windows row and the settling step's raw rows, then the /steps row (RunWriter.append_step's
+        keywords: index, kind, t_start, t_end, table_rate, chamber_setpoint, status)."""
+        index, t_start, t_end = int(step["index"]), float(step["t_start"]), float(step["t_end"])
         self._check_open()
-        if status == "completed":
+        if step["status"] == "completed":
             w = self._window
             n = max(w.samples, 1)
             row = {
@@ -281,15 +275,7 @@ class StudyRunWriter(RunWriter):
                     super().append("lockin", **block)
                 self._tail = []
         self._window = _Window(start_s=t_end + self._settle_s)
-        super().append_step(
-            index=index,
-            kind=kind,
-            t_start=t_start,
-            t_end=t_end,
-            table_rate=table_rate,
-            chamber_setpoint=chamber_setpoint,
-            status=status,
-        )
+        super().append_step(**step)
 
     def set_status(self, status: str, abort_reason: str = "") -> None:
         """At the end of a run the last, partial edge chunk is processed before the final flush."""

@@ -10,7 +10,8 @@ Exactly-once protocol (docs/studies.md), in the study directory DIR:
    to a temporary file, fsyncs it and renames it to DIR/points/<id>.json (atomic: the file is either absent or
    whole), and logs "done".
 
-A point is therefore complete exactly when its record exists; `--resume` runs the points without one, and a
+The record, not the log, is the truth: a kill between the rename and the "done" line leaves a complete point
+without one. A point is therefore complete exactly when its record exists; `--resume` runs the points without one, and a
 point killed before its rename runs again from the start (its partial campaign counts for nothing). A point
 whose campaign or analysis raises is recorded with status "failed" and the error: it is complete, and the study
 goes on.

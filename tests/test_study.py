@@ -210,8 +210,10 @@ def test_a_killed_and_resumed_two_worker_study_ends_as_an_uninterrupted_one(tmp_
     assert r.returncode == 0, r.stderr
     assert _results(killed) == rows
     log = _runlog(killed)
-    # no point ran twice: one "done" per point, and no point complete at the kill was started again
-    assert Counter(e["point"] for e in log if e["event"] == "done") == Counter({r["point"]: 1 for r in rows})
+    # no point ran twice: at most one "done" per point (a kill between a record's rename and its "done" line leaves
+    # a complete point without one), and no point complete at the kill was started again
+    done = Counter(e["point"] for e in log if e["event"] == "done")
+    assert max(done.values()) == 1 and {r["point"] for r in rows} - set(done) <= done_at_kill
     assert not [e for e in log[len(log_at_kill) :] if e["point"] in done_at_kill]
     # a point killed mid-campaign (started, never done) runs again from the start after the resume
     interrupted = {e["point"] for e in log_at_kill if e["event"] == "start"} - done_at_kill
