@@ -43,8 +43,9 @@ class StudyRunReport:
     workers: int
 
 
-def prepare_dir(study: Study, out_dir: Path, resume: bool) -> list[Point]:
-    """Create or check DIR; return the points still to run (all of them for a new study).
+def prepare_dir(study: Study, out_dir: Path, resume: bool, write: bool = True) -> list[Point]:
+    """Check DIR and (write=True) create its study.json and points/; return the points still to run (all of them
+    for a new study).
 
     DIR/study.json names the study and its fingerprint: --resume refuses a directory of another study (or of this
     study file after an edit that changes any point), and a new study refuses a directory that has results."""
@@ -68,9 +69,10 @@ def prepare_dir(study: Study, out_dir: Path, resume: bool) -> list[Point]:
             )
     elif resume:
         raise StudyDirError(f"{out_dir}: no study to resume there ({STUDY_JSON} missing)")
-    points_dir(out_dir).mkdir(parents=True, exist_ok=True)
-    if not meta_path.exists():
-        write_atomic(meta_path, json.dumps(meta, indent=1))
+    if write:
+        points_dir(out_dir).mkdir(parents=True, exist_ok=True)
+        if not meta_path.exists():
+            write_atomic(meta_path, json.dumps(meta, indent=1))
     return [p for p in study.points if not point_complete(out_dir, p.id)]
 
 
@@ -97,7 +99,7 @@ def run_study(
     """Run every point of `study` that has no record in out_dir yet, on Dask; see the module docstring."""
     from distributed import Client, LocalCluster, as_completed  # noqa: PLC0415
 
-    pending = prepare_dir(study, out_dir, resume)
+    pending = prepare_dir(study, out_dir, resume, write=False)  # refuse a wrong DIR before starting a cluster
     done_before = len(study.points) - len(pending)
     report = StudyRunReport(len(study.points), done_before, 0, 0, 0)
     if not pending:
@@ -112,6 +114,7 @@ def run_study(
         )
         client = Client(cluster)
     try:
+        prepare_dir(study, out_dir, resume)  # the cluster answered: only now does DIR change
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"]) or (workers or 0)
         keep = study.spec.study.keep_run_files
         futures = {

@@ -97,7 +97,9 @@ def robustness(out_dir: Path, png: Path) -> list[str]:
     offsets = sorted({value(r, "sim.ds345_timebase_offset_ppm") for r in data})
     metric = "clsf_vs_truth_rms_ppm"
     vmax = max(value(r, metric) for r in data)
-    fig, axes = plt.subplots(1, len(offsets), figsize=(4.0 * len(offsets), 3.8), squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(offsets), figsize=(4.0 * len(offsets) + 1.0, 3.8), squeeze=False, layout="constrained"
+    )
     lines = []
     for ax, off in zip(axes[0], offsets, strict=True):
         grid = np.full((len(dithers), len(rates)), np.nan)
@@ -113,11 +115,14 @@ def robustness(out_dir: Path, png: Path) -> list[str]:
         ax.set_xticks(range(len(rates)), [f"{x:g}" for x in rates])
         ax.set_yticks(range(len(dithers)), [f"{x:g}" for x in dithers])
         ax.set_xlabel("lock-in rate (Sa/s)")
-        ax.set_ylabel("dither frequency (Hz)")
+        if off == offsets[0]:
+            ax.set_ylabel("dither frequency (Hz)")
         ax.set_title(f"DS345 timebase offset {off:+g} ppm", fontsize=9)
         lines.append(f"offset {off:+g} ppm: worst {np.nanmax(grid):.2f} ppm, median {np.nanmedian(grid):.2f} ppm")
     fig.colorbar(im, ax=axes[0].tolist(), label="CLSF vs truth, RMS (ppm)")
-    fig.suptitle("CLSF accuracy (studies/robustness.toml)", fontsize=9)
+    fig.suptitle(
+        "CLSF accuracy: RMS of CLSF minus true SF change over the step pairs (studies/robustness.toml)", fontsize=9
+    )
     fig.savefig(png, dpi=110)
     plt.close(fig)
     return lines
