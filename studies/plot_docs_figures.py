@@ -6,8 +6,8 @@
 
 virtual_rate.png: CLSF precision (ADEV of the self-calibrated scale factor at 60 s and 2000 s) against the
 virtual-rate amplitude Omega_v, log-log, mean and min-max over seeds per CLSF time constant, the fitted slope of
-each line, and the white-rate-noise floor sigma_Omega(tau) / Omega_v with sigma_Omega(tau) = N / sqrt(tau) from the
-twin's angle random walk N ([sim] arw_deg_per_rt_h): the precision an estimator that sees only the gyro's white
+each line, and the white-rate-noise reference sigma_Omega(tau) / Omega_v with sigma_Omega(tau) = N / sqrt(tau) from
+the twin's angle random walk N ([sim] arw_deg_per_rt_h): what an open-loop estimator that sees only the gyro's white
 rate noise against a square virtual rate would reach.
 
 robustness.png: CLSF accuracy (RMS of CLSF minus the twin's true scale-factor change, ppm) over lock-in rate x
@@ -72,7 +72,7 @@ def virtual_rate(out_dir: Path, png: Path) -> list[str]:
         if omegas:
             w = np.array(omegas)
             floor = n_dps / math.sqrt(tau) / w * 1e6
-            ax.plot(w, floor, "k:", label=f"white-rate-noise floor (ARW {arw:g} deg/sqrt(h))")
+            ax.plot(w, floor, "k:", label=f"white rate noise N/(Omega_v sqrt(tau)), N = ARW {arw:g} deg/sqrt(h)")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xticks(omegas, [f"{w:g}" for w in omegas], minor=False)
@@ -81,8 +81,10 @@ def virtual_rate(out_dir: Path, png: Path) -> list[str]:
         ax.set_ylabel(f"CLSF ADEV at {tau:g} s (ppm)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
+    seeds = len({r["seed"] for r in data})
     fig.suptitle(
-        "CLSF precision against the virtual rate (studies/virtual_rate.toml; mean and min-max of seeds)", fontsize=9
+        f"CLSF precision against the virtual rate (studies/virtual_rate.toml; {seeds} seed(s): mean, min-max)",
+        fontsize=9,
     )
     fig.tight_layout()
     fig.savefig(png, dpi=110)
