@@ -257,7 +257,7 @@ def _execute(
     from qmg_lab.interrupts import InterruptGuard
     from qmg_lab.plan import assert_within_limits, build_plan
     from qmg_lab.progress import ProgressView
-    from qmg_lab.runfile_summary import create_run_writer, refuse_study_resume
+    from qmg_lab.runfile_summary import create_run_writer, refuse_study_resume  # noqa: PLC0415
     from qmg_lab.storage import RunWriter, StorageError
 
     try:
@@ -514,7 +514,7 @@ def analyze(
 
 def _analyze_study(out_dir: Path, json_out: bool, figures: Path | None) -> None:
     """`analyze DIR` on a study directory: the summary table (or results.csv's rows as JSON)."""
-    from qmg_lab.study_results import collect_rows, summary_table, write_figures
+    from qmg_lab.study_results import collect_rows, summary_table, write_figures  # noqa: PLC0415
 
     try:
         columns, rows = collect_rows(out_dir)
@@ -533,7 +533,7 @@ def _analyze_study(out_dir: Path, json_out: bool, figures: Path | None) -> None:
 
 # ====================================================================================== study
 @app.command()
-def study(
+def study(  # noqa: PLR0917 - a typer command: its options
     study_file: Annotated[Path, typer.Argument(help="study file (TOML): base, seeds, axes", show_default=False)],
     output: Annotated[
         Path | None, typer.Option("-o", "--output", help="study directory (default studies-out/NAME)")
@@ -549,9 +549,9 @@ def study(
 ) -> None:
     """Run a design study: every point of the grid (axes x seeds) as a simulated campaign on Dask, then
     DIR/results.csv, DIR/figures/ and a summary table."""
-    from qmg_lab.study_file import StudyError, load_study
-    from qmg_lab.study_results import summary_table, write_figures, write_results
-    from qmg_lab.study_runner import StudyDirError, run_study
+    from qmg_lab.study_file import StudyError, load_study  # noqa: PLC0415
+    from qmg_lab.study_results import summary_table, write_figures, write_results  # noqa: PLC0415
+    from qmg_lab.study_runner import StudyDirError, run_study  # noqa: PLC0415
 
     if workers is not None and scheduler is not None:
         _fail(EXIT_BAD_INPUT, "--workers and --scheduler exclude each other (the scheduler's cluster has its workers)")
