@@ -17,7 +17,8 @@ Procedures (reference/physics.md section 7; docs/hdf5.md for the data):
   c_i = (1 + s_i)/(1 + s_0) - 1 with s_i the mean /clsf/sf_change_estimate over the same two windows; twin truth
   t_i = mean /truth/scale_factor re-referenced the same way. CLSF accuracy = RMS(c_i - e_i) over pairs 1..n-1
   (pair 0 is zero by construction), reported with and without the mean of (c - e) removed.
-  truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin.
+  truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin; clsf_vs_truth_rms_ppm =
+  RMS(c_i - t_i) over pairs 1..n-1: the estimator against the twin's truth, without the table steps' noise.
 * CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
   closed up), in ppm, with 68 % confidence bounds (qmg_lab/adev.py). In correct mode the same series is the
   residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
@@ -43,6 +44,7 @@ from qmg_lab.analysis_char import BodePoint, bandwidth_3db, fit_sinusoid, linear
 from qmg_lab.config import Config
 from qmg_lab.dither_edges import EdgeTracker
 from qmg_lab.runfile_reader import stored_config
+from qmg_lab.runfile_summary import EDGE_CHUNK_SAMPLES, analysis_settle_s, read_summary
 from qmg_lab.storage import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
@@ -92,8 +94,10 @@ class AnalysisResult:
     sf_tempco_ppm_per_c: float = float("nan")
     clsf_tempco_ppm_per_c: float = float("nan")
     truth_check_rms_ppm: float | None = None
+    clsf_vs_truth_rms_ppm: float | None = None
     adev: list[dict[str, float]] = field(default_factory=list)
     adev_at_60s_ppm: float = float("nan")
+    adev_at_2000s_ppm: float = float("nan")
     adev_gain_correction: list[dict[str, float]] = field(default_factory=list)
     gyro_adev_deg_per_h: list[dict[str, float]] = field(default_factory=list)
     arw_deg_per_rt_h: float = float("nan")
@@ -142,6 +146,8 @@ class _Ctx:
     notes: list[str]
     dither_rising_s: np.ndarray | None = None  # rising edges of the recorded dither, s
     rate_integral: np.ndarray | None = None  # trapezoid integral of /lockin/rate_output at the sample times, V s
+    edge_integral: np.ndarray | None = None  # study level: that integral at each rising edge (/edges), V s
+    windows: dict[int, dict[str, float]] | None = None  # study level: /windows by step index
 
 
 def _load(path: str | Path) -> _Ctx:
@@ -153,7 +159,7 @@ def _load(path: str | Path) -> _Ctx:
     period = 1
     if cfg.clsf.mode != "off":
         period = max(1, int(round(fs / cfg.dither.frequency_hz)))
-    settle = max(cfg.plan.settle_s, 5.0 / (2 * math.pi * cfg.loops.rate_bandwidth_hz))
+    settle = analysis_settle_s(cfg)
     steps: dict[int, dict[str, Any]] = {}
     s = run.steps
     for i in range(s["index"].shape[0]):
@@ -161,11 +167,18 @@ def _load(path: str | Path) -> _Ctx:
             steps[int(s["index"][i])] = {k: s[k][i] for k in s}
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
     lk = run.groups["lockin"]
-    if cfg.clsf.mode != "off" and "dither" in lk:
+    summary = read_summary(run.path)
+    if summary is not None:  # study storage level (qmg_lab/runfile_summary.py): the writer's reductions
+        ctx.windows = summary.window_rows()
+        if cfg.clsf.mode != "off":
+            ctx.dither_rising_s = summary.edges["time"]
+            ctx.edge_integral = summary.edges["rate_integral"]
+        notes.append("study-level file: step means from /edges and /windows, settling from its one raw step")
+    elif cfg.clsf.mode != "off" and "dither" in lk:
         tracker = EdgeTracker()  # the same edge location and 32-edge line fit as the CLSF estimator
+        n = EDGE_CHUNK_SAMPLES
         ctx.dither_rising_s = np.concatenate(
-            [np.empty(0)]
-            + [tracker.process(t[i : i + 36000], lk["dither"][i : i + 36000])[0] for i in range(0, t.shape[0], 36000)]
+            [np.empty(0)] + [tracker.process(t[i : i + n], lk["dither"][i : i + n])[0] for i in range(0, t.shape[0], n)]
         )
         ro = lk["rate_output"]
         ctx.rate_integral = np.concatenate(([0.0], np.cumsum(0.5 * np.diff(t) * (ro[1:] + ro[:-1]))))
@@ -178,6 +191,14 @@ def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple
 
 def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
     """Mean rate output over [t0, t1] cut to a whole number of dither periods: (V, samples used)."""
+    if ctx.edge_integral is not None and ctx.dither_rising_s is not None:  # study level: the integral at the edges
+        dt = 1.0 / ctx.fs_hz
+        inside = np.flatnonzero((ctx.dither_rising_s >= t0 + dt) & (ctx.dither_rising_s <= t1 - dt))
+        if inside.size < 2:
+            return float("nan"), 0
+        a, b = inside[0], inside[-1]
+        e, m = ctx.dither_rising_s, ctx.edge_integral
+        return float((m[b] - m[a]) / (e[b] - e[a])), round((t1 - t0) * ctx.fs_hz)
     lk = ctx.run.groups["lockin"]
     i0, i1 = np.searchsorted(lk["time"], [t0, t1])
     n = int(i1 - i0)
@@ -204,6 +225,17 @@ def _mean_in(group: dict[str, np.ndarray] | None, col: str, windows: list[tuple[
     return float(np.mean(group[col][mask])) if mask.any() else float("nan")
 
 
+def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...], windows: list[tuple[float, float]]) -> float:
+    """Mean of a /truth column over the steps' analysis windows (study level: from their /windows rows)."""
+    if ctx.windows is None:
+        return _mean_in(ctx.run.groups.get("truth"), col, windows)
+    rows = [ctx.windows.get(i) for i in indices]
+    n = sum(r["truth_samples"] for r in rows if r is not None)
+    if any(r is None for r in rows) or n == 0:
+        return float("nan")
+    return sum(r[f"truth_{col}"] * r["truth_samples"] for r in rows if r is not None) / n
+
+
 def _commanded(ctx: _Ctx, step: dict[str, Any], win: tuple[float, float]) -> float:
     """Median /table/rate_command in the window (robust to a reading taken on the step boundary)."""
     tab = ctx.run.groups.get("table")
@@ -223,7 +255,7 @@ def _rms(x: np.ndarray) -> float:
 
 def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
     g = ctx.run.groups
-    clsf, truth, chamber = g.get("clsf"), g.get("truth"), g.get("chamber")
+    clsf, chamber = g.get("clsf"), g.get("chamber")
     for idx in sorted(ctx.steps):
         sp, sm = ctx.steps[idx], ctx.steps.get(idx + 1)
         if sp["kind"] != "rate" or sm is None or sm["kind"] != "rate":
@@ -250,8 +282,8 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
             output_minus_v=om,
         )
         pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
-        pair.truth_change_ppm = _mean_in(truth, "scale_factor", [wp, wm])  # raw SF for now
-        pair.gyro_temperature_c = _mean_in(truth, "temperature", [wp, wm])
+        pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1), [wp, wm])  # raw SF for now
+        pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1), [wp, wm])
         res.pairs.append(pair)
     res.n_step_pairs = len(res.pairs)
     if not res.pairs:
@@ -273,8 +305,9 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
     if d.size:
         res.clsf_accuracy_rms_ppm = _rms(d)
         res.clsf_accuracy_rms_ppm_mean_removed = _rms(d - d.mean())
-    if ctx.run.has_truth and np.all(np.isfinite(tr)):
+    if (ctx.run.has_truth or ctx.windows is not None) and np.all(np.isfinite(tr)):
         res.truth_check_rms_ppm = _rms(e - tr)
+        res.clsf_vs_truth_rms_ppm = _rms((c - tr)[1:])
     temps = np.array([p.temperature_c for p in res.pairs])
     ok = np.isfinite(temps)
     if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:
@@ -293,6 +326,7 @@ def _clsf_adev(ctx: _Ctx, res: AnalysisResult) -> None:
     r = overlapping_adev(clsf["sf_change_estimate"], rate)
     res.adev = r.rows(PPM)
     res.adev_at_60s_ppm = r.at(60.0) * PPM
+    res.adev_at_2000s_ppm = r.at(2000.0) * PPM  # NaN unless the run is long enough (the paper: 1 ppm)
     if ctx.cfg.clsf.mode == "correct":
         g = clsf["gain_correction"]
         if np.all(g > 0):
@@ -424,6 +458,9 @@ def _settling(ctx: _Ctx, res: AnalysisResult) -> None:
             per = ctx.period_samples
             i0, i1 = np.searchsorted(lk["time"], [a - 1.0, b])
             i0 = max(0, i0 - per)
+            if i1 - i0 <= per:  # a study-level file that never reached its settling step
+                res.notes.append(f"settling time: no lock-in samples around step {idx}")
+                return
             y = moving_average(lk["rate_output"][i0:i1], per)
             ok = slice(per // 2, y.shape[0] - (per - per // 2)) if per > 1 else slice(None)  # full boxcars only
             t = lk["time"][i0:i1][ok]
@@ -481,7 +518,7 @@ def analyze(path: str | Path) -> AnalysisResult:
     if ctx.run.writer_open:
         res.notes.append("the file was not closed by its writer (killed, or still being written)")
     _completeness(ctx, res)
-    if ctx.run.groups["lockin"]["time"].shape[0] == 0:
+    if ctx.run.groups["lockin"]["time"].shape[0] == 0 and ctx.windows is None:
         res.notes.append("no lock-in samples in the file")
         return res
     _pairs(ctx, res)
@@ -529,7 +566,9 @@ def render_table(result: AnalysisResult) -> Any:
         ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}"), "ppm"),
         ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}"), "ppm"),
         ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}"), "ppm"),
+        ("CLSF vs truth RMS", f(r.clsf_vs_truth_rms_ppm, "{:.2f}"), "ppm"),
         ("CLSF ADEV at 60 s", f(r.adev_at_60s_ppm, "{:.2f}"), "ppm"),
+        ("CLSF ADEV at 2000 s", f(r.adev_at_2000s_ppm, "{:.2f}"), "ppm"),
         ("CLSF ADEV minimum", f(min((x["value"] for x in r.adev), default=None), "{:.2f}"), "ppm"),
         ("ARW", f(r.arw_deg_per_rt_h, "{:.4f}"), "deg/sqrt(h)"),
         ("bias instability", f(r.bias_instability_deg_per_h, "{:.3f}"), "deg/h"),

@@ -260,6 +260,7 @@ def _execute(
     from qmg_lab.interrupts import InterruptGuard
     from qmg_lab.plan import checked_plan
     from qmg_lab.progress import ProgressView
+    from qmg_lab.runfile_summary import create_run_writer, refuse_study_resume
     from qmg_lab.storage import RunWriter, StorageError
 
     try:
@@ -273,6 +274,7 @@ def _execute(
         if output is not None and output.resolve() != resume.resolve():
             _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
         try:
+            refuse_study_resume(resume)
             RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
         except StorageError as exc:
             _fail(EXIT_BAD_INPUT, str(exc))
@@ -294,18 +296,16 @@ def _execute(
             else:
                 if path.exists():
                     path.unlink()  # --overwrite, now that the station answered
-                writer = RunWriter.create(
+                writer = create_run_writer(
                     path,
+                    cfg,
+                    plan.steps,
                     config_text=text,
                     config_sha256=sha,
                     mode=mode,
                     software_version=__version__,
                     t0_unix=datetime.now(UTC).timestamp(),
-                    flush_interval_s=cfg.storage.flush_interval_s,
-                    compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-                    truth=cfg.lockin.sim,
                     instrument_modes=modes,
-                    realtime=not cfg.lockin.sim,
                 )
         except StorageError as exc:
             _fail(EXIT_BAD_INPUT, str(exc))
@@ -451,7 +451,9 @@ def characterize_linearity(
 # ====================================================================================== analyze
 @app.command()
 def analyze(
-    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1)", show_default=False)],
+    run_file: Annotated[
+        Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
+    ],
     json_out: JsonOpt = False,
     figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
 ) -> None:
@@ -464,6 +466,9 @@ def analyze(
 
     if not run_file.exists():
         _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
+    if run_file.is_dir():
+        _analyze_study(run_file, json_out, figures)
+        return
     try:
         result = run_analysis(run_file)
         detail = status_detail(read_run(run_file, select=()))
@@ -484,6 +489,81 @@ def analyze(
         out.print(render_table(dataclasses.replace(result, status=detail)))
         for p in written:
             out.print(f"figure: {p}")
+
+
+def _analyze_study(out_dir: Path, json_out: bool, figures: Path | None) -> None:
+    """`analyze DIR` on a study directory: the summary table (or results.csv's rows as JSON)."""
+    from qmg_lab.study_results import collect_rows, summary_table, write_figures
+
+    try:
+        columns, rows = collect_rows(out_dir)
+    except (FileNotFoundError, ValueError, KeyError) as exc:
+        _fail(EXIT_BAD_INPUT, f"{out_dir}: not a readable study directory ({exc})")
+    if figures is not None and figures.resolve() != (out_dir / "figures").resolve():
+        _fail(EXIT_BAD_INPUT, f"a study's figures go to {out_dir / 'figures'}; --figures takes no other folder")
+    written = write_figures(out_dir) if figures is not None else []
+    if json_out:
+        out.print_json(json.dumps({"columns": columns, "rows": rows, "figures": [str(p) for p in written]}))
+    else:
+        out.print(summary_table(out_dir))
+        for p in written:
+            out.print(f"figure: {p}")
+
+
+# ====================================================================================== study
+@app.command()
+def study(
+    study_file: Annotated[Path, typer.Argument(help="study file (TOML): base, seeds, axes", show_default=False)],
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="study directory (default studies-out/NAME)")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", min=1, help="local Dask workers (default: one per core)")
+    ] = None,
+    scheduler: Annotated[
+        str | None, typer.Option("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    ] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="run only the points without a result in -o")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+) -> None:
+    """Run a design study: every point of the grid (axes x seeds) as a simulated campaign on Dask, then
+    DIR/results.csv, DIR/figures/ and a summary table."""
+    from qmg_lab.study_file import StudyError, load_study
+    from qmg_lab.study_results import summary_table, write_figures, write_results
+    from qmg_lab.study_runner import StudyDirError, run_study
+
+    if workers is not None and scheduler is not None:
+        _fail(EXIT_BAD_INPUT, "--workers and --scheduler exclude each other (the scheduler's cluster has its workers)")
+    try:
+        spec = load_study(study_file)
+    except StudyError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    out_dir = output or Path("studies-out") / spec.spec.study.name
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail(EXIT_BAD_INPUT, f"cannot create the study directory: {exc}")
+    console.print(
+        f"study {spec.spec.study.name}: {len(spec.points)} points ({len(spec.points) // len(spec.spec.study.seeds)} "
+        f"grid cells x {len(spec.spec.study.seeds)} seeds), every configuration valid; results in {out_dir}",
+        highlight=False,
+    )
+    try:
+        report = run_study(
+            spec, out_dir, workers=workers, scheduler=scheduler, resume=resume, console=None if quiet else console
+        )
+    except StudyDirError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    except OSError as exc:
+        _fail(EXIT_BAD_INPUT, f"cannot reach the Dask scheduler {scheduler}: {exc}")
+    written = write_results(out_dir)
+    written += write_figures(out_dir)
+    out.print(summary_table(out_dir))
+    console.print(
+        f"{report.ran} points run ({report.failed} failed), {report.already_done} were already done; "
+        f"{written[0]} and {len(written) - 1} more files",
+        highlight=False,
+    )
 
 
 @app.command()

@@ -288,6 +288,13 @@ class StorageSection(_Section):
         "about 1 s per campaign hour), twins and hardware alike; docs/hdf5.md",
     )
 
+    level: Literal["full", "study"] = Field(
+        "full",
+        description="full: every stream (/lockin, /truth at the lock-in rate); study: only what `qmg-lab analyze` "
+        "needs (/clsf, /steps, /table, /chamber, the per-step /windows and per-period /edges summaries, the raw "
+        "stream of the one step the settling time uses), for design studies; docs/hdf5.md",
+    )
+
     def resolved_compression(self, simulated_lockin: bool = False) -> str:
         """The HDF5 filter to use: 'auto' is lzf, on twins and hardware alike (docs/hdf5.md: size and cost)."""
         if self.compression == "auto":
@@ -440,6 +447,11 @@ class Config(_Section):
             raise ValueError(
                 f"dither.frequency_hz ({self.dither.frequency_hz}) needs at least 20 demod samples per period: "
                 f"at most lockin.demod_rate_hz/20 = {self.lockin.demod_rate_hz / 20:g} Hz"
+            )
+        if self.storage.level == "study" and self.campaign.kind == "bandwidth":
+            raise ValueError(
+                'storage.level = "study" keeps no raw lock-in stream, which the bandwidth campaign\'s Bode fits '
+                'need: use storage.level = "full" for campaign.kind = "bandwidth"'
             )
         if self.loops.rate_bandwidth_hz >= self.dither.frequency_hz:
             raise ValueError(

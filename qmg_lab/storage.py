@@ -173,6 +173,7 @@ class RunWriter:
         instrument_modes: Mapping[str, str] | None = None,
         realtime: bool = False,
         extra_attrs: Mapping[str, Any] | None = None,
+        extra_layout: Callable[[h5py.File], None] | None = None,
         clock: Callable[[], float] = _time.monotonic,
     ) -> RunWriter:
         """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
@@ -184,6 +185,8 @@ class RunWriter:
         planned_steps / planned_step_kinds: the plan's length and its step kinds (root attributes
         `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
         extra_attrs: further root attributes (scalars or strings), written before SWMR starts.
+        extra_layout: called with the open file before SWMR starts, to lay out further groups (SWMR cannot create
+        objects later): the study storage level's summaries (qmg_lab/runfile_summary.py).
         """
         p = Path(path)
         if mode not in MODES:
@@ -265,6 +268,8 @@ class RunWriter:
                 ds.attrs["units"] = STEPS_UNITS[col]
                 ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
             create_groups(h5)  # /snapshots, /events (qmg_lab/runfile_records.py): laid out before SWMR
+            if extra_layout is not None:
+                extra_layout(h5)
             h5.flush()
             h5.swmr_mode = True
             os.replace(tmp, p)  # the open file keeps its descriptor; readers find it complete, in SWMR

@@ -1,0 +1,151 @@
+"""Design-study throughput on Dask, and the per-task real-time factor at the study storage level.
+
+1. Per task: the paper campaign (configs/paper_campaign.toml, 55 simulated minutes) run as a study task runs it
+   (`qmg_lab.study_task.run_campaign`: twins, the run file, then `analyze`), in this process after a short warm-up
+   campaign (numba's compiled kernels loaded), `--runs` times at the study storage level and once at the full
+   level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis; also with the
+   twin's blocks 10 s long instead of 2 s ([lockin] sim_poll_interval_s, as the shipped studies set it), and the
+   run file's size at both levels.
+2. Throughput: `--tasks` paper campaigns at the study level on a LocalCluster of 1 and of 2 single-threaded worker
+   processes (every worker warmed up by a short campaign first; the cluster's start is not counted): simulated
+   campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)).
+
+    python benchmarks/study_speed.py [--json] [--runs N] [--tasks N]
+
+Targets (issue 14): scaling efficiency >= 0.8 on a 2-core machine; per-task real-time factor >= 3000. The machine
+may be shared: quote medians and say how loaded it was (the load average is printed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def paper_text(level: str, sim_poll_interval_s: float | None = None, **plan: float) -> str:
+    """The paper campaign on the twins at a storage level (plan values and the twin's block length changed)."""
+    doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
+    for name in ("lockin", "generator", "table", "chamber"):
+        doc[name]["sim"] = True
+    doc.setdefault("storage", {})["level"] = level
+    doc["plan"].update(plan)
+    if sim_poll_interval_s is not None:
+        doc["lockin"]["sim_poll_interval_s"] = sim_poll_interval_s
+    return tomli_w.dumps(doc)
+
+
+WARM_UP = {"chamber_end_c": 25.5, "chamber_soak_s": 10.0, "chamber_end_hold_s": 0.0}
+
+
+def timed_campaign(text: str) -> tuple[float, float, float]:
+    """(simulated s, wall s, file MB) of one campaign and its analysis, as a study task runs it."""
+    from qmg_lab.study_task import run_campaign
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        _, simulated = run_campaign(text, Path(tmp) / "run.h5")
+        wall = time.perf_counter() - t0
+        return simulated, wall, (Path(tmp) / "run.h5").stat().st_size / 1e6
+
+
+def per_task(runs: int) -> dict[str, Any]:
+    timed_campaign(paper_text("study", **WARM_UP))
+    study = [timed_campaign(paper_text("study")) for _ in range(runs)]
+    blocks10 = [timed_campaign(paper_text("study", sim_poll_interval_s=10.0)) for _ in range(runs)]
+    full = timed_campaign(paper_text("full"))
+    return {
+        "simulated_s": study[0][0],
+        "wall_s_study_level": [round(w, 3) for _, w, _ in study],
+        "realtime_factor_study_level": statistics.median(s / w for s, w, _ in study),
+        "realtime_factor_study_level_10s_blocks": statistics.median(s / w for s, w, _ in blocks10),
+        "realtime_factor_full_level": full[0] / full[1],
+        "file_mb_study_level": study[0][2],
+        "file_mb_full_level": full[2],
+    }
+
+
+def throughput(n_workers: int, tasks: int) -> dict[str, Any]:
+    from distributed import Client, LocalCluster, wait
+
+    with (
+        LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
+        Client(cluster) as client,
+    ):
+        addresses = list(client.scheduler_info(n_workers=-1)["workers"])
+        warm = [
+            client.submit(timed_campaign, paper_text("study", **WARM_UP), workers=[a], pure=False) for a in addresses
+        ]
+        wait(warm)
+        text = paper_text("study")
+        t0 = time.perf_counter()
+        futures = [client.submit(timed_campaign, text, pure=False) for _ in range(tasks)]
+        results = client.gather(futures)
+        wall = time.perf_counter() - t0
+    simulated_h = sum(s for s, _, _ in results) / 3600.0
+    return {
+        "workers": n_workers,
+        "tasks": tasks,
+        "wall_s": wall,
+        "campaign_hours": simulated_h,
+        "campaign_hours_per_wall_hour": simulated_h / (wall / 3600.0),
+        "task_wall_s_median": statistics.median(w for _, w, _ in results),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--runs", type=int, default=3, help="per-task timing repeats (median)")
+    ap.add_argument("--tasks", type=int, default=4, help="paper campaigns per throughput measurement")
+    args = ap.parse_args()
+    load_before = os.getloadavg()
+    task = per_task(args.runs)
+    one = throughput(1, args.tasks)
+    two = throughput(2, args.tasks)
+    report = {
+        "cores": os.cpu_count(),
+        "load_average_before": [round(x, 2) for x in load_before],
+        "load_average_after": [round(x, 2) for x in os.getloadavg()],
+        "per_task": task,
+        "one_worker": one,
+        "two_workers": two,
+        "campaign_hours_per_wall_hour_1": one["campaign_hours_per_wall_hour"],
+        "campaign_hours_per_wall_hour_2": two["campaign_hours_per_wall_hour"],
+        "scaling_efficiency": two["campaign_hours_per_wall_hour"] / (2 * one["campaign_hours_per_wall_hour"]),
+        "realtime_factor_per_task": task["realtime_factor_study_level"],
+        "targets": {"scaling_efficiency": 0.8, "realtime_factor_per_task": 3000},
+    }
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return
+    print(
+        f"machine: {report['cores']} cores, load average {report['load_average_before']} -> "
+        f"{report['load_average_after']}"
+    )
+    print(
+        f"per task (paper campaign, {task['simulated_s']:.0f} s simulated): {task['realtime_factor_study_level']:.0f}x "
+        f"real time at the study level ({task['realtime_factor_study_level_10s_blocks']:.0f}x with 10 s twin blocks), "
+        f"{task['realtime_factor_full_level']:.0f}x at the full level; file {task['file_mb_study_level']:.1f} MB "
+        f"instead of {task['file_mb_full_level']:.0f} MB"
+    )
+    for r in (one, two):
+        print(
+            f"{r['workers']} worker(s): {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
+            f"({r['tasks']} campaigns, {r['wall_s']:.1f} s)"
+        )
+    print(f"scaling efficiency: {report['scaling_efficiency']:.2f} (target 0.8)")
+
+
+if __name__ == "__main__":
+    main()
