@@ -37,8 +37,12 @@ Controller (both models, once per demod sample of length dt_c):
 * PIDs: e = setpoint - input, out = center + p e + i int(e) dt + d de/dt, clamped to center +- range; the
   integrator does not integrate while the output is clamped (anti-windup); disabled: out = center, int = 0.
   AGC input R_d = |X_d + iY_d|; rate input X_s; quadrature input Y_s.
-Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither) ; F_yc = +K_f G_f(T) V_q; ARW is a white
-force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)).
+Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither + v_n) ; F_yc = +K_f G_f(T) V_q; ARW is a white
+force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)); v_n is the
+forcer-path voltage noise at the summing node (after the recording tees, so the AuxIns do not see it), white of
+one-sided density e_f: its mean over a step has sigma e_f/sqrt(2 dt). The rate and quadrature PID outputs leave
+through the AuxOut DACs: rounded to the DAC step (P_AOLSB) after each controller step, so the forcer, the next
+step's PID state S_VRP and the recorded AuxOut all carry the quantised value (the PID's integrator does not).
 True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| the drive amplitude of the step
 (equal to sqrt2 R_setpoint once the AGC has settled; during the slow AGC transient after a rate step, caused by
 the Coriolis load k Omega c_y on the drive, the rate output follows the actual amplitude).
@@ -68,7 +72,8 @@ P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0
     21,
     22,
 )
-N_PARAMS = 23
+P_FNOISE, P_AOLSB = 23, 24  # forcer-path voltage noise (V/sqrt(Hz), one-sided); AuxOut DAC step (V, 0 = ideal)
+N_PARAMS = 25
 
 # ---- loop vector L (sims/gyro_params.pack_loops)
 L_PLL = 0  # enabled, p, i, setpoint, center, range
@@ -94,7 +99,7 @@ N_STATE = S_VRP + 1
 O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF, O_AUX = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 N_OUT = 11
 
-NOISE_PER_STEP = 6  # 2 ARW force components, 4 pickoff noises
+NOISE_PER_STEP = 7  # 2 ARW force components, 4 pickoff noises, 1 forcer-path voltage noise
 SQRT2 = math.sqrt(2.0)
 TWO_PI = 2.0 * math.pi
 RAD_PER_DEG = math.pi / 180.0
@@ -121,6 +126,14 @@ def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba ke
         if ki * e < 0.0:
             S[i_int] -= e * dt
     return out
+
+
+@njit(cache=True, inline="always")
+def _dac(v, lsb):  # noqa: ANN001, ANN202 - numba kernel
+    """An AuxOut DAC: v rounded to its step lsb (lsb = 0: ideal)."""
+    if lsb > 0.0:
+        return lsb * math.floor(v / lsb + 0.5)
+    return v
 
 
 @njit(cache=True, inline="always")
@@ -263,6 +276,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dt)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
+    sig_f = P[P_FNOISE] / math.sqrt(2.0 * dt)
+    lsb = P[P_AOLSB]
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -305,7 +320,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         kf = P[P_KF] * g_f / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
         uy = complex(
-            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - arw * noise[i, 0], kf * S[S_VQ] - arw * noise[i, 1]
+            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i] + sig_f * noise[i, 6]) - arw * noise[i, 0],
+            kf * S[S_VQ] - arw * noise[i, 1],
         )
         # input term M^-1 (I - Phi) u
         v1 = (1.0 - p11) * ux - p12 * uy
@@ -325,6 +341,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         raws[2] = g_py * zy_new.real / SQRT2 + sig_pick * noise[i, 4]
         raws[3] = -g_py * zy_new.imag / SQRT2 + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
+        S[S_VR] = _dac(S[S_VR], lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
@@ -374,6 +392,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dtc)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
+    sig_f = P[P_FNOISE] / math.sqrt(2.0 * dtc)
+    lsb = P[P_AOLSB]
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -423,7 +443,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         g_py = 1.0 + P[P_AP] * dtemp
         fn = 2.0 * w0 * k * a0 * sig_arw
         fxs = -P[P_KD] * S[S_VD]
-        fys = -P[P_KF] * g_f * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) + fn * noise[i, 0]
+        v_f = 0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i] + sig_f * noise[i, 6]  # the forcer's input over the sample
+        fys = -P[P_KF] * g_f * gain * v_f + fn * noise[i, 0]
         fyc = P[P_KF] * g_f * S[S_VQ] - fn * noise[i, 1]
         half = 0.5 * wr * dt
         inv_sinc = half / math.sin(half)
@@ -476,6 +497,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         raws[2] = g_py * scale * syc + sig_pick * noise[i, 4]
         raws[3] = -g_py * scale * sys_ + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dtc, fj, fs, fr, order, a_d, c_d, sections)
+        S[S_VR] = _dac(S[S_VR], lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
