@@ -14,7 +14,13 @@ from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSetting
 from sims.world import BlockInputs
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams(arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0)
+QUIET = GyroParams(
+    arw_deg_per_rt_h=0.0,
+    bias_instability_deg_per_h=0.0,
+    pickoff_noise_vrms_per_rt_hz=0.0,
+    forcer_noise_v_per_rt_hz=0.0,
+    auxout_bits=0,
+)
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
@@ -40,6 +46,9 @@ def test_from_mapping_takes_the_config_section_and_ignores_unknown_keys() -> Non
         ({"q_factor": -1.0}, "q_factor"),
         ({"damping_mismatch": 1.5}, "damping_mismatch"),
         ({"arw_deg_per_rt_h": float("nan")}, "arw"),
+        ({"forcer_noise_v_per_rt_hz": -1e-6}, "forcer_noise"),
+        ({"auxin_bits": 40}, "auxin_bits"),
+        ({"auxout_range_v": 0.0}, "auxout_range_v"),
     ],
 )
 def test_bad_params_are_named(kwargs: dict[str, float], word: str) -> None:
