@@ -26,6 +26,16 @@ DEG_PER_RAD = 180.0 / math.pi
 RAD_PER_DEG = math.pi / 180.0
 
 
+NOISE_OFF: dict[str, Any] = {
+    "arw_deg_per_rt_h": 0.0,
+    "bias_instability_deg_per_h": 0.0,
+    "pickoff_noise_vrms_per_rt_hz": 0.0,
+    "forcer_noise_v_per_rt_hz": 0.0,
+    "auxout_bits": 0,
+}
+"""GyroParams values that switch off every random source and the AuxOut DAC rounding (GyroParams.noiseless)."""
+
+
 @dataclass
 class GyroParams:
     """Physical parameters of the simulated QMG (defaults: the paper's device)."""
@@ -58,6 +68,12 @@ class GyroParams:
 
     def __post_init__(self) -> None:
         self.validate()
+
+    @classmethod
+    def noiseless(cls, **values: Any) -> GyroParams:
+        """The paper's device (or `values`) with every noise source off and ideal AuxOut converters: the
+        deterministic plant that the physics tests check against their equations."""
+        return cls(**{**NOISE_OFF, **values})
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> GyroParams:

@@ -14,13 +14,7 @@ from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSetting
 from sims.world import BlockInputs
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0,
-    bias_instability_deg_per_h=0.0,
-    pickoff_noise_vrms_per_rt_hz=0.0,
-    forcer_noise_v_per_rt_hz=0.0,
-    auxout_bits=0,
-)
+QUIET = GyroParams.noiseless()
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:

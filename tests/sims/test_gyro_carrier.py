@@ -25,13 +25,7 @@ from qmg_lab.loops import lockin_setup
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0,
-    bias_instability_deg_per_h=0.0,
-    pickoff_noise_vrms_per_rt_hz=0.0,
-    forcer_noise_v_per_rt_hz=0.0,
-    auxout_bits=0,
-)
+QUIET = GyroParams.noiseless()
 F0 = QUIET.f0_hz
 PERIOD = 314  # demod samples per dither period
 V_DITHER = 0.3  # 5 deg/s virtual rate at SF 0.06

@@ -14,13 +14,7 @@ from qmg_lab.loops import lockin_setup, rate_pi
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.world import World, WorldParams
 
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0,
-    bias_instability_deg_per_h=0.0,
-    pickoff_noise_vrms_per_rt_hz=0.0,
-    forcer_noise_v_per_rt_hz=0.0,
-    auxout_bits=0,
-)
+QUIET = GyroParams.noiseless()
 DT = 1.0 / 1400.0
 BW_HZ = 2.0
 
