@@ -40,7 +40,10 @@ Controller (both models, once per demod sample of length dt_c):
 Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither + v_n) ; F_yc = +K_f G_f(T) V_q; ARW is a white
 force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)); v_n is the
 forcer-path voltage noise at the summing node (after the recording tees, so the AuxIns do not see it), white of
-one-sided density e_f: its mean over a step has sigma e_f/sqrt(2 dt). The rate and quadrature PID outputs leave
+one-sided density e_f: its mean over a step has sigma e_f/sqrt(2 dt). It acts on the same in-phase sense component
+as the ARW force and is independent of it, so the two share one normal draw of the combined sigma
+sqrt(sigma_arw^2 + sigma_f^2) (exact in distribution; one draw fewer per step; with e_f = 0 the draws are those
+of a twin without it). The rate and quadrature PID outputs leave
 through the AuxOut DACs: rounded to the DAC step (P_AOLSB) after each controller step, so the forcer, the next
 step's PID state S_VRP and the recorded AuxOut all carry the quantised value (the PID's integrator does not).
 True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| the drive amplitude of the step
@@ -99,7 +102,7 @@ N_STATE = S_VRP + 1
 O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF, O_AUX = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 N_OUT = 11
 
-NOISE_PER_STEP = 7  # 2 ARW force components, 4 pickoff noises, 1 forcer-path voltage noise
+NOISE_PER_STEP = 6  # 2 ARW (+ forcer-path noise) force components, 4 pickoff noises
 SQRT2 = math.sqrt(2.0)
 TWO_PI = 2.0 * math.pi
 RAD_PER_DEG = math.pi / 180.0
@@ -129,10 +132,10 @@ def _pid(S, L, off, i_int, i_eprev, inp, dt):  # noqa: ANN001, ANN202 - numba ke
 
 
 @njit(cache=True, inline="always")
-def _dac(v, lsb):  # noqa: ANN001, ANN202 - numba kernel
-    """An AuxOut DAC: v rounded to its step lsb (lsb = 0: ideal)."""
+def _dac(v, lsb, inv_lsb):  # noqa: ANN001, ANN202 - numba kernel
+    """An AuxOut DAC: v rounded to its step lsb (inv_lsb = 1/lsb; lsb = 0: ideal)."""
     if lsb > 0.0:
-        return lsb * math.floor(v / lsb + 0.5)
+        return lsb * math.floor(v * inv_lsb + 0.5)
     return v
 
 
@@ -278,6 +281,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
     sig_f = P[P_FNOISE] / math.sqrt(2.0 * dt)
     lsb = P[P_AOLSB]
+    inv_lsb = 1.0 / lsb if lsb > 0.0 else 0.0
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -319,8 +323,9 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
         kf = P[P_KF] * g_f / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
+        fv = kf * gain * sig_f  # the forcer-path voltage noise, independent of the ARW force on the same component
         uy = complex(
-            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i] + sig_f * noise[i, 6]) - arw * noise[i, 0],
+            kf * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i]) - math.sqrt(arw * arw + fv * fv) * noise[i, 0],
             kf * S[S_VQ] - arw * noise[i, 1],
         )
         # input term M^-1 (I - Phi) u
@@ -341,8 +346,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         raws[2] = g_py * zy_new.real / SQRT2 + sig_pick * noise[i, 4]
         raws[3] = -g_py * zy_new.imag / SQRT2 + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
-        S[S_VR] = _dac(S[S_VR], lsb)
-        S[S_VQ] = _dac(S[S_VQ], lsb)
+        S[S_VR] = _dac(S[S_VR], lsb, inv_lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb, inv_lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
@@ -394,6 +399,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
     sig_f = P[P_FNOISE] / math.sqrt(2.0 * dtc)
     lsb = P[P_AOLSB]
+    inv_lsb = 1.0 / lsb if lsb > 0.0 else 0.0
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -443,8 +449,11 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         g_py = 1.0 + P[P_AP] * dtemp
         fn = 2.0 * w0 * k * a0 * sig_arw
         fxs = -P[P_KD] * S[S_VD]
-        v_f = 0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i] + sig_f * noise[i, 6]  # the forcer's input over the sample
-        fys = -P[P_KF] * g_f * gain * v_f + fn * noise[i, 0]
+        fv = P[P_KF] * g_f * gain * sig_f  # forcer-path voltage noise: one draw with the ARW force (independent)
+        fys = (
+            -P[P_KF] * g_f * gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])
+            + math.sqrt(fn * fn + fv * fv) * noise[i, 0]
+        )
         fyc = P[P_KF] * g_f * S[S_VQ] - fn * noise[i, 1]
         half = 0.5 * wr * dt
         inv_sinc = half / math.sin(half)
@@ -497,8 +506,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         raws[2] = g_py * scale * syc + sig_pick * noise[i, 4]
         raws[3] = -g_py * scale * sys_ + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dtc, fj, fs, fr, order, a_d, c_d, sections)
-        S[S_VR] = _dac(S[S_VR], lsb)
-        S[S_VQ] = _dac(S[S_VQ], lsb)
+        S[S_VR] = _dac(S[S_VR], lsb, inv_lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb, inv_lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
