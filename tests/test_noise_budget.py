@@ -115,6 +115,15 @@ def test_budget_cli_json_prints_the_allan_deviation_at_60_and_2000_s() -> None:
     assert 1 / 1.5 <= res["adev_ppm"]["2000"] <= 1.5
 
 
+def test_budget_cli_refuses_a_bad_configuration(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(ADEV.read_text(encoding="utf-8").replace("virtual_rate_dps = 5.0", "virtual_rate_dps = -5.0"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "budget", str(bad), "--json"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert proc.returncode == 2 and "virtual_rate_dps" in proc.stderr and "Traceback" not in proc.stderr
+
+
 # ---------------------------------------------------------------------------------------------- the twin
 
 
