@@ -364,7 +364,7 @@ class SimSection(_Section):
         2.3e-7,
         ge=0.0,
         le=1e-2,
-        description="sense/drive pickoff voltage noise per demod quadrature, V/sqrt(Hz) (inferred: docs/noise-budget.md)",
+        description="pickoff voltage noise per demod quadrature, V/sqrt(Hz) (inferred: docs/noise-budget.md)",
     )
     forcer_noise_v_per_rt_hz: float = Field(
         1e-6,

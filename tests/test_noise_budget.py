@@ -50,7 +50,7 @@ ALL_OFF = {
 
 def qmg(*args: str) -> str:
     proc = subprocess.run(
-        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=600
+        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, text=True, cwd=ROOT, timeout=600, check=False
     )
     assert proc.returncode == 0, f"qmg-lab {' '.join(args)} exited {proc.returncode}:\n{proc.stderr}"
     return proc.stdout
@@ -119,7 +119,11 @@ def test_budget_cli_refuses_a_bad_configuration(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text(ADEV.read_text(encoding="utf-8").replace("virtual_rate_dps = 5.0", "virtual_rate_dps = -5.0"))
     proc = subprocess.run(
-        [sys.executable, "-m", "qmg_lab", "budget", str(bad), "--json"], capture_output=True, text=True, cwd=ROOT
+        [sys.executable, "-m", "qmg_lab", "budget", str(bad), "--json"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=False,
     )
     assert proc.returncode == 2 and "virtual_rate_dps" in proc.stderr and "Traceback" not in proc.stderr
 
