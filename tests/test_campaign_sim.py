@@ -161,13 +161,26 @@ def test_paper_run_writes_every_contract_item(zero_residual_run: Path) -> None:
 # ------------------------------------------------------------------------------------------------ tracking
 
 
-def test_clsf_tracks_true_sf_change_within_20_ppm_without_residual_drift(zero_residual_run: Path) -> None:
+def clsf_pair_noise() -> float:
+    """The CLSF estimate's noise over one pair's two windows, from the noise budget (observe mode, white level q
+    summed over the sources, docs/noise-budget.md): q / sqrt(T), T = 2 (dwell - settle); relative to the first
+    pair, whose own error enters every difference, sqrt(2) times that."""
+    from qmg_lab.budget import noise_budget
+    from qmg_lab.config import load_config
+
+    cfg, _ = load_config(PAPER)
+    q = math.sqrt(sum(src.white_ppm_rt_s**2 for src in noise_budget(cfg, sim_blocks=True).sources)) * 1e-6
+    return math.sqrt(2.0) * q / math.sqrt(2.0 * (cfg.plan.dwell_s - cfg.plan.settle_s))
+
+
+def test_clsf_tracks_true_sf_change_without_residual_drift(zero_residual_run: Path) -> None:
     p = step_pairs(zero_residual_run)
     true_rel = p["truth"] / p["truth"][0] - 1
     clsf_rel = (1 + p["clsf"]) / (1 + p["clsf"][0]) - 1
     # the sweep really moved the SF: forcer tempco -1000 ppm/degC over ~9 degC of gyro temperature
     assert np.ptp(true_rel) > 7000e-6
-    assert rms(clsf_rel - true_rel) <= 20e-6
+    # within the estimate's own noise (the budget's, ~35 ppm here); a 1 % sensitivity error would add 87 ppm
+    assert rms(clsf_rel - true_rel) <= 1.5 * clsf_pair_noise()
 
 
 def test_table_step_sf_agrees_with_truth_within_50_ppm(zero_residual_run: Path) -> None:
@@ -187,7 +200,7 @@ def test_paper_like_residual_drift_gives_the_papers_accuracy(paper_run: Path) ->
     clsf_rel = (1 + p["clsf"]) / (1 + p["clsf"][0]) - 1
     expected = -60e-6 * (p["temp"] - p["temp"][0])
     err = clsf_rel - true_rel
-    assert rms(err - expected) <= 25e-6
+    assert rms(err - expected) <= 1.5 * clsf_pair_noise()
     assert 200e-6 <= rms(err) <= 500e-6
 
 
