@@ -49,7 +49,10 @@ DITHERS = [5.3, 7.0, 8.6, 9.7]
 OFFSETS = [-50.0, 3.0, 50.0]
 
 
-NOISE_OFF = "arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
+NOISE_OFF = (
+    "arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
+    "forcer_noise_v_per_rt_hz = 0.0\nauxin_noise_v_rms = 0.0\nauxin_bits = 0\nauxout_bits = 0\n"
+)
 
 
 def case_config(rate_hz: float, rate_set: str, dither_hz: float, offset_ppm: float, noise: bool = True) -> str:

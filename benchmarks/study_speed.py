@@ -28,7 +28,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-import tomli_w
+import tomlkit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def paper_text(level: str, sim_poll_interval_s: float | None = None, **plan: flo
     doc["plan"].update(plan)
     if sim_poll_interval_s is not None:
         doc["lockin"]["sim_poll_interval_s"] = sim_poll_interval_s
-    return tomli_w.dumps(doc)
+    return tomlkit.dumps(doc)
 
 
 WARM_UP = {"chamber_end_c": 25.5, "chamber_soak_s": 10.0, "chamber_end_hold_s": 0.0}

@@ -43,6 +43,7 @@ from qmg_lab.adev import AllanResult, arw_deg_per_rt_h, bias_instability_deg_per
 from qmg_lab.analysis_char import BodePoint, bandwidth_3db, fit_sinusoid, linearity, moving_average, settling_time_s
 from qmg_lab.config import Config
 from qmg_lab.dither_edges import EdgeTracker
+from qmg_lab.plan import dither_amplitude_vpp
 from qmg_lab.runfile_reader import stored_config
 from qmg_lab.runfile_summary import EDGE_CHUNK_SAMPLES, analysis_settle_s, read_summary
 from qmg_lab.storage import RunData, read_run
@@ -175,7 +176,8 @@ def _load(path: str | Path) -> _Ctx:
             ctx.edge_integral = summary.edges["rate_integral"]
         notes.append("study-level file: step means from /edges and /windows, settling from its one raw step")
     elif cfg.clsf.mode != "off" and "dither" in lk:
-        tracker = EdgeTracker()  # the same edge location and 32-edge line fit as the CLSF estimator
+        # the same edge location and 32-edge line fit as the CLSF estimator
+        tracker = EdgeTracker(min_step_v=0.5 * dither_amplitude_vpp(cfg))
         n = EDGE_CHUNK_SAMPLES
         ctx.dither_rising_s = np.concatenate(
             [np.empty(0)] + [tracker.process(t[i : i + n], lk["dither"][i : i + n])[0] for i in range(0, t.shape[0], n)]

@@ -125,6 +125,7 @@ class CampaignRunner:
             mode=self.cfg.clsf.mode,
             time_constant_s=self.cfg.clsf.time_constant_s,
             reference_periods=self.cfg.clsf.reference_periods,
+            dither_min_step_v=0.5 * dither_amplitude_vpp(self.cfg),
         )
         self._offset = 0.0
         self._t = 0.0  # file time of the last sample, s

@@ -566,6 +566,55 @@ def study(
     )
 
 
+# ====================================================================================== budget
+BUDGET_TABLE_TAUS = (1.0, 10.0, 60.0, 600.0, 2000.0)
+
+
+@app.command()
+def budget(
+    config: ConfigArg,
+    json_out: JsonOpt = False,
+    sim: Annotated[
+        bool, typer.Option("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
+    ] = False,
+) -> None:
+    """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
+    the accuracy and linearity terms of a temperature sweep."""
+    from qmg_lab.budget import noise_budget
+
+    cfg, _ = _load(config, sim=False)
+    result = noise_budget(cfg, sim_blocks=sim)
+    if json_out:
+        out.print_json(json.dumps(result.to_json(), default=float))
+        return
+    table = Table(title=f"CLSF noise budget ({result.mode} mode): Allan deviation of the estimate, ppm")
+    for col in ("source", "value", "ppm*rt(s)", *(f"{t:g} s" for t in BUDGET_TABLE_TAUS)):
+        table.add_column(col, justify="left" if col == "source" else "right", no_wrap=col != "source")
+    for s in result.sources:
+        table.add_row(
+            s.name,
+            f"{s.value:.3g} {s.unit}",
+            f"{s.white_ppm_rt_s:.3g}",
+            *(f"{s.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS),
+        )
+    table.add_row("total (estimate)", "", "", *(f"{result.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS), style="bold")
+    if result.mode == "correct":
+        table.add_row("self-calibrated SF", "", "", *(f"{result.sf_adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS))
+    out.print(table)
+    acc = result.accuracy
+    out.print(
+        f"temperature sweep (qmg_lab/sweep_budget.py): CLSF accuracy {acc.total_ppm:.0f} ppm RMS "
+        f"({acc.total_mean_removed_ppm:.0f} ppm mean removed), dominated by {acc.dominant_accuracy_source}: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
+        + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
+    )
+    out.print(f"dominant at 60 s: {result.dominant(60.0)}. Origins of the values:")
+    for s in result.sources:
+        out.print(f"  {s.name}: {s.origin}")
+    for note in result.notes:
+        out.print(f"note: {note}")
+
+
 @app.command()
 def version() -> None:
     """Print the version."""

@@ -96,6 +96,8 @@ class ClsfEstimator:
     time_constant_s: correct mode's loop time constant. reference_periods: periods averaged for rho_0.
     demod_filter: the lock-in's filter on x_s (order, time constant), as applied (read back from the lock-in).
     auxin_window_s: the AuxIn averaging window W that ends at each sample's timestamp.
+    dither_min_step_v: the smallest recorded level step taken for the running dither (half the DS345's Vpp in a
+    campaign), so that the AuxIn's noise on a dither that is not running never makes edges.
     """
 
     tau_s: float
@@ -106,6 +108,7 @@ class ClsfEstimator:
     rho_ref: float | None = None
     demod_filter: DemodFilter = field(default_factory=DemodFilter)
     auxin_window_s: float = 0.0
+    dither_min_step_v: float = 0.0  # a recorded dither step smaller than this is noise, not a running dither
     _ref_acc: list[float] = field(default_factory=list)
     _holds: list[tuple[float, float]] = field(default_factory=list)
 
@@ -141,7 +144,7 @@ class ClsfEstimator:
             raise ValueError(f"auxin_window_s {auxin_window_s!r} must be >= 0")
         self.demod_filter = demod_filter
         self.auxin_window_s = float(auxin_window_s)
-        self._edges = EdgeTracker(window_s=self.auxin_window_s)
+        self._edges = EdgeTracker(window_s=self.auxin_window_s, min_step_v=self.dither_min_step_v)
         self._sos: np.ndarray | None = None  # the filter's FOH sections at the stream's sample interval _sos_dt
         self._sos_dt = 0.0
         self.reset_buffer()

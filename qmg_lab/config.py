@@ -369,7 +369,25 @@ class SimSection(_Section):
     )
     arw_deg_per_rt_h: float = Field(0.02, ge=0.0, le=100.0, description="angle random walk, deg/sqrt(h)")
     bias_instability_deg_per_h: float = Field(0.2, ge=0.0, le=1000.0, description="IEEE 952 B, deg/h")
-    pickoff_noise_vrms_per_rt_hz: float = Field(1e-7, ge=0.0, le=1e-2)
+    pickoff_noise_vrms_per_rt_hz: float = Field(
+        2.3e-7,
+        ge=0.0,
+        le=1e-2,
+        description="pickoff voltage noise per demod quadrature, V/sqrt(Hz) (inferred: docs/noise-budget.md)",
+    )
+    forcer_noise_v_per_rt_hz: float = Field(
+        1e-6,
+        ge=0.0,
+        le=1e-2,
+        description="forcer-path voltage noise at the summing node, not recorded by the AuxIns, V/sqrt(Hz) (assumed)",
+    )
+    auxout_bits: int = Field(16, ge=0, le=32, description="HF2 AuxOut DAC resolution, bits (0 = ideal)")
+    auxout_range_v: float = Field(10.0, gt=0.0, le=100.0, description="HF2 AuxOut range, +-V")
+    auxin_bits: int = Field(16, ge=0, le=32, description="HF2 AuxIn ADC resolution, bits (0 = ideal)")
+    auxin_range_v: float = Field(10.0, gt=0.0, le=100.0, description="HF2 AuxIn range, +-V")
+    auxin_noise_v_rms: float = Field(
+        1e-4, ge=0.0, le=1.0, description="white noise of one AuxIn reading, V rms (assumed)"
+    )
     forcer_tempco_ppm_per_c: float = Field(-1000.0, ge=-1e5, le=1e5, description="forcer gain, what CLSF removes")
     frequency_tempco_ppm_per_c: float = Field(-30.0, ge=-1e4, le=1e4)
     pickoff_ratio_tempco_ppm_per_c: float = Field(

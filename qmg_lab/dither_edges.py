@@ -11,6 +11,11 @@ Location of one edge, with s_k = (d_k - lo)/(hi - lo) the recorded value as a fr
 * otherwise the edge lies in the gap between two windows, (t_(k-1), t_k - W); it is taken at the gap's middle
   (error uniform within +-(dt - W)/2).
 
+Levels and noise: the recorded levels lo and hi are the means of the plateau readings; a block whose spread is
+below `min_step_v` (the dither is not running: only the AuxIn's noise and quantisation) does not set them. A
+sample counts as high above 3/4 of the step and low below 1/4; in between it keeps the previous side
+(hysteresis), so the AuxIn's noise on a muted or constant input never makes an edge.
+
 Smoothing: edges of one kind follow t_j = a + b j (cycle index j) up to the timebase's slow wander, so each edge is
 replaced by the least-squares line through the last `window` edges of its kind (itself included), evaluated at its
 own index. A gap-located edge then carries an error of about (dt - W) / sqrt(3 window) instead of dt/2. An edge
@@ -24,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
+HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, else the previous side
 
 
 @dataclass
@@ -32,23 +38,26 @@ class EdgeTracker:
 
     window_s: float = 0.0  # the AuxIn averaging window W, s
     fit_edges: int = 32
+    min_step_v: float = 0.0  # the smallest level step taken for a running dither, V
     lo: float | None = None
     hi: float | None = None
     _prev_t: float | None = None
     _prev_s: float | None = None
+    _prev_high: bool | None = None
     _raw: dict[int, list[float]] = field(default_factory=lambda: {1: [], -1: []})
     _idx: dict[int, list[int]] = field(default_factory=lambda: {1: [], -1: []})
 
     def reset(self) -> None:
         """Forget the sample history and the fits (after a gap in the stream)."""
         self._prev_t = self._prev_s = None
+        self._prev_high = None
         self._raw = {1: [], -1: []}
         self._idx = {1: [], -1: []}
 
     def _update_levels(self, d: np.ndarray) -> None:
         lo_b, hi_b = float(np.min(d)), float(np.max(d))
         if self.lo is None or self.hi is None:
-            if hi_b - lo_b <= 1e-9 * max(1.0, abs(hi_b)):
+            if hi_b - lo_b <= max(1e-9 * max(1.0, abs(hi_b)), self.min_step_v):
                 return
             self.lo, self.hi = lo_b, hi_b
         mid = 0.5 * (self.lo + self.hi)
@@ -74,8 +83,14 @@ class EdgeTracker:
             ss = np.concatenate(([self._prev_s], s))
         else:
             tt, ss = t, s
-        self._prev_t, self._prev_s = float(tt[-1]), float(ss[-1])
-        high = ss > 0.5
+        level = np.where(ss > 1.0 - HYSTERESIS, 1, np.where(ss < HYSTERESIS, 0, -1))
+        if self._prev_high is not None and tt.size > t.size:
+            level[0] = int(self._prev_high)
+        elif level[0] < 0:
+            level[0] = int(ss[0] > 0.5)
+        last = np.maximum.accumulate(np.where(level >= 0, np.arange(level.size), 0))
+        high = level[last] == 1  # an in-between reading keeps the side of the last clear one
+        self._prev_t, self._prev_s, self._prev_high = float(tt[-1]), float(ss[-1]), bool(high[-1])
         k = np.flatnonzero(high[1:] != high[:-1]) + 1  # the first sample on the new side
         if k.size == 0:
             return empty, empty

@@ -34,7 +34,7 @@ import numpy as np
 
 from qmg_lab.config import Config
 from qmg_lab.dither_edges import EdgeTracker
-from qmg_lab.plan import Step
+from qmg_lab.plan import Step, dither_amplitude_vpp
 from qmg_lab.storage import RunWriter, StorageError, _append_rows
 
 #: the analysis hands the recorded dither to its edge tracker in chunks of this many samples (the tracker's level
@@ -207,11 +207,12 @@ class StudyRunWriter(RunWriter):
     _settling_index: int | None = None
     _recording = False
 
-    def _start_study(self, settle_s: float, settling_index: int | None) -> None:
+    def _start_study(self, settle_s: float, settling_index: int | None, dither_min_step_v: float) -> None:
         self._settle_s = settle_s
         self._settling_index = settling_index
         self._recording = settling_index == 0
-        self._edges = _EdgeIntegrator()
+        # the analysis's edge locator, with its minimum dither step (analysis.py)
+        self._edges = _EdgeIntegrator(tracker=EdgeTracker(min_step_v=dither_min_step_v))
         self._edges_done = False
         self._tail: list[dict[str, np.ndarray]] = []
         self._window = _Window(start_s=0.0 + settle_s)  # the first step starts at t = 0
@@ -335,7 +336,7 @@ def create_run_writer(
         return RunWriter.create(path, truth=cfg.lockin.sim, **kwargs)
     writer = StudyRunWriter.create(path, truth=False, extra_attrs={LEVEL_ATTR: "study"}, extra_layout=_layout, **kwargs)
     assert isinstance(writer, StudyRunWriter)
-    writer._start_study(analysis_settle_s(cfg), settling_step_index(steps))
+    writer._start_study(analysis_settle_s(cfg), settling_step_index(steps), 0.5 * dither_amplitude_vpp(cfg))
     return writer
 
 

@@ -56,6 +56,8 @@ def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
     v[gk.P_K] = p.angular_gain
     v[gk.P_ARW] = p.arw_rad_per_rt_s
     v[gk.P_PICK] = p.pickoff_noise_vrms_per_rt_hz
+    v[gk.P_FNOISE] = p.forcer_noise_v_per_rt_hz
+    v[gk.P_AOLSB] = p.auxout_lsb_v
     v[gk.P_AF] = p.forcer_tempco_ppm_per_c * 1e-6
     v[gk.P_AW] = p.frequency_tempco_ppm_per_c * 1e-6
     v[gk.P_AP] = p.pickoff_ratio_tempco_ppm_per_c * 1e-6
@@ -145,7 +147,11 @@ class _TwinBase:
         self._P = pack_params(params, self.dt_s, self.gm_steps)
         self._gm_a, self._gm_b = gm_coefficients(params.bias_instability_deg_per_h, self.gm_steps * self.step_s)
         self._noise = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM)
-        self._step_noise_on = params.arw_rad_per_rt_s > 0 or params.pickoff_noise_vrms_per_rt_hz > 0
+        self._step_noise_on = (
+            params.arw_rad_per_rt_s > 0
+            or params.pickoff_noise_vrms_per_rt_hz > 0
+            or params.forcer_noise_v_per_rt_hz > 0
+        )
         self._bias_on = params.bias_instability_deg_per_h > 0
         self._S = np.zeros(gk.N_STATE)
         self._pending: str = "settle"

@@ -38,8 +38,15 @@ Controller (both models, once per demod sample of length dt_c):
 * PIDs: e = setpoint - input, out = center + p e + i int(e) dt + d de/dt, clamped to center +- range; the
   integrator does not integrate while the output is clamped (anti-windup); disabled: out = center, int = 0.
   AGC input R_d = |X_d + iY_d|; rate input X_s; quadrature input Y_s.
-Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither) ; F_yc = +K_f G_f(T) V_q; ARW is a white
-force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)).
+Forces: F_xs = -K_dx V_d; F_ys = -K_f G_f(T) g (V_r + V_dither + v_n) ; F_yc = +K_f G_f(T) V_q; ARW is a white
+force F_n = 2 omega0 k a0 Omega_n on both sense components (Omega_n per-sample sigma N/sqrt(dt)); v_n is the
+forcer-path voltage noise at the summing node (after the recording tees, so the AuxIns do not see it), white of
+one-sided density e_f: its mean over a step has sigma e_f/sqrt(2 dt). It acts on the same in-phase sense component
+as the ARW force and is independent of it, so the two share one normal draw of the combined sigma
+sqrt(sigma_arw^2 + sigma_f^2) (exact in distribution; one draw fewer per step; with e_f = 0 the draws are those
+of a twin without it). The rate and quadrature PID outputs leave
+through the AuxOut DACs: rounded to the DAC step (P_AOLSB) after each controller step, so the forcer, the next
+step's PID state S_VRP and the recorded AuxOut all carry the quantised value (the PID's integrator does not).
 True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| the drive amplitude of the step
 (equal to sqrt2 R_setpoint once the AGC has settled; during the slow AGC transient after a rate step, caused by
 the Coriolis load k Omega c_y on the drive, the rate output follows the actual amplitude).
@@ -73,7 +80,8 @@ P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0
 # per degC), forcer cubic beta (1/V^2), feedthrough into the sense C and S slow variables per command volt,
 # 2-omega ripple switch (carrier model)
 P_AQ, P_ADM, P_ADW, P_BETA, P_FTC, P_FTS, P_RIP = 23, 24, 25, 26, 27, 28, 29
-N_PARAMS = 30
+P_FNOISE, P_AOLSB = 30, 31  # forcer-path voltage noise (V/sqrt(Hz), one-sided); AuxOut DAC step (V, 0 = ideal)
+N_PARAMS = 32
 
 # ---- loop vector L (sims/gyro_params.pack_loops)
 L_PLL = 0  # enabled, p, i, setpoint, center, range
@@ -99,7 +107,7 @@ N_STATE = S_VRP + 1
 O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF, O_AUX = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 N_OUT = 11
 
-NOISE_PER_STEP = 6  # 2 ARW force components, 4 pickoff noises
+NOISE_PER_STEP = 6  # 2 ARW (+ forcer-path noise) force components, 4 pickoff noises
 SQRT2 = math.sqrt(2.0)
 TWO_PI = 2.0 * math.pi
 RAD_PER_DEG = math.pi / 180.0
@@ -126,6 +134,14 @@ def _pid(S, L, off, i_int, i_eprev, inp, dt):
         if ki * e < 0.0:
             S[i_int] -= e * dt
     return out
+
+
+@njit(cache=True, inline="always")
+def _dac(v, lsb, inv_lsb):
+    """An AuxOut DAC: v rounded to its step lsb (inv_lsb = 1/lsb; lsb = 0: ideal)."""
+    if lsb > 0.0:
+        return lsb * math.floor(v * inv_lsb + 0.5)
+    return v
 
 
 @njit(cache=True, inline="always")
@@ -268,6 +284,9 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dt)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dt)
+    sig_f = P[P_FNOISE] / math.sqrt(2.0 * dt)
+    lsb = P[P_AOLSB]
+    inv_lsb = 1.0 / lsb if lsb > 0.0 else 0.0
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dt)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -312,7 +331,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         u_c = S[S_VQ]
         kf = P[P_KF] * g_f * (1.0 + P[P_BETA] * (u_s * u_s + u_c * u_c)) / (2.0 * wr)
         arw = k * a0 * (w0 / wr) * sig_arw
-        uy = complex(kf * u_s - arw * noise[i, 0], kf * u_c - arw * noise[i, 1])
+        fv = kf * gain * sig_f  # the forcer-path voltage noise, independent of the ARW force on the same component
+        uy = complex(kf * u_s - math.sqrt(arw * arw + fv * fv) * noise[i, 0], kf * u_c - arw * noise[i, 1])
         # input term M^-1 (I - Phi) u
         v1 = (1.0 - p11) * ux - p12 * uy
         v2 = -p21 * ux + (1.0 - p22) * uy
@@ -332,6 +352,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         raws[2] = g_py * (zy_new.real + ft.real) / SQRT2 + sig_pick * noise[i, 4]
         raws[3] = -g_py * (zy_new.imag + ft.imag) / SQRT2 + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
+        S[S_VR] = _dac(S[S_VR], lsb, inv_lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb, inv_lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]
@@ -392,6 +414,9 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     k, a0 = P[P_K], P[P_A0]
     sig_arw = P[P_ARW] / math.sqrt(dtc)
     sig_pick = P[P_PICK] / math.sqrt(2.0 * dtc)
+    sig_f = P[P_FNOISE] / math.sqrt(2.0 * dtc)
+    lsb = P[P_AOLSB]
+    inv_lsb = 1.0 / lsb if lsb > 0.0 else 0.0
     fj, fs, fr, order, a_d, c_d, sections = _lowpass_sections(P, L, dtc)
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
@@ -445,7 +470,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         u_s = gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])
         u_c = S[S_VQ]
         kfc = P[P_KF] * g_f * (1.0 + P[P_BETA] * (u_s * u_s + u_c * u_c))
-        fys = -kfc * u_s + fn * noise[i, 0]
+        fv = P[P_KF] * g_f * gain * sig_f  # forcer-path voltage noise: one draw with the ARW force (independent)
+        fys = -kfc * u_s + math.sqrt(fn * fn + fv * fv) * noise[i, 0]
         fyc = kfc * u_c - fn * noise[i, 1]
         half = 0.5 * wr * dt
         inv_sinc = half / math.sin(half)
@@ -499,6 +525,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         raws[2] = g_py * (scale * syc + ft.real / SQRT2) + sig_pick * noise[i, 4]
         raws[3] = -g_py * (scale * sys_ + ft.imag / SQRT2) + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dtc, fj, fs, fr, order, a_d, c_d, sections)
+        S[S_VR] = _dac(S[S_VR], lsb, inv_lsb)
+        S[S_VQ] = _dac(S[S_VQ], lsb, inv_lsb)
         out[O_XD, i] = filt[0]
         out[O_YD, i] = filt[1]
         out[O_XS, i] = filt[2]

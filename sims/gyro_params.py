@@ -26,6 +26,16 @@ DEG_PER_RAD = 180.0 / math.pi
 RAD_PER_DEG = math.pi / 180.0
 
 
+NOISE_OFF: dict[str, Any] = {
+    "arw_deg_per_rt_h": 0.0,
+    "bias_instability_deg_per_h": 0.0,
+    "pickoff_noise_vrms_per_rt_hz": 0.0,
+    "forcer_noise_v_per_rt_hz": 0.0,
+    "auxout_bits": 0,
+}
+"""GyroParams values that switch off every random source and the AuxOut DAC rounding (GyroParams.noiseless)."""
+
+
 @dataclass
 class GyroParams:
     """Physical parameters of the simulated QMG (defaults: the paper's device)."""
@@ -40,7 +50,13 @@ class GyroParams:
     arw_dps_per_rt_hz: float | None = None  # if None: arw_deg_per_rt_h / 60
     arw_deg_per_rt_h: float = 0.02
     bias_instability_deg_per_h: float = 0.2  # IEEE 952 B: overlapping-ADEV floor / 0.664
-    pickoff_noise_vrms_per_rt_hz: float = 1e-7
+    pickoff_noise_vrms_per_rt_hz: float = 2.3e-7  # per demod quadrature (docs/noise-budget.md: inferred)
+    forcer_noise_v_per_rt_hz: float = 1e-6  # summing node + modulator, one-sided, not recorded (assumed)
+    auxout_bits: int = 16  # HF2 AuxOut DAC: 16 bit over +-auxout_range_v (0 = ideal)
+    auxout_range_v: float = 10.0
+    auxin_bits: int = 16  # HF2 AuxIn ADC: 16 bit over +-auxin_range_v (0 = ideal)
+    auxin_range_v: float = 10.0
+    auxin_noise_v_rms: float = 1e-4  # white noise of one AuxIn reading (assumed)
     forcer_tempco_ppm_per_c: float = -1000.0
     frequency_tempco_ppm_per_c: float = -30.0
     pickoff_ratio_tempco_ppm_per_c: float = 60.0
@@ -68,6 +84,12 @@ class GyroParams:
     def field_names(cls) -> frozenset[str]:
         """The names of the parameters (what `from_mapping` accepts)."""
         return frozenset(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def noiseless(cls, **values: Any) -> GyroParams:
+        """The paper's device (or `values`) with every noise source off and ideal AuxOut converters: the
+        deterministic plant that the physics tests check against their equations."""
+        return cls(**{**NOISE_OFF, **values})
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> GyroParams:
@@ -99,6 +121,8 @@ class GyroParams:
             "arw_deg_per_rt_h",
             "bias_instability_deg_per_h",
             "pickoff_noise_vrms_per_rt_hz",
+            "forcer_noise_v_per_rt_hz",
+            "auxin_noise_v_rms",
             "loop_delay_us",
             "freq_mismatch_hz",
             "forcer_bias_v",
@@ -113,6 +137,14 @@ class GyroParams:
             math.isfinite(self.arw_dps_per_rt_hz) and self.arw_dps_per_rt_hz >= 0
         ):
             raise ValueError(f"GyroParams.arw_dps_per_rt_hz must be None or >= 0, got {self.arw_dps_per_rt_hz!r}")
+        for name in ("auxout_bits", "auxin_bits"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and 0 <= v <= 32):
+                raise ValueError(f"GyroParams.{name} must be an integer in [0, 32] (0 = ideal), got {v!r}")
+        for name in ("auxout_range_v", "auxin_range_v"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"GyroParams.{name} must be a finite number > 0, got {v!r}")
         if not 0.0 <= self.damping_mismatch < 1.0:
             raise ValueError(f"GyroParams.damping_mismatch must lie in [0, 1), got {self.damping_mismatch!r}")
         for name in (
@@ -144,6 +176,16 @@ class GyroParams:
         """ARW N in rad/s/sqrt(Hz): per-sample rate sigma is N/sqrt(dt); ADEV(tau) = N/sqrt(tau)."""
         n_dps = self.arw_dps_per_rt_hz if self.arw_dps_per_rt_hz is not None else self.arw_deg_per_rt_h / 60.0
         return n_dps * RAD_PER_DEG
+
+    @property
+    def auxout_lsb_v(self) -> float:
+        """AuxOut DAC step 2 range / 2^bits, V (0 = ideal DAC)."""
+        return 2.0 * self.auxout_range_v / 2.0**self.auxout_bits if self.auxout_bits > 0 else 0.0
+
+    @property
+    def auxin_lsb_v(self) -> float:
+        """AuxIn ADC step 2 range / 2^bits, V (0 = ideal ADC)."""
+        return 2.0 * self.auxin_range_v / 2.0**self.auxin_bits if self.auxin_bits > 0 else 0.0
 
     @property
     def omega0_rad_s(self) -> float:

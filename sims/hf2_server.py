@@ -29,6 +29,8 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
    instants (sims/gyro_kernel.py), so its window mean is exact; the dither's is the exact integral of the
    square wave (sims/world.py), edges between samples included. *Assumed*: AUXIN_ADC_RATE_HZ (not found in the
    HF2 documentation); with the default averaging 0 the window is one ADC sample and its value hardly matters.
+   Each reading then gets the AuxIn's own white noise (GyroParams.auxin_noise_v_rms) and is rounded to its ADC
+   step (auxin_bits over +-auxin_range_v) and clipped to the range (docs/noise-budget.md).
 4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; pids/n/error (= setpoint -
    input), shift (= output - center); auxouts/n/value; auxins/0/values/k; status/flags/binary bit 20 (PLL 1
    locked); status/flags/demodsampleloss; status/time. The truth of the block goes to ``world.record_truth``.
@@ -120,6 +122,8 @@ class HF2DataServerTwin:
         self.rate_set = rate_set
         self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
+        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
+        self._auxin_rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
         self.nodes = HF2NodeTree(device_id, clockbase_hz)
@@ -386,7 +390,18 @@ class HF2DataServerTwin:
             dither = np.full(t_end.shape, self.world.dither.offset_v)
         else:
             dither = self.world.window_means_at_step_ends(w)
-        return rate, dither
+        return self._auxin_adc(rate), self._auxin_adc(dither)
+
+    def _auxin_adc(self, v: np.ndarray) -> np.ndarray:
+        """What one AuxIn reports for the input v: plus white reading noise of sigma `auxin_noise_v_rms`, rounded to
+        the ADC step 2 R / 2^bits and clipped to +-R (R = `auxin_range_v`; bits = 0: ideal ADC)."""
+        p = self.gyro_params
+        if p.auxin_noise_v_rms > 0.0:
+            v = v + p.auxin_noise_v_rms * self._auxin_rng.standard_normal(v.shape)
+        lsb = p.auxin_lsb_v
+        if lsb > 0.0:
+            v = np.clip(lsb * np.floor(v / lsb + 0.5), -p.auxin_range_v, p.auxin_range_v)
+        return v
 
     def _ensure_gyro(self, dt: float) -> Any:
         if self._gyro is None or self._gyro_dt != dt:

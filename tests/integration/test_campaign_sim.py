@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import allantools
 import h5py
 import numpy as np
 import pytest
@@ -167,13 +168,26 @@ def test_paper_run_writes_every_contract_item(zero_residual_run: Path) -> None:
 # ------------------------------------------------------------------------------------------------ tracking
 
 
-def test_clsf_tracks_true_sf_change_within_20_ppm_without_residual_drift(zero_residual_run: Path) -> None:
+def clsf_pair_noise() -> float:
+    """The CLSF estimate's noise over one pair's two windows, from the noise budget (observe mode, white level q
+    summed over the sources, docs/noise-budget.md): q / sqrt(T), T = 2 (dwell - settle); relative to the first
+    pair, whose own error enters every difference, sqrt(2) times that."""
+    from qmg_lab.budget import noise_budget
+    from qmg_lab.config import load_config
+
+    cfg, _ = load_config(PAPER)
+    q = math.sqrt(sum(src.white_ppm_rt_s**2 for src in noise_budget(cfg, sim_blocks=True).sources)) * 1e-6
+    return math.sqrt(2.0) * q / math.sqrt(2.0 * (cfg.plan.dwell_s - cfg.plan.settle_s))
+
+
+def test_clsf_tracks_true_sf_change_without_residual_drift(zero_residual_run: Path) -> None:
     p = step_pairs(zero_residual_run)
     true_rel = p["truth"] / p["truth"][0] - 1
     clsf_rel = (1 + p["clsf"]) / (1 + p["clsf"][0]) - 1
     # the sweep really moved the SF: forcer tempco -1000 ppm/degC over ~9 degC of gyro temperature
     assert np.ptp(true_rel) > 7000e-6
-    assert rms(clsf_rel - true_rel) <= 20e-6
+    # within the estimate's own noise (the budget's, ~35 ppm here); a 1 % sensitivity error would add 87 ppm
+    assert rms(clsf_rel - true_rel) <= 1.5 * clsf_pair_noise()
 
 
 def test_table_step_sf_agrees_with_truth_within_50_ppm(zero_residual_run: Path) -> None:
@@ -249,26 +263,34 @@ def test_characterize_linearity_measures_the_scale_factor() -> None:
 
 
 @pytest.mark.slow
-def test_clsf_correct_mode_allan_deviation(tmp_path: Path) -> None:
-    """Fig. 7: CLSF correcting for 3 h; the self-calibrated SF's Allan deviation <= 30 ppm at 60 s, falling
-    towards 1 ppm at 2000 s (the twin's actual SF under correction, and the CLSF's own estimate)."""
-    import allantools
+def test_clsf_correct_mode_allan_deviation_is_the_budgets(tmp_path: Path) -> None:
+    """Fig. 7 on the twins: CLSF correcting for 3 h. The Allan deviation of the CLSF estimate and of the twin's
+    self-calibrated SF (1 s means of /truth) at 60 s and 2000 s against what `qmg-lab budget --sim` predicts from
+    the same configuration (docs/noise-budget.md). Tolerances: at 60 s +-25 % (edf ~ 260 from 3 h: 3 sigma is
+    13 %); at 2000 s the chi-squared 0.5 %/99.5 % band of its few degrees of freedom (edf ~ 6)."""
+    from scipy.stats import chi2
 
+    budget = json.loads(qmg("budget", str(ADEV), "--json", "--sim").stdout)
     out = tmp_path / "adev.h5"
     qmg("run", str(ADEV), "--sim", "-o", str(out), "-q")
     with h5py.File(out, "r") as f:
         t0 = float(f["steps/t_end"][list(f["steps/kind"][:]).index(b"soak")])
         tt, sf = f["truth/time"][:], f["truth/scale_factor"][:]
-        ct, est = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
+        ct, ce = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
     keep = tt >= t0
     sec = np.floor(tt[keep] - tt[keep][0]).astype(np.int64)  # whole seconds, at whatever rate the HF2 streams
     counts = np.bincount(sec)
     per_s = (np.bincount(sec, weights=sf[keep]) / np.maximum(counts, 1))[counts >= 0.9 * np.median(counts)]
-    taus, ad, _, _ = allantools.oadev(
-        per_s / per_s.mean() - 1, rate=1.0, data_type="freq", taus=np.array([60.0, 2000.0])
-    )
-    assert ad[0] <= 30e-6 and ad[1] <= 2e-6, (taus, ad)
+    taus = np.array([60.0, 2000.0])
+    truth = allantools.oadev(per_s / per_s.mean() - 1, rate=1.0, data_type="freq", taus=taus)[1]
     k = ct >= t0
-    rate = 1.0 / float(np.median(np.diff(ct[k])))
-    taus, ad, _, _ = allantools.oadev(est[k], rate=rate, data_type="freq", taus=np.array([60.0, 2000.0]))
-    assert ad[0] <= 30e-6 and ad[1] <= 2e-6, (taus, ad)
+    est = allantools.oadev(ce[k], rate=1.0 / float(np.median(np.diff(ct[k]))), data_type="freq", taus=taus)[1]
+    n = int(np.count_nonzero(k))
+    edf = allantools.edf_greenhall(alpha=0, d=2, m=2000 * 7, N=n, overlapping=True, modified=False)
+    low, high = math.sqrt(chi2.ppf(0.005, edf) / edf), math.sqrt(chi2.ppf(0.995, edf) / edf)
+    for name, measured, predicted in (
+        ("estimate", est, budget["adev_ppm"]),
+        ("self-calibrated SF", truth, budget["adev_self_calibrated_sf_ppm"]),
+    ):
+        assert measured[0] * 1e6 == pytest.approx(predicted["60"], rel=0.25), (name, measured, predicted)
+        assert low <= measured[1] * 1e6 / predicted["2000"] <= high, (name, measured, predicted, low, high)

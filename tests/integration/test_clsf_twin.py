@@ -38,6 +38,7 @@ def _config(order: int, tc_s: float, rate_hz: float, dither_hz: float, offset_pp
     )
     text += (
         f"arw_deg_per_rt_h = 0.0\nbias_instability_deg_per_h = 0.0\npickoff_noise_vrms_per_rt_hz = 0.0\n"
+        "forcer_noise_v_per_rt_hz = 0.0\nauxin_noise_v_rms = 0.0\nauxin_bits = 0\nauxout_bits = 0\n"
         f"ds345_timebase_offset_ppm = {offset_ppm}\n"
     )
     # the estimator's own exactness, on a plant without the deterministic non-idealities: a forcer-to-pickoff

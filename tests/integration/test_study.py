@@ -17,7 +17,7 @@ from typing import Any
 
 import h5py
 import pytest
-import tomli_w
+import tomlkit
 
 from qmg_lab.study_file import StudyError, load_study
 
@@ -71,7 +71,7 @@ def test_study_level_file_gives_the_same_analysis_as_a_full_file_of_the_same_see
         doc = short_sweep()
         doc["storage"] = {"level": level}
         cfg = tmp_path / f"{level}.toml"
-        cfg.write_text(tomli_w.dumps(doc))
+        cfg.write_text(tomlkit.dumps(doc))
         run = qmg("run", str(cfg), "-o", str(tmp_path / f"{level}.h5"), "-q")
         assert run.returncode == 0, run.stderr
         ana = qmg("analyze", str(tmp_path / f"{level}.h5"), "--json")
@@ -101,7 +101,7 @@ def test_the_bandwidth_campaign_needs_the_full_level(tmp_path: Path) -> None:
     doc["campaign"]["kind"] = "bandwidth"
     doc["storage"] = {"level": "study"}
     cfg = tmp_path / "bw.toml"
-    cfg.write_text(tomli_w.dumps(doc))
+    cfg.write_text(tomlkit.dumps(doc))
     r = qmg("check", str(cfg))
     assert r.returncode == 2 and "storage.level" in r.stderr and "bandwidth" in r.stderr
 
@@ -110,7 +110,7 @@ def test_the_bandwidth_campaign_needs_the_full_level(tmp_path: Path) -> None:
 
 
 def _study(tmp_path: Path, axes: str, extra: str = "", seeds: str = "[1, 2]", **plan: float) -> Path:
-    (tmp_path / "base.toml").write_text(tomli_w.dumps(short_sweep(**plan)))
+    (tmp_path / "base.toml").write_text(tomlkit.dumps(short_sweep(**plan)))
     path = tmp_path / "s.toml"
     path.write_text(f'[study]\nname = "t"\nbase = "base.toml"\nseeds = {seeds}\n{extra}\n[axes]\n{axes}\n')
     return path

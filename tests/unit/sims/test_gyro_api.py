@@ -15,9 +15,7 @@ from sims.world import BlockInputs
 from tests.support.paper_loops import paper_loops
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
@@ -39,6 +37,9 @@ def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_ke
         ({"q_factor": -1.0}, "q_factor"),
         ({"damping_mismatch": 1.5}, "damping_mismatch"),
         ({"arw_deg_per_rt_h": float("nan")}, "arw"),
+        ({"forcer_noise_v_per_rt_hz": -1e-6}, "forcer_noise"),
+        ({"auxin_bits": 40}, "auxin_bits"),
+        ({"auxout_range_v": 0.0}, "auxout_range_v"),
     ],
 )
 def test_bad_params_are_named(kwargs: dict[str, float], word: str) -> None:

@@ -25,9 +25,7 @@ from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 from tests.support.paper_loops import paper_loops
 
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
 F0 = QUIET.f0_hz
 PERIOD = 314  # demod samples per dither period
 V_DITHER = 0.3  # 5 deg/s virtual rate at SF 0.06

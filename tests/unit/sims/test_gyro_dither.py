@@ -19,9 +19,7 @@ from qmg_lab.loops import lockin_setup
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
 DT = 1.0 / 1400.0
 F_DITHER = 7.0  # 200 steps per period: edges on step boundaries
 V_DITHER = 0.3

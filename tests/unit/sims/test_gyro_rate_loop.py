@@ -15,9 +15,7 @@ from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSetting
 from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import World, WorldParams
 
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
 DT = 1.0 / 1400.0
 BW_HZ = 2.0
 

@@ -9,11 +9,9 @@ import pytest
 
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PllSettings, held_inputs
-from sims.gyro_params import NONIDEALITIES_OFF
+from sims.gyro_params import NOISE_OFF, NONIDEALITIES_OFF
 
-QUIET = dict(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = {**NOISE_OFF, **NONIDEALITIES_OFF}
 OPEN = LoopSettings(pll=PllSettings(enabled=False, center_hz=2200.0))  # every loop open, reference at f0
 
 

@@ -6,6 +6,8 @@ instance counts, and the twin's documented protocol (sims/hf2_server.py module d
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -16,11 +18,13 @@ from sims.world import DITHER_SQUARE, World
 DEV = "/dev1234"
 
 
-def make_twin(rate_set: str = "ticks", **wiring: int) -> tuple[World, HF2DataServerTwin]:
+def make_twin(
+    rate_set: str = "ticks", params: GyroParams | None = None, **wiring: int
+) -> tuple[World, HF2DataServerTwin]:
     """The protocol tests stream at 1400 Sa/s (whole clock ticks): rate_set "ticks" offers any clockbase/integer
     rate; the HF2's own rate ladder is tested on its own."""
     world = World()
-    twin = HF2DataServerTwin(world, GyroParams(), seed=3, wiring=HF2Wiring(**wiring), rate_set=rate_set)
+    twin = HF2DataServerTwin(world, params or GyroParams(), seed=3, wiring=HF2Wiring(**wiring), rate_set=rate_set)
     twin.connectDevice("dev1234", "USB")
     return world, twin
 
@@ -163,7 +167,7 @@ def test_disabled_demod_delivers_nothing() -> None:
 
 
 def test_auxins_carry_the_dither_and_truth_is_recorded() -> None:
-    world, twin = make_twin(rate_auxin=0, dither_auxin=1)
+    world, twin = make_twin(params=GyroParams(auxin_bits=0, auxin_noise_v_rms=0.0), rate_auxin=0, dither_auxin=1)
     world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
     stream_demods(twin)
     s = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]
@@ -208,3 +212,25 @@ def test_wiring_is_validated() -> None:
         HF2Wiring(rate_auxin=1, dither_auxin=1)
     with pytest.raises(ValueError, match="forcer_carrier_amplitude"):
         HF2Wiring(forcer_carrier_amplitude=1.5)
+
+
+def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
+    """Each AuxIn reading: + white noise sigma, rounded to 2 R / 2^bits, clipped to +-R. The dither's plateaus
+    (+-0.3 V) then read as multiples of the step whose spread about the true level is sqrt(sigma^2 + lsb^2/12)
+    (sigma >= lsb/2 dithers the rounding), and a range below the level clips it."""
+    params = GyroParams(auxin_bits=8, auxin_range_v=1.0, auxin_noise_v_rms=0.01)
+    lsb = 2.0 / 2**8
+    world, twin = make_twin(params=params, rate_auxin=0, dither_auxin=1)
+    world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+    stream_demods(twin)
+    d = np.concatenate([twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]["auxin1"] for _ in range(5)])
+    assert np.allclose(d / lsb, np.round(d / lsb), atol=1e-9)
+    plateau = d[np.abs(np.abs(d) - 0.3) < 0.1]
+    err = plateau - np.sign(plateau) * 0.3
+    assert abs(float(np.mean(err))) < 0.002
+    assert float(np.std(err)) == pytest.approx(math.sqrt(0.01**2 + lsb**2 / 12), rel=0.05)
+    world, twin = make_twin(params=GyroParams(auxin_range_v=0.2), rate_auxin=0, dither_auxin=1)
+    world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+    stream_demods(twin)
+    d = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]["auxin1"]
+    assert float(np.max(np.abs(d))) == pytest.approx(0.2)
