@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -72,9 +72,9 @@ class StepPair:
     output_minus_v: float = float("nan")
 
 
-@dataclass
+@dataclass(frozen=True)
 class AnalysisResult:
-    """Everything `analyze` found; `to_json` gives the stable JSON (NaN -> null)."""
+    """Everything `analyze` found (immutable); `to_json` gives the stable JSON (NaN -> null)."""
 
     file: str
     status: str
@@ -131,6 +131,23 @@ def _clean(x: Any) -> Any:
     if isinstance(x, np.ndarray):
         return _clean(x.tolist())
     return x
+
+
+@dataclass
+class _Found:
+    """What one procedure of `analyze` found: AnalysisResult fields by name, its notes, and the rows it collected
+    (step pairs, Bode points, linearity levels). `applied_to` gives the result with them."""
+
+    values: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    pairs: list[StepPair] = field(default_factory=list)
+    bode: list[BodePoint] = field(default_factory=list)
+    levels: list[dict[str, float]] = field(default_factory=list)
+
+    def applied_to(self, res: AnalysisResult) -> AnalysisResult:
+        changes: dict[str, Any] = dict(self.values)
+        changes.update((k, v) for k, v in (("pairs", self.pairs), ("bode", self.bode), ("levels", self.levels)) if v)
+        return replace(res, **changes, notes=[*res.notes, *self.notes])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -255,7 +272,8 @@ def _rms(x: np.ndarray) -> float:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
+def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
+    found = _Found()
     g = ctx.run.groups
     clsf, chamber = g.get("clsf"), g.get("chamber")
     for idx in sorted(ctx.steps):
@@ -268,7 +286,7 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
         op, np_ = _mean_whole_periods(ctx, *wp)
         om, nm = _mean_whole_periods(ctx, *wm)
         if np_ == 0 or nm == 0:
-            res.notes.append(f"steps {idx}/{idx + 1}: no samples after the settle time; pair skipped")
+            found.notes.append(f"steps {idx}/{idx + 1}: no samples after the settle time; pair skipped")
             continue
         rp, rm = _commanded(ctx, sp, wp), _commanded(ctx, sm, wm)
         pair = StepPair(
@@ -286,53 +304,56 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> None:
         pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
         pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1), [wp, wm])  # raw SF for now
         pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1), [wp, wm])
-        res.pairs.append(pair)
-    res.n_step_pairs = len(res.pairs)
-    if not res.pairs:
-        return
-    ref = res.pairs[0]
+        found.pairs.append(pair)
+    found.values["n_step_pairs"] = len(found.pairs)
+    if not found.pairs:
+        return found
+    ref = found.pairs[0]
     sf_ref, s_ref, tr_ref = ref.sf_v_per_dps, ref.clsf_change_ppm, ref.truth_change_ppm
-    for p in res.pairs:
+    for p in found.pairs:
         p.true_change_ppm = (p.sf_v_per_dps / sf_ref - 1) * PPM
         p.clsf_change_ppm = ((1 + p.clsf_change_ppm) / (1 + s_ref) - 1) * PPM
         p.truth_change_ppm = (p.truth_change_ppm / tr_ref - 1) * PPM
-    res.sf_measured_v_per_dps = sf_ref
-    e = np.array([p.true_change_ppm for p in res.pairs])
-    c = np.array([p.clsf_change_ppm for p in res.pairs])
-    tr = np.array([p.truth_change_ppm for p in res.pairs])
-    res.sf_true_change_ppm = float(np.ptp(e))
-    res.notes.append("relative SF changes are referred to the first step pair (SF_ref = pair 0)")
+    found.values["sf_measured_v_per_dps"] = sf_ref
+    e = np.array([p.true_change_ppm for p in found.pairs])
+    c = np.array([p.clsf_change_ppm for p in found.pairs])
+    tr = np.array([p.truth_change_ppm for p in found.pairs])
+    found.values["sf_true_change_ppm"] = float(np.ptp(e))
+    found.notes.append("relative SF changes are referred to the first step pair (SF_ref = pair 0)")
     d = (c - e)[1:]
     d = d[np.isfinite(d)]
     if d.size:
-        res.clsf_accuracy_rms_ppm = _rms(d)
-        res.clsf_accuracy_rms_ppm_mean_removed = _rms(d - d.mean())
+        found.values["clsf_accuracy_rms_ppm"] = _rms(d)
+        found.values["clsf_accuracy_rms_ppm_mean_removed"] = _rms(d - d.mean())
     if (ctx.run.has_truth or ctx.windows is not None) and np.all(np.isfinite(tr)):
-        res.truth_check_rms_ppm = _rms(e - tr)
-        res.clsf_vs_truth_rms_ppm = _rms((c - tr)[1:])
-    temps = np.array([p.temperature_c for p in res.pairs])
+        found.values["truth_check_rms_ppm"] = _rms(e - tr)
+        found.values["clsf_vs_truth_rms_ppm"] = _rms((c - tr)[1:])
+    temps = np.array([p.temperature_c for p in found.pairs])
     ok = np.isfinite(temps)
     if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:
-        res.sf_tempco_ppm_per_c = float(np.polyfit(temps[ok], e[ok], 1)[0])
+        found.values["sf_tempco_ppm_per_c"] = float(np.polyfit(temps[ok], e[ok], 1)[0])
         okc = ok & np.isfinite(c)
         if okc.sum() >= 3:
-            res.clsf_tempco_ppm_per_c = float(np.polyfit(temps[okc], c[okc], 1)[0])
+            found.values["clsf_tempco_ppm_per_c"] = float(np.polyfit(temps[okc], c[okc], 1)[0])
+    return found
 
 
-def _clsf_adev(ctx: _Ctx, res: AnalysisResult) -> None:
+def _clsf_adev(ctx: _Ctx, res: AnalysisResult) -> _Found:
+    found = _Found()
     clsf = ctx.run.groups.get("clsf")
     if clsf is None or clsf["time"].shape[0] < 6:
-        res.notes.append("CLSF ADEV: fewer than 6 CLSF periods in the file")
-        return
+        found.notes.append("CLSF ADEV: fewer than 6 CLSF periods in the file")
+        return found
     rate = 1.0 / float(np.median(np.diff(clsf["time"])))
     r = overlapping_adev(clsf["sf_change_estimate"], rate)
-    res.adev = r.rows(PPM)
-    res.adev_at_60s_ppm = r.at(60.0) * PPM
-    res.adev_at_2000s_ppm = r.at(2000.0) * PPM  # NaN unless the run is long enough (the paper: 1 ppm)
+    found.values["adev"] = r.rows(PPM)
+    found.values["adev_at_60s_ppm"] = r.at(60.0) * PPM
+    found.values["adev_at_2000s_ppm"] = r.at(2000.0) * PPM  # NaN unless the run is long enough (the paper: 1 ppm)
     if ctx.cfg.clsf.mode == "correct":
         g = clsf["gain_correction"]
         if np.all(g > 0):
-            res.adev_gain_correction = overlapping_adev(np.log(g), rate).rows(PPM)
+            found.values["adev_gain_correction"] = overlapping_adev(np.log(g), rate).rows(PPM)
+    return found
 
 
 def _static_runs(ctx: _Ctx) -> list[tuple[float, float]]:
@@ -356,11 +377,12 @@ def _static_runs(ctx: _Ctx) -> list[tuple[float, float]]:
     return []
 
 
-def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
+def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> _Found:
+    found = _Found()
     runs = _static_runs(ctx)
     if not runs:
-        res.notes.append("gyro ARW/bias instability: no completed hold or soak step")
-        return
+        found.notes.append("gyro ARW/bias instability: no completed hold or soak step")
+        return found
     a, b = max(runs, key=lambda r: r[1] - r[0])
     clsf = ctx.run.groups.get("clsf")
     y: np.ndarray
@@ -379,13 +401,14 @@ def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
         y = lk["rate_output"][i0 : i0 + n].reshape(-1, per).mean(axis=1)
         rate = ctx.fs_hz / per
     if y.shape[0] < 6 or not rate > 0:
-        res.notes.append("gyro ARW/bias instability: static segment too short")
-        return
+        found.notes.append("gyro ARW/bias instability: static segment too short")
+        return found
     r: AllanResult = overlapping_adev(y / sf * 3600.0, rate)
-    res.gyro_adev_deg_per_h = r.rows()
-    res.arw_deg_per_rt_h = arw_deg_per_rt_h(r)
-    res.bias_instability_deg_per_h = bias_instability_deg_per_h(r)
-    res.notes.append(f"gyro noise from the static segment {a:.1f}-{b:.1f} s")
+    found.values["gyro_adev_deg_per_h"] = r.rows()
+    found.values["arw_deg_per_rt_h"] = arw_deg_per_rt_h(r)
+    found.values["bias_instability_deg_per_h"] = bias_instability_deg_per_h(r)
+    found.notes.append(f"gyro noise from the static segment {a:.1f}-{b:.1f} s")
+    return found
 
 
 def _dc_sf(ctx: _Ctx, res: AnalysisResult) -> float:
@@ -403,14 +426,15 @@ def _dc_sf(ctx: _Ctx, res: AnalysisResult) -> float:
     return res.sf_nominal_v_per_dps
 
 
-def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
+def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> _Found:
+    found = _Found()
     sines = [(idx, s, m) for idx, s in sorted(ctx.steps.items()) if (m := _SINE.match(str(s["kind"])))]
     if not sines:
-        return
+        return found
     lk, truth = ctx.run.groups["lockin"], ctx.run.groups.get("truth")
     f_d = ctx.cfg.dither.frequency_hz
     nuisance = (f_d, 3 * f_d, 5 * f_d) if ctx.cfg.clsf.mode != "off" else ()
-    res.phase_reference = (
+    found.values["phase_reference"] = (
         "twin /truth/rate"
         if truth is not None and truth["time"].shape[0]
         else "command A sin(2 pi f (t - t_start)): phase zero assumed at the step start"
@@ -420,7 +444,7 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
         t0, t1 = _window(ctx, s, extra_settle=2.0 / f)
         n_cyc = math.floor((t1 - t0) * f)
         if n_cyc < 1:
-            res.notes.append(f"step {idx} ({s['kind']}): shorter than one period after settling; skipped")
+            found.notes.append(f"step {idx} ({s['kind']}): shorter than one period after settling; skipped")
             continue
         t1 = t0 + n_cyc / f
         i0, i1 = np.searchsorted(lk["time"], [t0, t1])
@@ -433,7 +457,7 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
             ts = float(s["t_start"])
             ref = complex(float(s["table_rate"]) * np.exp(-0.5j * np.pi - 2j * np.pi * f * ts))
         h = out / ref
-        res.bode.append(
+        found.bode.append(
             BodePoint(
                 frequency_hz=f,
                 amplitude_ratio=abs(h),
@@ -441,10 +465,12 @@ def _bandwidth(ctx: _Ctx, res: AnalysisResult, sf: float) -> None:
                 phase_deg=math.degrees(math.atan2(h.imag, h.real)),
             )
         )
-    res.bandwidth_hz = bandwidth_3db(res.bode)
+    found.values["bandwidth_hz"] = bandwidth_3db(found.bode)
+    return found
 
 
-def _settling(ctx: _Ctx, res: AnalysisResult) -> None:
+def _settling(ctx: _Ctx, res: AnalysisResult) -> _Found:
+    found = _Found()
     lk = ctx.run.groups["lockin"]
     for idx in sorted(ctx.steps):
         s, prev = ctx.steps[idx], ctx.steps.get(idx - 1)
@@ -461,17 +487,19 @@ def _settling(ctx: _Ctx, res: AnalysisResult) -> None:
             i0, i1 = np.searchsorted(lk["time"], [a - 1.0, b])
             i0 = max(0, i0 - per)
             if i1 - i0 <= per:  # a study-level file that never reached its settling step
-                res.notes.append(f"settling time: no lock-in samples around step {idx}")
-                return
+                found.notes.append(f"settling time: no lock-in samples around step {idx}")
+                return found
             y = moving_average(lk["rate_output"][i0:i1], per)
             ok = slice(per // 2, y.shape[0] - (per - per // 2)) if per > 1 else slice(None)  # full boxcars only
             t = lk["time"][i0:i1][ok]
-            res.settling_time_s = settling_time_s(t, y[ok], a, min(b, float(t[-1])) if t.size else b)
-            res.notes.append(f"settling time from step {idx} ({prev['table_rate']:g} -> {s['table_rate']:g} deg/s)")
-            return
+            found.values["settling_time_s"] = settling_time_s(t, y[ok], a, min(b, float(t[-1])) if t.size else b)
+            found.notes.append(f"settling time from step {idx} ({prev['table_rate']:g} -> {s['table_rate']:g} deg/s)")
+            return found
+    return found
 
 
-def _linearity(ctx: _Ctx, res: AnalysisResult) -> None:
+def _linearity(ctx: _Ctx, res: AnalysisResult) -> _Found:
+    found = _Found()
     levels = [(idx, s) for idx, s in sorted(ctx.steps.items()) if s["kind"] == "level"]
     rates, outs = [], []
     for idx, s in levels:
@@ -480,30 +508,34 @@ def _linearity(ctx: _Ctx, res: AnalysisResult) -> None:
         if n:
             rates.append(_commanded(ctx, s, w))
             outs.append(o)
-            res.levels.append({"index": idx, "rate_dps": rates[-1], "output_v": o})
+            found.levels.append({"index": idx, "rate_dps": rates[-1], "output_v": o})
     if len(set(rates)) >= 2:
         lin = linearity(np.array(rates), np.array(outs))
-        res.linearity = {k: v for k, v in asdict(lin).items() if k != "residuals_v"}
-        for row, r in zip(res.levels, lin.residuals_v, strict=True):
+        found.values["linearity"] = {k: v for k, v in asdict(lin).items() if k != "residuals_v"}
+        for row, r in zip(found.levels, lin.residuals_v, strict=True):
             row["residual_v"] = float(r)
+    return found
 
 
-def _completeness(ctx: _Ctx, res: AnalysisResult) -> None:
+def _completeness(ctx: _Ctx, res: AnalysisResult) -> _Found:
+    found = _Found()
     planned = int(ctx.run.attrs.get("planned_steps", -1))
     kinds = ctx.run.planned_step_kinds
     if planned < 0:
-        res.notes.append("the file does not record the planned steps; missing steps unknown")
-        return
-    res.steps_planned = planned
-    res.missing_steps = [
+        found.notes.append("the file does not record the planned steps; missing steps unknown")
+        return found
+    found.values["steps_planned"] = planned
+    found.values["missing_steps"] = [
         {"index": i, "kind": kinds[i] if i < len(kinds) else ""} for i in range(planned) if i not in ctx.steps
     ]
+    return found
 
 
 def analyze(path: str | Path) -> AnalysisResult:
     """Analyse a run file (complete, aborted or killed; simulated or hardware). See the module docstring."""
     ctx = _load(path)
     a, cfg = ctx.run.attrs, ctx.cfg
+    unclosed = ["the file was not closed by its writer (killed, or still being written)"] if ctx.run.writer_open else []
     res = AnalysisResult(
         file=str(ctx.run.path),
         status=str(a.get("status", "")),
@@ -515,75 +547,15 @@ def analyze(path: str | Path) -> AnalysisResult:
         steps_completed=len(ctx.steps),
         missing_steps=[],
         sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps,
+        notes=[*ctx.notes, *unclosed],
     )
-    res.notes.extend(ctx.notes)
-    if ctx.run.writer_open:
-        res.notes.append("the file was not closed by its writer (killed, or still being written)")
-    _completeness(ctx, res)
+    res = _completeness(ctx, res).applied_to(res)
     if ctx.run.groups["lockin"]["time"].shape[0] == 0 and ctx.windows is None:
-        res.notes.append("no lock-in samples in the file")
-        return res
-    _pairs(ctx, res)
-    _clsf_adev(ctx, res)
+        return replace(res, notes=[*res.notes, "no lock-in samples in the file"])
+    res = _pairs(ctx, res).applied_to(res)
+    res = _clsf_adev(ctx, res).applied_to(res)
     sf = _dc_sf(ctx, res)
-    _gyro_noise(ctx, res, sf)
-    _bandwidth(ctx, res, sf)
-    _settling(ctx, res)
-    _linearity(ctx, res)
-    return res
-
-
-def render_table(result: AnalysisResult) -> Any:
-    """A rich Table of the headline figures (missing values shown as '-')."""
-    from rich.table import Table
-
-    def f(v: Any, fmt: str = "{:.4g}") -> str:
-        if v is None or (isinstance(v, float) and not math.isfinite(v)):
-            return "-"
-        return fmt.format(v) if isinstance(v, (int, float)) else str(v)
-
-    r = result
-    tab = Table(title=f"qmg-lab analysis: {Path(r.file).name} ({r.status})", show_header=True)
-    tab.add_column("quantity")
-    tab.add_column("value", justify="right")
-    tab.add_column("unit")
-    rows: list[tuple[str, str, str]] = [
-        ("campaign / CLSF mode", f"{r.campaign_kind} / {r.clsf_mode}", ""),
-        ("steps completed / planned", f"{r.steps_completed} / {f(r.steps_planned)}", ""),
-        (
-            "missing steps",
-            ", ".join(f"{m['index']}:{m['kind']}" for m in r.missing_steps[:8])
-            + (" ..." if len(r.missing_steps) > 8 else "")
-            or "none",
-            "",
-        ),
-        ("SF nominal / measured", f"{f(r.sf_nominal_v_per_dps)} / {f(r.sf_measured_v_per_dps, '{:.6g}')}", "V/(deg/s)"),
-        ("step pairs", f(r.n_step_pairs), ""),
-        ("true SF change (p-p)", f(r.sf_true_change_ppm, "{:.1f}"), "ppm"),
-        (
-            "SF tempco true / CLSF",
-            f"{f(r.sf_tempco_ppm_per_c, '{:.1f}')} / {f(r.clsf_tempco_ppm_per_c, '{:.1f}')}",
-            "ppm/degC",
-        ),
-        ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}"), "ppm"),
-        ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}"), "ppm"),
-        ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}"), "ppm"),
-        ("CLSF vs truth RMS", f(r.clsf_vs_truth_rms_ppm, "{:.2f}"), "ppm"),
-        ("CLSF ADEV at 60 s", f(r.adev_at_60s_ppm, "{:.2f}"), "ppm"),
-        ("CLSF ADEV at 2000 s", f(r.adev_at_2000s_ppm, "{:.2f}"), "ppm"),
-        ("CLSF ADEV minimum", f(min((x["value"] for x in r.adev), default=None), "{:.2f}"), "ppm"),
-        ("ARW", f(r.arw_deg_per_rt_h, "{:.4f}"), "deg/sqrt(h)"),
-        ("bias instability", f(r.bias_instability_deg_per_h, "{:.3f}"), "deg/h"),
-        ("FTR bandwidth (-3 dB)", f(r.bandwidth_hz, "{:.3f}"), "Hz"),
-        ("2 % settling time", f(r.settling_time_s, "{:.3f}"), "s"),
-        (
-            "nonlinearity max / RMS",
-            f"{f(r.linearity.get('nonlinearity_max_pct_fs'), '{:.3f}')} / "
-            f"{f(r.linearity.get('nonlinearity_rms_pct_fs'), '{:.3f}')}",
-            "% FS",
-        ),
-        ("asymmetry", f(r.linearity.get("asymmetry_ppm"), "{:.0f}"), "ppm"),
-    ]
-    for row in rows:
-        tab.add_row(*row)
-    return tab
+    res = _gyro_noise(ctx, res, sf).applied_to(res)
+    res = _bandwidth(ctx, res, sf).applied_to(res)
+    res = _settling(ctx, res).applied_to(res)
+    return _linearity(ctx, res).applied_to(res)

@@ -461,7 +461,7 @@ def analyze(
     import dataclasses
 
     from qmg_lab.analysis import analyze as run_analysis
-    from qmg_lab.analysis import render_table
+    from qmg_lab.analysis_render import render_table
     from qmg_lab.storage import StorageError, read_run, status_detail
 
     if not run_file.exists():

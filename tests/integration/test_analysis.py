@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qmg_lab.analysis import analyze, render_table
+from qmg_lab.analysis import analyze
+from qmg_lab.analysis_render import render_table
 from tests.support.synthetic_runs import (
     ALPHA,
     BETA,
