@@ -498,11 +498,12 @@ class RunWriter:
         self._check_open()
         self._drain()
 
-    def flush(self, *, complete: bool = False) -> None:
-        """Write the buffered rows and flush the file to disk (SWMR readers see it from now on); returns once done.
-        In the twins' layout /lockin and /truth are written up to their last whole chunk unless `complete`."""
+    def flush(self) -> None:
+        """Write every buffered row (and every waiting /steps row) and flush the file to disk (SWMR readers see it
+        from now on); returns once done. In the twins' layout this writes a partial chunk that a later write
+        rewrites (a dead copy, docs/hdf5.md): the campaign leaves its flushes to `maybe_flush` and `append_step`."""
         self._check_open()
-        self._flush_buffers(complete=complete)
+        self._flush_buffers()
         self._flush_file()
 
     def set_status(self, status: str, abort_reason: str = "") -> None:

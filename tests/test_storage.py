@@ -158,11 +158,12 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
 
 
 def test_twins_layout_writes_whole_chunks_and_steps_after_their_data(tmp_path: Path) -> None:
-    """The twins' layout: /lockin and /truth reach the file in whole chunks only (a flush never leaves a dead
-    partial compressed chunk behind), a /steps row only once every sample appended before it is in, and close
-    writes the rest."""
+    """The twins' layout: maybe_flush and append_step hand /lockin and /truth over in whole chunks only (no dead
+    partial compressed chunk is left behind), a /steps row only once every sample appended before it is in; flush
+    and close write the rest."""
     p = tmp_path / "run.h5"
-    w = new_writer(p, truth=False)
+    now = [0.0]
+    w = new_writer(p, truth=False, clock=lambda: now[0])
     chunk = w._h5["lockin/time"].chunks[0]
     per_chunk = chunk // 700  # whole 700-row blocks per chunk
     for k in range(per_chunk):
@@ -170,17 +171,21 @@ def test_twins_layout_writes_whole_chunks_and_steps_after_their_data(tmp_path: P
     w.append_step(
         index=0, kind="rate", t_start=0.0, t_end=1.0, table_rate=5.0, chamber_setpoint=25.0, status="completed"
     )
-    w.flush()
+    w.drain()
     assert w._h5["lockin/time"].shape == (0,)  # 700 * per_chunk < chunk rows: nothing whole to write yet
     assert w._h5["steps/index"].shape == (0,)  # the step's data are not in: neither is its row
     assert w.completed_steps() == {0}  # the campaign knows it is done
     w.append("lockin", **lockin_block(per_chunk))  # crosses the first chunk boundary
-    w.flush()
+    now[0] = 2.0
+    w.maybe_flush()
+    w.drain()
     assert w._h5["lockin/time"].shape == (chunk,)
     assert w._h5["steps/index"].shape == (1,) and w._h5.attrs["completed_steps"] == 1
+    n = 700 * (per_chunk + 1)
+    w.flush()  # everything, the partial chunk included
+    assert w._h5["lockin/time"].shape == (n,)
     w.close()
     run = read_run(p)
-    n = 700 * (per_chunk + 1)
     np.testing.assert_array_equal(run.groups["lockin"]["time"], np.arange(n) / FS)
     np.testing.assert_array_equal(run.groups["lockin"]["x_sense"], 1e-3 * np.sin(np.arange(n) / FS))
     assert list(run.steps["index"]) == [0]
