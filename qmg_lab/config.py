@@ -182,11 +182,11 @@ class LockInSection(_Section):
     )
     poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
     sim_poll_interval_s: float = Field(
-        10.0,
+        2.0,
         ge=0.05,
         le=10.0,
         description="twin only: block length (the twin needs no real-time buffer; each block costs the host a "
-        "fixed overhead, so long blocks run the twins faster), s",
+        "fixed overhead, so long blocks run the twins faster, but suspensions and resumes act per block), s",
     )
     drive_sigin: int = Field(0, ge=0, le=1, description="signal input of the drive pickoff (0 = SigIn1)")
     sense_sigin: int = Field(1, ge=0, le=1, description="signal input of the sense pickoff")
