@@ -31,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
 
 
-def run_once(config: Path, out: Path) -> tuple[float, float, float, float]:
-    """(wall s, peak RSS MB, simulated s, file MB) of one whole `qmg-lab run` process."""
+def run_once(config: Path, out: Path) -> tuple[float, float, float, float, float]:
+    """(wall s, peak RSS MB, simulated s, file MB, CPU s of all the process's threads) of one `qmg-lab run`."""
     if out.exists():
         out.unlink()
     t0 = time.perf_counter()
@@ -52,7 +52,7 @@ def run_once(config: Path, out: Path) -> tuple[float, float, float, float]:
         t = f["lockin/time"]
         simulated = float(t[t.shape[0] - 1])
         assert "truth" in f, "the twins' file has /truth"
-    return wall, usage.ru_maxrss / 1024.0, simulated, out.stat().st_size / 1e6
+    return wall, usage.ru_maxrss / 1024.0, simulated, out.stat().st_size / 1e6, usage.ru_utime + usage.ru_stime
 
 
 def slower_ramp(tmp: Path, factor: float) -> Path:
@@ -83,7 +83,7 @@ def main() -> None:
         walls = [r[0] for r in runs]
         simulated = runs[0][2]
         rss = max(r[1] for r in runs)
-        long_wall, long_rss, long_sim, _ = run_once(slower_ramp(tmp, 3.0), tmp / "long.h5")
+        long_wall, long_rss, long_sim, _, _ = run_once(slower_ramp(tmp, 3.0), tmp / "long.h5")
     result = {
         "config": str(PAPER.relative_to(ROOT)),
         "runs": args.runs,
@@ -92,6 +92,9 @@ def main() -> None:
         "wall_s_min": min(walls),
         "wall_s_max": max(walls),
         "realtime_factor": simulated / statistics.median(walls),
+        # CPU seconds of every thread (the writer thread compresses beside the campaign): on a loaded machine the
+        # wall time depends on the neighbours, the CPU time much less
+        "cpu_s_median": statistics.median(r[4] for r in runs),
         "peak_rss_mb": rss,
         "file_mb": runs[0][3],
         "file_mb_per_campaign_hour": runs[0][3] / (simulated / 3600.0),

@@ -240,7 +240,7 @@ class HF2LI(LockIn):
             raise InstrumentError(f"HF2LI {self.device_id}: poll failed: {exc}") from exc
         drive = self._samples(raw, DRIVE_DEMOD)
         sense = self._samples(raw, SENSE_DEMOD)
-        ts, i_d, i_s = np.intersect1d(drive["timestamp"], sense["timestamp"], assume_unique=True, return_indices=True)
+        ts, i_d, i_s = _common_samples(drive["timestamp"], sense["timestamp"])
         lost = self._count_lost(ts)
         if flag and lost == 0:
             lost = 1
@@ -311,3 +311,16 @@ class HF2LI(LockIn):
 
 
 __all__ = ["HF2LI", "LimitError"]
+
+
+def _common_samples(
+    drive_ts: np.ndarray, sense_ts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | slice, np.ndarray | slice]:
+    """The timestamps both demodulators delivered, and where they sit in each (sorted, unique timestamps).
+
+    Usually both streams carry the same samples: then every sample is common and no search is needed (the
+    intersection of two sorted arrays costs a sort, ~1 ms per 10 s block at 1800 Sa/s)."""
+    if drive_ts.shape == sense_ts.shape and np.array_equal(drive_ts, sense_ts):
+        return drive_ts, slice(None), slice(None)
+    ts, i_d, i_s = np.intersect1d(drive_ts, sense_ts, assume_unique=True, return_indices=True)
+    return ts, i_d, i_s

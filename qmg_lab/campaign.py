@@ -329,8 +329,7 @@ class CampaignRunner:
             chamber_setpoint=step.chamber_target_c,
             status="completed",
         )
-        self._done_s += step.duration_s
-        self.writer.flush()
+        self._done_s += step.duration_s  # append_step flushed the file (in the twins' layout with the step's chunk)
 
     def _apply(self, step: Step) -> None:
         """Commands at the start of a step (idempotent, so a resumed step can re-apply them)."""

@@ -184,7 +184,11 @@ class LockInSection(_Section):
     )
     poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
     sim_poll_interval_s: float = Field(
-        2.0, ge=0.05, le=10.0, description="twin only: block length (the twin needs no real-time buffer), s"
+        2.0,
+        ge=0.05,
+        le=10.0,
+        description="twin only: block length (the twin needs no real-time buffer; each block costs the host a "
+        "fixed overhead, so long blocks run the twins faster, but suspensions and resumes act per block), s",
     )
     drive_sigin: int = Field(0, ge=0, le=1, description="signal input of the drive pickoff (0 = SigIn1)")
     sense_sigin: int = Field(1, ge=0, le=1, description="signal input of the sense pickoff")
@@ -284,8 +288,8 @@ class StorageSection(_Section):
     flush_interval_s: float = Field(1.0, gt=0.0, le=60.0, description="flush the HDF5 file at least this often")
     compression: Literal["auto", "none", "gzip", "lzf"] = Field(
         "auto",
-        description="auto = lzf (shuffle + lzf on the columns that compress: about half the file for "
-        "about 1 s per campaign hour), twins and hardware alike; docs/hdf5.md",
+        description="auto = gzip (shuffle + gzip level 1, a filter every HDF5 reader has; the compression runs "
+        "beside the campaign on the writer thread), twins and hardware alike; docs/hdf5.md",
     )
 
     level: Literal["full", "study"] = Field(
@@ -296,9 +300,9 @@ class StorageSection(_Section):
     )
 
     def resolved_compression(self, simulated_lockin: bool = False) -> str:
-        """The HDF5 filter to use: 'auto' is lzf, on twins and hardware alike (docs/hdf5.md: size and cost)."""
+        """The HDF5 filter to use: 'auto' is gzip, on twins and hardware alike (docs/hdf5.md: size and cost)."""
         if self.compression == "auto":
-            return "lzf"
+            return "gzip"
         return self.compression
 
 

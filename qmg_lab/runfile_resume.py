@@ -14,7 +14,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.runfile_layout import GROUP_UNITS, INSTRUMENTS, StorageError
+from qmg_lab.runfile_layout import GROUP_UNITS, INSTRUMENTS, StorageError, whole_chunk_layout
 from qmg_lab.runfile_reader import RunData, read_run
 
 
@@ -131,6 +131,18 @@ def repair_end(h5: h5py.File) -> None:
     t_end = _last(h5["lockin"]["time"])
     if "truth" in h5 and h5["truth"]["time"].shape[0]:  # a writer that never logs truth keeps its lock-in
         t_end = min(t_end, _last(h5["truth"]["time"]))
+    if whole_chunk_layout(h5):
+        # written in whole chunks: the file may end inside a lock-in block whose /table and /chamber readings
+        # (stamped with the block's last sample) were cut. End on the last block that has its readings, so the
+        # resumed file keeps one reading per block across the resume point
+        ends = []
+        for g in ("table", "chamber"):
+            t = h5[g]["time"][:] if g in h5 else np.empty(0)
+            k = int(np.searchsorted(t, t_end, side="right"))
+            if k:
+                ends.append(float(t[k - 1]))
+        if ends:
+            t_end = max(ends)
     for g in [g for g in GROUP_UNITS if g in h5]:
         t = h5[g]["time"][:]
         _cut(h5[g], int(np.searchsorted(t, t_end, side="right")))

@@ -8,11 +8,14 @@ Protocol (docs/hdf5.md):
   metadata writes so that the file on disk is always a consistent snapshot as of the last flush: a process
   killed at any instant leaves a file that h5py opens (with `swmr=True`; `read_run` does this), having lost only
   what was appended after the last flush.
-* Appends go to a small per-group memory buffer that is written and flushed when `maybe_flush` finds that
-  `flush_interval_s` of wall time has passed, on `flush`, on every `append_step` and `set_status`, and on
-  `close`. A step row with status "completed" is therefore a checkpoint: every sample appended before it is in
-  the file when the row is. Past BUFFER_ROWS_MAX buffered rows the buffers are handed to HDF5 early (no file
-  flush), so memory does not grow with the data one flush interval carries.
+* Appends go to a small per-group memory buffer. The buffers are handed to one writer thread
+  (qmg_lab/background_writes.py), which writes them, compressing the chunks inside HDF5 while the campaign goes
+  on: asynchronously, followed by a file flush, when `maybe_flush` finds that `flush_interval_s` of wall time has
+  passed; synchronously (the call returns once they are written) on `flush`, on every `append_step` and
+  `set_status`, and on `close`. A step row with status "completed" is therefore a checkpoint: every sample
+  appended before it is in the file when the row is. Past BUFFER_ROWS_MAX buffered rows the buffers are handed
+  over early (no file flush); at most two hand-overs wait for the thread, so memory does not grow with the data
+  one flush interval carries.
 * A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
   `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
 * Layout for the write pattern (qmg_lab/runfile_layout.py, docs/hdf5.md): big chunks when the writer is faster
@@ -43,6 +46,7 @@ import h5py
 import numpy as np
 from h5py import h5s
 
+from qmg_lab.background_writes import BackgroundWrites
 from qmg_lab.h5clear import clear_superblock_flags, writer_flags_set
 from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part of the API
     CHAMBER_UNITS,
@@ -50,12 +54,14 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
     CHUNK_ROWS_REALTIME,
     CLSF_UNITS,
     COMPRESSED_COLUMNS,
+    COMPRESSED_COLUMNS_REALTIME,
     COMPRESSED_GROUPS,
     COMPRESSIONS,
     DESCRIPTIONS,
     FORMAT,
     GROUP_UNITS,
     GZIP_LEVEL,
+    GZIP_LEVELS,
     INSTRUMENT_MODES,
     INSTRUMENTS,
     KIND_BYTES,
@@ -69,6 +75,7 @@ from qmg_lab.runfile_layout import (  # noqa: F401 - re-exported names are part 
     TRUTH_UNITS,
     StorageError,
     _text,
+    whole_chunk_layout,
 )
 from qmg_lab.runfile_reader import RunData, read_run, read_window
 from qmg_lab.runfile_records import RunRecords, create_groups
@@ -151,7 +158,20 @@ class RunWriter:
         self._completed: set[int] = {
             int(i) for i, s in zip(steps["index"][:], steps["status"][:], strict=True) if s == b"completed"
         }
+        self._completed_in_file = set(self._completed)  # the "completed" rows in the file (the rest wait)
+        # rows of each group handed to the writer thread (stored or on their way)
+        self._handed: dict[str, int] = {g: int(h5[g]["time"].shape[0]) for g in self._groups}
+        # the twins' layout (every /lockin column compressed): /lockin and /truth are handed over in whole chunks
+        # only, so no flush leaves a dead copy of a compressed partial chunk behind (docs/hdf5.md); the rest waits
+        # in memory for the next chunk, `flush(complete=True)`, `set_status` or `close`
+        self._whole_chunk_rows: dict[str, int] = (
+            {g: int(h5[g]["time"].chunks[0]) for g in ("lockin", "truth") if g in h5} if whole_chunk_layout(h5) else {}
+        )
+        # /steps rows waiting for their data: (row, rows of each whole-chunk group appended before the row)
+        self._pending_steps: list[tuple[dict[str, Any], dict[str, int]]] = []
         self._closed = False
+        # the HDF5 writes (and the chunk compression inside them) run on this thread, beside the campaign
+        self._bg = BackgroundWrites(f"qmg-lab writer {path.name}")
 
     # ---- construction ---------------------------------------------------------------------------------------
 
@@ -247,6 +267,7 @@ class RunWriter:
             elif compression == "lzf":
                 filt = {"compression": "lzf", "shuffle": True}
             rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
+            compressed = COMPRESSED_COLUMNS_REALTIME if realtime else COMPRESSED_COLUMNS
             for g, units in GROUP_UNITS.items():
                 if g == "truth" and not truth:
                     continue
@@ -258,7 +279,7 @@ class RunWriter:
                         maxshape=(None,),
                         dtype=np.float64,
                         chunks=(rows[g],),
-                        **(filt if col in COMPRESSED_COLUMNS.get(g, ()) else {}),
+                        **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
                     )
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
@@ -305,7 +326,8 @@ class RunWriter:
         1. every group is cut to its shortest column (whole rows only);
         2. the end instant is the last /lockin time, or the last /truth time if that is earlier (a kill can
            fall between the two groups' writes; /truth stays aligned sample for sample with /lockin) unless
-           /truth has no rows at all; /lockin
+           /truth has no rows at all; in the twins' layout (written in whole chunks) it moves back to the last
+           /table or /chamber reading, the end of the last lock-in block whose readings are in; /lockin
            and /truth are cut to it and every other group to rows at or before it;
         3. /steps keeps only "completed" rows that end at or before that instant: a checkpoint whose data did
            not all reach the disk is not a checkpoint, and the step is run again after the resume point.
@@ -381,7 +403,7 @@ class RunWriter:
         self._buffer[group].append(arrays)
         self._buffered_rows += n
         if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
-            self._flush_buffers()
+            self._hand_over(flush_file=False)
 
     def append_step(
         self,
@@ -394,7 +416,10 @@ class RunWriter:
         chamber_setpoint: float,
         status: str,
     ) -> None:
-        """Append one /steps row and flush everything: a "completed" row is a checkpoint for --resume."""
+        """Append one /steps row: a "completed" row is a checkpoint for --resume, written (and the file flushed)
+        right after every sample appended before it. The writer thread writes it (`drain` waits); in the twins'
+        layout it goes with the chunk that holds the step's last sample (at most one chunk of simulated time
+        later, or at `close`), never before its data."""
         self._check_open()
         kb, sb = kind.encode("utf-8"), status.encode("utf-8")
         if not kb or len(kb) > KIND_BYTES:
@@ -403,8 +428,7 @@ class RunWriter:
             raise StorageError(f"{self.path}: step status must be 1..{STATUS_BYTES} bytes, got {status!r}")
         if index < 0:
             raise StorageError(f"{self.path}: step index must be >= 0, got {index}")
-        self._flush_buffers()
-        row = {
+        row: dict[str, Any] = {
             "index": int(index),
             "kind": kb,
             "t_start": float(t_start),
@@ -413,15 +437,12 @@ class RunWriter:
             "chamber_setpoint": float(chamber_setpoint),
             "status": sb,
         }
-        steps = self._h5["steps"]
-        n = steps["index"].shape[0]
-        for c, v in row.items():
-            steps[c].resize((n + 1,))
-            steps[c][n] = v
+        need = {g: self._handed[g] + sum(b["time"].shape[0] for b in self._buffer[g]) for g in self._whole_chunk_rows}
+        self._pending_steps.append((row, need))
         if status == "completed":
             self._completed.add(int(index))
-            self._h5.attrs["completed_steps"] = len(self._completed)
-        self._flush_file()
+        self._hand_over(flush_file=True)
+        self._last_flush = self._clock()
 
     # ---- queries --------------------------------------------------------------------------------------------
 
@@ -470,13 +491,22 @@ class RunWriter:
     # ---- flushing and status --------------------------------------------------------------------------------
 
     def maybe_flush(self) -> None:
-        """Write the buffers and flush the file if `flush_interval_s` of wall time passed since the last flush."""
+        """If `flush_interval_s` of wall time passed since the last flush: hand the buffers to the writer thread,
+        which writes them and then flushes the file (asynchronous: `drain` waits for it)."""
         self._check_open()
         if self._clock() - self._last_flush >= self.flush_interval_s:
-            self.flush()
+            self._hand_over(flush_file=True)
+            self._last_flush = self._clock()
+
+    def drain(self) -> None:
+        """Wait until the writer thread has written (and, if asked, flushed) every row handed to it."""
+        self._check_open()
+        self._drain()
 
     def flush(self) -> None:
-        """Write every buffered row and flush the file to disk (SWMR readers see it from now on)."""
+        """Write every buffered row (and every waiting /steps row) and flush the file to disk (SWMR readers see it
+        from now on); returns once done. In the twins' layout this writes a partial chunk that a later write
+        rewrites (a dead copy, docs/hdf5.md): the campaign leaves its flushes to `maybe_flush` and `append_step`."""
         self._check_open()
         self._flush_buffers()
         self._flush_file()
@@ -512,6 +542,7 @@ class RunWriter:
             self._flush_buffers()
         finally:
             self._closed = True
+            self._bg.close()
             self._h5.close()
 
     @property
@@ -540,15 +571,68 @@ class RunWriter:
         if self._closed:
             raise StorageError(f"{self.path}: the run file is closed")
 
-    def _flush_buffers(self) -> None:
-        self._buffered_rows = 0
+    def _flush_buffers(self, *, complete: bool = True) -> None:
+        """Every buffered row (`complete`; else: up to the last whole chunk in the twins' layout) and every /steps
+        row whose data are in written to HDF5 (not flushed) when this returns."""
+        self._hand_over(flush_file=False, complete=complete)
+        self._drain()
+
+    def _drain(self) -> None:
+        try:
+            self._bg.drain()
+        except Exception as exc:
+            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
+
+    def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
+        """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
+        whose data are all in, then flushes the file if asked (or if it wrote a step row). In the twins' layout
+        /lockin and /truth are handed over up to their last whole chunk unless `complete`. The rows of a group
+        are joined here, so the job owns its arrays (nothing ever writes into them)."""
+        batch: list[tuple[h5py.Dataset, np.ndarray]] = []
+        kept = 0
         for g, blocks in self._buffer.items():
             if not blocks:
                 continue
-            for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
-                data = blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks])
-                _append_rows(ds, np.ascontiguousarray(data))
+            cols = {
+                c: blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks]) for c, _ in self._ds[g]
+            }
+            n = cols["time"].shape[0]
+            chunk = self._whole_chunk_rows.get(g, 0)
+            keep = 0 if complete or not chunk else (self._handed[g] + n) % chunk
             blocks.clear()
+            if keep:
+                blocks.append({c: v[n - keep :] for c, v in cols.items()})
+                kept += keep
+            if n > keep:
+                for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
+                    batch.append((ds, np.ascontiguousarray(cols[c][: n - keep])))
+                self._handed[g] += n - keep
+        self._buffered_rows = kept
+        rows: list[dict[str, Any]] = []
+        while self._pending_steps and all(self._handed[g] >= k for g, k in self._pending_steps[0][1].items()):
+            rows.append(self._pending_steps.pop(0)[0])  # in order: a row never overtakes an earlier one
+        self._completed_in_file |= {int(r["index"]) for r in rows if r["status"] == b"completed"}
+        if not batch and not rows and not flush_file:
+            return
+        h5, completed = self._h5, len(self._completed_in_file)
+
+        def write() -> None:
+            for ds, data in batch:
+                _append_rows(ds, data)
+            if rows:
+                steps = h5["steps"]
+                n = steps["index"].shape[0]
+                for c, dtype in STEPS_DTYPES.items():
+                    steps[c].resize((n + len(rows),))
+                    steps[c][n:] = np.array([r[c] for r in rows], dtype=dtype)
+                h5.attrs["completed_steps"] = completed
+            if flush_file or rows:
+                h5.flush()
+
+        try:
+            self._bg.submit(write)
+        except Exception as exc:
+            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
 
     def _flush_file(self) -> None:
         self._h5.flush()
@@ -564,3 +648,10 @@ def _append_rows(ds: h5py.Dataset, data: np.ndarray) -> None:
     fspace = dsid.get_space()
     fspace.select_hyperslab((n,), (m,))
     dsid.write(h5s.create_simple((m,)), fspace, data)
+
+
+def _filter(filt: dict[str, Any], col: str) -> dict[str, Any]:
+    """The dataset filter arguments of column `col`: gzip at its own level (GZIP_LEVELS), other filters as given."""
+    if filt.get("compression") == "gzip":
+        return {**filt, "compression_opts": GZIP_LEVELS.get(col, GZIP_LEVEL)}
+    return filt

@@ -514,7 +514,8 @@ class HF2DataServerTwin:
                 "auxin0": aux[0],
                 "auxin1": aux[1],
             }
-            sample = {k: v[keep] for k, v in sample.items()}
+            if dropped:
+                sample = {k: v[keep] for k, v in sample.items()}
             out[path] = sample
             self._last_sample[path] = {k: v[-1:].copy() for k, v in sample.items()}
         self._reflect(plan, blk, locked, sense, drive, aux, dropped)

@@ -78,8 +78,10 @@ def test_second_ctrl_c_cannot_cut_a_write_half_way(tmp_path):
 
 
 def test_cli_exits_130_on_sigint(tmp_path):
-    cfg = tmp_path / "long.toml"
-    cfg.write_text(long_config())
+    # a plan of a simulated day (4300 pairs of 10 s steps): however slowly this process is scheduled beside a
+    # loaded machine, the run cannot end before the SIGINT below reaches it (no race on wall-clock time)
+    cfg = tmp_path / "endless.toml"
+    cfg.write_text(long_config().replace("chamber_end_hold_s = 300.0", "chamber_end_hold_s = 86400.0"))
     path = tmp_path / "run.h5"
     proc = subprocess.Popen(
         qmg("run", str(cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True

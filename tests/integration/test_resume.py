@@ -63,7 +63,9 @@ def test_kill_9_then_resume_matches_an_uninterrupted_run(tmp_path):
         text=True,
         cwd=tmp_path,
     )
-    seen = wait_for_steps(proc, path, 12)
+    # killed after the 4th step: 34 steps (more than 300 s simulated) remain, so even a parent process starved
+    # by a loaded machine kills it before it could finish
+    seen = wait_for_steps(proc, path, 4)
     os.kill(proc.pid, signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL
 

@@ -111,9 +111,10 @@ def test_every_contract_item_present_with_units(tmp_path: Path) -> None:
 
 
 def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
+    """The hardware layout (realtime): every flush writes every buffered row."""
     p = tmp_path / "run.h5"
     now = [0.0]
-    w = new_writer(p, clock=lambda: now[0], flush_interval_s=1.0)
+    w = new_writer(p, clock=lambda: now[0], flush_interval_s=1.0, realtime=True)
     w.append("lockin", **lockin_block(0))
     w.append(
         "clsf",
@@ -128,15 +129,19 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
     assert w._h5["lockin/time"].shape == (0,)  # buffered: nothing written before the interval
     now[0] = 0.999
     w.maybe_flush()
+    w.drain()  # whatever maybe_flush handed to the writer thread is written now: nothing, before the interval
     assert w._h5["lockin/time"].shape == (0,)
     now[0] = 1.0
-    w.maybe_flush()
+    w.maybe_flush()  # asynchronous: the writer thread writes and flushes the rows
+    w.drain()
     assert w._h5["lockin/time"].shape == (700,)
     w.append("lockin", **lockin_block(1))
     w.append_step(
         index=0, kind="rate", t_start=0.0, t_end=1.0, table_rate=5.0, chamber_setpoint=25.0, status="completed"
     )
+    w.drain()
     assert w._h5["lockin/time"].shape == (1400,)  # a step row is a checkpoint: everything before it is written
+    assert w._h5["steps/index"].shape == (1,)
     w.set_status("completed")
     w.close()
     run = read_run(p)
@@ -152,21 +157,64 @@ def test_roundtrip_buffers_until_flush(tmp_path: Path) -> None:
     assert set(sub.groups) == {"lockin"} and set(sub.groups["lockin"]) == {"time", "rate_output"}
 
 
+def test_twins_layout_writes_whole_chunks_and_steps_after_their_data(tmp_path: Path) -> None:
+    """The twins' layout: maybe_flush and append_step hand /lockin and /truth over in whole chunks only (no dead
+    partial compressed chunk is left behind), a /steps row only once every sample appended before it is in; flush
+    and close write the rest."""
+    p = tmp_path / "run.h5"
+    now = [0.0]
+    w = new_writer(p, truth=False, clock=lambda: now[0])
+    chunk = w._h5["lockin/time"].chunks[0]
+    per_chunk = chunk // 700  # whole 700-row blocks per chunk
+    for k in range(per_chunk):
+        w.append("lockin", **lockin_block(k))
+    w.append_step(
+        index=0, kind="rate", t_start=0.0, t_end=1.0, table_rate=5.0, chamber_setpoint=25.0, status="completed"
+    )
+    w.drain()
+    assert w._h5["lockin/time"].shape == (0,)  # 700 * per_chunk < chunk rows: nothing whole to write yet
+    assert w._h5["steps/index"].shape == (0,)  # the step's data are not in: neither is its row
+    assert w.completed_steps() == {0}  # the campaign knows it is done
+    w.append("lockin", **lockin_block(per_chunk))  # crosses the first chunk boundary
+    now[0] = 2.0
+    w.maybe_flush()
+    w.drain()
+    assert w._h5["lockin/time"].shape == (chunk,)
+    assert w._h5["steps/index"].shape == (1,) and w._h5.attrs["completed_steps"] == 1
+    n = 700 * (per_chunk + 1)
+    w.flush()  # everything, the partial chunk included
+    assert w._h5["lockin/time"].shape == (n,)
+    w.close()
+    run = read_run(p)
+    np.testing.assert_array_equal(run.groups["lockin"]["time"], np.arange(n) / FS)
+    np.testing.assert_array_equal(run.groups["lockin"]["x_sense"], 1e-3 * np.sin(np.arange(n) / FS))
+    assert list(run.steps["index"]) == [0]
+
+
 @pytest.mark.parametrize("compression", ["none", "gzip", "lzf"])
 def test_compression_choices(tmp_path: Path, compression: str) -> None:
     p = tmp_path / f"{compression}.h5"
     w = new_writer(p, compression=compression)
     w.append("lockin", **lockin_block(0))
     w.close()
-    with h5py.File(p, "r") as f:
-        for col in ("time", "drive_frequency", "dither"):  # columns that compress
-            assert f[f"lockin/{col}"].compression == (None if compression == "none" else compression)
-            assert f[f"lockin/{col}"].shuffle == (compression != "none")
-        for col in ("x_sense", "y_sense", "rate_output", "drive_amplitude"):  # noise: stored plain
-            assert f[f"lockin/{col}"].compression is None
-        assert all(f[f"truth/{c}"].compression == (None if compression == "none" else compression) for c in f["truth"])
-    for col, values in lockin_block(0).items():
-        np.testing.assert_array_equal(read_run(p).groups["lockin"][col], values)
+    rt = tmp_path / f"{compression}-realtime.h5"
+    w = new_writer(rt, compression=compression, realtime=True)
+    w.append("lockin", **lockin_block(0))
+    w.close()
+    expected = None if compression == "none" else compression
+    with h5py.File(p, "r") as f, h5py.File(rt, "r") as g:
+        # twins: chunks are written whole, so every fast column is compressed
+        assert all(f[f"lockin/{c}"].compression == expected for c in f["lockin"])
+        assert all(f[f"lockin/{c}"].shuffle == (compression != "none") for c in f["lockin"])
+        assert all(f[f"truth/{c}"].compression == expected for c in f["truth"])
+        # real time: the noise-dominated columns are stored plain (their partial chunks would leave dead copies)
+        for col in ("time", "drive_frequency", "dither"):
+            assert g[f"lockin/{col}"].compression == expected
+        for col in ("x_sense", "y_sense", "rate_output", "drive_amplitude"):
+            assert g[f"lockin/{col}"].compression is None
+    for path in (p, rt):
+        for col, values in lockin_block(0).items():
+            np.testing.assert_array_equal(read_run(path).groups["lockin"][col], values)
 
 
 def test_bad_appends_and_arguments_are_named(tmp_path: Path) -> None:
@@ -268,7 +316,7 @@ CHILD = textwrap.dedent("""
     path, mode = sys.argv[1], sys.argv[2]
     now = [0.0]
     w = RunWriter.create(path, config_text={config!r}, config_sha256={sha!r}, mode="sim", software_version="t",
-                         t0_unix=1.7e9, truth=False, compression="lzf",
+                         t0_unix=1.7e9, truth=False, compression="lzf", realtime=True,
                          flush_interval_s=1.0 if mode == "driven" else 0.02,
                          clock=(lambda: now[0]) if mode == "driven" else __import__("time").monotonic)
     def block(k, n=700):
@@ -283,10 +331,11 @@ CHILD = textwrap.dedent("""
             if cmd[0] == "append":
                 w.append("lockin", **block(k)); k += 1
             elif cmd[0] == "tick":
-                now[0] += 1.0; w.maybe_flush()
+                now[0] += 1.0; w.maybe_flush(); w.drain()  # "ok" once the writer thread's flush is done
             elif cmd[0] == "step":
                 w.append_step(index=int(cmd[1]), kind="rate", t_start=0, t_end=k * 0.5, table_rate=5,
                               chamber_setpoint=25, status=cmd[2])
+                w.drain()
             elif cmd[0] == "close":
                 w.set_status("completed"); w.close()
             print("ok", flush=True)

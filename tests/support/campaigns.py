@@ -2,8 +2,9 @@
 twins, with the test holding the World so it can look at the physical state afterwards.
 
 The short plan (qmg_lab.plan.build_plan of SHORT_TOML): lock 2 s, dither 21/7 + 2 = 5 s, soak 20 s, 4 pairs of
-10 s table steps at +-5 deg/s, return 2.0167 s (5/300 + 2): 12 steps, 109.0167 s. The twins' blocks are 2 s long
-(lockin.sim_poll_interval_s), so block edges fall at 0, 2, 4, 6, 7, 9, ..., 27, 29, ... (odd seconds from 7 s on).
+10 s table steps at +-5 deg/s, return 2.0167 s (5/300 + 2): 12 steps, 109.0167 s. The twins' blocks are pinned at
+2 s (lockin.sim_poll_interval_s = 2.0, the default, pinned here), so block edges fall at 0, 2, 4, 6, 7, 9, ..., 27, 29,
+... (odd seconds from 7 s on): the fault tests' arithmetic needs several blocks per 10 s step.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ sim = true
 safe_setpoint_c = {SAFE_SETPOINT_C}
 [lockin]
 sim = true
+sim_poll_interval_s = 2.0
 [generator]
 sim = true
 [table]
