@@ -2,7 +2,7 @@
 
 Every case is the paper campaign (configs/paper_campaign.toml) on the twins, as a user runs it
 (`python -m qmg_lab run ... --sim` then `analyze --json`), with every deterministic accuracy source switched
-off (qmg_lab.sweep_budget.DETERMINISTIC_OFF: pickoff-ratio drift, mode split, Q and damping drift, forcer
+off (qmg_lab.budget.sweep.DETERMINISTIC_OFF: pickoff-ratio drift, mode split, Q and damping drift, forcer
 cubic, feedthrough, table ripple; docs/accuracy-budget.md), so that the CLSF estimate must follow the scale
 factor the table steps measure. Each case changes:
 
@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines  # noqa: E402 - after the path set-up
+from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines  # noqa: E402 - after the path set-up
 
 RATES = [(900.0, "hf2"), (1800.0, "hf2"), (3600.0, "hf2"), (1234.5, "ticks"), (2500.0, "ticks")]
 DITHERS = [5.3, 7.0, 8.6, 9.7]
@@ -72,8 +72,8 @@ def case_config(rate_hz: float, rate_set: str, dither_hz: float, offset_ppm: flo
 
 
 def clsf_vs_truth_rms_ppm(h5: Path) -> float:
-    """RMS over step pairs 1..n-1 of (CLSF change - true change), both referred to pair 0 (qmg_lab.analysis)."""
-    from qmg_lab.analysis import analyze
+    """RMS over step pairs 1..n-1 of (CLSF change - true change), both referred to pair 0 (qmg_lab.analysis.compute)."""
+    from qmg_lab.analysis.compute import analyze
 
     pairs = analyze(h5).pairs
     d = [p.clsf_change_ppm - p.truth_change_ppm for p in pairs[1:]]

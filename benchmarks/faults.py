@@ -3,7 +3,7 @@ with uninterrupted runs of the same seed.
 
     python benchmarks/faults.py --json [--campaigns 60] [--kills 56] [--seed 1]
 
-Part 1 (in-process, qmg_lab.campaign on the twins): each campaign gets a random [sim.faults] drawn from --seed
+Part 1 (in-process, qmg_lab.campaign.runner on the twins): each campaign gets a random [sim.faults] drawn from --seed
 (per-reply serial/VISA timeouts and garbles, a link drop of the table, chamber or generator lasting 1-45 s,
 sometimes an interlock trip, a chamber overshoot, a sensor dropout, HF2 sample loss, a PLL unlock). A fault
 ends "recovered" when its campaign completes, else the campaign must have aborted with the station safe
@@ -57,11 +57,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from qmg_lab.campaign import CampaignRunner  # noqa: E402
-from qmg_lab.config import config_fingerprint, parse_config  # noqa: E402
-from qmg_lab.plan import build_plan  # noqa: E402
+from qmg_lab.campaign.plan import build_plan  # noqa: E402
+from qmg_lab.campaign.runner import CampaignRunner  # noqa: E402
+from qmg_lab.config.schema import config_fingerprint, parse_config  # noqa: E402
 from qmg_lab.station import build_station, make_world  # noqa: E402
-from qmg_lab.storage import RunWriter, read_run  # noqa: E402
+from qmg_lab.storage.writer import RunWriter, read_run  # noqa: E402
 
 SAFE_C = 20.0
 BASE = f"""
@@ -335,7 +335,7 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
             bad.append(f"/{grp} has a gap longer than one block")
     if te.max() > tl[-1]:
         bad.append("a step ends after the data")
-    from qmg_lab.analysis import analyze
+    from qmg_lab.analysis.compute import analyze
 
     a, b = analyze(path), analyze(ref)
     if a.truth_check_rms_ppm is None or b.truth_check_rms_ppm is None:

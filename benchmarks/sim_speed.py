@@ -36,8 +36,8 @@ DT = 1.0 / 1800.0
 
 
 def _loops():
-    from qmg_lab.config import Config
-    from qmg_lab.loops import lockin_setup
+    from qmg_lab.campaign.loops import lockin_setup
+    from qmg_lab.config.schema import Config
     from sims.gyro import LoopSettings, PidSettings, PllSettings
 
     su = lockin_setup(Config())

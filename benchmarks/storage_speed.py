@@ -28,7 +28,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from qmg_lab.storage import RunWriter
+from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0
 

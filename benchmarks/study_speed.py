@@ -1,7 +1,7 @@
 """Design-study throughput on Dask, and the per-task real-time factor at the study storage level.
 
 1. Per task: the paper campaign (configs/paper_campaign.toml, 55 simulated minutes) run as a study task runs it
-   (`qmg_lab.study_task.run_campaign`: twins, the run file, then `analyze`), in this process after a short warm-up
+   (`qmg_lab.study.task.run_campaign`: twins, the run file, then `analyze`), in this process after a short warm-up
    campaign (numba's compiled kernels loaded), `--runs` times at the study storage level and once at the full
    level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis; also with the
    twin's blocks 10 s long instead of 2 s ([lockin] sim_poll_interval_s, as the shipped studies set it), and the
@@ -50,7 +50,7 @@ WARM_UP = {"chamber_end_c": 25.5, "chamber_soak_s": 10.0, "chamber_end_hold_s": 
 
 def timed_campaign(text: str) -> tuple[float, float, float]:
     """(simulated s, wall s, file MB) of one campaign and its analysis, as a study task runs it."""
-    from qmg_lab.study_task import run_campaign
+    from qmg_lab.study.task import run_campaign
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

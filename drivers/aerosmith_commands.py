@@ -1,7 +1,7 @@
 """The Ideal Aerosmith 1291BR remote command table, kept as data.
 
 The 1291BR manual is not public. Everything below follows the 3-letter mnemonic set that independent open-source
-drivers for Ideal Aerosmith tables use (shared/reference/instruments.md) plus the assumptions written in each
+drivers for Ideal Aerosmith tables use (docs/instruments.md) plus the assumptions written in each
 entry's `assumption` and in docs/instruments.md. To correct the protocol from the real manual, edit this module
 only: the driver (drivers/aerosmith.py) takes mnemonics, number formats, reply parsers and status bits from here.
 

@@ -1,6 +1,6 @@
 """SRS DS345 function generator over a VISA message-based resource (the CLSF dither source).
 
-Protocol (reference/instruments.md, DS345 section): 4-letter mnemonics, an optional `?`, arguments; every
+Protocol (docs/instruments.md, DS345 section): 4-letter mnemonics, an optional `?`, arguments; every
 message ends with LF. The driver sends one setting per message and follows every setting with `*ESR?`:
 
     set_square(7, 0.6)  ->  "FUNC 1\\n" "*ESR?\\n" "FREQ 7\\n" "*ESR?\\n"

@@ -1,6 +1,6 @@
 """HF2LI node settings for the gyroscope loops: pure functions from a LockInSetup and the bench wiring to the
 list of (relative node path, value) pairs the driver sends in one transaction, and the limit checks that run
-before anything is sent. Node semantics: reference/hf2li.md; the cabling: docs/wiring.md.
+before anything is sent. Node semantics: docs/wiring.md; the cabling: docs/wiring.md.
 
 Channel assignment (fixed here, documented in docs/wiring.md):
 * demod 0 = drive (input drive_sigin), demod 1 = sense (input sense_sigin), both on the PLL 0 oscillator,
@@ -37,7 +37,7 @@ N_MIXER_CHANNELS = 8
 
 
 class LockInWiring(Protocol):
-    """The cabling fields of qmg_lab.config.LockInSection (or any object with them), read-only."""
+    """The cabling fields of qmg_lab.config.schema.LockInSection (or any object with them), read-only."""
 
     @property
     def drive_sigin(self) -> int: ...

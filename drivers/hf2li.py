@@ -4,7 +4,7 @@ Transport: a ``zhinst.toolkit.Session`` to an HF2 data server (API level 1, port
 ``Session(host, port, hf2=True)``, the twin with ``Session(host, hf2=True, connection=twin)``. The same code runs
 on both. Node settings and channel assignment: drivers/hf2_nodes.py and docs/wiring.md.
 
-Stream protocol (reference/hf2li.md): ``session.sync()``, subscribe ``demods/0/sample`` and ``demods/1/sample``,
+Stream protocol (docs/wiring.md): ``session.sync()``, subscribe ``demods/0/sample`` and ``demods/1/sample``,
 then ``session.poll(duration)`` returns every sample since the last poll. The two demods' samples are merged on
 equal timestamps; t = (timestamp - t0_ticks) / clockbase with t0_ticks the first timestamp of the stream.
 Lost samples = sum over timestamp gaps of (gap / ticks_per_sample - 1), ticks_per_sample = clockbase / rate
@@ -56,7 +56,7 @@ class HF2LI(LockIn):
 
     ``HF2LI(session_or_host, device_id, wiring, output_safe_v=0.0, port=8005)``: pass a toolkit Session
     (already constructed; the device is connected here) or a host name (a Session is created, hf2=True).
-    ``wiring`` is qmg_lab.config.LockInSection or any object with its cabling fields.
+    ``wiring`` is qmg_lab.config.schema.LockInSection or any object with its cabling fields.
     """
 
     def __init__(

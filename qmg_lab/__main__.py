@@ -1,5 +1,5 @@
 """`python -m qmg_lab` runs the command line."""
 
-from qmg_lab.cli import main
+from qmg_lab.cli.main import main
 
 main()

@@ -57,7 +57,7 @@ class PidGains:
 
 @dataclass(frozen=True)
 class LockInSetup:
-    """Everything the lock-in driver configures before a run (see qmg_lab/loops.py for the gain design).
+    """Everything the lock-in driver configures before a run (see qmg_lab/campaign/loops.py for the gain design).
 
     pll: PLL 0 on the drive demod, p in Hz/deg, i in Hz^2/deg, center = f0.
     agc: PID on R of the drive demod (Vrms) -> drive output amplitude (V).

@@ -10,6 +10,9 @@ seconds). When only the table, chamber or generator are twins (bring-up one inst
 follows the wall clock. A mixed bench with the lock-in twin and at least one real instrument runs in real
 time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), so that a 60 s dwell lasts
 60 s on the real table too.
+
+Why one module of this length: it is the only module that imports drivers and sims (an import-linter
+contract); building each instrument, real or twin, over each transport has to happen here and nowhere else.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from drivers.chamber import SunEC1xChamber
 from drivers.ds345 import DS345
 from drivers.hf2li import HF2LI
 from drivers.serial_link import Framing
-from qmg_lab.config import Config
+from qmg_lab.config.schema import Config
 from qmg_lab.instruments import (
     FunctionGenerator,
     Instrument,

@@ -1,6 +1,6 @@
 """Carrier-level reference model of the QMG twin (cross-check only; campaigns use the averaged GyroSim).
 
-The second-order plant q'' + D q' + K q + 2 k Omega J q' = f (reference/physics.md section 2) is stepped at
+The second-order plant q'' + D q' + K q + 2 k Omega J q' = f (docs/physics.md sections 1-3) is stepped at
 `samples_per_cycle` >= 32 samples per f0 cycle with the exact 4x4 zero-order-hold step (sims/gyro_kernel.py
 carrier_kernel); the drive and forcer commands are modulated onto the carrier with the PLL phase (mid-sample
 phase, sinc-compensated DAC), the pickoffs are demodulated with a one-cycle boxcar I/Q demodulator, and the same

@@ -1,6 +1,6 @@
 """Message-level twin of the SRS DS345 function generator, writing its output into the shared World.
 
-The twin parses what the real unit parses (reference/instruments.md, DS345 section): messages end with LF (a
+The twin parses what the real unit parses (docs/instruments.md, DS345 section): messages end with LF (a
 CR before it is ignored), several commands per message separated by ';', each a 4-letter mnemonic (or a
 '*' common command), an optional '?', then an argument. Mnemonics are case-insensitive.
 

@@ -2,15 +2,15 @@
 
 `GyroSim(params, dt_s, seed).run(inputs, loops)` advances the gyroscope by one block of steps of dt_s under the
 loops the HF2 twin closes, and returns what the lock-in's demodulators and PIDs would report at the end of each
-step (`GyroBlock`). The equations (reference/physics.md section 2; docs/simulation.md) and their exact
+step (`GyroBlock`). The equations (docs/physics.md sections 1-3; docs/simulation.md) and their exact
 zero-order-hold discretization are in sims/gyro_kernel.py; the noise model in sims/noise.py; the parameter and
 settings types in sims/gyro_params.py; the carrier-level cross-check model in sims/carrier.py.
 
-Electrical model (qmg_lab/loops.py conventions): pickoff gains G_px = 1, G_py(T) = 1 + alpha_p (T - T_ref) V per
-displacement unit; drive demod X_d + iY_d = (c_x - i s_x)/sqrt(2); sense demod X_s + iY_s = G_py (c_y - i s_y)/sqrt(2);
-AGC (input R_d) -> V_d, F_xs = -K_dx V_d; rate PID (input X_s) -> V_r, quadrature PID (input Y_s) -> V_q;
-F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc = +K_f G_f(T) V_q; Omega = table rate + Gauss-Markov bias; ARW as
-white force noise on the sense axis; pickoff noise white on the demod outputs.
+Electrical model (qmg_lab/campaign/loops.py conventions): pickoff gains G_px = 1, G_py(T) = 1 + alpha_p (T - T_ref)
+V per displacement unit; drive demod X_d + iY_d = (c_x - i s_x)/sqrt(2); sense demod
+X_s + iY_s = G_py (c_y - i s_y)/sqrt(2); AGC (input R_d) -> V_d, F_xs = -K_dx V_d; rate PID (input X_s) -> V_r,
+quadrature PID (input Y_s) -> V_q; F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc = +K_f G_f(T) V_q; Omega = table rate
++ Gauss-Markov bias; ARW as white force noise on the sense axis; pickoff noise white on the demod outputs.
 
 Memory: a block allocates only its own outputs (and noise in chunks of CHUNK_STEPS); between blocks only the
 state vector (about 80 numbers) is kept.

@@ -1,7 +1,7 @@
 """Compiled (numba) step kernels of the QMG twin: the averaged slow-variable model and the carrier-level model,
 sharing one lock-in controller step (demod low-pass, PLL, AGC, rate and quadrature PIDs).
 
-Slow-variable plant (reference/physics.md section 2), per axis Z = C + iS, reference phase rate omega_r (PLL):
+Slow-variable plant (docs/physics.md sections 1-3), per axis Z = C + iS, reference phase rate omega_r (PLL):
 
     dZ/dt = -M Z + u,   M = Gamma + i Xi + k Omega J,   u = (-F_s + i F_c) / (2 omega_r)
     Gamma = (1/tau) I + (Delta(1/tau)/2) [[cos 2t_t, sin 2t_t], [sin 2t_t, -cos 2t_t]]

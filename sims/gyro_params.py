@@ -1,7 +1,7 @@
 """Parameters, loop settings and output block of the QMG physics twin (the GyroSim contract types).
 
-Units are in the names. Defaults are the paper's QMG (reference/paper-trusov-2013.md, reference/physics.md
-section 1); the names mirror qmg_lab/config.py SimSection so a config section can be passed to
+Units are in the names. Defaults are the paper's QMG (Trusov et al., 2013, docs/physics.md
+section 1); the names mirror qmg_lab/config/schema.py SimSection so a config section can be passed to
 `GyroParams.from_mapping`.
 
 Derived constants (`Derived`), with omega0 = 2 pi f0, tau = 2Q/omega (amplitude decay time of the slow

@@ -5,7 +5,7 @@ cabling of the bench (``HF2Wiring``) and the settings together close the loop. A
 open in the physics (its output sits at the value the output node holds by itself), so a wrong setting shows up
 as a wrong bandwidth or no lock, as on the bench.
 
-Rules (HF2 node semantics from the nodedoc and reference/hf2li.md; the twin's reading of them):
+Rules (HF2 node semantics from the nodedoc and docs/wiring.md; the twin's reading of them):
 
 * Reference oscillator. PLL 0 is closed if ``plls/0/enable`` = 1, ``plls/0/adcselect`` = drive_sigin and
   ``plls/0/harmonic`` = 1; it then owns oscillator ``plls/0/oscselect`` and its frequency follows the PLL
@@ -46,7 +46,7 @@ class NodeReader(Protocol):
 
 @dataclass
 class HF2Wiring:
-    """The cables of the bench (docs/wiring.md); mirrors qmg_lab/config.py LockInSection fields.
+    """The cables of the bench (docs/wiring.md); mirrors qmg_lab/config/schema.py LockInSection fields.
 
     forcer_mixer_channel: the mixer channel of forcer_sigout that carries the forcer carrier (twin addition).
     """

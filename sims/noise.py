@@ -1,6 +1,6 @@
 """Noise sources of the QMG twin: the bias-instability (flicker) model and the per-step random draws.
 
-Bias instability (reference/physics.md section 4): a sum of first-order Gauss-Markov rates with correlation
+Bias instability (docs/noise-budget.md): a sum of first-order Gauss-Markov rates with correlation
 times T_j = 10^(j/3) s, j = 0..15 (1 s ... 1e5 s, 3 per decade), each of variance
 
     sigma_j^2 = B^2 / (pi n_e),   n_e = 3 / ln 10   (processes per e-fold of T)

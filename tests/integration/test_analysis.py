@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qmg_lab.analysis import analyze
-from qmg_lab.analysis_render import render_table
+from qmg_lab.analysis.compute import analyze
+from qmg_lab.analysis.render import render_table
 from tests.support.synthetic_runs import (
     ALPHA,
     BETA,
@@ -165,7 +165,7 @@ def test_adev_of_white_clsf_and_rate_noise(tmp_path: Path) -> None:
 def test_bias_instability_is_read_at_the_floor_when_the_curve_turns_up() -> None:
     """White rate noise sigma_w plus a rate random walk K: sigma(tau)^2 = sigma_w^2/tau + K^2 tau/3, a minimum
     at tau* = sqrt(3) sigma_w / K inside the record; B = sigma_min / 0.664 is read there."""
-    from qmg_lab.adev import bias_instability_deg_per_h, overlapping_adev
+    from qmg_lab.analysis.adev import bias_instability_deg_per_h, overlapping_adev
 
     rng = np.random.default_rng(11)
     fs, n = 10.0, 200_000  # 20000 s at 10 Hz

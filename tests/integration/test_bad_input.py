@@ -3,7 +3,7 @@ CLI arguments are all answered with exit code 2 and a message that names what is
 accepts), never a traceback.
 
 Property tests run the CLI in-process (typer.testing.CliRunner) over values drawn from the configuration schema
-itself (qmg_lab.config); a few subprocess runs check the real exit codes.
+itself (qmg_lab.config.schema); a few subprocess runs check the real exit codes.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from hypothesis import strategies as st
 from pydantic import BaseModel
 from typer.testing import CliRunner
 
-from qmg_lab.cli import app
-from qmg_lab.config import Config
+from qmg_lab.cli.main import app
+from qmg_lab.config.schema import Config
 
 RUNNER = CliRunner()
 PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

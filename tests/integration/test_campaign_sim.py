@@ -1,7 +1,7 @@
 """Whole simulated campaigns through the real CLI, checked against the physics and the file contract.
 
 Each campaign runs once per module in a subprocess (`python -m qmg_lab run ... --sim`), exactly as a user runs it.
-Expected numbers are computed here, independently of qmg_lab.analysis, from the raw datasets of the contract:
+Expected numbers are computed here, independently of qmg_lab.analysis.compute, from the raw datasets of the contract:
 true SF from each +-5 deg/s pair, SF = (mean O+ - mean O-)/(Omega+ - Omega-) (IEEE 1431), and the twin's /truth.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.integrate import trapezoid
 
-from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines
+from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "configs" / "paper_campaign.toml"
@@ -172,8 +172,8 @@ def clsf_pair_noise() -> float:
     """The CLSF estimate's noise over one pair's two windows, from the noise budget (observe mode, white level q
     summed over the sources, docs/noise-budget.md): q / sqrt(T), T = 2 (dwell - settle); relative to the first
     pair, whose own error enters every difference, sqrt(2) times that."""
-    from qmg_lab.budget import noise_budget
-    from qmg_lab.config import load_config
+    from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.config.schema import load_config
 
     cfg, _ = load_config(PAPER)
     q = math.sqrt(sum(src.white_ppm_rt_s**2 for src in noise_budget(cfg, sim_blocks=True).sources)) * 1e-6
@@ -201,12 +201,12 @@ def test_table_step_sf_agrees_with_truth_within_50_ppm(zero_residual_run: Path) 
 
 def test_paper_campaign_accuracy_is_the_budgets(paper_run: Path) -> None:
     """The shipped campaign's CLSF accuracy, computed here from the raw datasets (CLSF change minus the table-step
-    SF change, pair by pair), is what qmg_lab.sweep_budget predicts from the configuration: within 15 % of the
+    SF change, pair by pair), is what qmg_lab.budget.sweep predicts from the configuration: within 15 % of the
     prediction plus 10 ppm (the budget's model error, tests/integration/test_sweep_budget.py, plus the per-pair
     noise of the CLSF and of two 55 s table windows, about 10 ppm). The prediction itself is of the paper's 350 ppm
     order."""
-    from qmg_lab.config import load_config
-    from qmg_lab.sweep_budget import sweep_accuracy
+    from qmg_lab.budget.sweep import sweep_accuracy
+    from qmg_lab.config.schema import load_config
 
     budget = sweep_accuracy(load_config(PAPER)[0])
     p = step_pairs(paper_run)

@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qmg_lab.clsf import ClsfEstimator
-from qmg_lab.config import parse_config
-from qmg_lab.demod_filter import DemodFilter
-from qmg_lab.loops import lockin_setup
-from qmg_lab.plan import dither_amplitude_vpp
+from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.campaign.plan import dither_amplitude_vpp
+from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.estimator import ClsfEstimator
+from qmg_lab.config.schema import parse_config
 from qmg_lab.station import build_station
-from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines
 
 ROOT = Path(__file__).resolve().parents[2]
 GAIN_STEP = 1.01

@@ -1,4 +1,4 @@
-"""Fault injection (sims/faults.py) and what the campaign does about each fault (qmg_lab/campaign.py).
+"""Fault injection (sims/faults.py) and what the campaign does about each fault (qmg_lab/campaign/runner.py).
 
 Twin level: the injected replies have the documented forms and follow the seed; link drops stop commands
 reaching the instrument; timed events act on the World at the block that contains them.
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from qmg_lab.campaign import CampaignAborted
-from qmg_lab.cli import app
-from qmg_lab.config import parse_config
+from qmg_lab.campaign.runner import CampaignAborted
+from qmg_lab.cli.main import app
+from qmg_lab.config.schema import parse_config
 from qmg_lab.station import fault_plan
 from sims.chamber_twin import ChamberTwin
 from sims.ds345_twin import DS345Twin

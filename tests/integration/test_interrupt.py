@@ -16,8 +16,8 @@ from typing import ClassVar
 import h5py
 import pytest
 
-from qmg_lab.campaign import CampaignInterrupted
-from qmg_lab.storage import RunWriter
+from qmg_lab.campaign.runner import CampaignInterrupted
+from qmg_lab.storage.writer import RunWriter
 from tests.support.campaigns import completed_steps, config_text, long_config, qmg, run_inprocess
 
 

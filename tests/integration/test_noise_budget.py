@@ -1,9 +1,9 @@
-"""The CLSF noise budget (qmg_lab/budget.py): its equations against their closed forms, its CLI, and its
+"""The CLSF noise budget (qmg_lab/budget/noise.py): its equations against their closed forms, its CLI, and its
 prediction against the twin's measured Allan deviation, one noise source at a time.
 
 The twin runs are real campaigns (`qmg-lab run --sim`, the HF2/DS345/table twins, the campaign's CLSF estimator
 in correct mode), the Allan deviation of the recorded estimate computed as `qmg-lab analyze` does
-(qmg_lab/adev.py, allantools). Each source is switched on
+(qmg_lab/analysis/adev.py, allantools). Each source is switched on
 alone (every other noise source and quantiser off) at a value that makes it measurable; the budget is linear in
 each value, so that changes nothing in what is checked.
 
@@ -28,9 +28,9 @@ import h5py
 import numpy as np
 import pytest
 
-from qmg_lab.adev import overlapping_adev
-from qmg_lab.budget import loop_adev, noise_budget, rate_loop_sensitivity, white_level_sq
-from qmg_lab.config import parse_config
+from qmg_lab.analysis.adev import overlapping_adev
+from qmg_lab.budget.noise import loop_adev, noise_budget, rate_loop_sensitivity, white_level_sq
+from qmg_lab.config.schema import parse_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ADEV = ROOT / "configs" / "clsf_adev.toml"
@@ -149,7 +149,7 @@ def measured_adev_60s(sim: dict[str, float], seed: int, tmp: Path) -> float:
     cfg.write_text(short_adev_config({**ALL_OFF, **sim}, seed), encoding="utf-8")
     out = tmp / f"r{seed}.h5"
     qmg("run", str(cfg), "--sim", "-o", str(out), "-q")
-    with h5py.File(out, "r") as f:  # what `qmg-lab analyze` reports as adev_at_60s_ppm (qmg_lab/analysis.py)
+    with h5py.File(out, "r") as f:  # what `qmg-lab analyze` reports as adev_at_60s_ppm (qmg_lab/analysis/compute.py)
         t, est = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
     return overlapping_adev(est, 1.0 / float(np.median(np.diff(t)))).at(60.0) * 1e6
 

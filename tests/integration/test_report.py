@@ -6,7 +6,7 @@ from pathlib import Path
 
 import matplotlib.image as mpimg
 
-from qmg_lab.report import make_figures, write_figures
+from qmg_lab.analysis.report import make_figures, write_figures
 from tests.support.synthetic_runs import write_sweep
 
 

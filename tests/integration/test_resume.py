@@ -25,9 +25,9 @@ import h5py
 import numpy as np
 import pytest
 
-from qmg_lab.config import config_fingerprint, parse_config
-from qmg_lab.plan import build_plan
-from qmg_lab.storage import RunWriter, read_run
+from qmg_lab.campaign.plan import build_plan
+from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.storage.writer import RunWriter, read_run
 from tests.support.campaigns import completed_steps, config_text, long_config, qmg, run_inprocess
 
 

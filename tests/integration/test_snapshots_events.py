@@ -12,7 +12,7 @@ from pathlib import Path
 
 import h5py
 
-from qmg_lab.runfile_records import read_events, read_snapshots
+from qmg_lab.storage.records import read_events, read_snapshots
 from tests.support.campaigns import config_text, run_inprocess
 
 NAMES = {"lockin", "generator", "table", "chamber"}

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from zhinst.toolkit import Session
 
-from qmg_lab.config import parse_config
+from qmg_lab.config.schema import parse_config
 from qmg_lab.station import SIM_DEVICE_ID, build_station, connect_instrument, gyro_params, hf2_wiring, lockin_driver
 from sims.chamber_twin import ChamberTwin
 from sims.hf2_server import HF2DataServerTwin

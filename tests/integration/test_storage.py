@@ -1,4 +1,4 @@
-"""The qmg-lab/1 run file: layout and units (DESIGN.md section 5), appends, SWMR reads, kill and resume."""
+"""The qmg-lab/1 run file: layout and units (docs/hdf5.md), appends, SWMR reads, kill and resume."""
 
 from __future__ import annotations
 
@@ -15,14 +15,14 @@ import h5py
 import numpy as np
 import pytest
 
-from qmg_lab.storage import RunWriter, StorageError, read_run, writer_flags_set
+from qmg_lab.storage.writer import RunWriter, StorageError, read_run, writer_flags_set
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = "[campaign]\nname = 'storage test'\n"
 SHA = hashlib.sha256(CONFIG.encode()).hexdigest()
 FS = 1400.0  # Sa/s
 
-# The contract, written out from DESIGN.md section 5 (not imported from the code under test).
+# The contract, written out from the file contract in docs/hdf5.md (not imported from the code under test).
 CONTRACT = {
     "lockin": {
         "time": "s",
@@ -312,7 +312,7 @@ def test_reopen_drops_incomplete_steps_and_equalizes_columns(tmp_path: Path) -> 
 CHILD = textwrap.dedent("""
     import sys, numpy as np
     sys.path.insert(0, {repo!r})
-    from qmg_lab.storage import RunWriter
+    from qmg_lab.storage.writer import RunWriter
     path, mode = sys.argv[1], sys.argv[2]
     now = [0.0]
     w = RunWriter.create(path, config_text={config!r}, config_sha256={sha!r}, mode="sim", software_version="t",

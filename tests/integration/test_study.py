@@ -19,7 +19,7 @@ import h5py
 import pytest
 import tomlkit
 
-from qmg_lab.study_file import StudyError, load_study
+from qmg_lab.study.spec import StudyError, load_study
 
 ROOT = Path(__file__).resolve().parents[2]
 INSTRUMENTS = ("lockin", "generator", "table", "chamber")

@@ -1,4 +1,4 @@
-"""qmg_lab.sweep_budget against the twin: each deterministic non-ideality switched on alone moves the CLSF accuracy
+"""qmg_lab.budget.sweep against the twin: each deterministic non-ideality switched on alone moves the CLSF accuracy
 of a temperature sweep, and the nonlinearity of a level sweep, by what the budget predicts from the parameters.
 
 Runs go through the real CLI in a subprocess (`qmg-lab run ... --sim`, `analyze`, `characterize linearity`), with
@@ -22,8 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from qmg_lab.config import parse_config
-from qmg_lab.sweep_budget import DETERMINISTIC_OFF, sim_lines, sweep_accuracy
+from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines, sweep_accuracy
+from qmg_lab.config.schema import parse_config
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "configs" / "paper_campaign.toml"

@@ -17,9 +17,9 @@ from pathlib import Path
 import h5py
 import pytest
 
-from qmg_lab.config import parse_config
+from qmg_lab.campaign.tuning import tune, tuned_config_text
+from qmg_lab.config.schema import parse_config
 from qmg_lab.station import build_station
-from qmg_lab.tuning import tune, tuned_config_text
 
 ROOT = Path(__file__).resolve().parents[2]
 TWINS = "[lockin]\nsim = true\n[generator]\nsim = true\n[table]\nsim = true\n[chamber]\nsim = true\n"
@@ -100,7 +100,7 @@ def test_tune_cli_writes_a_configuration_that_runs_the_paper_campaign(tmp_path: 
 def test_characterize_ringdown_and_noise_json(tmp_path: Path) -> None:
     cfg = tmp_path / "c.toml"
     # one mode: a split (the twin's default 0.02 Hz at 20 deg) beats in the free decay, which the fit of
-    # ln R = c - t/tau does not model (qmg_lab/tuning.py)
+    # ln R = c - t/tau does not model (qmg_lab/campaign/tuning.py)
     cfg.write_text(
         "[device]\nq_factor = 9.0e5\n[sim]\nq_factor = 9.0e5\narw_deg_per_rt_h = 0.05\nfreq_mismatch_hz = 0.0\n",
         encoding="utf-8",

@@ -1,7 +1,7 @@
 """Shared helpers for the reliability tests (faults, resume, interrupt): a short campaign run in-process on the
 twins, with the test holding the World so it can look at the physical state afterwards.
 
-The short plan (qmg_lab.plan.build_plan of SHORT_TOML): lock 2 s, dither 21/7 + 2 = 5 s, soak 20 s, 4 pairs of
+The short plan (qmg_lab.campaign.plan.build_plan of SHORT_TOML): lock 2 s, dither 21/7 + 2 = 5 s, soak 20 s, 4 pairs of
 10 s table steps at +-5 deg/s, return 2.0167 s (5/300 + 2): 12 steps, 109.0167 s. The twins' blocks are pinned at
 2 s (lockin.sim_poll_interval_s = 2.0, the default, pinned here), so block edges fall at 0, 2, 4, 6, 7, 9, ..., 27, 29,
 ... (odd seconds from 7 s on): the fault tests' arithmetic needs several blocks per 10 s step.
@@ -16,11 +16,11 @@ from typing import Any
 
 import h5py
 
-from qmg_lab.campaign import CampaignRunner, RunSummary
-from qmg_lab.config import Config, config_fingerprint, parse_config
+from qmg_lab.campaign.runner import CampaignRunner, RunSummary
+from qmg_lab.config.schema import Config, config_fingerprint, parse_config
 from qmg_lab.instruments import Station
 from qmg_lab.station import build_station, make_world
-from qmg_lab.storage import RunData, RunWriter, read_run
+from qmg_lab.storage.writer import RunData, RunWriter, read_run
 from sims.world import World
 
 SAFE_SETPOINT_C = 20.0

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from qmg_lab.config import Config
-from qmg_lab.loops import lockin_setup
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.config.schema import Config
 from sims.gyro_params import LoopSettings, PidSettings, PllSettings
 
 

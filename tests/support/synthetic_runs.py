@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qmg_lab.storage import RunWriter
+from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0
 F_D = 7.0

@@ -2,7 +2,7 @@
 
 The bench (class Bench): the sense plant dX/dt = -X/tau + beta (V_r + V_d) - kappa Omega + white ARW, together with
 the lock-in's n-stage filter H(s) = 1/(1 + s tc)^n, as one linear system discretized exactly (scipy.linalg.expm) on
-SUB sub-steps per sample; the rate PI of qmg_lab/loops.py runs on the filtered X at the sample instants and its
+SUB sub-steps per sample; the rate PI of qmg_lab/campaign/loops.py runs on the filtered X at the sample instants and its
 AuxOut voltage ramps linearly between them (a fast PID seen at the sample scale); the DS345's square wave runs on
 its own timebase (offset in ppm, arbitrary start phase), so its edges fall anywhere between samples, and each
 sub-step gets its exact mean; the AuxIns record instantaneous values at the sample instants.
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from qmg_lab.clsf import ClsfEstimator, observe_sensitivity
-from qmg_lab.demod_filter import DemodFilter
+from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.estimator import ClsfEstimator, observe_sensitivity
 
 TAU = 2 * 1.2e6 / (2 * math.pi * 2200)
 B = 0.8 * 0.5 / (0.06 * 180 / math.pi)  # beta = k R_d / SF, Vrms/s per V

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from qmg_lab.demod_filter import DemodFilter
-from qmg_lab.dither_edges import EdgeTracker
-from qmg_lab.stream_plan import StreamPlan, edge_phase_gap, hf2_rate
+from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.dither_edges import EdgeTracker
+from qmg_lab.clsf.stream_plan import StreamPlan, edge_phase_gap, hf2_rate
 
 
 # ---------------------------------------------------------------------------------------------- demod filter

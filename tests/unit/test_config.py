@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from qmg_lab.config import ConfigError, config_fingerprint, load_config, parse_config
+from qmg_lab.config.schema import ConfigError, config_fingerprint, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -56,10 +56,10 @@ def test_fingerprint_changes_with_text():
 
 
 def test_configuration_reference_matches_the_schema():
-    from qmg_lab.config_docs import reference_markdown
+    from qmg_lab.config.docs import reference_markdown
 
     doc = (ROOT / "docs" / "configuration.md").read_text(encoding="utf-8")
-    assert doc == reference_markdown(), "regenerate: python -m qmg_lab.config_docs > docs/configuration.md"
+    assert doc == reference_markdown(), "regenerate: python -m qmg_lab.config.docs > docs/configuration.md"
 
 
 def test_line_endings_follow_toml(tmp_path):

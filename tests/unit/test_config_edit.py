@@ -6,8 +6,8 @@ import tomllib
 
 import pytest
 
-from qmg_lab.config import parse_config
-from qmg_lab.config_edit import with_values
+from qmg_lab.config.edit import with_values
+from qmg_lab.config.schema import parse_config
 
 TEXT = """# bench 3, QMG serial 12
 [campaign]

@@ -6,9 +6,16 @@ import math
 
 import pytest
 
-from qmg_lab.config import Config, parse_config
+from qmg_lab.campaign.plan import (
+    StepKind,
+    assert_within_limits,
+    build_plan,
+    dither_amplitude_vpp,
+    limit_checks,
+    plan_duration_s,
+)
+from qmg_lab.config.schema import Config, parse_config
 from qmg_lab.instruments import LimitError
-from qmg_lab.plan import StepKind, assert_within_limits, build_plan, dither_amplitude_vpp, limit_checks, plan_duration_s
 
 
 def cfg(text: str = "") -> Config:

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from qmg_lab.clsf import ClsfPeriods
+from qmg_lab.campaign.recorder import BlockRecorder
+from qmg_lab.clsf.estimator import ClsfPeriods
 from qmg_lab.instruments import ChamberReading, LockInBlock, TableReading, TruthBlock
-from qmg_lab.recorder import BlockRecorder
-from qmg_lab.storage import RunWriter, read_run
+from qmg_lab.storage.writer import RunWriter, read_run
 
 FS = 1800.0
 

@@ -1,6 +1,6 @@
 """DS345 driver, message by message against the documented protocol (tests/protocol_visa.py fake resource).
 
-Expected bytes come from reference/instruments.md (DS345 section) and the formatting documented in
+Expected bytes come from docs/instruments.md (DS345 section) and the formatting documented in
 drivers/ds345.py: one setting per LF-terminated message, each followed by *ESR?.
 """
 

@@ -1,7 +1,7 @@
 """The HF2LI driver running unchanged through zhinst.toolkit.Session(connection=twin): the real toolkit code
 path (node tree from its bundled HF2 nodedoc, set_transaction, subscribe/poll) against the data-server twin.
 
-Expected numbers: qmg_lab.loops gain design for a default Config (paper eq. 5 as implemented there), the HF2
+Expected numbers: qmg_lab.campaign.loops gain design for a default Config (paper eq. 5 as implemented there), the HF2
 clock (the HF2 rate 1800 Sa/s as whole 210 MHz ticks: 116667 ticks per sample) and the documented channel assignment
 (drivers/hf2_nodes.py, docs/wiring.md).
 """
@@ -16,9 +16,9 @@ import pytest
 from zhinst.toolkit import Session
 
 from drivers.hf2li import HF2LI
-from qmg_lab.config import Config
+from qmg_lab.campaign.loops import agc_pi, lockin_setup, pll_pi, quadrature_pi, rate_pi
+from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LimitError
-from qmg_lab.loops import agc_pi, lockin_setup, pll_pi, quadrature_pi, rate_pi
 from sims.gyro import GyroParams
 from sims.hf2_server import HF2DataServerTwin, HF2Wiring
 from sims.world import World

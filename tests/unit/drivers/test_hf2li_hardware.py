@@ -11,7 +11,7 @@ import os
 import pytest
 
 from drivers.hf2li import HF2LI
-from qmg_lab.config import LockInSection
+from qmg_lab.config.schema import LockInSection
 
 HOST = os.environ.get("QMG_HF2_HOST")
 DEVICE = os.environ.get("QMG_HF2_DEVICE")

@@ -1,6 +1,6 @@
 """Closed loops through the whole chain: HF2LI driver -> zhinst-toolkit -> HF2 twin -> sims.gyro physics.
 
-Expected numbers (reference/physics.md, qmg_lab/loops.py):
+Expected numbers (docs/physics.md, qmg_lab/campaign/loops.py):
 * FTR output for a table rate Omega: V = SF * Omega * (1 + e_table), SF = 0.06 V per deg/s, e_table = 60 ppm
   (World default): +5 deg/s -> 0.3000180 V; (O+ - O-) / 10 deg/s = SF (1 + 60e-6), bias cancelled.
 * Rate loop with I = P/tau: the PI zero cancels the envelope pole, L = bP/s, closed loop first order with time
@@ -20,9 +20,9 @@ import pytest
 from zhinst.toolkit import Session
 
 from drivers.hf2li import HF2LI
-from qmg_lab.config import Config
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LockInBlock
-from qmg_lab.loops import lockin_setup
 from sims.gyro import GyroParams
 from sims.hf2_server import HF2DataServerTwin, HF2Wiring
 from sims.world import World

@@ -13,7 +13,7 @@ import itertools
 
 import pytest
 
-from qmg_lab.config import parse_config
+from qmg_lab.config.schema import parse_config
 from qmg_lab.station import connect_instrument
 
 TERMS = ("CR", "LF", "CRLF")

@@ -1,6 +1,6 @@
 """DS345 twin: the message-level protocol, and the real driver making the World's dither through it.
 
-Expected numbers: the DS345 protocol (reference/instruments.md) and the World's dither equation
+Expected numbers: the DS345 protocol (docs/instruments.md) and the World's dither equation
 v(t) = offset + (Vpp/2) w(f (t - t0) + phase/360), square w = +1 on the first half period, -1 on the second
 (sims/world.py), sampled at mid-step.
 """

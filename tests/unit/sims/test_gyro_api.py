@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from qmg_lab.config import SimSection
+from qmg_lab.config.schema import SimSection
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF

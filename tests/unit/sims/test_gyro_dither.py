@@ -14,8 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config
-from qmg_lab.loops import lockin_setup
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.config.schema import Config
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 

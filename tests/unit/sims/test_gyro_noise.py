@@ -15,8 +15,8 @@ import allantools
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config
-from qmg_lab.loops import lockin_setup
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.config.schema import Config
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 
 DT = 1.0 / 1400.0

@@ -1,4 +1,4 @@
-"""FTR rate loop designed by qmg_lab.loops (Kp = 2 pi 2 Hz / b, Ki = Kp / tau): the closed loop is first order,
+"""FTR rate loop designed by qmg_lab.campaign.loops (Kp = 2 pi 2 Hz / b, Ki = Kp / tau): the closed loop is first order,
 T(s) = w_c / (s + w_c), w_c = 2 pi 2 Hz (physics.md section 3): -3 dB and -45 deg at 2.0 Hz, 2 % settling
 after ln(50) / w_c = 0.311 s."""
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from qmg_lab.config import Config, DeviceSection
-from qmg_lab.loops import lockin_setup, rate_pi
+from qmg_lab.campaign.loops import lockin_setup, rate_pi
+from qmg_lab.config.schema import Config, DeviceSection
 from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import World, WorldParams

@@ -22,9 +22,7 @@ from tests.support.paper_loops import paper_loops
 
 DT = 1.0 / 1400.0
 EPS0 = 8.8541878128e-12
-QUIET = GyroParams(
-    arw_deg_per_rt_h=0.0, bias_instability_deg_per_h=0.0, pickoff_noise_vrms_per_rt_hz=0.0, **NONIDEALITIES_OFF
-)
+QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)  # every random source and converter step off
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:

@@ -1,0 +1,1 @@
+"""Reading run files back: the analysis, characterization procedures, Allan deviation, figures."""

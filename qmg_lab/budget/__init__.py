@@ -1,0 +1,1 @@
+"""Predictions from a configuration alone: the CLSF noise budget and the sweep's accuracy and linearity."""

@@ -1,0 +1,1 @@
+"""Running a campaign: the plan, the runner that sequences it, the recovery policy, loop design, tuning."""

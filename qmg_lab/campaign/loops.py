@@ -1,0 +1,117 @@
+"""Loop design: PLL, AGC, rate (FTR) and quadrature PI gains from bandwidths, in the HF2LI's units.
+
+Conventions (shared with the HF2 twin; see docs/wiring.md):
+
+* Demodulator output X + iY = G (C - iS)/sqrt(2) for a pickoff signal C cos(phi) + S sin(phi) referenced to the
+  PLL oscillator phase phi: Vrms, standard lock-in convention. Drive demod amplitude R_d = G_px a / sqrt(2).
+* HF2 PID: e = setpoint - input, output = center + P e + I integral(e) (+ D de/dt), clamped to center +- range.
+  Gains are signed by the sign of the plant, so that every loop is negative feedback.
+* HF2 PLL: error e = phase - setpoint (deg), frequency = center + p e + i integral(e): for our phase convention
+  (theta = atan2(Y, X), d(theta)/dt = 360 (f_drive - f_ref) deg/s) positive p, i lock.
+
+Plants (slow-variable model, docs/physics.md sections 1-3):
+
+* Rate loop. With FTR holding c_y ~ 0, the sense demod X_s obeys
+  dX_s/dt = -X_s/tau - k R_d Omega + (k R_d / SF) G V,  SF the FTR scale factor in V per rad/s,
+  V = rate command (V), G = forcer-path gain. PI with I = P/tau puts the zero on the envelope pole
+  (paper eq. 5 with tau_cy = tau/2): the loop becomes b P / s, the closed loop first order with bandwidth
+  f_bw = b P / (2 pi), b = k R_d / SF. Hence P = 2 pi f_bw SF / (k R_d), I = P (1/tau + 2 pi f_z) with an
+  optional zero offset f_z (physics.md section 4: hides the slow mode of a mode mismatch).
+* Quadrature loop: dY_s/dt = -Y_s/tau - (k R_d / SF) V_q: same magnitude, opposite sign.
+* AGC: dR_d/dt = -R_d/tau + b_d V_d with b_d = R_d0 / (tau V_d0), V_d0 the drive voltage that sustains the
+  nominal amplitude. P = 2 pi f_agc / b_d, I = P (1/tau + 2 pi f_z,agc).
+* PLL: second order, d(theta)/dt = 360 (f_x - f_ref): omega_n = 2 pi f_pll / 2 (15 Hz bandwidth ~ omega_n =
+  2 pi 7.5), p = 2 zeta omega_n / 360 Hz/deg, i = omega_n^2 / 360 Hz^2/deg.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from qmg_lab.config.schema import Config, DeviceSection
+from qmg_lab.instruments import LockInSetup, PidGains
+
+DEG_PER_RAD = 180.0 / math.pi
+
+
+def sf_v_per_rad_s(sf_v_per_dps: float) -> float:
+    """Scale factor in V per rad/s from V per deg/s."""
+    return sf_v_per_dps * DEG_PER_RAD
+
+
+@dataclass(frozen=True)
+class RatePlant:
+    """First-order plant of the sense demod X under rebalance: b = k R_d / SF (Vrms/s per V), tau (s)."""
+
+    b: float
+    tau_s: float
+
+
+def rate_plant(device: DeviceSection) -> RatePlant:
+    return RatePlant(
+        b=device.angular_gain * device.drive_amplitude_vrms / sf_v_per_rad_s(device.sf_nominal_v_per_dps),
+        tau_s=device.tau_s,
+    )
+
+
+def rate_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
+    """FTR rate PI: P = 2 pi f_bw / b, I = P (1/tau + 2 pi f_z). Output range = the forcer limit."""
+    plant = rate_plant(device)
+    p = 2.0 * math.pi * bandwidth_hz / plant.b
+    i = p * (1.0 / plant.tau_s + 2.0 * math.pi * zero_offset_hz)
+    return PidGains(p=p, i=i, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+
+
+def quadrature_pi(device: DeviceSection, bandwidth_hz: float) -> PidGains:
+    """Quadrature PI on Y: the plant gain is -b, so the gains are negative."""
+    plant = rate_plant(device)
+    p = -2.0 * math.pi * bandwidth_hz / plant.b
+    return PidGains(p=p, i=p / plant.tau_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+
+
+def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
+    """AGC PI on R of the drive demod -> drive amplitude (V): P = 2 pi f_agc / b_d, I = P (1/tau + 2 pi f_z).
+
+    With the zero exactly on the envelope pole (f_z = 0) a step disturbance of the drive (the Coriolis term
+    k Omega c_y after a table step) is rejected with the resonator's own time constant tau; a zero f_z above it
+    makes the slow closed-loop pole about -(1/tau + 2 pi f_z).
+    """
+    b_d = device.drive_amplitude_vrms / (device.tau_s * device.drive_voltage_v)
+    p = 2.0 * math.pi * bandwidth_hz / b_d
+    i = p * (1.0 / device.tau_s + 2.0 * math.pi * zero_offset_hz)
+    # The drive output sits at its sustaining value; centre the PID there so the integrator starts near it.
+    return PidGains(
+        p=p,
+        i=i,
+        setpoint=device.drive_amplitude_vrms,
+        center=device.drive_voltage_v,
+        range=min(device.max_forcer_v, 100 * device.drive_voltage_v),
+    )
+
+
+def pll_pi(f0_hz: float, bandwidth_hz: float, damping: float) -> PidGains:
+    """PLL PI in Hz/deg and Hz^2/deg for a second-order loop of natural frequency 2 pi (bandwidth/2)."""
+    wn = 2.0 * math.pi * bandwidth_hz / 2.0
+    return PidGains(
+        p=2.0 * damping * wn / 360.0, i=wn * wn / 360.0, setpoint=0.0, center=f0_hz, range=max(1.0, 0.01 * f0_hz)
+    )
+
+
+def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
+    """The complete lock-in setup for a configuration."""
+    dev, lp = cfg.device, cfg.loops
+    pll = pll_pi(dev.f0_hz, lp.pll_bandwidth_hz, lp.pll_damping)
+    return LockInSetup(
+        f0_hz=dev.f0_hz,
+        pll=pll,
+        pll_range_hz=pll.range,
+        agc=agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
+        rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
+        quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+        demod_rate_hz=cfg.lockin.demod_rate_hz,
+        demod_timeconstant_s=cfg.lockin.demod_timeconstant_s,
+        demod_order=cfg.lockin.demod_order,
+        forcer_gain=forcer_gain,
+        auxin_averaging=cfg.lockin.auxin_averaging,
+    )

@@ -1,0 +1,1 @@
+"""The qmg-lab command line."""

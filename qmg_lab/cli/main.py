@@ -1,0 +1,636 @@
+"""The `qmg-lab` command line (the README's commands; docs/architecture.md).
+
+Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message naming what is wrong, no traceback);
+3 instrument fault (safe state reached); 130 interrupted (safe state reached).
+
+Why one module of this length: it is the typer app and its commands' argument handling, each command a
+thin layer over the package that does the work; the bring-up and device commands live in bench.py and
+device.py.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from qmg_lab import __version__
+from qmg_lab.config.edit import with_values
+from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
+from qmg_lab.instruments import InstrumentError, LimitError, Station
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
+    "1291BR), on the bench or on simulated twins.",
+)
+characterize_app = typer.Typer(
+    no_args_is_help=True,
+    help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2); the device: resonance, ringdown, noise",
+)
+table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
+chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
+generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
+app.add_typer(characterize_app, name="characterize")
+app.add_typer(table_app, name="table")
+app.add_typer(chamber_app, name="chamber")
+lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF2 nodes by hand")
+app.add_typer(generator_app, name="generator")
+app.add_typer(lockin_app, name="lockin")
+
+log = logging.getLogger(__name__)
+console = Console(stderr=True)
+out = Console()
+
+EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
+
+ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
+SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+OutputOpt = Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")]
+
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+@app.callback()
+def _options(
+    log_level: Annotated[
+        str | None,
+        typer.Option(
+            "--log-level",
+            help="print the module loggers on stderr from this level: DEBUG (every serial byte), "
+            "INFO (connections, reconnects, run events), WARNING (faults), ERROR",
+        ),
+    ] = None,
+) -> None:
+    """Options for every command."""
+    if log_level is None:
+        return
+    level = log_level.upper()
+    if level not in LOG_LEVELS:
+        _fail(EXIT_BAD_INPUT, f"--log-level {log_level!r}: one of {', '.join(LOG_LEVELS)}")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    for name in ("qmg_lab", "drivers"):
+        logger = logging.getLogger(name)
+        logger.setLevel(level)
+        logger.addHandler(handler)
+
+
+def _fail(code: int, message: str) -> NoReturn:
+    # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
+    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
+    raise typer.Exit(code)
+
+
+def _load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:
+    """The configuration (every instrument a twin with --sim); campaign=True: also the CLSF's stream timing."""
+    try:
+        cfg, text = load_config(path)
+    except ConfigError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    cfg = cfg.with_all_sim() if sim else cfg
+    if campaign:
+        problem = stream_timing_problem(cfg)
+        if problem is not None:
+            _fail(EXIT_BAD_INPUT, f"{path}: {problem}")
+    return cfg, text
+
+
+@contextmanager
+def _station(cfg: Config) -> Iterator[Station]:
+    """Build the station; on the way out every instrument is made safe and closed."""
+    from qmg_lab.station import build_station
+
+    try:
+        station = build_station(cfg)
+    except (InstrumentError, OSError) as exc:
+        _fail(EXIT_FAULT, f"could not connect the station: {exc}")
+    try:
+        yield station
+    finally:
+        station.close()
+
+
+# ====================================================================================== check
+@app.command()
+def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
+    """Validate a configuration, show the plan, its duration and every command against the limits."""
+    from qmg_lab.campaign.plan import build_plan, limit_checks, plan_duration_s
+    from qmg_lab.clsf.stream_plan import StreamPlan
+
+    cfg, text = _load(config, False, campaign=True)
+    steps = build_plan(cfg)
+    checks = limit_checks(cfg, steps)
+    bad = [c for c in checks if not c.ok]
+    stream = StreamPlan(
+        cfg.lockin.demod_rate_hz, cfg.dither.frequency_hz, cfg.lockin.demod_order, cfg.lockin.demod_timeconstant_s
+    )
+    if json_out:
+        out.print_json(
+            json.dumps(
+                {
+                    "clsf_timing": stream.summary() if cfg.clsf.mode != "off" else None,
+                    "config": str(config),
+                    "config_sha256": config_fingerprint(text),
+                    "kind": cfg.campaign.kind,
+                    "steps": [{**s.__dict__, "kind": s.label} for s in steps],
+                    "duration_s": plan_duration_s(steps),
+                    "limits": [
+                        dict(what=c.what, value=c.value, low=c.low, high=c.high, unit=c.unit, ok=c.ok) for c in checks
+                    ],
+                }
+            )
+        )
+    else:
+        tbl = Table(
+            title=f"{cfg.campaign.name}: {cfg.campaign.kind}, {len(steps)} steps, {plan_duration_s(steps) / 3600:.2f} h"
+        )
+        for col in ("#", "kind", "duration", "table rate", "chamber target"):
+            tbl.add_column(col, justify="right" if col != "kind" else "left")
+        for s in _summarise_steps(steps):
+            tbl.add_row(*s)
+        out.print(tbl)
+        lim = Table(title="limits")
+        for col in ("check", "value", "allowed", "ok"):
+            lim.add_column(col)
+        for c in checks:
+            lim.add_row(
+                c.what,
+                f"{c.value:g} {c.unit}",
+                f"[{c.low:g}, {c.high:g}] {c.unit}",
+                "[green]ok[/]" if c.ok else "[bold red]REFUSED[/]",
+            )
+        out.print(lim)
+        instruments = ", ".join(
+            f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}" for n in ("lockin", "generator", "table", "chamber")
+        )
+        out.print(f"instruments: {instruments}")
+        if cfg.clsf.mode != "off":
+            sp = stream.summary()
+            out.print(
+                f"CLSF timing: lock-in {sp['rate_hz']:g} Sa/s, {sp['samples_per_period']:.4f} samples per "
+                f"{cfg.dither.frequency_hz:g} Hz dither period (edge phase gap {sp['edge_phase_gap']:.3f} of a "
+                f"sample, must be <= 0.25); demod filter order {cfg.lockin.demod_order}, "
+                f"tc {cfg.lockin.demod_timeconstant_s * 1e6:g} us: delay {sp['filter_delay_s'] * 1e6:g} us, "
+                f"|H| at 1/3/5 x dither {sp['filter_gain_h1']:.5f}/{sp['filter_gain_h3']:.5f}/"
+                f"{sp['filter_gain_h5']:.5f} (compensated by the estimator)"
+            )
+    if bad:
+        _fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
+
+
+def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
+    """Rows for the plan table; long runs of alternating rate steps are folded into one row."""
+    rows: list[tuple[str, ...]] = []
+    i = 0
+    while i < len(steps):
+        s = steps[i]
+        j = i
+        while (
+            j + 1 < len(steps)
+            and steps[j + 1].kind == s.kind
+            and s.kind in ("rate", "hold")
+            and abs(steps[j + 1].table_rate_dps) == abs(s.table_rate_dps)
+            and steps[j + 1].chamber_target_c == s.chamber_target_c
+        ):
+            j += 1
+        n = j - i + 1
+        rate = f"{s.table_rate_dps:+g} deg/s" if n == 1 else f"+-{abs(s.table_rate_dps):g} deg/s"
+        dur = f"{s.duration_s:.4g} s" if n == 1 else f"{n} x {s.duration_s:.4g} s"
+        rows.append(
+            (
+                f"{s.index}" if n == 1 else f"{s.index}-{steps[j].index}",
+                s.label,
+                dur,
+                rate,
+                f"{s.chamber_target_c:g} degC",
+            )
+        )
+        i = j + 1
+    return rows
+
+
+# ====================================================================================== run
+def _default_output(cfg: Config) -> Path:
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in cfg.campaign.name)
+    return Path("runs") / f"{safe}-{stamp}.h5"
+
+
+@app.command()
+def run(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    output: OutputOpt = None,
+    resume: Annotated[Path | None, typer.Option("--resume", help="continue this run file")] = None,
+    quiet: QuietOpt = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
+) -> None:
+    """Run a campaign, with live progress and a summary at the end."""
+    cfg, text = _load(config, sim, campaign=True)
+    summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+    _print_summary(summary)
+
+
+def _instrument_modes(cfg: Config) -> dict[str, str]:
+    """ "twin" | "hardware" per instrument, as the configuration (after --sim) sets them."""
+    return {n: ("twin" if getattr(cfg, n).sim else "hardware") for n in ("lockin", "generator", "table", "chamber")}
+
+
+def _execute(
+    cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
+) -> Any:
+    """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
+    instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
+    configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
+    or change the file. The file's final close is protected from a second Ctrl-C."""
+    from qmg_lab.campaign.interrupts import InterruptGuard
+    from qmg_lab.campaign.plan import checked_plan
+    from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
+    from qmg_lab.cli.progress import ProgressView
+    from qmg_lab.storage.summary import create_run_writer, refuse_study_resume
+    from qmg_lab.storage.writer import RunWriter, StorageError
+
+    try:
+        plan = checked_plan(cfg)
+    except LimitError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    sha = config_fingerprint(text)
+    modes = _instrument_modes(cfg)
+    mode = "sim" if cfg.all_sim else "hardware"
+    if resume is not None:
+        if output is not None and output.resolve() != resume.resolve():
+            _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+        try:
+            refuse_study_resume(resume)
+            RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
+        except StorageError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        path = resume
+    else:
+        path = output or _default_output(cfg)
+        if path.exists() and not (overwrite and path.is_file()):
+            _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+    with _station(cfg) as station:
+        try:
+            if resume is not None:
+                writer = RunWriter.reopen(
+                    resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+                )
+            else:
+                if path.exists():
+                    path.unlink()  # --overwrite, now that the station answered
+                writer = create_run_writer(
+                    path,
+                    cfg,
+                    plan.steps,
+                    config_text=text,
+                    config_sha256=sha,
+                    mode=mode,
+                    software_version=__version__,
+                    t0_unix=datetime.now(UTC).timestamp(),
+                    instrument_modes=modes,
+                )
+        except StorageError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        except OSError as exc:
+            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+        log.info("run file %s; instruments %s", writer.path, modes)
+        view = ProgressView(console, enabled=not quiet)
+        try:
+            with view:
+                runner = CampaignRunner(
+                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan
+                )
+                return runner.run()
+        except CampaignInterrupted as exc:
+            _fail(
+                EXIT_INTERRUPTED,
+                f"{exc}; instruments in their safe state; file {writer.path} (status "
+                f"aborted; continue with --resume {writer.path})",
+            )
+        except (CampaignAborted, InstrumentError) as exc:
+            _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
+        except LimitError as exc:
+            _fail(EXIT_BAD_INPUT, str(exc))
+        finally:
+            with InterruptGuard() as guard, guard.protect():  # a second Ctrl-C waits for the file's last write
+                writer.close()
+
+
+def _print_summary(summary: Any) -> None:
+    tbl = Table(title=f"run {summary.status}", show_header=False)
+    tbl.add_column("what")
+    tbl.add_column("value", justify="right")
+    rows = [
+        ("file", summary.path),
+        ("steps", f"{summary.steps_completed} / {summary.steps_planned}"),
+        ("simulated / run time", f"{summary.simulated_s:.1f} s"),
+        ("wall time", f"{summary.wall_s:.1f} s ({summary.simulated_s / max(summary.wall_s, 1e-9):.0f}x real time)"),
+        ("samples", f"{summary.samples} ({summary.samples_lost} lost)"),
+        ("suspensions / recoveries", f"{summary.suspensions} / {summary.recoveries}"),
+        ("last CLSF SF change", f"{summary.last_sf_change_ppm:.1f} ppm"),
+        ("CLSF gain correction", f"{summary.gain_correction:.6f}"),
+    ]
+    for r in rows:
+        tbl.add_row(*r)
+    out.print(tbl)
+
+
+# ====================================================================================== instruments
+@app.command()
+def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
+    """Connect each instrument on its own, identify it and show its state; exit 3 if any failed."""
+    from qmg_lab.station import INSTRUMENT_NAMES, connect_instrument
+
+    cfg, _ = _load(config, sim)
+    report: dict[str, dict[str, Any]] = {}
+    for name in INSTRUMENT_NAMES:
+        entry: dict[str, Any] = {"simulated": bool(getattr(cfg, name).sim)}
+        try:
+            conn = connect_instrument(cfg, name)
+        except (InstrumentError, OSError) as exc:
+            entry.update(identity=None, state=None, ok=False, error=f"could not connect: {exc}")
+            report[name] = entry
+            continue
+        try:
+            entry["identity"] = conn.instrument.identify()
+            entry["state"] = conn.instrument.state()
+            entry["ok"] = True
+        except InstrumentError as exc:
+            entry.update(identity=entry.get("identity"), state=None, ok=False, error=str(exc))
+        finally:
+            conn.close()
+        report[name] = entry
+    if json_out:
+        out.print_json(json.dumps(report, default=str))
+    else:
+        tbl = Table(title="instruments")
+        for col in ("instrument", "simulated", "identity", "state"):
+            tbl.add_column(col)
+        for name, e in report.items():
+            state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
+            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
+        out.print(tbl)
+    failed = [n for n, e in report.items() if not e["ok"]]
+    if failed:
+        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})" for n in failed))
+
+
+# ====================================================================================== characterize
+def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Path | None, quiet: bool) -> None:
+    from qmg_lab.analysis.compute import analyze
+
+    cfg, text = _load(config, sim, campaign=True)
+    text = with_values(text, {"campaign.kind": kind})
+    cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
+    tmp = None
+    if output is None:
+        tmp = tempfile.TemporaryDirectory(prefix="qmg-lab-")
+        output = Path(tmp.name) / f"{kind}.h5"
+    try:
+        _execute(cfg, text, output=output, resume=None, quiet=quiet or json_out)
+        result = analyze(output).to_json()
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    if kind == "bandwidth":
+        picked = {k: result.get(k) for k in ("bandwidth_hz", "settling_time_s", "phase_reference", "bode")}
+    else:
+        picked = dict(result.get("linearity") or {})
+        picked["levels"] = result.get("levels")
+    picked["file"] = None if tmp is not None else str(output)
+    if json_out:
+        out.print_json(json.dumps(picked, default=float))
+    else:
+        for k, v in picked.items():
+            if not isinstance(v, list):
+                out.print(f"{k}: {v}")
+
+
+@characterize_app.command("bandwidth")
+def characterize_bandwidth(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    output: OutputOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Sinusoidal table rates: closed-loop FTR response, -3 dB bandwidth and settling time (paper Fig. 3)."""
+    _characterize("bandwidth", config, sim, json_out, output, quiet)
+
+
+@characterize_app.command("linearity")
+def characterize_linearity(
+    config: ConfigArg,
+    sim: SimOpt = False,
+    json_out: JsonOpt = False,
+    output: OutputOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Constant table rates: scale factor, nonlinearity and asymmetry (paper Fig. 2)."""
+    _characterize("linearity", config, sim, json_out, output, quiet)
+
+
+# ====================================================================================== analyze
+@app.command()
+def analyze(
+    run_file: Annotated[
+        Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
+    ],
+    json_out: JsonOpt = False,
+    figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
+) -> None:
+    """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
+    import dataclasses
+
+    from qmg_lab.analysis.compute import analyze as run_analysis
+    from qmg_lab.analysis.render import render_table
+    from qmg_lab.storage.writer import StorageError, read_run, status_detail
+
+    if not run_file.exists():
+        _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
+    if run_file.is_dir():
+        _analyze_study(run_file, json_out, figures)
+        return
+    try:
+        result = run_analysis(run_file)
+        detail = status_detail(read_run(run_file, select=()))
+        written = []
+        if figures is not None:
+            from qmg_lab.analysis.report import write_figures
+
+            written = write_figures(run_file, figures)
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    if json_out:
+        data = result.to_json()
+        data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
+        if figures is not None:
+            data["figures"] = [str(p) for p in written]
+        out.print_json(json.dumps(data, default=float))
+    else:
+        out.print(render_table(dataclasses.replace(result, status=detail)))
+        for p in written:
+            out.print(f"figure: {p}")
+
+
+def _analyze_study(out_dir: Path, json_out: bool, figures: Path | None) -> None:
+    """`analyze DIR` on a study directory: the summary table (or results.csv's rows as JSON)."""
+    from qmg_lab.study.results import collect_rows, summary_table, write_figures
+
+    try:
+        columns, rows = collect_rows(out_dir)
+    except (FileNotFoundError, ValueError, KeyError) as exc:
+        _fail(EXIT_BAD_INPUT, f"{out_dir}: not a readable study directory ({exc})")
+    if figures is not None and figures.resolve() != (out_dir / "figures").resolve():
+        _fail(EXIT_BAD_INPUT, f"a study's figures go to {out_dir / 'figures'}; --figures takes no other folder")
+    written = write_figures(out_dir) if figures is not None else []
+    if json_out:
+        out.print_json(json.dumps({"columns": columns, "rows": rows, "figures": [str(p) for p in written]}))
+    else:
+        out.print(summary_table(out_dir))
+        for p in written:
+            out.print(f"figure: {p}")
+
+
+# ====================================================================================== study
+@app.command()
+def study(
+    study_file: Annotated[Path, typer.Argument(help="study file (TOML): base, seeds, axes", show_default=False)],
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="study directory (default studies-out/NAME)")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option("--workers", min=1, help="local Dask workers (default: one per core)")
+    ] = None,
+    scheduler: Annotated[
+        str | None, typer.Option("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    ] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="run only the points without a result in -o")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+) -> None:
+    """Run a design study: every point of the grid (axes x seeds) as a simulated campaign on Dask, then
+    DIR/results.csv, DIR/figures/ and a summary table."""
+    from qmg_lab.study.results import summary_table, write_figures, write_results
+    from qmg_lab.study.runner import StudyDirError, run_study
+    from qmg_lab.study.spec import StudyError, load_study
+
+    if workers is not None and scheduler is not None:
+        _fail(EXIT_BAD_INPUT, "--workers and --scheduler exclude each other (the scheduler's cluster has its workers)")
+    try:
+        spec = load_study(study_file)
+    except StudyError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    out_dir = output or Path("studies-out") / spec.spec.study.name
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail(EXIT_BAD_INPUT, f"cannot create the study directory: {exc}")
+    console.print(
+        f"study {spec.spec.study.name}: {len(spec.points)} points ({len(spec.points) // len(spec.spec.study.seeds)} "
+        f"grid cells x {len(spec.spec.study.seeds)} seeds), every configuration valid; results in {out_dir}",
+        highlight=False,
+    )
+    try:
+        report = run_study(
+            spec, out_dir, workers=workers, scheduler=scheduler, resume=resume, console=None if quiet else console
+        )
+    except StudyDirError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+    except OSError as exc:
+        _fail(EXIT_BAD_INPUT, f"cannot reach the Dask scheduler {scheduler}: {exc}")
+    written = write_results(out_dir)
+    written += write_figures(out_dir)
+    out.print(summary_table(out_dir))
+    console.print(
+        f"{report.ran} points run ({report.failed} failed), {report.already_done} were already done; "
+        f"{written[0]} and {len(written) - 1} more files",
+        highlight=False,
+    )
+
+
+# ====================================================================================== budget
+BUDGET_TABLE_TAUS = (1.0, 10.0, 60.0, 600.0, 2000.0)
+
+
+@app.command()
+def budget(
+    config: ConfigArg,
+    json_out: JsonOpt = False,
+    sim: Annotated[
+        bool, typer.Option("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
+    ] = False,
+) -> None:
+    """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
+    the accuracy and linearity terms of a temperature sweep."""
+    from qmg_lab.budget.noise import noise_budget
+
+    cfg, _ = _load(config, sim=False)
+    result = noise_budget(cfg, sim_blocks=sim)
+    if json_out:
+        out.print_json(json.dumps(result.to_json(), default=float))
+        return
+    table = Table(title=f"CLSF noise budget ({result.mode} mode): Allan deviation of the estimate, ppm")
+    for col in ("source", "value", "ppm*rt(s)", *(f"{t:g} s" for t in BUDGET_TABLE_TAUS)):
+        table.add_column(col, justify="left" if col == "source" else "right", no_wrap=col != "source")
+    for s in result.sources:
+        table.add_row(
+            s.name,
+            f"{s.value:.3g} {s.unit}",
+            f"{s.white_ppm_rt_s:.3g}",
+            *(f"{s.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS),
+        )
+    table.add_row("total (estimate)", "", "", *(f"{result.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS), style="bold")
+    if result.mode == "correct":
+        table.add_row("self-calibrated SF", "", "", *(f"{result.sf_adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS))
+    out.print(table)
+    acc = result.accuracy
+    out.print(
+        f"temperature sweep (qmg_lab/budget/sweep.py): CLSF accuracy {acc.total_ppm:.0f} ppm RMS "
+        f"({acc.total_mean_removed_ppm:.0f} ppm mean removed), dominated by {acc.dominant_accuracy_source}: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
+        + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
+    )
+    out.print(f"dominant at 60 s: {result.dominant(60.0)}. Origins of the values:")
+    for s in result.sources:
+        out.print(f"  {s.name}: {s.origin}")
+    for note in result.notes:
+        out.print(f"note: {note}")
+
+
+@app.command()
+def version() -> None:
+    """Print the version."""
+    out.print(f"qmg-lab {__version__}")
+
+
+def main() -> None:  # pragma: no cover - console entry
+    try:
+        app()
+    except KeyboardInterrupt:
+        sys.exit(EXIT_INTERRUPTED)
+
+
+# the bring-up and device-tuning commands live in their own modules; importing them registers them
+from qmg_lab.cli import bench, device  # noqa: E402,F401 - imported for their side effect, after `app` exists

@@ -1,0 +1,1 @@
+"""The configuration: its schema, the wording of its errors, the generated reference, and edits."""

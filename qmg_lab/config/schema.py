@@ -1,0 +1,556 @@
+"""The TOML configuration of a campaign, validated with pydantic.
+
+Every section is a strict model (unknown keys are errors) whose fields carry their unit in the name or in
+the description, and their allowed range as constraints. `load_config(path)` reads and validates a file;
+`ConfigError` carries a message that names the offending field and its allowed range (worded by
+qmg_lab/config/errors.py), for the CLI to print with exit code 2. docs/configuration.md is generated from this
+schema by qmg_lab/config/docs.py.
+
+Why one module of this length: it is the whole schema, one strict model per TOML section with every field's
+bounds, unit and description; the cross-section checks need every section in one place.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from qmg_lab.clsf.stream_plan import StreamPlan, hf2_rate
+from qmg_lab.config.errors import describe_error
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the field and what is allowed."""
+
+
+class _Section(BaseModel):
+    # strict: a TOML string or boolean is not silently taken for a number ("10", true), nor a number or a string
+    # for a boolean (1, "yes"); integers are accepted where a float is expected
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True)
+
+
+Terminator = Literal["CR", "LF", "CRLF"]
+ReplyTerminator = Literal["auto", "CR", "LF", "CRLF"]
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class CampaignSection(_Section):
+    """What kind of campaign the `[plan]` describes."""
+
+    name: str = Field("campaign", min_length=1, max_length=200, description="free-text name stored in the file")
+    kind: Literal["temperature_sweep", "allan", "bandwidth", "linearity"] = Field(
+        "temperature_sweep",
+        description="temperature_sweep: the paper's Figs. 4-6; allan: Fig. 7; bandwidth/linearity: Figs. 3/2",
+    )
+
+
+class DeviceSection(_Section):
+    """Nominal constants of the gyroscope and its front end, used to design the loops (paper eq. 5)."""
+
+    f0_hz: float = Field(2200.0, ge=100.0, le=100e3, description="drive = sense resonance frequency, Hz")
+    q_factor: float = Field(1.2e6, ge=1e2, le=1e8, description="quality factor (both modes)")
+    angular_gain: float = Field(0.8, gt=0.0, le=1.0, description="Bryan angular gain k (dimensionless)")
+    sf_nominal_v_per_dps: float = Field(
+        0.06, gt=0.0, le=10.0, description="nominal FTR scale factor, V of rate output per deg/s"
+    )
+    drive_amplitude_vrms: float = Field(
+        0.5, gt=0.0, le=5.0, description="AGC setpoint: drive pickoff amplitude R on the drive demod, Vrms"
+    )
+    drive_voltage_v: float = Field(
+        0.05, gt=0.0, le=10.0, description="drive output amplitude that sustains the nominal drive amplitude, V"
+    )
+    max_forcer_v: float = Field(10.0, gt=0.0, le=10.0, description="forcer voltage limit, V (paper: 10 V)")
+
+    @property
+    def tau_s(self) -> float:
+        """Energy decay time tau = 2Q/omega, s."""
+        return 2.0 * self.q_factor / (2.0 * math.pi * self.f0_hz)
+
+
+class LoopsSection(_Section):
+    """Closed-loop bandwidths (paper: PLL 15 Hz, AGC 0.5 Hz, rate 2 Hz, quadrature 2 Hz)."""
+
+    pll_bandwidth_hz: float = Field(15.0, gt=0.0, le=500.0)
+    pll_damping: float = Field(0.707, gt=0.0, le=5.0, description="PLL damping ratio zeta")
+    agc_bandwidth_hz: float = Field(0.5, gt=0.0, le=50.0)
+    rate_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0, description="FTR rate-loop bandwidth, Hz")
+    quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
+    rate_zero_offset_hz: float = Field(
+        0.0,
+        ge=0.0,
+        le=5.0,
+        description="rate PI zero this far above 1/tau, Hz (hides the slow mode of a mode mismatch, "
+        "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
+    )
+    agc_zero_offset_hz: float = Field(
+        0.05,
+        ge=0.0,
+        le=5.0,
+        description="AGC PI zero this far above 1/tau, Hz: on the pole, the drive amplitude (and the SF) would "
+        "recover from each table step's Coriolis disturbance with tau = 174 s",
+    )
+    lock_timeout_s: float = Field(60.0, gt=0.0, le=3600.0, description="how long to wait for PLL lock and settling")
+    lock_settle_s: float = Field(10.0, ge=0.0, le=3600.0, description="time all loops must stay locked before the run")
+
+
+class DitherSection(_Section):
+    """The CLSF virtual rate: a square wave from the DS345 added to the FTR command."""
+
+    frequency_hz: float = Field(7.0, gt=0.0, le=100.0, description="dither (virtual-rate) frequency, Hz")
+    virtual_rate_dps: float = Field(
+        5.0, gt=0.0, le=100.0, description="virtual-rate amplitude (deg/s); DS345 amplitude = 2*this*SF Vpp"
+    )
+
+
+class ClsfSection(_Section):
+    """Host-side closed-loop scale factor estimator and gain controller."""
+
+    mode: Literal["observe", "correct", "off"] = Field("observe")
+    time_constant_s: float = Field(60.0, gt=0.0, le=1e5, description="correct mode: CLSF loop time constant, s")
+    hold_s: float = Field(1.0, ge=0.0, le=60.0, description="hold updates this long around commanded table moves, s")
+    reference_periods: int = Field(
+        50, ge=1, le=100000, description="dither periods averaged to form the reference level D0 at the start"
+    )
+
+
+class PlanSection(_Section):
+    """The steps: chamber program and table rates. Times in s, temperatures in deg C, rates in deg/s."""
+
+    chamber_start_c: float = Field(25.0, ge=-60.0, le=150.0)
+    chamber_end_c: float = Field(35.0, ge=-60.0, le=150.0)
+    chamber_ramp_c_per_min: float = Field(0.25, gt=0.0, le=20.0)
+    chamber_soak_s: float = Field(300.0, ge=0.0, le=86400.0, description="hold at the start temperature first")
+    chamber_end_hold_s: float = Field(
+        600.0, ge=0.0, le=86400.0, description="keep stepping this long after the ramp ends (the gyro lags the air)"
+    )
+    chamber_band_c: float = Field(
+        2.0, gt=0.0, le=50.0, description="suspend the campaign while |T - setpoint| exceeds this, deg C"
+    )
+    table_rate_dps: float = Field(5.0, ge=0.0, le=1000.0, description="magnitude of the alternating table rates")
+    table_accel_dps2: float = Field(300.0, gt=0.0, le=10000.0)
+    dwell_s: float = Field(60.0, gt=0.0, le=86400.0, description="time at each table rate, settle included")
+    settle_s: float = Field(5.0, ge=0.0, le=3600.0, description="start of each dwell excluded from analysis")
+    duration_s: float = Field(
+        10800.0, gt=0.0, le=30 * 86400.0, description="allan campaign: total logging time at constant temperature"
+    )
+    table_step_interval_s: float = Field(
+        0.0, ge=0.0, le=86400.0, description="allan campaign: a +-rate pair every this many s (0 = table at rest)"
+    )
+    # characterization
+    bandwidth_frequencies_hz: list[PositiveFloat] = Field(
+        default_factory=lambda: [0.2, 0.5, 1.0, 1.5, 2.0, 3.0, 5.0],
+        description="bandwidth: sinusoidal table-rate frequencies, Hz",
+    )
+    bandwidth_amplitude_dps: float = Field(5.0, gt=0.0, le=1000.0)
+    bandwidth_cycles: int = Field(10, ge=2, le=10000)
+    linearity_rates_dps: list[FiniteFloat] = Field(
+        default_factory=lambda: [-5.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    )
+
+    @model_validator(mode="after")
+    def _settle_inside_dwell(self) -> PlanSection:
+        if self.settle_s >= self.dwell_s:
+            raise ValueError(f"plan.settle_s ({self.settle_s}) must be shorter than plan.dwell_s ({self.dwell_s})")
+        return self
+
+
+class LockInSection(_Section):
+    """Zurich Instruments HF2LI: data server address, device, demodulator stream and wiring."""
+
+    sim: bool = Field(False, description="use the HF2 twin instead of a data server")
+    host: str = Field("localhost", min_length=1)
+    port: int = Field(8005, ge=1, le=65535, description="HF2 data server port (HF2: 8005)")
+    device: str = Field("dev0", pattern=r"^dev\d+$", description="device id, e.g. dev1234")
+    demod_rate_hz: float = Field(
+        1800.0,
+        ge=200.0,
+        le=28800.0,
+        description="demodulator streaming rate, Sa/s; the HF2 applies the nearest rate it offers (qmg-lab check "
+        "shows it)",
+    )
+    demod_timeconstant_s: float = Field(
+        1e-4,
+        gt=0.0,
+        le=1e-3,
+        description="demodulator filter time constant per stage, s; at most 1 ms so that the filter passes the "
+        "dither and adds no more than n tc of lag to the 2 Hz loops",
+    )
+    demod_order: int = Field(1, ge=1, le=8, description="demodulator filter order (stages of 6 dB/octave)")
+    auxin_averaging: int = Field(
+        0, ge=0, le=15, description="AuxIn averaging: each AuxIn reading is the mean of 2^n ADC samples"
+    )
+    poll_interval_s: float = Field(0.5, ge=0.05, le=5.0, description="length of each polled block, s")
+    sim_poll_interval_s: float = Field(
+        2.0,
+        ge=0.05,
+        le=10.0,
+        description="twin only: block length (the twin needs no real-time buffer; each block costs the host a "
+        "fixed overhead, so long blocks run the twins faster, but suspensions and resumes act per block), s",
+    )
+    drive_sigin: int = Field(0, ge=0, le=1, description="signal input of the drive pickoff (0 = SigIn1)")
+    sense_sigin: int = Field(1, ge=0, le=1, description="signal input of the sense pickoff")
+    drive_sigout: int = Field(0, ge=0, le=1, description="signal output driving the drive electrodes")
+    forcer_sigout: int = Field(1, ge=0, le=1, description="signal output carrying the forcer carrier")
+    forcer_carrier_amplitude: float = Field(
+        0.5, gt=0.0, le=1.0, description="nominal forcer carrier amplitude (fraction of range) = gain 1.0"
+    )
+    rate_auxout: int = Field(0, ge=0, le=3, description="AuxOut carrying the rate PID output (cabled to AuxIn1)")
+    quadrature_auxout: int = Field(1, ge=0, le=3, description="AuxOut carrying the quadrature PID output")
+    rate_auxin: int = Field(0, ge=0, le=1, description="AuxIn recording the rate output")
+    dither_auxin: int = Field(1, ge=0, le=1, description="AuxIn recording the DS345 dither")
+    output_safe_v: float = Field(0.0, ge=-10.0, le=10.0, description="AuxOut value in the safe state, V")
+
+    @model_validator(mode="after")
+    def _distinct_wiring(self) -> LockInSection:
+        if self.rate_auxin == self.dither_auxin:
+            raise ValueError("lockin.rate_auxin and lockin.dither_auxin must be different AuxIn channels")
+        if self.rate_auxout == self.quadrature_auxout:
+            raise ValueError("lockin.rate_auxout and lockin.quadrature_auxout must be different AuxOut channels")
+        if self.drive_sigin == self.sense_sigin:
+            raise ValueError("lockin.drive_sigin and lockin.sense_sigin must be different inputs")
+        return self
+
+
+class GeneratorSection(_Section):
+    """SRS DS345 function generator (the dither source), over VISA."""
+
+    sim: bool = Field(False)
+    resource: str = Field("GPIB0::19::INSTR", min_length=1, description="VISA resource string")
+    visa_backend: str = Field("", description="pyvisa backend: '' default, '@py', or 'file.yaml@sim'")
+    timeout_ms: int = Field(2000, ge=10, le=60000)
+    max_amplitude_vpp: float = Field(10.0, gt=0.0, le=10.0, description="DS345: 10 Vpp into 50 ohm")
+
+
+class TableSection(_Section):
+    """Ideal Aerosmith 1291BR rate table, over a pyserial URL."""
+
+    sim: bool = Field(False)
+    port: str = Field("/dev/ttyUSB0", min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://h:p, ...")
+    baudrate: int = Field(9600, ge=300, le=115200)
+    timeout_s: float = Field(1.0, gt=0.0, le=30.0)
+    max_rate_dps: float = Field(100.0, gt=0.0, le=1000.0, description="refuse commands above this rate")
+    max_accel_dps2: float = Field(500.0, gt=0.0, le=10000.0, description="refuse accelerations above this")
+    sim_transport: Literal["inprocess", "pty", "socket"] = Field(
+        "inprocess", description="twin only: how the driver reaches the twin"
+    )
+    # framing (unconfirmed for the 1291BR: docs/bench-bringup.md says how to set it from the manual)
+    command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
+    reply_terminator: ReplyTerminator = Field(
+        "auto", description="ends every reply line: auto (CR, LF or CR LF, each accepted), or exactly CR, LF, CRLF"
+    )
+    prompt: str = Field(
+        ">",
+        min_length=1,
+        max_length=8,
+        pattern=r"^[!-~]+$",
+        description="the controller's ready prompt after every reply",
+    )
+    sim_reply_terminator: Terminator = Field("CR", description="twin only: how the twin ends its reply lines")
+    sim_prompt_terminator: Literal["CR", "LF", "CRLF", "none"] = Field(
+        "CR", description="twin only: what follows the twin's prompt (none = a bare prompt)"
+    )
+
+
+class ChamberSection(_Section):
+    """Thermal chamber controller (Sun Electronic Systems EC1x ASCII protocol), over a pyserial URL."""
+
+    sim: bool = Field(False)
+    port: str = Field("/dev/ttyUSB1", min_length=1)
+    baudrate: int = Field(9600, ge=300, le=115200)
+    timeout_s: float = Field(1.0, gt=0.0, le=30.0)
+    min_c: float = Field(-40.0, ge=-100.0, le=200.0, description="lowest setpoint allowed, deg C")
+    max_c: float = Field(85.0, ge=-100.0, le=200.0, description="highest setpoint allowed, deg C")
+    max_ramp_c_per_min: float = Field(5.0, gt=0.0, le=50.0)
+    safe_setpoint_c: float = Field(25.0, ge=-100.0, le=200.0, description="setpoint in the safe state")
+    sim_transport: Literal["inprocess", "pty", "socket"] = Field("inprocess")
+    # framing (unconfirmed for the EC1x: docs/bench-bringup.md says how to set it from the manual)
+    command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
+    reply_terminator: ReplyTerminator = Field(
+        "auto", description="ends every reply line: auto (CR, LF or CR LF, each accepted), or exactly CR, LF, CRLF"
+    )
+    sim_reply_terminator: Terminator = Field("CRLF", description="twin only: how the twin ends its reply lines")
+
+    @model_validator(mode="after")
+    def _limits_ordered(self) -> ChamberSection:
+        if self.min_c >= self.max_c:
+            raise ValueError(f"chamber.min_c ({self.min_c}) must be below chamber.max_c ({self.max_c})")
+        if not self.min_c <= self.safe_setpoint_c <= self.max_c:
+            raise ValueError(
+                f"chamber.safe_setpoint_c ({self.safe_setpoint_c}) must lie in [{self.min_c}, {self.max_c}]"
+            )
+        return self
+
+
+class StorageSection(_Section):
+    flush_interval_s: float = Field(1.0, gt=0.0, le=60.0, description="flush the HDF5 file at least this often")
+    compression: Literal["auto", "none", "gzip", "lzf"] = Field(
+        "auto",
+        description="auto = gzip (shuffle + gzip level 1, a filter every HDF5 reader has; the compression runs "
+        "beside the campaign on the writer thread), twins and hardware alike; docs/hdf5.md",
+    )
+
+    level: Literal["full", "study"] = Field(
+        "full",
+        description="full: every stream (/lockin, /truth at the lock-in rate); study: only what `qmg-lab analyze` "
+        "needs (/clsf, /steps, /table, /chamber, the per-step /windows and per-period /edges summaries, the raw "
+        "stream of the one step the settling time uses), for design studies; docs/hdf5.md",
+    )
+
+    def resolved_compression(self, simulated_lockin: bool = False) -> str:
+        """The HDF5 filter to use: 'auto' is gzip, on twins and hardware alike (docs/hdf5.md: size and cost)."""
+        if self.compression == "auto":
+            return "gzip"
+        return self.compression
+
+
+class SimFaultsSection(_Section):
+    """Faults the twins inject (reliability testing; docs/reliability.md). Probabilities are per transaction,
+    drawn from a generator seeded by sim.seed (the same seed gives the same faults); times are simulated
+    seconds of the twins' world clock (a resumed run's world continues where the file ends)."""
+
+    serial_timeout_prob: float = Field(0.0, ge=0.0, le=1.0, description="table/chamber: reply lost (timeout)")
+    serial_garble_prob: float = Field(
+        0.0, ge=0.0, le=1.0, description="table/chamber: reply garbled (a non-ASCII byte) or truncated (no terminator)"
+    )
+    visa_timeout_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply lost (VISA timeout)")
+    visa_garble_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply garbled or truncated")
+    disconnect_at_s: list[FiniteFloat] = Field(
+        default_factory=list, description="the disconnect_instrument's link drops at these times, s"
+    )
+    disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0, description="how long each drop lasts, s")
+    disconnect_instrument: Literal["table", "chamber", "generator"] = Field(
+        "table", description="whose link drops (nothing reaches the instrument, nothing comes back)"
+    )
+    interlock_trip_at_s: float | None = Field(None, ge=0.0, description="the rate table's interlock trips, s")
+    chamber_overshoot_at_s: float | None = Field(None, ge=0.0, description="the chamber air overshoots, s")
+    chamber_overshoot_c: float = Field(5.0, ge=0.0, le=50.0, description="overshoot peak, deg C")
+    chamber_overshoot_decay_s: float = Field(30.0, gt=0.0, le=3600.0, description="overshoot decays as exp(-t/this), s")
+    chamber_dropout_at_s: float | None = Field(
+        None, ge=0.0, description="the chamber's air sensor drops out (C1? answers ?SENSOR), s"
+    )
+    chamber_dropout_duration_s: float = Field(5.0, ge=0.0, le=3600.0)
+    sample_loss_at_s: list[FiniteFloat] = Field(
+        default_factory=list, description="the HF2 stream loses samples in the block at these times, s"
+    )
+    sample_loss_count: int = Field(100, ge=1, le=100000, description="samples lost at each sample_loss_at_s")
+    pll_unlock_at_s: float | None = Field(None, ge=0.0, description="the HF2 PLL is forced open, s")
+    pll_unlock_duration_s: float = Field(3.0, ge=0.0, le=3600.0)
+
+
+class RecoverySection(_Section):
+    """What the campaign does when an instrument fails (docs/reliability.md)."""
+
+    reconnect_attempts: int = Field(
+        3, ge=0, le=20, description="immediate close/reopen/re-verify attempts before the campaign suspends"
+    )
+    timeout_s: float = Field(
+        30.0,
+        ge=0.0,
+        le=3600.0,
+        description="the campaign keeps logging, suspended, and retries a failed instrument this long, s; then aborts",
+    )
+    safe_state_timeout_s: float = Field(
+        30.0, ge=0.0, le=3600.0, description="on abort, keep retrying an instrument's safe state this long, s"
+    )
+
+
+class SimSection(_Section):
+    """Parameters of the simulated test stand (the paper's QMG by default). See docs/simulation.md."""
+
+    seed: int = Field(1, ge=0, le=2**63 - 1)
+    f0_hz: float = Field(2200.0, ge=100.0, le=100e3)
+    q_factor: float = Field(1.2e6, ge=1e2, le=1e8)
+    damping_mismatch: float = Field(0.01, ge=0.0, le=0.5, description="Delta(1/tau)/(1/tau), paper dQ/Q = 1 %")
+    damping_axis_deg: float = Field(5.0, ge=-90.0, le=90.0)
+    freq_mismatch_hz: float = Field(0.02, ge=0.0, le=10.0, description="mode split at T_ref, Hz (assumed)")
+    stiffness_axis_deg: float = Field(20.0, ge=-90.0, le=90.0, description="principal axis of the split (assumed)")
+    angular_gain: float = Field(0.8, gt=0.0, le=1.0)
+    arw_dps_per_rt_hz: float | None = Field(
+        None, ge=0.0, description="override ARW directly in (deg/s)/sqrt(Hz); default from arw_deg_per_rt_h"
+    )
+    arw_deg_per_rt_h: float = Field(0.02, ge=0.0, le=100.0, description="angle random walk, deg/sqrt(h)")
+    bias_instability_deg_per_h: float = Field(0.2, ge=0.0, le=1000.0, description="IEEE 952 B, deg/h")
+    pickoff_noise_vrms_per_rt_hz: float = Field(
+        2.3e-7,
+        ge=0.0,
+        le=1e-2,
+        description="pickoff voltage noise per demod quadrature, V/sqrt(Hz) (inferred: docs/noise-budget.md)",
+    )
+    forcer_noise_v_per_rt_hz: float = Field(
+        1e-6,
+        ge=0.0,
+        le=1e-2,
+        description="forcer-path voltage noise at the summing node, not recorded by the AuxIns, V/sqrt(Hz) (assumed)",
+    )
+    auxout_bits: int = Field(16, ge=0, le=32, description="HF2 AuxOut DAC resolution, bits (0 = ideal)")
+    auxout_range_v: float = Field(10.0, gt=0.0, le=100.0, description="HF2 AuxOut range, +-V")
+    auxin_bits: int = Field(16, ge=0, le=32, description="HF2 AuxIn ADC resolution, bits (0 = ideal)")
+    auxin_range_v: float = Field(10.0, gt=0.0, le=100.0, description="HF2 AuxIn range, +-V")
+    auxin_noise_v_rms: float = Field(
+        1e-4, ge=0.0, le=1.0, description="white noise of one AuxIn reading, V rms (assumed)"
+    )
+    forcer_tempco_ppm_per_c: float = Field(-1000.0, ge=-1e5, le=1e5, description="forcer gain, what CLSF removes")
+    frequency_tempco_ppm_per_c: float = Field(-30.0, ge=-1e4, le=1e4)
+    pickoff_ratio_tempco_ppm_per_c: float = Field(
+        60.0, ge=-1e4, le=1e4, description="residual G_py/G_px drift: what CLSF cannot see"
+    )
+    reference_temperature_c: float = Field(25.0, ge=-100.0, le=200.0)
+    thermal_lag_s: float = Field(600.0, gt=0.0, le=1e6, description="chamber air -> gyro first-order lag, s")
+    chamber_time_constant_s: float = Field(60.0, gt=0.0, le=1e5, description="chamber air -> its setpoint, s")
+    initial_temperature_c: float = Field(25.0, ge=-60.0, le=150.0)
+    table_rate_scale_error_ppm: float = Field(60.0, ge=-1e4, le=1e4, description="1291BR: 100 ppm rate accuracy")
+    # deterministic non-idealities (docs/accuracy-budget.md: origin of each default, what the paper implies)
+    table_rate_ripple_ppm: float = Field(
+        100.0, ge=0.0, le=1e5, description="1291BR once-per-revolution rate ripple, ppm of the rate (assumed)"
+    )
+    table_ripple_phase_deg: float = Field(0.0, ge=-360.0, le=360.0, description="table angle of the ripple's peak")
+    q_tempco_ppm_per_c: float = Field(-2000.0, ge=-1e5, le=1e5, description="dQ/Q per degC (assumed)")
+    damping_mismatch_tempco_per_c: float = Field(
+        1e-4, ge=-0.01, le=0.01, description="d(Delta(1/tau)/(1/tau))/dT per degC (assumed)"
+    )
+    freq_mismatch_tempco_hz_per_c: float = Field(
+        -0.002, ge=-1.0, le=1.0, description="mode split tempco, Hz/degC (assumed)"
+    )
+    forcer_bias_v: float = Field(5.0, ge=0.0, le=200.0, description="sense forcer polarization V_p, V (assumed)")
+    forcer_gap_um: float = Field(2.0, gt=0.0, le=100.0, description="parallel-plate forcer gap, um (assumed)")
+    drive_amplitude_um: float = Field(5.0, gt=0.0, le=100.0, description="physical drive amplitude, um (assumed)")
+    forcer_electrode_v_per_v: float = Field(
+        1.0, ge=0.0, le=100.0, description="forcer electrode AC amplitude per command volt (paper: 10 V at 150 deg/s)"
+    )
+    feedthrough_v_per_v: float = Field(
+        1e-4, ge=0.0, le=1.0, description="sense pickoff volts per forcer-electrode volt (assumed)"
+    )
+    feedthrough_phase_deg: float = Field(90.0, ge=-360.0, le=360.0, description="feedthrough phase vs the force")
+    hf2_demod_ripple: bool = Field(True, description="carrier model: the demod filter's 2-omega residual")
+    loop_delay_us: float = Field(0.0, ge=0.0, le=1e4, description="lock-in loop delay, us")
+    ds345_timebase_offset_ppm: float = Field(
+        3.0, ge=-1000.0, le=1000.0, description="the DS345's crystal timebase against the HF2's clock, ppm (assumed)"
+    )
+    ds345_timebase_wander_ppm: float = Field(
+        0.5, ge=0.0, le=100.0, description="slow wander of that timebase (sinusoidal amplitude), ppm (assumed)"
+    )
+    ds345_timebase_wander_period_s: float = Field(3600.0, gt=0.0, le=1e7, description="period of that wander, s")
+    ds345_command_latency_s: float = Field(
+        0.37e-3, ge=0.0, le=1.0, description="a DS345 setting takes effect this long after the command, s (assumed)"
+    )
+    hf2_rate_set: Literal["hf2", "ticks"] = Field(
+        "hf2",
+        description="rates the HF2 twin offers: 'hf2' its binary ladder (1800, 3600, ... Sa/s), 'ticks' any "
+        "clockbase/integer rate (robustness studies at rates no HF2 offers)",
+    )
+    drive_voltage_v: float = Field(0.05, gt=0.0, le=10.0, description="true drive voltage at nominal amplitude, V")
+    sf_true_v_per_dps: float = Field(0.06, gt=0.0, le=10.0, description="true FTR SF at the reference temperature")
+    faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
+
+
+class Config(_Section):
+    """A whole campaign configuration."""
+
+    campaign: CampaignSection = Field(default_factory=CampaignSection)
+    device: DeviceSection = Field(default_factory=DeviceSection)
+    loops: LoopsSection = Field(default_factory=LoopsSection)
+    dither: DitherSection = Field(default_factory=DitherSection)
+    clsf: ClsfSection = Field(default_factory=ClsfSection)
+    plan: PlanSection = Field(default_factory=PlanSection)
+    lockin: LockInSection = Field(default_factory=LockInSection)
+    generator: GeneratorSection = Field(default_factory=GeneratorSection)
+    table: TableSection = Field(default_factory=TableSection)
+    chamber: ChamberSection = Field(default_factory=ChamberSection)
+    storage: StorageSection = Field(default_factory=StorageSection)
+    recovery: RecoverySection = Field(default_factory=RecoverySection)
+    sim: SimSection = Field(default_factory=SimSection)
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> Config:
+        if self.dither.frequency_hz > self.lockin.demod_rate_hz / 20:
+            raise ValueError(
+                f"dither.frequency_hz ({self.dither.frequency_hz}) needs at least 20 demod samples per period: "
+                f"at most lockin.demod_rate_hz/20 = {self.lockin.demod_rate_hz / 20:g} Hz"
+            )
+        if self.storage.level == "study" and self.campaign.kind == "bandwidth":
+            raise ValueError(
+                'storage.level = "study" keeps no raw lock-in stream, which the bandwidth campaign\'s Bode fits '
+                'need: use storage.level = "full" for campaign.kind = "bandwidth"'
+            )
+        if self.loops.rate_bandwidth_hz >= self.dither.frequency_hz:
+            raise ValueError(
+                f"loops.rate_bandwidth_hz ({self.loops.rate_bandwidth_hz}) must be below dither.frequency_hz "
+                f"({self.dither.frequency_hz}): the dither has to lie outside the rate-loop bandwidth"
+            )
+        return self
+
+    def with_all_sim(self, sim: bool = True) -> Config:
+        """The same configuration with every instrument set to its twin (the CLI's --sim)."""
+        update = {
+            name: getattr(self, name).model_copy(update={"sim": sim})
+            for name in ("lockin", "generator", "table", "chamber")
+        }
+        return self.model_copy(update=update)
+
+    @property
+    def any_sim(self) -> bool:
+        return any(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+
+    @property
+    def all_sim(self) -> bool:
+        return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+
+
+def parse_config(text: str, source: str = "<string>") -> Config:
+    """Validate TOML text into a Config; raise ConfigError naming every bad field and its allowed range."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        lines = [describe_error(e, Config) for e in exc.errors(include_url=False)]
+        raise ConfigError(f"{source}: invalid configuration:\n  " + "\n  ".join(lines)) from None
+
+
+def load_config(path: str | Path) -> tuple[Config, str]:
+    """Read and validate a configuration file. Returns the model and the file's text (stored in run files)."""
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("utf-8")  # no newline translation: TOML allows LF and CRLF only
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a configuration file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+    return parse_config(text, str(p)), text
+
+
+def config_fingerprint(text: str) -> str:
+    """SHA-256 of the configuration text, hex: the identity `--resume` checks."""
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def stream_timing_problem(cfg: Config) -> str | None:
+    """Why a campaign configuration cannot stream a trustworthy CLSF, or None (qmg_lab/clsf/stream_plan.py).
+
+    The lock-in rate must be one the HF2 offers (unless the twin is told to offer any), and the dither's edges must
+    not lock to the sample grid. Checked before a campaign runs (`run`, `check`, `characterize`), not when a
+    stored configuration is read back for analysis: files written under other rules stay readable."""
+    rate = cfg.lockin.demod_rate_hz
+    if not (cfg.lockin.sim and cfg.sim.hf2_rate_set == "ticks"):
+        applied = hf2_rate(rate)
+        if abs(applied - rate) > 1e-6 * rate:
+            rungs = ", ".join(f"{hf2_rate(r):g}" for r in (450, 900, 1800, 3600, 7200))
+            return (
+                f"lockin.demod_rate_hz = {rate:g} Sa/s is not a rate the HF2 offers (it would stream at "
+                f"{applied:g} Sa/s); use one of {rungs} ... Sa/s"
+            )
+    if cfg.clsf.mode != "off":
+        return StreamPlan(
+            rate, cfg.dither.frequency_hz, cfg.lockin.demod_order, cfg.lockin.demod_timeconstant_s
+        ).problem()
+    return None

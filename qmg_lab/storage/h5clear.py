@@ -1,0 +1,102 @@
+"""HDF5 superblock consistency flags: what `h5clear -s` does, so a run file whose writer was killed can be resumed.
+
+HDF5 marks a file opened for (SWMR) writing in the superblock's consistency flags; after a crash they stay set
+and HDF5 refuses to open the file for writing. `clear_superblock_flags` resets them and rewrites the superblock's
+Jenkins lookup3 checksum; `writer_flags_set` tells whether a file was left open by a writer.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+
+from qmg_lab.storage.layout import StorageError
+
+
+def _lookup3(data: bytes, initval: int = 0) -> int:
+    """Bob Jenkins' lookup3 `hashlittle` (public domain), the checksum HDF5 puts on superblock v2/v3.
+
+    Three 32-bit lanes a, b, c start at 0xdeadbeef + len + initval; each 12-byte block is added little-endian
+    and mixed, the last (1..12 byte, zero-padded) block is added and put through the final avalanche; the hash
+    is c. A zero-length key returns c unmixed.
+    """
+    m = 0xFFFFFFFF
+
+    def rot(x: int, k: int) -> int:
+        return ((x << k) | (x >> (32 - k))) & m
+
+    n = len(data)
+    a = b = c = (0xDEADBEEF + n + initval) & m
+    if n == 0:
+        return c
+    pos = 0
+    while n - pos > 12:
+        x, y, z = struct.unpack_from("<III", data, pos)
+        a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
+        a = ((a - c) & m) ^ rot(c, 4)
+        c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 6)
+        a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 8)
+        b = (b + a) & m
+        a = ((a - c) & m) ^ rot(c, 16)
+        c = (c + b) & m
+        b = ((b - a) & m) ^ rot(a, 19)
+        a = (a + c) & m
+        c = ((c - b) & m) ^ rot(b, 4)
+        b = (b + a) & m
+        pos += 12
+    x, y, z = struct.unpack("<III", data[pos:].ljust(12, b"\0"))
+    a, b, c = (a + x) & m, (b + y) & m, (c + z) & m
+    c = (c ^ b) - rot(b, 14) & m
+    a = (a ^ c) - rot(c, 11) & m
+    b = (b ^ a) - rot(a, 25) & m
+    c = (c ^ b) - rot(b, 16) & m
+    a = (a ^ c) - rot(c, 4) & m
+    b = (b ^ a) - rot(a, 14) & m
+    c = (c ^ b) - rot(b, 24) & m
+    return c
+
+
+_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _superblock(path: Path) -> tuple[bytes, int]:
+    """Read a v2/v3 superblock at offset 0: (its bytes without the checksum, its length with the checksum)."""
+    with open(path, "rb") as fh:
+        head = fh.read(64)
+    if head[:8] != _SIGNATURE:
+        raise StorageError(f"{path}: not an HDF5 file (no HDF5 signature at offset 0)")
+    version = head[8]
+    if version not in (2, 3):
+        raise StorageError(
+            f"{path}: HDF5 superblock version {version}; qmg-lab files use version 3 "
+            f"(libver='latest'); this file was not written by qmg-lab"
+        )
+    size_offsets = head[9]
+    length = 12 + 4 * size_offsets + 4  # signature..flags, 4 addresses, checksum
+    body = head[: length - 4]
+    (stored,) = struct.unpack_from("<I", head, length - 4)
+    if _lookup3(body) != stored:
+        raise StorageError(f"{path}: HDF5 superblock checksum mismatch: the file is damaged")
+    return body, length
+
+
+def writer_flags_set(path: str | Path) -> bool:
+    """True if the superblock says a writer opened the file and never closed it (killed, or still running)."""
+    body, _ = _superblock(Path(path))
+    return body[11] != 0
+
+
+def clear_superblock_flags(path: Path) -> None:
+    """Zero the superblock's file-consistency flags and rewrite its checksum (h5clear -s)."""
+    body, _ = _superblock(path)
+    if body[11] == 0:
+        return
+    new = body[:11] + b"\0" + body[12:]
+    with open(path, "r+b") as fh:
+        fh.seek(0)
+        fh.write(new + struct.pack("<I", _lookup3(new)))
+        fh.flush()
+        os.fsync(fh.fileno())

@@ -1,0 +1,661 @@
+"""The run file: a crash-safe, self-describing HDF5 file in the "qmg-lab/1" layout (docs/hdf5.md).
+
+Protocol (docs/hdf5.md):
+
+* `RunWriter.create` makes every group and every dataset up front — 1-D, chunked, unlimited `maxshape`, with a
+  `units` and a `description` attribute — writes the root attributes, then switches the file to HDF5 SWMR
+  (single-writer/multiple-reader) mode: `libver="latest"`, `file.swmr_mode = True`. From then on HDF5 orders its
+  metadata writes so that the file on disk is always a consistent snapshot as of the last flush: a process
+  killed at any instant leaves a file that h5py opens (with `swmr=True`; `read_run` does this), having lost only
+  what was appended after the last flush.
+* Appends go to a small per-group memory buffer. The buffers are handed to one writer thread
+  (qmg_lab/storage/background.py), which writes them, compressing the chunks inside HDF5 while the campaign goes
+  on: asynchronously, followed by a file flush, when `maybe_flush` finds that `flush_interval_s` of wall time has
+  passed; synchronously (the call returns once they are written) on `flush`, on every `append_step` and
+  `set_status`, and on `close`. A step row with status "completed" is therefore a checkpoint: every sample
+  appended before it is in the file when the row is. Past BUFFER_ROWS_MAX buffered rows the buffers are handed
+  over early (no file flush); at most two hand-overs wait for the thread, so memory does not grow with the data
+  one flush interval carries.
+* A kill can land between two datasets' resizes, so the columns of a group may differ in length by one block;
+  `read_run` and `RunWriter.reopen` cut every group to its shortest column (rows are only valid when complete).
+* Layout for the write pattern (qmg_lab/storage/layout.py, docs/hdf5.md): big chunks when the writer is faster
+  than real time (twins), small ones when a flush carries a second of data (`realtime=True`, hardware); shuffle +
+  the file's compression only on the columns that compress.
+* Resume (`check_resumable`, then `reopen` once the station is connected): nothing changes in the file until every
+  check passed (not completed, same configuration, writer gone, same twin/hardware instruments). HDF5 marks a
+  file opened for (SWMR) writing in the superblock's consistency flags; after a crash these flags stay set and
+  HDF5 refuses to open the file for writing ("may use h5clear"). `reopen` clears them itself
+  (`qmg_lab.storage.h5clear.clear_superblock_flags`, the equivalent of `h5clear -s`), then cuts the file to one
+  consistent instant and drops the checkpoints that end after it.
+
+Why one module of this length: the writer's crash-safety rules (SWMR, chunk hand-over to the writer thread,
+checkpoints, resume) depend on each other; the layout, reading, resume checks, records and the study level
+are in their own modules of this package.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import socket
+import time as _time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import h5py
+import numpy as np
+from h5py import h5s
+
+from qmg_lab.storage.background import BackgroundWrites
+from qmg_lab.storage.h5clear import clear_superblock_flags, writer_flags_set
+from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part of the API
+    CHAMBER_UNITS,
+    CHUNK_ROWS,
+    CHUNK_ROWS_REALTIME,
+    CLSF_UNITS,
+    COMPRESSED_COLUMNS,
+    COMPRESSED_COLUMNS_REALTIME,
+    COMPRESSED_GROUPS,
+    COMPRESSIONS,
+    DESCRIPTIONS,
+    FORMAT,
+    GROUP_UNITS,
+    GZIP_LEVEL,
+    GZIP_LEVELS,
+    INSTRUMENT_MODES,
+    INSTRUMENTS,
+    KIND_BYTES,
+    LOCKIN_UNITS,
+    MODES,
+    STATUS_BYTES,
+    STATUSES,
+    STEPS_DTYPES,
+    STEPS_UNITS,
+    TABLE_UNITS,
+    TRUTH_UNITS,
+    StorageError,
+    _text,
+    whole_chunk_layout,
+)
+from qmg_lab.storage.reader import RunData, read_run, read_window
+from qmg_lab.storage.records import RunRecords, create_groups
+from qmg_lab.storage.resume import check_resumable, file_instrument_modes, repair_end, status_detail
+
+#: the writer's chunk cache per dataset. HDF5 2.0 defaults to 8 MiB per open dataset, and the writer keeps ~30
+#: datasets open: 1 MiB (8 fast-group chunks) holds every partial chunk until its flush; w0 = 1 evicts fully
+#: written chunks first (an append-only pattern never comes back to them)
+WRITER_CACHE: dict[str, Any] = {"rdcc_nbytes": 1 << 20, "rdcc_w0": 1.0}
+
+#: rows buffered in memory (all groups) before they are handed to HDF5 without a file flush: about 12 MB of
+#: buffers, so a writer's memory does not depend on how much data one wall-clock flush interval carries
+BUFFER_ROWS_MAX = 131072
+
+__all__ = [
+    "CHAMBER_UNITS",
+    "CLSF_UNITS",
+    "FORMAT",
+    "GROUP_UNITS",
+    "LOCKIN_UNITS",
+    "STEPS_UNITS",
+    "TABLE_UNITS",
+    "TRUTH_UNITS",
+    "ResumeState",
+    "RunData",
+    "RunWriter",
+    "StorageError",
+    "file_instrument_modes",
+    "read_run",
+    "read_window",
+    "status_detail",
+    "writer_flags_set",
+]
+
+
+@dataclass(frozen=True)
+class ResumeState:
+    """What a run file says about the moment its writer stopped (for `--resume`)."""
+
+    last_time: float | None  # None: no lock-in sample yet (the resumed run starts at t = 0)
+    rho_ref: float | None
+    gain_correction: float | None
+    chamber_setpoint_c: float | None
+    chamber_temperature_c: float | None
+    gyro_temperature_c: float | None
+
+    def as_dict(self) -> dict[str, float | None]:
+        return dict(self.__dict__)
+
+
+class RunWriter:
+    """Appends campaign data to a qmg-lab/1 run file in SWMR mode. Use `create` or `reopen`, not the constructor.
+
+    Not thread-safe: one writer object, one thread. Usable as a context manager: an exception leaving the
+    `with` block marks the run "aborted" with the exception as `abort_reason`, then closes the file.
+    """
+
+    def __init__(
+        self, path: Path, h5: h5py.File, *, flush_interval_s: float, clock: Callable[[], float] = _time.monotonic
+    ) -> None:
+        if not flush_interval_s > 0:
+            raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
+        self.path = path
+        self._h5 = h5
+        self.flush_interval_s = float(flush_interval_s)
+        self._clock = clock
+        self._last_flush = clock()
+        self._groups = [g for g in GROUP_UNITS if g in h5]
+        # dataset handles looked up once: an h5py lookup by name costs more than a small append
+        self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
+            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups
+        }
+        self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
+        self._buffered_rows = 0
+        self._last_time: dict[str, float] = {}
+        for g in self._groups:
+            t = h5[g]["time"]
+            self._last_time[g] = float(t[t.shape[0] - 1]) if t.shape[0] else -np.inf
+        steps = h5["steps"]
+        self._completed: set[int] = {
+            int(i) for i, s in zip(steps["index"][:], steps["status"][:], strict=True) if s == b"completed"
+        }
+        self._completed_in_file = set(self._completed)  # the "completed" rows in the file (the rest wait)
+        # rows of each group handed to the writer thread (stored or on their way)
+        self._handed: dict[str, int] = {g: int(h5[g]["time"].shape[0]) for g in self._groups}
+        # the twins' layout (every /lockin column compressed): /lockin and /truth are handed over in whole chunks
+        # only, so no flush leaves a dead copy of a compressed partial chunk behind (docs/hdf5.md); the rest waits
+        # in memory for the next chunk, `flush(complete=True)`, `set_status` or `close`
+        self._whole_chunk_rows: dict[str, int] = (
+            {g: int(h5[g]["time"].chunks[0]) for g in ("lockin", "truth") if g in h5} if whole_chunk_layout(h5) else {}
+        )
+        # /steps rows waiting for their data: (row, rows of each whole-chunk group appended before the row)
+        self._pending_steps: list[tuple[dict[str, Any], dict[str, int]]] = []
+        self._closed = False
+        # the HDF5 writes (and the chunk compression inside them) run on this thread, beside the campaign
+        self._bg = BackgroundWrites(f"qmg-lab writer {path.name}")
+
+    # ---- construction ---------------------------------------------------------------------------------------
+
+    @classmethod
+    def create(
+        cls,
+        path: str | Path,
+        *,
+        config_text: str,
+        config_sha256: str,
+        mode: str,
+        software_version: str,
+        t0_unix: float,
+        flush_interval_s: float = 1.0,
+        compression: str = "lzf",
+        truth: bool,
+        planned_steps: int = -1,
+        planned_step_kinds: Iterable[str] = (),
+        instrument_modes: Mapping[str, str] | None = None,
+        realtime: bool = False,
+        extra_attrs: Mapping[str, Any] | None = None,
+        extra_layout: Callable[[h5py.File], None] | None = None,
+        clock: Callable[[], float] = _time.monotonic,
+    ) -> RunWriter:
+        """Create a new run file (refuses to overwrite), lay out every group and dataset, start SWMR.
+
+        instrument_modes: "twin" | "hardware" per instrument (root attribute instrument_modes, JSON), what
+        --resume checks; default: every instrument as `mode` says. realtime: the data arrive in real time (a
+        hardware lock-in), so each flush carries about a second of data: smaller chunks (CHUNK_ROWS_REALTIME).
+
+        planned_steps / planned_step_kinds: the plan's length and its step kinds (root attributes
+        `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
+        extra_attrs: further root attributes (scalars or strings), written before SWMR starts.
+        extra_layout: called with the open file before SWMR starts, to lay out further groups (SWMR cannot create
+        objects later): the study storage level's summaries (qmg_lab/storage/summary.py).
+        """
+        p = Path(path)
+        if mode not in MODES:
+            raise StorageError(f"{p}: mode must be one of {MODES}, got {mode!r}")
+        if compression not in COMPRESSIONS:
+            raise StorageError(f"{p}: compression must be one of {COMPRESSIONS}, got {compression!r}")
+        modes = (
+            dict(instrument_modes)
+            if instrument_modes is not None
+            else {n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+        )
+        if set(modes) != set(INSTRUMENTS) or not set(modes.values()) <= set(INSTRUMENT_MODES):
+            raise StorageError(
+                f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, got {modes!r}"
+            )
+        if not np.isfinite(t0_unix):
+            raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
+        if p.exists():
+            raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume")
+        if not p.parent.is_dir():
+            raise StorageError(f"{p}: directory {p.parent} does not exist")
+        # the file is laid out under a hidden name and renamed into place once SWMR is on: a process killed while
+        # laying it out leaves no half-made file at `path` that a reader or --resume could not open
+        tmp = p.with_name(f".{p.name}.creating")
+        tmp.unlink(missing_ok=True)  # left by a process killed in this very window: never a run's data
+        try:
+            h5 = h5py.File(tmp, "w-", libver="latest", **WRITER_CACHE)
+        except OSError as exc:
+            raise StorageError(f"{p}: cannot create the run file: {exc}") from None
+        try:
+            a = h5.attrs
+            a["format"] = FORMAT
+            a["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+            a["t0_unix"] = float(t0_unix)
+            a["software_version"] = software_version
+            a["mode"] = mode
+            a["config_toml"] = config_text
+            a["config_sha256"] = config_sha256
+            a["status"] = "running"
+            a["abort_reason"] = ""
+            a["completed_steps"] = 0
+            a["resume_count"] = 0
+            a["planned_steps"] = int(planned_steps)
+            a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
+            a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
+            a["compression"] = compression
+            a["flush_interval_s"] = float(flush_interval_s)
+            a["writer_pid"] = os.getpid()
+            a["writer_host"] = socket.gethostname()
+            a["clsf_reference"] = np.nan  # set by set_clsf_reference; created now: SWMR cannot add attributes safely
+            for k, v in (extra_attrs or {}).items():
+                if k in a:
+                    raise StorageError(f"{p}: extra attribute {k!r} clashes with a contract attribute")
+                a[k] = v
+            filt: dict[str, Any] = {}
+            if compression == "gzip":
+                filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
+            elif compression == "lzf":
+                filt = {"compression": "lzf", "shuffle": True}
+            rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
+            compressed = COMPRESSED_COLUMNS_REALTIME if realtime else COMPRESSED_COLUMNS
+            for g, units in GROUP_UNITS.items():
+                if g == "truth" and not truth:
+                    continue
+                grp = h5.create_group(g)
+                for col, unit in units.items():
+                    ds = grp.create_dataset(
+                        col,
+                        shape=(0,),
+                        maxshape=(None,),
+                        dtype=np.float64,
+                        chunks=(rows[g],),
+                        **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
+                    )
+                    ds.attrs["units"] = unit
+                    ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
+            grp = h5.create_group("steps")
+            for col, dtype in STEPS_DTYPES.items():
+                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],))
+                ds.attrs["units"] = STEPS_UNITS[col]
+                ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
+            create_groups(h5)  # /snapshots, /events (qmg_lab/storage/records.py): laid out before SWMR
+            if extra_layout is not None:
+                extra_layout(h5)
+            h5.flush()
+            h5.swmr_mode = True
+            os.replace(tmp, p)  # the open file keeps its descriptor; readers find it complete, in SWMR
+        except BaseException:
+            h5.close()
+            tmp.unlink(missing_ok=True)
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+
+    @staticmethod
+    def check_resumable(
+        path: str | Path, *, config_sha256: str, instrument_modes: Mapping[str, str] | None = None
+    ) -> RunData:
+        """Read-only: can this file be resumed with this configuration and station? Changes nothing
+        (qmg_lab.storage.resume.check_resumable: completed, configuration, live writer, instruments)."""
+        return check_resumable(path, config_sha256=config_sha256, instrument_modes=instrument_modes)
+
+    @classmethod
+    def reopen(
+        cls,
+        path: str | Path,
+        *,
+        config_sha256: str,
+        flush_interval_s: float = 1.0,
+        instrument_modes: Mapping[str, str] | None = None,
+        clock: Callable[[], float] = _time.monotonic,
+    ) -> RunWriter:
+        """Reopen a run file to resume it (after a crash or an abort). Call it once the station is connected:
+        this is the first step that changes the file.
+
+        First every check of `check_resumable` (nothing is changed if one fails). Then: clears the crash flags,
+        restarts SWMR, and makes the file end on a consistent instant:
+        1. every group is cut to its shortest column (whole rows only);
+        2. the end instant is the last /lockin time, or the last /truth time if that is earlier (a kill can
+           fall between the two groups' writes; /truth stays aligned sample for sample with /lockin) unless
+           /truth has no rows at all; in the twins' layout (written in whole chunks) it moves back to the last
+           /table or /chamber reading, the end of the last lock-in block whose readings are in; /lockin
+           and /truth are cut to it and every other group to rows at or before it;
+        3. /steps keeps only "completed" rows that end at or before that instant: a checkpoint whose data did
+           not all reach the disk is not a checkpoint, and the step is run again after the resume point.
+        Then status "running" (abort_reason ""), completed_steps recounted, resume_count incremented.
+        """
+        p = Path(path)
+        run = cls.check_resumable(p, config_sha256=config_sha256, instrument_modes=instrument_modes)
+        if run.writer_open:
+            clear_superblock_flags(p)
+        try:
+            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
+        except OSError as exc:
+            raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
+        try:
+            create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
+            h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
+            repair_end(h5)
+            steps = h5["steps"]
+            h5.attrs["status"] = "running"
+            h5.attrs["abort_reason"] = ""
+            h5.attrs["completed_steps"] = int(np.unique(steps["index"][:]).shape[0])
+            h5.attrs["resume_count"] = int(h5.attrs.get("resume_count", 0)) + 1
+            h5.attrs["writer_pid"] = os.getpid()
+            h5.attrs["writer_host"] = socket.gethostname()
+            h5.flush()
+        except BaseException:
+            h5.close()
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+
+    # ---- appending ------------------------------------------------------------------------------------------
+
+    def append(self, group: str, **columns: np.ndarray) -> None:
+        """Buffer rows for `group`: every column of the group, 1-D, same length; time non-decreasing."""
+        self._check_open()
+        if group not in GROUP_UNITS:
+            raise StorageError(
+                f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
+                f"(steps are written with append_step)"
+            )
+        if group not in self._buffer:
+            raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
+        expected = GROUP_UNITS[group]
+        if columns.keys() != expected.keys():
+            missing = sorted(set(expected) - set(columns))
+            extra = sorted(set(columns) - set(expected))
+            raise StorageError(
+                f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
+                f"missing {missing}, unknown {extra}"
+            )
+        arrays = {c: np.asarray(columns[c], dtype=np.float64) for c in expected}
+        for c, arr in arrays.items():
+            if arr.ndim == 0:
+                arrays[c] = arr.reshape(1)
+        n = arrays["time"].shape[0]
+        for c, arr in arrays.items():
+            if arr.ndim != 1 or arr.shape[0] != n:
+                raise StorageError(
+                    f"{self.path}: /{group}/{c} has shape {arr.shape}; every column of the append "
+                    f"must be 1-D with {n} rows like /{group}/time"
+                )
+        if n == 0:
+            return
+        t = arrays["time"]
+        if not np.all(np.isfinite(t)):
+            raise StorageError(f"{self.path}: /{group}/time contains NaN or infinite values")
+        if t[0] < self._last_time[group] or (n > 1 and np.any(np.diff(t) < 0)):
+            raise StorageError(
+                f"{self.path}: /{group}/time must not decrease (last stored "
+                f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)"
+            )
+        self._last_time[group] = float(t[-1])
+        self._buffer[group].append(arrays)
+        self._buffered_rows += n
+        if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
+            self._hand_over(flush_file=False)
+
+    def append_step(
+        self,
+        *,
+        index: int,
+        kind: str,
+        t_start: float,
+        t_end: float,
+        table_rate: float,
+        chamber_setpoint: float,
+        status: str,
+    ) -> None:
+        """Append one /steps row: a "completed" row is a checkpoint for --resume, written (and the file flushed)
+        right after every sample appended before it. The writer thread writes it (`drain` waits); in the twins'
+        layout it goes with the chunk that holds the step's last sample (at most one chunk of simulated time
+        later, or at `close`), never before its data."""
+        self._check_open()
+        kb, sb = kind.encode("utf-8"), status.encode("utf-8")
+        if not kb or len(kb) > KIND_BYTES:
+            raise StorageError(f"{self.path}: step kind must be 1..{KIND_BYTES} bytes, got {kind!r}")
+        if not sb or len(sb) > STATUS_BYTES:
+            raise StorageError(f"{self.path}: step status must be 1..{STATUS_BYTES} bytes, got {status!r}")
+        if index < 0:
+            raise StorageError(f"{self.path}: step index must be >= 0, got {index}")
+        row: dict[str, Any] = {
+            "index": int(index),
+            "kind": kb,
+            "t_start": float(t_start),
+            "t_end": float(t_end),
+            "table_rate": float(table_rate),
+            "chamber_setpoint": float(chamber_setpoint),
+            "status": sb,
+        }
+        need = {g: self._handed[g] + sum(b["time"].shape[0] for b in self._buffer[g]) for g in self._whole_chunk_rows}
+        self._pending_steps.append((row, need))
+        if status == "completed":
+            self._completed.add(int(index))
+        self._hand_over(flush_file=True)
+        self._last_flush = self._clock()
+
+    # ---- queries --------------------------------------------------------------------------------------------
+
+    def completed_steps(self) -> set[int]:
+        """Indices of the steps with a "completed" row."""
+        return set(self._completed)
+
+    def last_time(self) -> float:
+        """Last /lockin/time appended (buffered or stored), s; 0.0 if none: a resumed run continues after it."""
+        t = self._last_time.get("lockin", -np.inf)
+        return float(t) if np.isfinite(t) else 0.0
+
+    def records(self) -> RunRecords:
+        """The /snapshots and /events writer of this file (qmg_lab/storage/records.py)."""
+        self._check_open()
+        return RunRecords(self._h5, self.path)
+
+    def set_clsf_reference(self, rho_ref: float) -> None:
+        """Store the CLSF reference level rho_0 (root attr clsf_reference): a resumed run keeps its reference."""
+        self._check_open()
+        if self._h5.attrs.get("clsf_reference") != rho_ref:
+            self._h5.attrs["clsf_reference"] = float(rho_ref)
+
+    def resume_state(self) -> ResumeState:
+        """Where a resumed run continues: last time, CLSF reference and gain, last chamber and truth readings."""
+        self._check_open()
+        self._flush_buffers()
+
+        def last(group: str, col: str) -> float | None:
+            if group not in self._h5:
+                return None
+            ds = self._h5[group][col]
+            return float(ds[ds.shape[0] - 1]) if ds.shape[0] else None
+
+        ref = self._h5.attrs.get("clsf_reference")
+        has_data = bool(np.isfinite(self._last_time.get("lockin", -np.inf)))
+        return ResumeState(
+            last_time=self.last_time() if has_data else None,
+            rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
+            gain_correction=last("clsf", "gain_correction"),
+            chamber_setpoint_c=last("chamber", "setpoint"),
+            chamber_temperature_c=last("chamber", "temperature"),
+            gyro_temperature_c=last("truth", "temperature"),
+        )
+
+    # ---- flushing and status --------------------------------------------------------------------------------
+
+    def maybe_flush(self) -> None:
+        """If `flush_interval_s` of wall time passed since the last flush: hand the buffers to the writer thread,
+        which writes them and then flushes the file (asynchronous: `drain` waits for it)."""
+        self._check_open()
+        if self._clock() - self._last_flush >= self.flush_interval_s:
+            self._hand_over(flush_file=True)
+            self._last_flush = self._clock()
+
+    def drain(self) -> None:
+        """Wait until the writer thread has written (and, if asked, flushed) every row handed to it."""
+        self._check_open()
+        self._drain()
+
+    def flush(self) -> None:
+        """Write every buffered row (and every waiting /steps row) and flush the file to disk (SWMR readers see it
+        from now on); returns once done. In the twins' layout this writes a partial chunk that a later write
+        rewrites (a dead copy, docs/hdf5.md): the campaign leaves its flushes to `maybe_flush` and `append_step`."""
+        self._check_open()
+        self._flush_buffers()
+        self._flush_file()
+
+    def set_status(self, status: str, abort_reason: str = "") -> None:
+        """Set the root status ("running" | "completed" | "aborted") and abort_reason; flushes."""
+        self._check_open()
+        if status not in STATUSES:
+            raise StorageError(f"{self.path}: status must be one of {STATUSES}, got {status!r}")
+        self._flush_buffers()
+        self._h5.attrs["status"] = status
+        self._h5.attrs["abort_reason"] = abort_reason
+        self._flush_file()
+
+    def set_plan(self, planned_steps: int, planned_step_kinds: Iterable[str]) -> None:
+        """Store the plan's length and step kinds (root attrs planned_steps, planned_step_kinds as JSON)."""
+        self._check_open()
+        kinds = list(planned_step_kinds)
+        if planned_steps < 0 or (kinds and len(kinds) != planned_steps):
+            raise StorageError(
+                f"{self.path}: planned_steps ({planned_steps}) must be >= 0 and match the "
+                f"{len(kinds)} planned step kinds"
+            )
+        self._h5.attrs["planned_steps"] = int(planned_steps)
+        self._h5.attrs["planned_step_kinds"] = json.dumps(kinds)
+        self._flush_file()
+
+    def close(self) -> None:
+        """Flush and close (idempotent). Closing clears the superblock's writer flags: a clean file."""
+        if self._closed:
+            return
+        try:
+            self._flush_buffers()
+        finally:
+            self._closed = True
+            self._bg.close()
+            self._h5.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is not None and not self._closed:
+            try:
+                if _text(self._h5.attrs["status"]) == "running":
+                    reason = "interrupted" if issubclass(exc_type, KeyboardInterrupt) else f"{exc_type.__name__}: {exc}"
+                    self.set_status("aborted", reason)
+            finally:
+                self.close()
+        else:
+            self.close()
+
+    # ---- internals ------------------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise StorageError(f"{self.path}: the run file is closed")
+
+    def _flush_buffers(self, *, complete: bool = True) -> None:
+        """Every buffered row (`complete`; else: up to the last whole chunk in the twins' layout) and every /steps
+        row whose data are in written to HDF5 (not flushed) when this returns."""
+        self._hand_over(flush_file=False, complete=complete)
+        self._drain()
+
+    def _drain(self) -> None:
+        try:
+            self._bg.drain()
+        except Exception as exc:
+            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
+
+    def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
+        """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
+        whose data are all in, then flushes the file if asked (or if it wrote a step row). In the twins' layout
+        /lockin and /truth are handed over up to their last whole chunk unless `complete`. The rows of a group
+        are joined here, so the job owns its arrays (nothing ever writes into them)."""
+        batch: list[tuple[h5py.Dataset, np.ndarray]] = []
+        kept = 0
+        for g, blocks in self._buffer.items():
+            if not blocks:
+                continue
+            cols = {
+                c: blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks]) for c, _ in self._ds[g]
+            }
+            n = cols["time"].shape[0]
+            chunk = self._whole_chunk_rows.get(g, 0)
+            keep = 0 if complete or not chunk else (self._handed[g] + n) % chunk
+            blocks.clear()
+            if keep:
+                blocks.append({c: v[n - keep :] for c, v in cols.items()})
+                kept += keep
+            if n > keep:
+                for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
+                    batch.append((ds, np.ascontiguousarray(cols[c][: n - keep])))
+                self._handed[g] += n - keep
+        self._buffered_rows = kept
+        rows: list[dict[str, Any]] = []
+        while self._pending_steps and all(self._handed[g] >= k for g, k in self._pending_steps[0][1].items()):
+            rows.append(self._pending_steps.pop(0)[0])  # in order: a row never overtakes an earlier one
+        self._completed_in_file |= {int(r["index"]) for r in rows if r["status"] == b"completed"}
+        if not batch and not rows and not flush_file:
+            return
+        h5, completed = self._h5, len(self._completed_in_file)
+
+        def write() -> None:
+            for ds, data in batch:
+                _append_rows(ds, data)
+            if rows:
+                steps = h5["steps"]
+                n = steps["index"].shape[0]
+                for c, dtype in STEPS_DTYPES.items():
+                    steps[c].resize((n + len(rows),))
+                    steps[c][n:] = np.array([r[c] for r in rows], dtype=dtype)
+                h5.attrs["completed_steps"] = completed
+            if flush_file or rows:
+                h5.flush()
+
+        try:
+            self._bg.submit(write)
+        except Exception as exc:
+            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
+
+    def _flush_file(self) -> None:
+        self._h5.flush()
+        self._last_flush = self._clock()
+
+
+def _append_rows(ds: h5py.Dataset, data: np.ndarray) -> None:
+    """Extend a 1-D dataset by `data` (C-contiguous float64) with the HDF5 calls themselves: h5py's
+    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take."""
+    dsid = ds.id
+    n, m = dsid.shape[0], data.shape[0]
+    dsid.set_extent((n + m,))
+    fspace = dsid.get_space()
+    fspace.select_hyperslab((n,), (m,))
+    dsid.write(h5s.create_simple((m,)), fspace, data)
+
+
+def _filter(filt: dict[str, Any], col: str) -> dict[str, Any]:
+    """The dataset filter arguments of column `col`: gzip at its own level (GZIP_LEVELS), other filters as given."""
+    if filt.get("compression") == "gzip":
+        return {**filt, "compression_opts": GZIP_LEVELS.get(col, GZIP_LEVEL)}
+    return filt

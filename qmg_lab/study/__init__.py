@@ -1,0 +1,1 @@
+"""Design studies: many simulated campaigns over a grid of configurations, on Dask."""
