@@ -136,7 +136,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="qmg-robust-") as d, ThreadPoolExecutor(args.workers) as pool:
         results = list(pool.map(lambda c: run_case(c, Path(d), args.noise == "on"), cases))
     ok = [r for r in results if "error" not in r and r["clsf_accuracy_rms_ppm"] is not None]
-    worst = max(ok, key=lambda r: float(r["clsf_accuracy_rms_ppm"])) if ok else None  # type: ignore[arg-type]
+    worst = max(ok, key=lambda r: float(r["clsf_accuracy_rms_ppm"])) if ok else None
     summary = {
         "cases": len(results),
         "failed": len(results) - len(ok),

@@ -57,11 +57,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from qmg_lab.campaign.plan import build_plan  # noqa: E402
-from qmg_lab.campaign.runner import CampaignRunner  # noqa: E402
-from qmg_lab.config.schema import config_fingerprint, parse_config  # noqa: E402
-from qmg_lab.station import build_station, make_world  # noqa: E402
-from qmg_lab.storage.writer import RunWriter, read_run  # noqa: E402
+from qmg_lab.campaign.plan import build_plan  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.campaign.runner import CampaignRunner  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.config.schema import config_fingerprint, parse_config  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.station import build_station, make_world  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.storage.writer import RunWriter, read_run  # noqa: E402 - imported after sys.path points at this checkout
 
 SAFE_C = 20.0
 BASE = f"""
@@ -253,7 +253,7 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
         storage.RunWriter.close,
     )
 
-    def hooked_block(self, step, elapsed, want):  # type: ignore[no-untyped-def]
+    def hooked_block(self, step, elapsed, want):
         if (
             (phase == "lock" and step.kind == "lock" and step.index == 0)
             or (phase == "step" and step.index >= 0 and step.index == self._kill_step)
@@ -263,22 +263,22 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
             arm() if phase == "end" else count()
         return block(self, step, elapsed, want)
 
-    def hooked_apply(self, step):  # type: ignore[no-untyped-def]
+    def hooked_apply(self, step):
         apply_(self, step)
         if phase == "table_move" and step.moves_table:
             count()
 
-    def hooked_dither(self):  # type: ignore[no-untyped-def]
+    def hooked_dither(self):
         dither(self)
         if phase == "dither":
             count()
 
-    def hooked_finish(self, status, reason):  # type: ignore[no-untyped-def]
+    def hooked_finish(self, status, reason):
         if phase == "end" and nth > 3:  # half of the 'end' kills land in the final safe state
             arm()
         return finish(self, status, reason)
 
-    def hooked_close(self):  # type: ignore[no-untyped-def]
+    def hooked_close(self):
         if phase == "close":
             arm()
         return close(self)
@@ -402,7 +402,7 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
                 proc.wait()
                 if path.exists():
                     fig["unflushed_at_kill_s_max"] = max(
-                        float(fig["unflushed_at_kill_s_max"]),  # type: ignore[arg-type]
+                        float(fig["unflushed_at_kill_s_max"]),
                         killed_at - path.stat().st_mtime,
                     )
         else:
@@ -426,15 +426,15 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
             )
             proc.wait()
         if proc.returncode != -signal.SIGKILL or not path.exists():
-            fig["not_killed"] += 1  # type: ignore[operator]
+            fig["not_killed"] += 1
             continue
-        fig["kills"] += 1  # type: ignore[operator]
-        fig["kills_by_phase"][phase] += 1  # type: ignore[index]
+        fig["kills"] += 1
+        fig["kills_by_phase"][phase] += 1
         try:
             killed = read_run(path)
         except Exception as exc:
-            fig["files_unreadable"] += 1  # type: ignore[operator]
-            fig["mismatch_details"].append(f"kill{i} ({phase}): unreadable after the kill: {exc}")  # type: ignore[attr-defined]
+            fig["files_unreadable"] += 1
+            fig["mismatch_details"].append(f"kill{i} ({phase}): unreadable after the kill: {exc}")
             continue
         done = subprocess.run(
             [sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "--resume", str(path), "-q"],
@@ -444,30 +444,29 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
             cwd=ROOT,
         )
         if done.returncode == 0:
-            fig["resumed_completed"] += 1  # type: ignore[operator]
+            fig["resumed_completed"] += 1
         elif (
             done.returncode == 2
             and killed.status == "completed"
             and "already completed" in " ".join(done.stderr.split())
         ):
-            fig["already_completed"] += 1  # type: ignore[operator]
+            fig["already_completed"] += 1
         else:
-            fig["resume_failed"] += 1  # type: ignore[operator]
+            fig["resume_failed"] += 1
             fig["mismatch_details"].append(
-                f"kill{i} ({phase}): resume exit {done.returncode}: "  # type: ignore[attr-defined]
-                f"{' '.join(done.stderr.split())[-300:]}"
+                f"kill{i} ({phase}): resume exit {done.returncode}: {' '.join(done.stderr.split())[-300:]}"
             )
             continue
         try:
             bad = check_against(path, refs[sd], dt, poll_s)
         except Exception as exc:
-            fig["files_unreadable"] += 1  # type: ignore[operator]
+            fig["files_unreadable"] += 1
             bad = [f"unreadable after the resume: {exc}"]
         if bad:
-            fig["mismatches"] += 1  # type: ignore[operator]
-            fig["mismatch_details"].append(f"kill{i} ({phase}, seed {sd}): " + "; ".join(bad))  # type: ignore[attr-defined]
-        fig["samples_lost"] += missing_samples(path, 0)  # type: ignore[operator]
-    fig["resumed"] = int(fig["resumed_completed"]) + int(fig["already_completed"])  # type: ignore[call-overload]
+            fig["mismatches"] += 1
+            fig["mismatch_details"].append(f"kill{i} ({phase}, seed {sd}): " + "; ".join(bad))
+        fig["samples_lost"] += missing_samples(path, 0)
+    fig["resumed"] = int(fig["resumed_completed"]) + int(fig["already_completed"])
     return fig
 
 
@@ -488,14 +487,14 @@ def main() -> None:
         k = kills(args.kills, args.seed, tmp)
     result = {
         **s,
-        "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),  # type: ignore[call-overload]
-        "samples_lost": s["samples_lost"] + int(k["samples_lost"]),  # type: ignore[call-overload]
+        "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),
+        "samples_lost": s["samples_lost"] + int(k["samples_lost"]),
         **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
         "campaigns": args.campaigns,
         "seed": args.seed,
         "wall_s": round(time.monotonic() - t0, 1),
     }
-    result["unflushed_at_kill_s_max"] = round(float(result["unflushed_at_kill_s_max"]), 3)  # type: ignore[arg-type]
+    result["unflushed_at_kill_s_max"] = round(float(result["unflushed_at_kill_s_max"]), 3)
     if args.json:
         print(json.dumps(result))
     else:

@@ -84,8 +84,8 @@ def write_results(out_dir: Path) -> list[Path]:
     written = [out_dir / "results.csv"]
     write_atomic(written[0], buf.getvalue())
     if importlib.util.find_spec("pyarrow") is not None:
-        import pyarrow as pa  # type: ignore[import-not-found]
-        import pyarrow.parquet as pq  # type: ignore[import-not-found]
+        import pyarrow as pa
+        import pyarrow.parquet as pq
 
         table = pa.Table.from_pylist([{c: r.get(c) for c in columns} for r in rows])
         pq.write_table(table, out_dir / "results.parquet")

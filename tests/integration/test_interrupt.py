@@ -50,7 +50,7 @@ class _SecondCtrlCInsideAWrite(RunWriter):
     fired = False
     finished_writes_after: ClassVar[list[str]] = []
 
-    def append(self, group, **columns):  # type: ignore[override]
+    def append(self, group, **columns):
         if group == "table" and not self.fired and columns["time"][0] >= self.armed_at_s:
             type(self).fired = True
             _ctrl_c()

@@ -45,7 +45,7 @@ def test_build_station_passes_output_safe_v() -> None:
     )
     station = build_station(cfg)
     try:
-        assert station.lockin.output_safe_v == -0.75  # type: ignore[attr-defined]
+        assert station.lockin.output_safe_v == -0.75
     finally:
         station.close()
 

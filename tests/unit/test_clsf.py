@@ -109,7 +109,7 @@ class Bench:
 
 
 def estimator(bench_order: int = 1, tc_s: float = 1e-4, **kw: object) -> ClsfEstimator:
-    est = ClsfEstimator(tau_s=TAU, **kw)  # type: ignore[arg-type]
+    est = ClsfEstimator(tau_s=TAU, **kw)
     est.set_stream_timing(DemodFilter(bench_order, tc_s), 0.0)
     return est
 

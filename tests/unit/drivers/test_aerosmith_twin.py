@@ -173,7 +173,7 @@ def _inprocess() -> tuple[World, RateTableTwin, Aerosmith1291BR]:
         (lambda line, reply: reply[:-2], "missing prompt after 'PVE'"),
     ],
 )
-def test_fault_hook_faults_reach_the_driver_as_instrument_errors(hook, match) -> None:  # type: ignore[no-untyped-def]
+def test_fault_hook_faults_reach_the_driver_as_instrument_errors(hook, match) -> None:
     _, twin, table = _inprocess()
     twin.fault_hook = lambda line, reply: hook(line, reply) if line == b"PVE\r" else reply
     with pytest.raises(InstrumentError, match=match):

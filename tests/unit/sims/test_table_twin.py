@@ -162,7 +162,7 @@ def test_pty_serves_a_real_tty(twin: RateTableTwin) -> None:
             assert port.read_until(P) == b"8\r" + P  # no time has passed: at rest, not at rate, servo on
     finally:
         stop()
-    thread = stop.__self__._thread  # type: ignore[attr-defined]
+    thread = stop.__self__._thread
     assert not thread.is_alive()
 
 
@@ -183,7 +183,7 @@ def test_socket_serves_several_connections_and_stops(twin: RateTableTwin) -> Non
         b.close()
     finally:
         stop()
-    assert not stop.__self__._thread.is_alive()  # type: ignore[attr-defined]
+    assert not stop.__self__._thread.is_alive()
     stop()  # idempotent
 
 
