@@ -229,8 +229,9 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
     """--child: run the CLI in this process with a hook that SIGKILLs it at the chosen point of `phase`."""
     import threading
 
-    from qmg_lab import campaign as cmp
-    from qmg_lab import cli, storage
+    from qmg_lab.campaign import runner as cmp
+    from qmg_lab.cli import main as cli
+    from qmg_lab.storage import writer as storage
 
     sys.setswitchinterval(1e-4)  # let the timer thread in between the main thread's bytecodes
     seen = [0]

@@ -110,7 +110,7 @@ def test_main_maps_a_stray_keyboard_interrupt_to_130():
             "-c",
             "import signal, os\n"
             "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
-            "from qmg_lab import cli\n"
+            "from qmg_lab.cli import main as cli\n"
             "cli.app = lambda: os.kill(os.getpid(), signal.SIGINT)\n"
             "cli.main()",
         ],

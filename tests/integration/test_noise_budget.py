@@ -30,6 +30,7 @@ import pytest
 
 from qmg_lab.analysis.adev import overlapping_adev
 from qmg_lab.budget.noise import loop_adev, noise_budget, rate_loop_sensitivity, white_level_sq
+from qmg_lab.budget.sweep import DETERMINISTIC_OFF
 from qmg_lab.config.schema import parse_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -37,7 +38,8 @@ ADEV = ROOT / "configs" / "clsf_adev.toml"
 SEEDS = (11, 12, 13)
 LOG_S = 1500.0
 TOLERANCE = 0.25
-ALL_OFF = {
+ALL_OFF = {  # every random source, and the deterministic ones of qmg_lab/budget/sweep.py: each source alone
+    **DETERMINISTIC_OFF,
     "arw_deg_per_rt_h": 0.0,
     "bias_instability_deg_per_h": 0.0,
     "pickoff_noise_vrms_per_rt_hz": 0.0,

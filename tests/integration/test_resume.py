@@ -235,20 +235,22 @@ def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeyp
     flags cleared) and the interrupt is raised after it. Unprotected, the second Ctrl-C would cut the close."""
     import signal as sig
 
-    from qmg_lab import cli, storage
+    from qmg_lab.cli import main as cli
+    from qmg_lab.storage.writer import RunWriter
 
     closes_completed: list[bool] = []
+    plain_close = RunWriter.close
 
-    class CtrlCInClose(storage.RunWriter):
-        def close(self) -> None:
-            if not self.closed:
-                os.kill(os.getpid(), sig.SIGINT)
-                os.kill(os.getpid(), sig.SIGINT)
-                self._flush_buffers()  # some of the close's own work after the signals arrived
-            super().close()
-            closes_completed.append(True)
+    def close_with_two_ctrl_c(self: RunWriter) -> None:
+        if not self.closed:
+            os.kill(os.getpid(), sig.SIGINT)
+            os.kill(os.getpid(), sig.SIGINT)
+            self._flush_buffers()  # some of the close's own work after the signals arrived
+        plain_close(self)
+        closes_completed.append(True)
 
-    monkeypatch.setattr(storage, "RunWriter", CtrlCInClose)
+    # on the class, so that the writer the CLI makes (whichever module creates it) closes this way
+    monkeypatch.setattr(RunWriter, "close", close_with_two_ctrl_c)
     text = config_text()
     path = tmp_path / "run.h5"
     with pytest.raises(KeyboardInterrupt):
