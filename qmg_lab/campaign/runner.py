@@ -256,12 +256,12 @@ class CampaignRunner:
                 self.station.restore(state.as_dict())
         setup = lockin_setup(self.cfg, forcer_gain=self.clsf.gain_correction)
         self._event("started", "", "resumed run" if self.resume else "new run", logging.INFO)
-        self._call("lockin", lambda: self.station.lockin.configure(setup))
-        timing = self._call("lockin", self.station.lockin.stream_timing)
+        self._recovery.call("lockin", lambda: self.station.lockin.configure(setup))
+        timing = self._recovery.call("lockin", self.station.lockin.stream_timing)
         self.clsf.set_stream_timing(DemodFilter(timing.filter_order, timing.filter_tc_s), timing.auxin_window_s)
         self._dt = 1.0 / timing.rate_hz
         self._snapshots()
-        self._call("lockin", self.station.lockin.start_stream)
+        self._recovery.call("lockin", self.station.lockin.start_stream)
         if self.resume:
             # the loops were re-closed in a new process: wait for lock again, then restart the dither
             self._step = Step(
@@ -339,21 +339,23 @@ class CampaignRunner:
     def _apply(self, step: Step) -> None:
         """Commands at the start of a step (idempotent, so a resumed step can re-apply them)."""
         st, p = self.station, self.cfg.plan
-        self._call("chamber", lambda: st.chamber.set_setpoint(step.chamber_target_c, step.chamber_ramp_c_per_min))
+        self._recovery.call(
+            "chamber", lambda: st.chamber.set_setpoint(step.chamber_target_c, step.chamber_ramp_c_per_min)
+        )
         if step.kind is StepKind.DITHER:
             self._start_dither()
         previous = self._read.table_cmd
         if step.kind in (StepKind.RATE, StepKind.LEVEL):
-            self._call("table", lambda: st.table.set_rate(step.table_rate_dps, p.table_accel_dps2))
+            self._recovery.call("table", lambda: st.table.set_rate(step.table_rate_dps, p.table_accel_dps2))
             self._read.table_cmd = step.table_rate_dps
         elif step.kind is StepKind.SINE:
-            self._call(
+            self._recovery.call(
                 "table", lambda: st.table.set_sinusoid(step.table_rate_dps, step.sine_frequency_hz, p.table_accel_dps2)
             )
             self._read.table_cmd = 0.0
             self.clsf.hold(self._t, self._t + step.duration_s)
         elif step.kind in (StepKind.RETURN, StepKind.HOLD, StepKind.SOAK) and previous != 0.0:
-            self._call("table", st.table.stop)
+            self._recovery.call("table", st.table.stop)
             self._read.table_cmd = 0.0
         if step.moves_table or previous != self._read.table_cmd:
             move_s = abs(self._read.table_cmd - previous) / p.table_accel_dps2
@@ -361,7 +363,9 @@ class CampaignRunner:
 
     def _start_dither(self) -> None:
         vpp = dither_amplitude_vpp(self.cfg)
-        self._call("generator", lambda: self.station.generator.set_square(self.cfg.dither.frequency_hz, vpp, 0.0))
+        self._recovery.call(
+            "generator", lambda: self.station.generator.set_square(self.cfg.dither.frequency_hz, vpp, 0.0)
+        )
 
     def _dwell(self, step: Step) -> None:
         elapsed = 0.0
@@ -391,9 +395,9 @@ class CampaignRunner:
     # ================================================================== one block
     def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
         """Poll one block, log it, run CLSF and the suspenders. Returns the block's duration (s)."""
-        if self._guard is not None and self._guard.requested and not self._finishing:
+        if self._guard is not None and self._guard.requested and not self._recovery.finishing:
             raise CampaignInterrupted("interrupted by the operator (Ctrl-C)")
-        block = self._call("lockin", lambda: self.station.lockin.poll(want_s))
+        block = self._recovery.call("lockin", lambda: self.station.lockin.poll(want_s))
         n = len(block)
         if n == 0:
             return 0.0
@@ -407,9 +411,9 @@ class CampaignRunner:
         self._last_locked = bool(block.pll_locked)
         periods = self.clsf.process(t, block.x_sense, block.rate_output, block.dither)
         if self.clsf.mode == "correct" and len(periods):
-            self._call("lockin", lambda: self.station.lockin.set_forcer_gain(self.clsf.gain_correction))
-        tab = self._read_instrument("table", self.station.table.read)
-        cham = self._read_instrument("chamber", self.station.chamber.read)
+            self._recovery.call("lockin", lambda: self.station.lockin.set_forcer_gain(self.clsf.gain_correction))
+        tab = self._recovery.read("table", self.station.table.read)
+        cham = self._recovery.read("chamber", self.station.chamber.read)
         t_end = float(t[-1])
         truth = self.station.truth.drain() if self.station.truth is not None else None
         guard = self._guard
@@ -424,7 +428,7 @@ class CampaignRunner:
             self._read.table_rate = tab.rate_dps
         if cham is not None:
             self._read.chamber_c, self._read.chamber_sp = cham.temperature_c, cham.setpoint_c
-        if tab is not None and tab.interlock and not self._finishing:
+        if tab is not None and tab.interlock and not self._recovery.finishing:
             raise CampaignAborted(
                 f"rate-table interlock tripped (table status {tab.status}); the table braked "
                 "to rest; reset the interlock at the controller before resuming"
@@ -484,16 +488,3 @@ class CampaignRunner:
             self.clsf.release_hold(self._t + self.cfg.clsf.hold_s)
             self._event("resumed", "", f"after: {self._suspended}", logging.INFO)
         self._suspended = new
-
-    # ================================================================== faults
-    @property
-    def _finishing(self) -> bool:
-        return self._recovery.finishing
-
-    def _call(self, name: str, fn: Callable[[], T]) -> T:
-        """An instrument call under the recovery policy."""
-        return self._recovery.call(name, fn)
-
-    def _read_instrument(self, name: str, fn: Callable[[], T]) -> T | None:
-        """A reading inside a block under the recovery policy (None while `name` is being recovered)."""
-        return self._recovery.read(name, fn)
