@@ -246,13 +246,27 @@ def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
 
 
 def _mean_in(group: dict[str, np.ndarray] | None, col: str, windows: list[tuple[float, float]]) -> float:
+    """Mean of group[col] over the samples with time in the union of the closed windows [a, b].
+
+    The time axis is monotonic (docs/hdf5.md), so each window is one slice found by bisection; overlapping windows
+    are merged first, and the slices are taken in time order, so the samples (and their summation order) are those
+    of a boolean mask over the whole column, without its pass over every sample per window.
+    """
     if group is None or group["time"].shape[0] == 0:
         return float("nan")
     t = group["time"]
-    mask = np.zeros(t.shape[0], bool)
-    for a, b in windows:
-        mask |= (t >= a) & (t <= b)
-    return float(np.mean(group[col][mask])) if mask.any() else float("nan")
+    merged: list[list[float]] = []
+    for a, b in sorted(windows):
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    parts = []
+    for a, b in merged:
+        i0, i1 = np.searchsorted(t, a, side="left"), np.searchsorted(t, b, side="right")
+        if i1 > i0:
+            parts.append(group[col][i0:i1])
+    return float(np.mean(np.concatenate(parts))) if parts else float("nan")
 
 
 def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...], windows: list[tuple[float, float]]) -> float:
