@@ -291,8 +291,8 @@ class StorageSection(_Section):
     flush_interval_s: float = Field(1.0, gt=0.0, le=60.0, description="flush the HDF5 file at least this often")
     compression: Literal["auto", "none", "gzip", "lzf"] = Field(
         "auto",
-        description="auto = gzip (shuffle + gzip level 1, a filter every HDF5 reader has; the compression runs "
-        "beside the campaign on the writer thread), twins and hardware alike; docs/hdf5.md",
+        description="auto = gzip (shuffle + deflate level 1, filters every HDF5 reader has; the compression runs "
+        "beside the campaign on the writer thread, on the twins by ISA-L), twins and hardware alike; docs/hdf5.md",
     )
 
     level: Literal["full", "study"] = Field(

@@ -99,11 +99,12 @@ STEPS_DTYPES: dict[str, Any] = {
 CHUNK_ROWS = {"lockin": 16384, "truth": 16384, "clsf": 1024, "table": 1024, "chamber": 1024, "steps": 64}
 CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256, "chamber": 256, "steps": 64}
 #: columns stored with shuffle + the file's compression. Twins (a flush carries minutes of data, so chunks are
-#: written whole): every /lockin and /truth column. Shuffle + gzip level 1 takes the four noise-dominated lock-in
-#: columns (x_sense, y_sense, rate_output, drive_amplitude) to 66-89 % and the rest to 1-51 %; the compression
-#: runs on the writer thread (qmg_lab/storage/background.py), beside the campaign. A real-time writer (hardware:
-#: a flush every second ends inside a chunk) compresses only the columns that compress well: for the noisy
-#: ones the dead copies of their partial chunks (see CHUNK_ROWS) outweigh what the filter saves.
+#: written whole): every /lockin and /truth column. Shuffle + deflate level 1 takes the three noise-dominated
+#: lock-in columns (x_sense, y_sense, drive_amplitude) to 70-87 % and the rest to 3-54 %; the compression runs on
+#: the writer thread (qmg_lab/storage/background.py), beside the campaign, chunk by chunk by ISA-L
+#: (qmg_lab/storage/deflate.py). A real-time writer (hardware: a flush every second ends inside a chunk)
+#: compresses only the columns that compress well: for the noisy ones the dead copies of their partial chunks
+#: (see CHUNK_ROWS) outweigh what the filter saves.
 COMPRESSED_COLUMNS = {
     "lockin": ("time", "x_sense", "y_sense", "rate_output", "drive_amplitude", "drive_frequency", "dither"),
     "truth": ("time", "scale_factor", "temperature", "rate"),

@@ -51,6 +51,7 @@ import numpy as np
 from h5py import h5s
 
 from qmg_lab.storage.background import BackgroundWrites
+from qmg_lab.storage.deflate import shuffled_deflate
 from qmg_lab.storage.h5clear import clear_superblock_flags, writer_flags_set
 from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part of the API
     CHAMBER_UNITS,
@@ -171,6 +172,12 @@ class RunWriter:
         self._whole_chunk_rows: dict[str, int] = (
             {g: int(h5[g]["time"].chunks[0]) for g in ("lockin", "truth") if g in h5} if whole_chunk_layout(h5) else {}
         )
+        # the shuffle + gzip columns of those groups: their chunks are compressed here (qmg_lab/storage/deflate.py)
+        self._direct_chunk_rows: dict[tuple[str, str], int] = {
+            (g, c): self._whole_chunk_rows.get(g, 0) if ds.compression == "gzip" and ds.shuffle else 0
+            for g in self._groups
+            for c, ds in self._ds[g]
+        }
         # /steps rows waiting for their data: (row, rows of each whole-chunk group appended before the row)
         self._pending_steps: list[tuple[dict[str, Any], dict[str, int]]] = []
         self._closed = False
@@ -592,7 +599,7 @@ class RunWriter:
         whose data are all in, then flushes the file if asked (or if it wrote a step row). In the twins' layout
         /lockin and /truth are handed over up to their last whole chunk unless `complete`. The rows of a group
         are joined here, so the job owns its arrays (nothing ever writes into them)."""
-        batch: list[tuple[h5py.Dataset, np.ndarray]] = []
+        batch: list[tuple[h5py.Dataset, np.ndarray, int]] = []
         kept = 0
         for g, blocks in self._buffer.items():
             if not blocks:
@@ -609,7 +616,7 @@ class RunWriter:
                 kept += keep
             if n > keep:
                 for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
-                    batch.append((ds, np.ascontiguousarray(cols[c][: n - keep])))
+                    batch.append((ds, np.ascontiguousarray(cols[c][: n - keep]), self._direct_chunk_rows[g, c]))
                 self._handed[g] += n - keep
         self._buffered_rows = kept
         rows: list[dict[str, Any]] = []
@@ -621,8 +628,8 @@ class RunWriter:
         h5, completed = self._h5, len(self._completed_in_file)
 
         def write() -> None:
-            for ds, data in batch:
-                _append_rows(ds, data)
+            for ds, data, direct_rows in batch:
+                _append_rows(ds, data, direct_rows)
             if rows:
                 steps = h5["steps"]
                 n = steps["index"].shape[0]
@@ -643,15 +650,24 @@ class RunWriter:
         self._last_flush = self._clock()
 
 
-def _append_rows(ds: h5py.Dataset, data: np.ndarray) -> None:
+def _append_rows(ds: h5py.Dataset, data: np.ndarray, direct_chunk_rows: int = 0) -> None:
     """Extend a 1-D dataset by `data` (C-contiguous float64) with the HDF5 calls themselves: h5py's
-    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take."""
+    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take.
+
+    direct_chunk_rows (a shuffle + gzip column of the twins' layout, whose chunks are written whole): the chunks
+    that start at or after the old end are compressed by `shuffled_deflate` and written as stored chunks; only
+    rows that fill an already stored partial chunk (the first append after a resume) go through HDF5's filters.
+    """
     dsid = ds.id
     n, m = dsid.shape[0], data.shape[0]
     dsid.set_extent((n + m,))
-    fspace = dsid.get_space()
-    fspace.select_hyperslab((n,), (m,))
-    dsid.write(h5s.create_simple((m,)), fspace, data)
+    head = m if not direct_chunk_rows else min(m, -n % direct_chunk_rows)
+    if head:
+        fspace = dsid.get_space()
+        fspace.select_hyperslab((n,), (head,))
+        dsid.write(h5s.create_simple((head,)), fspace, data[:head])
+    for i in range(head, m, direct_chunk_rows or 1):
+        dsid.write_direct_chunk((n + i,), shuffled_deflate(data[i : i + direct_chunk_rows], direct_chunk_rows))
 
 
 def _filter(filt: dict[str, Any], col: str) -> dict[str, Any]:
