@@ -147,22 +147,21 @@ def _dac(v, lsb, inv_lsb):
 @njit(cache=True, inline="always")
 def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
     """Demod low-pass on the 4 raw demod values (into `filt`), then PLL and the three PIDs."""
-    ynew = np.empty(order)
     for ch in range(4):
         base = S_FILT + FILT_STRIDE * ch
         u_new = raws[ch]
         u_old = S[base]
         S[base] = u_new
         du = u_new - u_old
-        for m in range(order):  # the exact Jordan-chain step (module docstring)
+        y_last_old = S[base + order]
+        # the exact Jordan-chain step (module docstring), in place: section m reads the old y_1..y_m only, so the
+        # sections are updated from the last to the first
+        for m in range(order - 1, -1, -1):
             acc = u_old * fs[m] + du * fr[m]
             for j in range(m + 1):
                 acc += fj[m - j] * S[base + 1 + j]
-            ynew[m] = acc
-        y_last_old = S[base + order]
-        for m in range(order):
-            S[base + 1 + m] = ynew[m]
-        out = ynew[order - 1]
+            S[base + 1 + m] = acc
+        out = S[base + order]
         if sections > order:  # loop delay: one first-order section on the filter output
             y_old = S[base + 1 + order]
             y_new = a_d * y_old + (1.0 - a_d) * y_last_old + (out - y_last_old) * c_d
