@@ -250,8 +250,8 @@ def _exp_neg_i(x):
     """exp(-i x) for real x; series below 1e-2 (error < 1e-18)."""
     if abs(x) < 1e-2:
         x2 = x * x
-        c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0 - x2 / 40320.0)))
-        sn = x * (1.0 - x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0 - x2 / 362880.0))))
+        c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0 - x2 * (1.0 / 40320.0))))
+        sn = x * (1.0 - x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0 - x2 * (1.0 / 362880.0)))))
         return complex(c, -sn)
     return complex(math.cos(x), -math.sin(x))
 
@@ -360,8 +360,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         mu2 = n11 * n11 + n12 * n21
         x2 = mu2 * (dt * dt)
         if x2.real * x2.real + x2.imag * x2.imag < 1e-4:  # |mu dt|^2 < 1e-2
-            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 / 40320.0)))
-            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 / 362880.0))))
+            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 * (1.0 / 40320.0))))
+            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 * (1.0 / 362880.0)))))
         else:
             mu = np.sqrt(mu2)
             ch = np.cosh(mu * dt)
@@ -385,7 +385,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         v1 = (1.0 - p11) * ux - p12 * uy
         v2 = -p21 * ux + (1.0 - p22) * uy
         den = sig * sig - mu2
-        inv_den = den.conjugate() / (den.real * den.real + den.imag * den.imag)
+        inv_den = den.conjugate() * (1.0 / (den.real * den.real + den.imag * den.imag))
         zx_in = ((sig - n11) * v1 - n12 * v2) * inv_den
         zy_in = (-n21 * v1 + (sig + n11) * v2) * inv_den
         zx = complex(S[S_CX], S[S_SX])
@@ -415,7 +415,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_PLLE, i] = S[S_PLLE]
         amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
-        out[O_SF, i] = sf_scale * w_x * amp / g_f
+        out[O_SF, i] = sf_scale * w_x * amp * (1.0 / g_f)
         out[O_AUX, i] = S[S_VRP]
     return gi
 
