@@ -314,7 +314,9 @@ def _lowpass_sections(P, L, dt):
 
 @njit(cache=True, error_model="numpy")
 def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):
-    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
+    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`.
+
+    Returns (bias updates used, max |PLL error| over the block in deg)."""
     n = temp_c.shape[0]
     dt = P[P_DT]
     w0, tref = P[P_W0], P[P_TREF]
@@ -328,6 +330,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
+    err_max = 0.0  # max |PLL error| over the block, deg
     raws = np.empty(4)
     filt = np.empty(4)
     c2w, s2w = P[P_C2W], P[P_S2W]
@@ -413,11 +416,12 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
+        err_max = max(err_max, abs(S[S_PLLE]))
         amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
         out[O_SF, i] = sf_scale * w_x * amp * (1.0 / g_f)
         out[O_AUX, i] = S[S_VRP]
-    return gi
+    return gi, err_max
 
 
 @njit(cache=True, inline="always")
@@ -456,7 +460,9 @@ def _expm_taylor(A, dt, term, tmp, phi_m, psi):
 
 @njit(cache=True, error_model="numpy")
 def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):
-    """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT]."""
+    """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT].
+
+    Returns (bias updates used, max |PLL error| over the block in deg)."""
     n = temp_c.shape[0]
     dt = P[P_DT]
     dtc = dt * m_per
@@ -471,6 +477,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
+    err_max = 0.0  # max |PLL error| over the block, deg
     raws = np.empty(4)
     filt = np.empty(4)
     c2w, s2w = P[P_C2W], P[P_S2W]
@@ -598,8 +605,9 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
+        err_max = max(err_max, abs(S[S_PLLE]))
         amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
         w_x = math.sqrt(kxx)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
         out[O_AUX, i] = S[S_VRP]
-    return gi
+    return gi, err_max
