@@ -158,11 +158,14 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
         y_last_old = S[base + order]
         # the exact Jordan-chain step (module docstring), in place: section m reads the old y_1..y_m only, so the
         # sections are updated from the last to the first
-        for m in range(order - 1, -1, -1):
-            acc = u_old * fs[m] + du * fr[m]
-            for j in range(m + 1):
-                acc += fj[m - j] * S[base + 1 + j]
-            S[base + 1 + m] = acc
+        if order == 1:  # the HF2's default single section: y+ = a y + u- S_1 + (u+ - u-) R_1
+            S[base + 1] = u_old * fs[0] + du * fr[0] + fj[0] * S[base + 1]
+        else:
+            for m in range(order - 1, -1, -1):
+                acc = u_old * fs[m] + du * fr[m]
+                for j in range(m + 1):
+                    acc += fj[m - j] * S[base + 1 + j]
+                S[base + 1 + m] = acc
         out = S[base + order]
         if sections > order:  # loop delay: one first-order section on the filter output
             y_old = S[base + 1 + order]
@@ -171,7 +174,7 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
             out = y_new
         filt[ch] = out
     # PLL on the drive phase
-    theta = math.atan2(filt[1], filt[0]) * DEG_PER_RAD
+    theta = _atan2(filt[1], filt[0]) * DEG_PER_RAD
     e = theta - L[L_PLL + 3]
     e = e - 360.0 * math.floor((e + 180.0) * (1.0 / 360.0))
     S[S_PLLE] = e
@@ -235,6 +238,17 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
         dt,
         inv_dt,
     )
+
+
+@njit(cache=True, inline="always")
+def _atan2(y, x):
+    """atan2(y, x) in rad; for x > 0 and |y| < 1e-3 x (the locked PLL) the series of atan(r), r = y/x, to r^5
+    (relative truncation error < r^6/7 < 2e-19), else math.atan2."""
+    if x > 0.0 and abs(y) < 1e-3 * x:
+        r = y / x
+        r2 = r * r
+        return r * (1.0 - r2 * (1.0 / 3.0 - r2 * (1.0 / 5.0)))
+    return math.atan2(y, x)
 
 
 @njit(cache=True, inline="always")
@@ -362,7 +376,11 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         n21 = complex(g * s2t + k_om, h * s2w)
         mu2 = n11 * n11 + n12 * n21
         x2 = mu2 * (dt * dt)
-        if x2.real * x2.real + x2.imag * x2.imag < 1e-4:  # |mu dt|^2 < 1e-2
+        ax2 = x2.real * x2.real + x2.imag * x2.imag
+        if ax2 < 1e-12:  # |mu dt|^2 < 1e-6 (the usual case): the terms beyond x2^2 are below 2e-22
+            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0))
+            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0)))
+        elif ax2 < 1e-4:  # |mu dt|^2 < 1e-2
             ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 * (1.0 / 40320.0))))
             sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 * (1.0 / 362880.0)))))
         else:
