@@ -434,7 +434,9 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
-        err_max = max(err_max, abs(S[S_PLLE]))
+        ae = abs(S[S_PLLE])
+        if ae > err_max or math.isnan(ae):  # a NaN error is kept (the block then reads as unlocked)
+            err_max = ae
         amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
         out[O_SF, i] = sf_scale * w_x * amp * (1.0 / g_f)
@@ -623,7 +625,9 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
-        err_max = max(err_max, abs(S[S_PLLE]))
+        ae = abs(S[S_PLLE])
+        if ae > err_max or math.isnan(ae):  # a NaN error is kept (the block then reads as unlocked)
+            err_max = ae
         amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
         w_x = math.sqrt(kxx)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
