@@ -176,7 +176,8 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
     # PLL on the drive phase
     theta = _atan2(filt[1], filt[0]) * DEG_PER_RAD
     e = theta - L[L_PLL + 3]
-    e = e - 360.0 * math.floor((e + 180.0) * (1.0 / 360.0))
+    if not -180.0 <= e < 180.0:  # wrap into [-180, 180)
+        e = e - 360.0 * math.floor((e + 180.0) * (1.0 / 360.0))
     S[S_PLLE] = e
     center, rng = L[L_PLL + 4], L[L_PLL + 5]
     if L[L_PLL] != 0.0:
