@@ -40,6 +40,7 @@ from sims.world import BlockInputs
 
 __all__ = ["GyroBlock", "GyroParams", "GyroSim", "LoopSettings", "PidSettings", "PllSettings", "held_inputs"]
 
+INPUT_NAMES = ("gyro_c", "table_rate_dps", "dither_v")
 CHUNK_STEPS = 1 << 13  # 8192 steps: the chunk's noise draws (192 kB) stay in the L2 cache
 
 
@@ -83,24 +84,34 @@ def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
 
 
 def _as_inputs(inputs: BlockInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(gyro temperature, table rate, dither) as contiguous float64 arrays of one length, checked."""
-    arrays = []
-    for name in ("gyro_c", "table_rate_dps", "dither_v"):
-        a = np.ascontiguousarray(getattr(inputs, name), dtype=np.float64)
+    """(gyro temperature, table rate, dither) as contiguous float64 arrays of one length, checked (the sums of
+    all three in one compiled pass: this runs on every block)."""
+    temp = np.ascontiguousarray(inputs.gyro_c, dtype=np.float64)
+    rate = np.ascontiguousarray(inputs.table_rate_dps, dtype=np.float64)
+    dither = np.ascontiguousarray(inputs.dither_v, dtype=np.float64)
+    n = temp.shape[0]
+    if not (temp.ndim == rate.ndim == dither.ndim == 1 and n == rate.shape[0] == dither.shape[0] and n > 0):
+        _refuse_inputs((temp, rate, dither))
+    sums = gk.input_sums(temp, rate, dither)
+    if not (math.isfinite(sums[0]) and math.isfinite(sums[1]) and math.isfinite(sums[2])):
+        for name, total in zip(INPUT_NAMES, sums, strict=True):
+            if not math.isfinite(total):  # a NaN or inf anywhere makes the sum non-finite
+                raise ValueError(f"BlockInputs.{name} contains a non-finite value (or values near the float limit)")
+    return temp, rate, dither
+
+
+def _refuse_inputs(arrays: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+    """Raise the ValueError naming what is wrong with a block's inputs (shape, length, emptiness)."""
+    for name, a in zip(INPUT_NAMES, arrays, strict=True):
         if a.ndim != 1:
             raise ValueError(f"BlockInputs.{name} must be 1-D, got shape {a.shape}")
-        if not math.isfinite(float(a.sum())):  # a NaN or inf anywhere makes the sum non-finite
-            raise ValueError(f"BlockInputs.{name} contains a non-finite value (or values near the float limit)")
-        arrays.append(a)
     n = arrays[0].shape[0]
     if n == 0:
         raise ValueError("BlockInputs must hold at least one step")
-    if any(a.shape[0] != n for a in arrays):
-        raise ValueError(
-            "BlockInputs arrays must all have the same length "
-            f"(gyro_c {n}, table_rate_dps {arrays[1].shape[0]}, dither_v {arrays[2].shape[0]})"
-        )
-    return arrays[0], arrays[1], arrays[2]
+    raise ValueError(
+        "BlockInputs arrays must all have the same length "
+        f"(gyro_c {n}, table_rate_dps {arrays[1].shape[0]}, dither_v {arrays[2].shape[0]})"
+    )
 
 
 def held_inputs(

@@ -286,6 +286,22 @@ def _bias_update(S, gm_a, gm_b, gm_noise, gi):
 
 
 @njit(cache=True)
+def input_sums(a, b, c):
+    """(sum a, sum b, sum c) of a block's inputs in one compiled pass: a NaN or inf anywhere (or values near the
+    float limit) makes its array's sum non-finite, which GyroSim.run refuses before touching the state."""
+    sa = 0.0
+    sb = 0.0
+    sc = 0.0
+    for i in range(a.shape[0]):
+        sa += a[i]
+    for i in range(b.shape[0]):
+        sb += b[i]
+    for i in range(c.shape[0]):
+        sc += c[i]
+    return sa, sb, sc
+
+
+@njit(cache=True)
 def _lowpass_sections(P, L, dt):
     """The demodulator low-pass (exact Jordan-chain coefficients) and the loop delay section.
 

@@ -97,3 +97,25 @@ def test_a_disabled_pll_never_reads_as_locked() -> None:
     loops.pll.enabled = False
     b = GyroSim(GyroParams.noiseless(), DT, seed=1).run(held_inputs(100, DT), loops)
     assert not b.pll_locked
+
+
+@pytest.mark.parametrize(
+    ("name", "bad", "words"),
+    [
+        ("table_rate_dps", float("nan"), "table_rate_dps contains a non-finite"),
+        ("dither_v", float("inf"), "dither_v contains a non-finite"),
+        ("gyro_c", -float("inf"), "gyro_c contains a non-finite"),
+    ],
+)
+def test_a_non_finite_input_is_named_and_the_state_is_kept(name: str, bad: float, words: str) -> None:
+    loops = paper_loops(1.0)
+    sim = GyroSim(GyroParams(), DT, seed=5)
+    sim.run(held_inputs(50, DT), loops)
+    before = sim._S.copy()
+    inputs = held_inputs(50, DT)
+    getattr(inputs, name)[17] = bad
+    with pytest.raises(ValueError, match=words):
+        sim.run(inputs, loops)
+    np.testing.assert_array_equal(sim._S, before)
+    with pytest.raises(ValueError, match="1-D"):
+        sim.run(held_inputs(50, DT, temperature_c=np.full((50, 1), 25.0)), loops)
