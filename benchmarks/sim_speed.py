@@ -6,7 +6,10 @@ tempco; the carrier model's 2-omega demodulator ripple) is on, with the 7 Hz squ
 temperature ramp, so every per-step term is exercised.
 
 * averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls)
-  and of 60 s; real-time factor = simulated seconds per wall second.
+  and of 60 s; real-time factor = simulated seconds per wall second, and per second of this process's CPU time
+  (`*_cpu_*`: less sensitive to other processes on a shared machine; the two agree on an idle one).
+* averaged, where the CPU time of a 0.5 s block goes: the compiled kernel alone, the per-step normal draws
+  alone, and the rest of GyroSim.run (Python per block).
 * carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
 * memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
   HF2 twin would after converting them), peak RSS from resource.getrusage(RUSAGE_SELF).ru_maxrss.
@@ -58,16 +61,56 @@ def _inputs(n: int, dt: float, t0: float):
     return held_inputs(n, dt, dither_v=square, temperature_c=25.0 + t / 3600.0, t0_s=t0)
 
 
-def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> float:
+def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[float, float]:
+    """(wall-clock, process-CPU-time) real-time factors of sim.run over sim_seconds in blocks of block_s.
+
+    The CPU-time figure counts only the time this process ran, so it moves less than the wall-clock one when
+    other processes share the cores (both are equal on an idle machine)."""
     loops = _loops()
     n = int(round(block_s / dt))
     blocks = max(1, int(sim_seconds / block_s))
     pre = [_inputs(n, dt, k * block_s) for k in range(min(blocks, 8))]
     sim.run(pre[0], loops)  # compile / warm up
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for k in range(blocks):
         sim.run(pre[k % len(pre)], loops)
-    return blocks * n * dt / (time.perf_counter() - t0)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return blocks * n * dt / wall, blocks * n * dt / cpu
+
+
+def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
+    """CPU ns per averaged step, split: the compiled kernel alone (noise drawn once beforehand), the per-step
+    normal draws alone (NoiseStream.steps), and the rest of GyroSim.run (Python per block: input checks, loop
+    vector, bias draws, output block), measured as run minus the two."""
+    from sims.gyro import GyroParams, GyroSim
+    from sims.noise import NoiseStream
+
+    loops = _loops()
+    n = int(round(block_s / DT))
+    inp = _inputs(n, DT, 0.0)
+    sim = GyroSim(GyroParams(), DT, seed=1)
+    sim.run(inp, loops)
+    stream = NoiseStream(2, 6, 16)
+    noise = stream.steps(n)
+    gm = np.zeros((n // sim.gm_steps + 2, 16))
+    out = np.empty((11, n))
+    lvec = sim._loops_vector(loops)
+    temp, rate, dither = inp.gyro_c, inp.table_rate_dps, inp.dither_v
+
+    def cpu_ns(step) -> float:
+        c0 = time.process_time()
+        for _ in range(blocks):
+            step()
+        return 1e9 * (time.process_time() - c0) / (blocks * n)
+
+    kernel = cpu_ns(lambda: sim._kernel(temp, rate, dither, noise, gm, out, lvec))
+    draws = cpu_ns(lambda: stream.steps(n))
+    run = cpu_ns(lambda: sim.run(inp, loops))
+    return {
+        "averaged_cpu_ns_per_step_kernel": kernel,
+        "averaged_cpu_ns_per_step_noise_draws": draws,
+        "averaged_cpu_ns_per_step_python": run - kernel - draws,
+    }
 
 
 def _child_memory(hours: float) -> None:
@@ -118,15 +161,21 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
         res["compile_cold_s"] = _run_child(["--child-compile"], env)["seconds"]
         res["compile_warm_s"] = _run_child(["--child-compile"], env)["seconds"]
 
-    rt_avg = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
+    rt_avg, cpu_avg = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
     res["averaged_realtime_factor"] = rt_avg
     res["averaged_steps_per_s"] = rt_avg / DT
     res["averaged_ns_per_step"] = 1e9 * DT / rt_avg
-    res["averaged_realtime_factor_60s_blocks"] = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 60.0, 1200.0)
+    res["averaged_cpu_realtime_factor"] = cpu_avg
+    res["averaged_cpu_ns_per_step"] = 1e9 * DT / cpu_avg
+    rt60, cpu60 = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 60.0, 1200.0)
+    res["averaged_realtime_factor_60s_blocks"] = rt60
+    res["averaged_cpu_realtime_factor_60s_blocks"] = cpu60
+    res.update(_breakdown())
     car = CarrierGyroSim(GyroParams(), 1.0 / (32 * 2200.0), seed=1)
-    rt_car = _rt_factor(car, car.demod_interval_s, 0.5, 20.0)
+    rt_car, cpu_car = _rt_factor(car, car.demod_interval_s, 0.5, 20.0)
     res["carrier_realtime_factor"] = rt_car
     res["carrier_samples_per_s"] = rt_car * 32 * 2200.0
+    res["carrier_cpu_realtime_factor"] = cpu_car
 
     short, long_ = memory_hours
     m1 = _run_child(["--child-memory", str(short)])["maxrss_kb"]

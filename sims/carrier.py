@@ -61,20 +61,19 @@ class CarrierGyroSim(_TwinBase):
         gm: np.ndarray,
         out: np.ndarray,
         loops_vec: np.ndarray,
-    ) -> int:
-        return int(
-            gk.carrier_kernel(
-                self._S,
-                self._P,
-                loops_vec,
-                self._gm_a,
-                self._gm_b,
-                self.samples_per_cycle,
-                temp,
-                rate,
-                dither,
-                noise,
-                gm,
-                out,
-            )
+    ) -> tuple[int, float]:
+        used, err_max = gk.carrier_kernel(
+            self._S,
+            self._P,
+            loops_vec,
+            self._gm_a,
+            self._gm_b,
+            self.samples_per_cycle,
+            temp,
+            rate,
+            dither,
+            noise,
+            gm,
+            out,
         )
+        return int(used), float(err_max)

@@ -111,29 +111,30 @@ NOISE_PER_STEP = 6  # 2 ARW (+ forcer-path noise) force components, 4 pickoff no
 SQRT2 = math.sqrt(2.0)
 TWO_PI = 2.0 * math.pi
 RAD_PER_DEG = math.pi / 180.0
+DEG_PER_RAD = 180.0 / math.pi
 
 
 @njit(cache=True, inline="always")
-def _pid(S, L, off, i_int, i_eprev, inp, dt):
-    if L[off] == 0.0:
-        S[i_int] = 0.0
-        S[i_eprev] = 0.0
-        return L[off + 5]
-    p, ki, kd, sp, center, rng = L[off + 1], L[off + 2], L[off + 3], L[off + 4], L[off + 5], L[off + 6]
+def _pid(on, p, ki, kd, sp, center, rng, integ, eprev, inp, dt, inv_dt):
+    """One PID update: e = sp - inp, out = center + p e + ki int(e) dt + kd de/dt clamped to center +- rng, the
+    integrator frozen while clamped; disabled (on = 0): out = center. Returns (out, integrator, e).
+
+    Scalars only: a numba function inlined with array arguments pays a reference-count pair per array per call."""
+    if on == 0.0:
+        return center, 0.0, 0.0
     e = sp - inp
-    S[i_int] += e * dt
-    de = (e - S[i_eprev]) / dt
-    S[i_eprev] = e
-    out = center + p * e + ki * S[i_int] + kd * de
+    integ += e * dt
+    de = (e - eprev) * inv_dt
+    out = center + p * e + ki * integ + kd * de
     if out > center + rng:
         out = center + rng
         if ki * e > 0.0:
-            S[i_int] -= e * dt
+            integ -= e * dt
     elif out < center - rng:
         out = center - rng
         if ki * e < 0.0:
-            S[i_int] -= e * dt
-    return out
+            integ -= e * dt
+    return out, integ, e
 
 
 @njit(cache=True, inline="always")
@@ -147,22 +148,25 @@ def _dac(v, lsb, inv_lsb):
 @njit(cache=True, inline="always")
 def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
     """Demod low-pass on the 4 raw demod values (into `filt`), then PLL and the three PIDs."""
-    ynew = np.empty(order)
+    inv_dt = 1.0 / dt
     for ch in range(4):
         base = S_FILT + FILT_STRIDE * ch
         u_new = raws[ch]
         u_old = S[base]
         S[base] = u_new
         du = u_new - u_old
-        for m in range(order):  # the exact Jordan-chain step (module docstring)
-            acc = u_old * fs[m] + du * fr[m]
-            for j in range(m + 1):
-                acc += fj[m - j] * S[base + 1 + j]
-            ynew[m] = acc
         y_last_old = S[base + order]
-        for m in range(order):
-            S[base + 1 + m] = ynew[m]
-        out = ynew[order - 1]
+        # the exact Jordan-chain step (module docstring), in place: section m reads the old y_1..y_m only, so the
+        # sections are updated from the last to the first
+        if order == 1:  # the HF2's default single section: y+ = a y + u- S_1 + (u+ - u-) R_1
+            S[base + 1] = u_old * fs[0] + du * fr[0] + fj[0] * S[base + 1]
+        else:
+            for m in range(order - 1, -1, -1):
+                acc = u_old * fs[m] + du * fr[m]
+                for j in range(m + 1):
+                    acc += fj[m - j] * S[base + 1 + j]
+                S[base + 1 + m] = acc
+        out = S[base + order]
         if sections > order:  # loop delay: one first-order section on the filter output
             y_old = S[base + 1 + order]
             y_new = a_d * y_old + (1.0 - a_d) * y_last_old + (out - y_last_old) * c_d
@@ -170,9 +174,10 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
             out = y_new
         filt[ch] = out
     # PLL on the drive phase
-    theta = math.atan2(filt[1], filt[0]) / RAD_PER_DEG
+    theta = _atan2(filt[1], filt[0]) * DEG_PER_RAD
     e = theta - L[L_PLL + 3]
-    e = e - 360.0 * math.floor((e + 180.0) / 360.0)
+    if not -180.0 <= e < 180.0:  # wrap into [-180, 180)
+        e = e - 360.0 * math.floor((e + 180.0) * (1.0 / 360.0))
     S[S_PLLE] = e
     center, rng = L[L_PLL + 4], L[L_PLL + 5]
     if L[L_PLL] != 0.0:
@@ -191,10 +196,60 @@ def _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections):
         f = center
     S[S_FREF] = f
     r_d = math.sqrt(filt[0] * filt[0] + filt[1] * filt[1])
-    S[S_VD] = _pid(S, L, L_AGC, S_AGCI, S_AGCE, r_d, dt)
+    S[S_VD], S[S_AGCI], S[S_AGCE] = _pid(
+        L[L_AGC],
+        L[L_AGC + 1],
+        L[L_AGC + 2],
+        L[L_AGC + 3],
+        L[L_AGC + 4],
+        L[L_AGC + 5],
+        L[L_AGC + 6],
+        S[S_AGCI],
+        S[S_AGCE],
+        r_d,
+        dt,
+        inv_dt,
+    )
     S[S_VRP] = S[S_VR]
-    S[S_VR] = _pid(S, L, L_RATE, S_RATEI, S_RATEE, filt[2], dt)
-    S[S_VQ] = _pid(S, L, L_QUAD, S_QUADI, S_QUADE, filt[3], dt)
+    S[S_VR], S[S_RATEI], S[S_RATEE] = _pid(
+        L[L_RATE],
+        L[L_RATE + 1],
+        L[L_RATE + 2],
+        L[L_RATE + 3],
+        L[L_RATE + 4],
+        L[L_RATE + 5],
+        L[L_RATE + 6],
+        S[S_RATEI],
+        S[S_RATEE],
+        filt[2],
+        dt,
+        inv_dt,
+    )
+    S[S_VQ], S[S_QUADI], S[S_QUADE] = _pid(
+        L[L_QUAD],
+        L[L_QUAD + 1],
+        L[L_QUAD + 2],
+        L[L_QUAD + 3],
+        L[L_QUAD + 4],
+        L[L_QUAD + 5],
+        L[L_QUAD + 6],
+        S[S_QUADI],
+        S[S_QUADE],
+        filt[3],
+        dt,
+        inv_dt,
+    )
+
+
+@njit(cache=True, inline="always")
+def _atan2(y, x):
+    """atan2(y, x) in rad; for x > 0 and |y| < 1e-3 x (the locked PLL) the series of atan(r), r = y/x, to r^5
+    (relative truncation error < r^6/7 < 2e-19), else math.atan2."""
+    if x > 0.0 and abs(y) < 1e-3 * x:
+        r = y / x
+        r2 = r * r
+        return r * (1.0 - r2 * (1.0 / 3.0 - r2 * (1.0 / 5.0)))
+    return math.atan2(y, x)
 
 
 @njit(cache=True, inline="always")
@@ -210,27 +265,40 @@ def _exp_neg_i(x):
     """exp(-i x) for real x; series below 1e-2 (error < 1e-18)."""
     if abs(x) < 1e-2:
         x2 = x * x
-        c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0 - x2 / 40320.0)))
-        sn = x * (1.0 - x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0 - x2 / 362880.0))))
+        c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0 - x2 * (1.0 / 40320.0))))
+        sn = x * (1.0 - x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0 - x2 * (1.0 / 362880.0)))))
         return complex(c, -sn)
     return complex(math.cos(x), -math.sin(x))
 
 
 @njit(cache=True, inline="always")
-def _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps):
-    """Bias instability: the Gauss-Markov sum x_j <- a_j x_j + b_j n_j, updated every gm_steps steps and held in
-    S[S_BIAS] (rad/s) between updates. Returns the next row of gm_noise to use."""
-    S[S_GMK] += 1.0
-    if S[S_GMK] >= gm_steps:
-        S[S_GMK] = 0.0
-        b = 0.0
-        for j in range(gm_a.shape[0]):
-            x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
-            S[S_GM + j] = x
-            b += x
-        S[S_BIAS] = b
-        gi += 1
-    return gi
+def _bias_update(S, gm_a, gm_b, gm_noise, gi):
+    """Bias instability: the Gauss-Markov sum x_j <- a_j x_j + b_j n_j (row gi of gm_noise), held in S[S_BIAS]
+    (rad/s) until the next update. Returns the next row of gm_noise to use. The kernels call it only on the
+    steps that update (every gm_steps steps): passing arrays to an inlined function costs reference counting."""
+    b = 0.0
+    for j in range(gm_a.shape[0]):
+        x = gm_a[j] * S[S_GM + j] + gm_b[j] * gm_noise[gi, j]
+        S[S_GM + j] = x
+        b += x
+    S[S_BIAS] = b
+    return gi + 1
+
+
+@njit(cache=True)
+def input_sums(a, b, c):
+    """(sum a, sum b, sum c) of a block's inputs in one compiled pass: a NaN or inf anywhere (or values near the
+    float limit) makes its array's sum non-finite, which GyroSim.run refuses before touching the state."""
+    sa = 0.0
+    sb = 0.0
+    sc = 0.0
+    for i in range(a.shape[0]):
+        sa += a[i]
+    for i in range(b.shape[0]):
+        sb += b[i]
+    for i in range(c.shape[0]):
+        sc += c[i]
+    return sa, sb, sc
 
 
 @njit(cache=True)
@@ -277,7 +345,9 @@ def _lowpass_sections(P, L, dt):
 
 @njit(cache=True, error_model="numpy")
 def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):
-    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`."""
+    """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`.
+
+    Returns (bias updates used, max |PLL error| over the block in deg)."""
     n = temp_c.shape[0]
     dt = P[P_DT]
     w0, tref = P[P_W0], P[P_TREF]
@@ -291,29 +361,45 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
+    err_max = 0.0  # max |PLL error| over the block, deg
     raws = np.empty(4)
     filt = np.empty(4)
     c2w, s2w = P[P_C2W], P[P_S2W]
     c2t, s2t = P[P_C2T], P[P_S2T]
+    # parameters read once (the loop stores into S and out, which the compiler cannot prove distinct from P)
+    a_w, q0, a_q, dmis, a_dm, dw0, a_dw = P[P_AW], P[P_Q], P[P_AQ], P[P_DMIS], P[P_ADM], P[P_DW], P[P_ADW]
+    k_d, k_f, a_f, a_p, beta, sf0 = P[P_KD], P[P_KF], P[P_AF], P[P_AP], P[P_BETA], P[P_SF]
+    ftc, fts = P[P_FTC], P[P_FTS]
+    arw_f = k * a0 * w0 * sig_arw  # ARW force times omega_r (divided by omega_r per step)
+    inv_sqrt2 = 1.0 / SQRT2
+    sf_scale = sf0 / (w0 * a0 * gain)
     for i in range(n):
-        gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
+        S[S_GMK] += 1.0
+        if S[S_GMK] >= gm_steps:
+            S[S_GMK] = 0.0
+            gi = _bias_update(S, gm_a, gm_b, gm_noise, gi)
         dtemp = temp_c[i] - tref
-        w = w0 * (1.0 + P[P_AW] * dtemp)
-        inv_tau = w / (2.0 * P[P_Q] * (1.0 + P[P_AQ] * dtemp))
-        g = 0.5 * (P[P_DMIS] + P[P_ADM] * dtemp) * inv_tau
+        w = w0 * (1.0 + a_w * dtemp)
+        inv_tau = w / (2.0 * q0 * (1.0 + a_q * dtemp))
+        g = 0.5 * (dmis + a_dm * dtemp) * inv_tau
         wr = TWO_PI * S[S_FREF]
-        dw = P[P_DW] + P[P_ADW] * dtemp
-        h = w * dw / (2.0 * wr)
-        delta = (w * w - wr * wr) / (2.0 * wr)
+        inv_2wr = 0.5 / wr
+        dw = dw0 + a_dw * dtemp
+        h = w * dw * inv_2wr
+        delta = (w * w - wr * wr) * inv_2wr
         k_om = k * (rate_dps[i] * RAD_PER_DEG + S[S_BIAS])
         n11 = complex(g * c2t, h * c2w)
         n12 = complex(g * s2t - k_om, h * s2w)
         n21 = complex(g * s2t + k_om, h * s2w)
         mu2 = n11 * n11 + n12 * n21
         x2 = mu2 * (dt * dt)
-        if abs(x2) < 1e-2:
-            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 / 40320.0)))
-            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 / 362880.0))))
+        ax2 = x2.real * x2.real + x2.imag * x2.imag
+        if ax2 < 1e-12:  # |mu dt|^2 < 1e-6 (the usual case): the terms beyond x2^2 are below 2e-22
+            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0))
+            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0)))
+        elif ax2 < 1e-4:  # |mu dt|^2 < 1e-2
+            ch = 1.0 + x2 * (0.5 + x2 * (1.0 / 24.0 + x2 * (1.0 / 720.0 + x2 * (1.0 / 40320.0))))
+            sh = dt * (1.0 + x2 * (1.0 / 6.0 + x2 * (1.0 / 120.0 + x2 * (1.0 / 5040.0 + x2 * (1.0 / 362880.0)))))
         else:
             mu = np.sqrt(mu2)
             ch = np.cosh(mu * dt)
@@ -325,18 +411,19 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         p21 = -ex * sh * n21
         p22 = ex * (ch + sh * n11)
         # inputs held over the step
-        g_f = 1.0 + P[P_AF] * dtemp
-        ux = complex(P[P_KD] * S[S_VD] / (2.0 * wr), 0.0)
+        g_f = 1.0 + a_f * dtemp
+        ux = complex(k_d * S[S_VD] * inv_2wr, 0.0)
         u_s = gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])
         u_c = S[S_VQ]
-        kf = P[P_KF] * g_f * (1.0 + P[P_BETA] * (u_s * u_s + u_c * u_c)) / (2.0 * wr)
-        arw = k * a0 * (w0 / wr) * sig_arw
+        kf = k_f * g_f * (1.0 + beta * (u_s * u_s + u_c * u_c)) * inv_2wr
+        arw = arw_f * (2.0 * inv_2wr)
         fv = kf * gain * sig_f  # the forcer-path voltage noise, independent of the ARW force on the same component
         uy = complex(kf * u_s - math.sqrt(arw * arw + fv * fv) * noise[i, 0], kf * u_c - arw * noise[i, 1])
-        # input term M^-1 (I - Phi) u
+        # input term M^-1 (I - Phi) u, M^-1 = (sig I - N) / (sig^2 - mu^2)
         v1 = (1.0 - p11) * ux - p12 * uy
         v2 = -p21 * ux + (1.0 - p22) * uy
-        inv_den = 1.0 / (sig * sig - mu2)
+        den = sig * sig - mu2
+        inv_den = den.conjugate() * (1.0 / (den.real * den.real + den.imag * den.imag))
         zx_in = ((sig - n11) * v1 - n12 * v2) * inv_den
         zy_in = (-n21 * v1 + (sig + n11) * v2) * inv_den
         zx = complex(S[S_CX], S[S_SX])
@@ -345,12 +432,13 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         zy_new = p21 * zx + p22 * zy + zy_in
         S[S_CX], S[S_SX] = zx_new.real, zx_new.imag
         S[S_CY], S[S_SY] = zy_new.real, zy_new.imag
-        g_py = 1.0 + P[P_AP] * dtemp
-        ft = _feedthrough(P, u_s, u_c)
-        raws[0] = zx_new.real / SQRT2 + sig_pick * noise[i, 2]
-        raws[1] = -zx_new.imag / SQRT2 + sig_pick * noise[i, 3]
-        raws[2] = g_py * (zy_new.real + ft.real) / SQRT2 + sig_pick * noise[i, 4]
-        raws[3] = -g_py * (zy_new.imag + ft.imag) / SQRT2 + sig_pick * noise[i, 5]
+        g_py = (1.0 + a_p * dtemp) * inv_sqrt2
+        ft_c = ftc * u_c - fts * u_s  # _feedthrough
+        ft_s = ftc * u_s + fts * u_c
+        raws[0] = zx_new.real * inv_sqrt2 + sig_pick * noise[i, 2]
+        raws[1] = -zx_new.imag * inv_sqrt2 + sig_pick * noise[i, 3]
+        raws[2] = g_py * (zy_new.real + ft_c) + sig_pick * noise[i, 4]
+        raws[3] = -g_py * (zy_new.imag + ft_s) + sig_pick * noise[i, 5]
         _control(S, L, raws, filt, dt, fj, fs, fr, order, a_d, c_d, sections)
         S[S_VR] = _dac(S[S_VR], lsb, inv_lsb)
         S[S_VQ] = _dac(S[S_VQ], lsb, inv_lsb)
@@ -363,11 +451,14 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
+        ae = abs(S[S_PLLE])
+        if ae > err_max or math.isnan(ae):  # a NaN error is kept (the block then reads as unlocked)
+            err_max = ae
         amp = math.sqrt(zx_new.real * zx_new.real + zx_new.imag * zx_new.imag)
         w_x = math.sqrt(w * w + w * dw * c2w)
-        out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
+        out[O_SF, i] = sf_scale * w_x * amp * (1.0 / g_f)
         out[O_AUX, i] = S[S_VRP]
-    return gi
+    return gi, err_max
 
 
 @njit(cache=True, inline="always")
@@ -406,7 +497,9 @@ def _expm_taylor(A, dt, term, tmp, phi_m, psi):
 
 @njit(cache=True, error_model="numpy")
 def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):
-    """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT]."""
+    """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT].
+
+    Returns (bias updates used, max |PLL error| over the block in deg)."""
     n = temp_c.shape[0]
     dt = P[P_DT]
     dtc = dt * m_per
@@ -421,6 +514,7 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     gain = L[L_GAIN]
     gm_steps = P[P_GMSTEPS]
     gi = 0
+    err_max = 0.0  # max |PLL error| over the block, deg
     raws = np.empty(4)
     filt = np.empty(4)
     c2w, s2w = P[P_C2W], P[P_S2W]
@@ -435,7 +529,10 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
     last_t = 0.0
     last_om = 0.0
     for i in range(n):
-        gi = _bias_update(S, gm_a, gm_b, gm_noise, gi, gm_steps)
+        S[S_GMK] += 1.0
+        if S[S_GMK] >= gm_steps:
+            S[S_GMK] = 0.0
+            gi = _bias_update(S, gm_a, gm_b, gm_noise, gi)
         dtemp = temp_c[i] - tref
         w = w0 * (1.0 + P[P_AW] * dtemp)
         inv_tau = w / (2.0 * P[P_Q] * (1.0 + P[P_AQ] * dtemp))
@@ -545,8 +642,11 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         out[O_VR, i] = S[S_VR]
         out[O_VQ, i] = S[S_VQ]
         out[O_PLLE, i] = S[S_PLLE]
+        ae = abs(S[S_PLLE])
+        if ae > err_max or math.isnan(ae):  # a NaN error is kept (the block then reads as unlocked)
+            err_max = ae
         amp = 2.0 * math.sqrt(sxc * sxc + sxs * sxs) / m_per
         w_x = math.sqrt(kxx)
         out[O_SF, i] = P[P_SF] * (w_x / w0) * (amp / a0) / (g_f * gain)
         out[O_AUX, i] = S[S_VRP]
-    return gi
+    return gi, err_max
