@@ -152,6 +152,8 @@ class World:
         self._truth: deque[TruthRecord] = deque()
         self.forcer_gain = 1.0  # forcer-path gain set through the lock-in (CLSF correct mode)
         self._last_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last advance's dither phases
+        self._offsets_key: tuple[int, float] | None = None  # (n, dt) of the cached `_step_offsets`
+        self._offsets = (np.zeros(0), np.zeros(0), np.zeros(1))
         # called as fn(t_start_s, t_end_s) at the start of every advance, under the lock (fault injection)
         self.on_advance: list[Callable[[float, float], None]] = []
 
@@ -396,6 +398,19 @@ class World:
         slope = c.ramp_c_per_min / 60.0
         return s0 + math.copysign(1.0, s1 - s0) * np.minimum(slope * tau, abs(s1 - s0))
 
+    def _step_offsets(self, n: int, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(k dt for k < n, k dt + dt/2 for k < n, k dt for k <= n): the step starts, mid-steps and boundaries of
+        a block of n steps from its start, s. Read-only arrays, kept while blocks keep their n and dt."""
+        if self._offsets_key != (n, dt):
+            k = np.arange(n + 1, dtype=np.float64)
+            bounds = k * dt
+            start = bounds[:n]
+            mid = start + 0.5 * dt
+            for a in (bounds, mid):
+                a.flags.writeable = False
+            self._offsets, self._offsets_key = (start, mid, bounds), (n, dt)
+        return self._offsets
+
     def advance(self, n: int, dt: float) -> BlockInputs:
         """Advance the clock by n steps of dt and return the inputs of each step."""
         if n <= 0:
@@ -403,9 +418,7 @@ class World:
         with self.lock:
             for fn in self.on_advance:
                 fn(self.t, self.t + n * dt)
-            k = np.arange(n, dtype=np.float64)
-            tau_start = k * dt
-            tau_mid = tau_start + 0.5 * dt
+            tau_start, tau_mid, tau_bounds = self._step_offsets(n, dt)
             t = self.t + tau_start
             # table
             prof_mid = self._table_profile(tau_mid)
@@ -414,7 +427,11 @@ class World:
             if self.params.table_rate_ripple_ppm != 0.0:  # ripple at the ripple-free mid-step angle
                 mid = self.table.angle_deg + np.cumsum(rate) * dt - 0.5 * rate * dt
                 rate = rate * self._ripple_factor(mid)
-            angle = self.table.angle_deg + np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt))
+            angle = np.empty(n)  # angle0 + dt * (cumulative sum of the rates of the steps before)
+            angle[0] = 0.0
+            np.cumsum(rate[:-1], out=angle[1:])
+            angle[1:] *= dt
+            angle += self.table.angle_deg
             # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
             c = self.chamber
             sp = self._chamber_setpoint(tau_start)
@@ -431,7 +448,7 @@ class World:
             c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
             c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
             c.controller_setpoint_c = sp_end
-            tb = self.t + dt * np.arange(n + 1, dtype=np.float64)  # step boundaries: one phase evaluation each
+            tb = self.t + tau_bounds  # step boundaries: one phase evaluation each
             dither = self._step_means(tb)
             self.t = self.t + end
             return BlockInputs(
