@@ -44,9 +44,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
-DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
+from sims import world_kernel as wk
+
+DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = (
+    wk.DITHER_SINE,
+    wk.DITHER_SQUARE,
+    wk.DITHER_TRIANGLE,
+    wk.DITHER_RAMP,
+)
 
 
 @dataclass
@@ -122,15 +128,16 @@ class TruthRecord:
 
 
 def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
-    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion as a linear filter
-    (scipy.signal.lfilter with b = [0, 1 - a], a = [1, -a] and the initial state y0)."""
+    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion (for 0 < a, the compiled
+    loop sims.world_kernel.first_order_lag, scipy.signal.lfilter's b = [0, 1 - a], a = [1, -a] with the initial
+    state y0 step by step)."""
     n = u.shape[0]
+    y = np.empty(n)
     if a <= 0.0:
-        y = np.empty(n)
         y[0] = y0
         y[1:] = u[:-1]
         return y
-    y, _ = lfilter([0.0, 1.0 - a], [1.0, -a], np.asarray(u, dtype=np.float64), zi=[float(y0)])
+    wk.first_order_lag(np.ascontiguousarray(u, dtype=np.float64), float(y0), float(a), y)
     return y
 
 
@@ -364,20 +371,37 @@ class World:
 
     def _step_means(self, tb: np.ndarray) -> np.ndarray:
         """Exact means of the output over the steps [tb[k], tb[k+1]]; remembers the boundaries' phases for
-        `window_means_at_step_ends`."""
+        `window_means_at_step_ends` (the loop: sims.world_kernel.dither_grid)."""
         d = self.dither
         self._last_grid = None
         if d.amplitude_vpp == 0.0:
             return np.full(tb.shape[0] - 1, d.offset_v)
-        u = self._dither_phase(tb)
-        wint = self._wave_integral(u)
+        p = self.params
+        u, wint, means = np.empty(tb.shape[0]), np.empty(tb.shape[0]), np.empty(tb.shape[0] - 1)
+        per = p.ds345_timebase_wander_period_s
+        wk.dither_grid(
+            tb,
+            p.ds345_timebase_offset_ppm * 1e-6,
+            p.ds345_timebase_wander_ppm * 1e-6 * per / (2 * np.pi),
+            per,
+            float(self.ds345_time(d.origin_s)),
+            d.frequency_hz,
+            d.phase_deg / 360.0,
+            d.function,
+            d.offset_v,
+            0.5 * d.amplitude_vpp,
+            u,
+            wint,
+            means,
+        )
         self._last_grid = (tb, u, wint)
-        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - wint[:-1]) / (u[1:] - u[:-1])
+        return means
 
     def window_means_at_step_ends(self, window_s: float) -> np.ndarray:
         """For each step of the last advance, the exact mean of the output over [t_end - window_s, t_end] (an
         AuxIn reading), window_s <= the step. The phase at t_end - w is u(t_end) - w du/dt, du/dt taken over
-        the step (the timebase's wander changes it by 1e-12 within a step)."""
+        the step (the timebase's wander changes it by 1e-12 within a step; the loop:
+        sims.world_kernel.dither_window_means)."""
         grid = self._last_grid
         d = self.dither
         if grid is None:
@@ -385,10 +409,9 @@ class World:
         tb, u, wint = grid
         if window_s <= 0.0:
             return self._dither_wave(tb[1:])
-        rate = (u[1:] - u[:-1]) / (tb[1:] - tb[:-1])
-        du = rate * window_s
-        w0 = self._wave_integral(u[1:] - du)
-        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - w0) / du
+        means = np.empty(tb.shape[0] - 1)
+        wk.dither_window_means(tb, u, wint, float(window_s), d.function, d.offset_v, 0.5 * d.amplitude_vpp, means)
+        return means
 
     def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
         c = self.chamber
@@ -423,15 +446,11 @@ class World:
             # table
             prof_mid = self._table_profile(tau_mid)
             scale = 1.0 + self.params.table_rate_scale_error_ppm * 1e-6
-            rate = prof_mid * scale
-            if self.params.table_rate_ripple_ppm != 0.0:  # ripple at the ripple-free mid-step angle
-                mid = self.table.angle_deg + np.cumsum(rate) * dt - 0.5 * rate * dt
-                rate = rate * self._ripple_factor(mid)
-            angle = np.empty(n)  # angle0 + dt * (cumulative sum of the rates of the steps before)
-            angle[0] = 0.0
-            np.cumsum(rate[:-1], out=angle[1:])
-            angle[1:] *= dt
-            angle += self.table.angle_deg
+            rate, angle = np.empty(n), np.empty(n)  # ripple at the ripple-free mid-step angle; step-start angles
+            ripple = self.params.table_rate_ripple_ppm * 1e-6
+            wk.table_block(
+                prof_mid, scale, dt, self.table.angle_deg, ripple, self.params.table_ripple_phase_deg, rate, angle
+            )
             # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
             c = self.chamber
             sp = self._chamber_setpoint(tau_start)
