@@ -55,6 +55,9 @@ DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = (
 )
 
 
+_DEG = math.pi / 180.0  # rad per degree (numpy's deg2rad multiplies by this)
+
+
 @dataclass
 class WorldParams:
     """Physical constants of the stand outside the gyro itself."""
@@ -268,8 +271,13 @@ class World:
     def table_rate_dps(self) -> float:
         """Delivered table rate now, deg/s (scale error and ripple at the current angle)."""
         with self.lock:
-            ripple = self._ripple_factor(np.array([self.table.angle_deg]))[0]
-            return self.table.rate_dps * (1.0 + self.params.table_rate_scale_error_ppm * 1e-6) * ripple
+            p = self.params  # the ripple factor of _ripple_factor at one angle, in scalar arithmetic
+            ripple = 1.0
+            if p.table_rate_ripple_ppm != 0.0:
+                ripple += (
+                    p.table_rate_ripple_ppm * 1e-6 * math.sin((self.table.angle_deg + p.table_ripple_phase_deg) * _DEG)
+                )
+            return self.table.rate_dps * (1.0 + p.table_rate_scale_error_ppm * 1e-6) * ripple
 
     def _ripple_factor(self, angle_deg: np.ndarray) -> np.ndarray:
         """1 + r sin(theta + phi_r): the once-per-revolution rate ripple at table angles theta."""
