@@ -110,6 +110,7 @@ class _PollLayout:
     used_oscs: frozenset[int]  # the reference oscillator and those of every subscribed demod
     fixed_osc_hz: dict[int, float]  # the set frequency of every oscillator but the reference
     auxin_window_s: float
+    pid_settings: dict[int, tuple[float, float]]  # (setpoint, center) of every PID the loop plan uses
 
 
 def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
@@ -524,6 +525,11 @@ class HF2DataServerTwin:
             used_oscs=frozenset(used),
             fixed_osc_hz=fixed_hz,
             auxin_window_s=self.auxin_window_s(),
+            pid_settings={
+                n: (float(nd.peek(f"pids/{n}/setpoint")), float(nd.peek(f"pids/{n}/center")))
+                for n in plan.pid_of.values()
+                if n is not None
+            },
         )
         return self._layout
 
@@ -563,9 +569,10 @@ class HF2DataServerTwin:
             self._osc_phase[o] = float(ph[-1] % (2 * np.pi))
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
-        aux = [np.zeros(n), np.zeros(n)]
+        wired: list[np.ndarray | None] = [None, None]
         rate_aux, dither_aux = self._auxin_records(blk, inputs.t + dt, dt, layout.auxin_window_s)
-        aux[self.wiring.rate_auxin], aux[self.wiring.dither_auxin] = rate_aux, dither_aux
+        wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
+        aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
         keep = None
         dropped = min(self._drop_next, max(0, n - 2))
         if dropped:
@@ -598,7 +605,7 @@ class HF2DataServerTwin:
                 sample = {k: v[keep] for k, v in sample.items()}
             out[spec.path] = sample
             self._last_sample[spec.path] = sample  # getSample copies its last entries
-        self._reflect(plan, blk, locked, aux, dropped)
+        self._reflect(plan, blk, locked, aux, dropped, layout.pid_settings)
         self.world.record_truth(
             TruthRecord(
                 time=timestamps.astype(float) / self.clockbase_hz,
@@ -632,8 +639,9 @@ class HF2DataServerTwin:
         locked: np.ndarray,
         aux: list[np.ndarray],
         dropped: int,
+        pid_settings: dict[int, tuple[float, float]],
     ) -> None:
-        """Read-only nodes at the end of the block."""
+        """Read-only nodes at the end of the block; pid_settings: (setpoint, center) of each PID in use."""
         nd = self.nodes
         pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
         f_end = float(np.asarray(blk.frequency_hz)[-1])
@@ -656,8 +664,9 @@ class HF2DataServerTwin:
             if n is None:
                 continue
             inp, out = ends[name]
-            nd.poke(f"pids/{n}/error", float(nd.peek(f"pids/{n}/setpoint")) - float(inp))
-            nd.poke(f"pids/{n}/shift", out - float(nd.peek(f"pids/{n}/center")))
+            setpoint, center = pid_settings[n]
+            nd.poke(f"pids/{n}/error", setpoint - float(inp))
+            nd.poke(f"pids/{n}/shift", out - center)
         nd.poke(f"auxouts/{self.wiring.rate_auxout}/value", ends["rate"][1])
         nd.poke(f"auxouts/{self.wiring.quadrature_auxout}/value", ends["quadrature"][1])
         for k in range(2):
