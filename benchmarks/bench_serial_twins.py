@@ -1,7 +1,8 @@
 """Transaction cost of the 1291BR and EC1x drivers against their twins, per transport; prints JSON.
 
 For each transport (in-process, pty, loopback socket) it times `table.read()` (3 transactions: PVE, PPO, STA)
-and `chamber.read()` (C1?, SET?, STATUS?) and reports the mean time per read and per transaction.
+and `chamber.read()` (C1?, SET?, STATUS?) and reports the mean wall time per read and per transaction, and the
+process CPU time per read (all threads: the pty and socket servers' too), which a loaded machine disturbs less.
 
     python benchmarks/bench_serial_twins.py [--reads N]
 """
@@ -34,12 +35,13 @@ def open_port(twin: LineTwin, transport: str) -> tuple[Any, Callable[[], None]]:
     return serial.serial_for_url(url, timeout=2.0), stop
 
 
-def time_reads(read: Callable[[], object], n: int) -> float:
+def time_reads(read: Callable[[], object], n: int) -> tuple[float, float]:
+    """(wall s, process CPU s) per call of `read`, mean of n calls after one warm-up call."""
     read()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(n):
         read()
-    return (time.perf_counter() - t0) / n
+    return (time.perf_counter() - t0) / n, (time.process_time() - c0) / n
 
 
 def main() -> None:
@@ -54,13 +56,15 @@ def main() -> None:
         table = Aerosmith1291BR(tport, max_rate_dps=100.0, max_accel_dps2=500.0)
         chamber = SunEC1xChamber(cport, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
         table.set_rate(5.0, 300.0)
-        t_table = time_reads(table.read, n)
-        t_chamber = time_reads(chamber.read, n)
+        t_table, cpu_table = time_reads(table.read, n)
+        t_chamber, cpu_chamber = time_reads(chamber.read, n)
         out[transport] = {
             "table_read_us": round(t_table * 1e6, 1),
             "table_transaction_us": round(t_table / 3 * 1e6, 1),
             "chamber_read_us": round(t_chamber * 1e6, 1),
             "chamber_transaction_us": round(t_chamber / 3 * 1e6, 1),
+            "table_read_cpu_us": round(cpu_table * 1e6, 1),
+            "chamber_read_cpu_us": round(cpu_chamber * 1e6, 1),
         }
         table.close()
         chamber.close()

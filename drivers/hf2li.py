@@ -282,7 +282,10 @@ class HF2LI(LockIn):
             edges = np.concatenate(([self._last_ts], edges))
         if len(edges) < 2:
             return 0
-        steps = np.rint(np.diff(edges) / self._ticks_per_sample).astype(np.int64)
+        gaps = np.diff(edges)
+        if np.rint(gaps.max() / self._ticks_per_sample) <= 1:  # rint is monotonic: no gap spans two samples
+            return 0
+        steps = np.rint(gaps / self._ticks_per_sample).astype(np.int64)
         return int(np.sum(np.maximum(steps - 1, 0)))
 
     def set_forcer_gain(self, gain: float) -> None:

@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 TERMINATORS: dict[str, bytes] = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}
 _LINE_ENDS = b"\r\n"
 _BLANKS = b" \t"
+_SKIP = _LINE_ENDS + _BLANKS  # bytes skipped before a line
+_SKIPPED = frozenset(_SKIP)
+_PRINTABLE = bytes(range(0x20, 0x7F))  # printable ASCII: a line's content must consist of these only
 
 
 class SerialPort(Protocol):
@@ -117,7 +120,7 @@ class SerialLink:
         """
         if not command.endswith(self.command_terminator):
             raise ValueError(f"{self.name}: command {command!r} lacks the terminator {self.command_terminator!r}")
-        if self._rx.strip(_LINE_ENDS + _BLANKS):
+        if self._rx and self._rx.strip(_SKIP):
             self._log.debug("discarding stale bytes %r before %r", bytes(self._rx), command)
         self._rx.clear()
         try:
@@ -144,10 +147,10 @@ class SerialLink:
         if exact is not None:
             i = self._rx.find(exact)
             return None if i < 0 else (i, i + len(exact))
-        positions = [i for i in (self._rx.find(b"\r"), self._rx.find(b"\n")) if i >= 0]
-        if not positions:
+        cr, lf = self._rx.find(b"\r"), self._rx.find(b"\n")
+        i = lf if cr < 0 else cr if lf < 0 else min(cr, lf)
+        if i < 0:
             return None
-        i = min(positions)
         return i, i + 1  # a CR's LF (CR LF framing) is skipped as the next line's leading terminator
 
     def read_line(self, command: bytes) -> str:
@@ -158,17 +161,21 @@ class SerialLink:
         """
         received = bytearray()  # what this line consumed, for messages
         prompt = self.framing.prompt.encode("ascii")
+        if not self._rx and not self._fill(command):  # nothing buffered: nothing to look at before reading
+            raise InstrumentError(f"{self.name}: timeout: no reply to {self._show(command)} (received b'')")
         while True:
             # leading CR/LF (and blanks) belong to no line
-            n = len(self._rx) - len(self._rx.lstrip(_LINE_ENDS + _BLANKS))
-            received += self._rx[:n]
-            del self._rx[:n]
+            if self._rx and self._rx[0] in _SKIPPED:
+                n = len(self._rx) - len(self._rx.lstrip(_SKIP))
+                received += self._rx[:n]
+                del self._rx[:n]
             if prompt and self._rx.startswith(prompt):
-                rest = self._rx[len(prompt) :]
-                if not rest or bytes(rest[:1]) in (b"\r", b"\n", b" ", b"\t"):
+                after = self._rx[len(prompt) : len(prompt) + 1]  # the byte after the prompt, if any
+                if not after or after in _SKIP:
                     del self._rx[: len(prompt)]
                     received += prompt
-                    self._log.debug("received %r (prompt) for %r", bytes(received), command)
+                    if self._log.isEnabledFor(logging.DEBUG):
+                        self._log.debug("received %r (prompt) for %r", bytes(received), command)
                     return self.framing.prompt
             end = self._line_end()
             if end is not None:
@@ -194,9 +201,10 @@ class SerialLink:
                     f"{self.name}: truncated reply to {self._show(command)}: received {data!r} "
                     f"without a terminator ({self.framing.describe()})"
                 )
-        self._log.debug("received %r for %r", bytes(received), command)
+        if self._log.isEnabledFor(logging.DEBUG):
+            self._log.debug("received %r for %r", bytes(received), command)
         body = body.strip(_BLANKS)
-        if not body or any(b < 0x20 or b > 0x7E for b in body):
+        if not body or body.translate(None, _PRINTABLE):  # empty, or bytes left that are not printable ASCII
             raise InstrumentError(f"{self.name}: garbled reply to {self._show(command)}: received {bytes(received)!r}")
         return body.decode("ascii")
 

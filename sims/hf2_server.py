@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import fnmatch
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -85,6 +85,32 @@ def _zi_nodes(port: int, clockbase_hz: float) -> dict[str, Any]:
         "/zi/debug/log": "",
         "/zi/clockbase": int(round(clockbase_hz)),
     }
+
+
+@dataclass(frozen=True)
+class _DemodSpec:
+    """One subscribed, enabled demodulator as the settings configure it."""
+
+    path: str
+    sigin: int
+    osc: int
+    harmonic: int
+    shift_rad: float  # demods/n/phaseshift, rad
+
+
+@dataclass(frozen=True)
+class _PollLayout:
+    """The settings a poll needs, valid for one (settings version, subscribed demods) `key`."""
+
+    key: tuple[int, tuple[str, ...]]
+    plan: LoopPlan
+    ticks_per_sample: int  # clockbase ticks per sample of the sense demod's rate
+    dt: float  # s per sample = ticks_per_sample / clockbase
+    demods: tuple[_DemodSpec, ...]
+    used_oscs: frozenset[int]  # the reference oscillator and those of every subscribed demod
+    fixed_osc_hz: dict[int, float]  # the set frequency of every oscillator but the reference
+    auxin_window_s: float
+    pid_settings: dict[int, tuple[float, float]]  # (setpoint, center) of every PID the loop plan uses
 
 
 def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
@@ -142,6 +168,9 @@ class HF2DataServerTwin:
         self.last_plan: LoopPlan | None = None
         self._settings_version = 0  # bumped by every client set: the loop plan is re-read only then
         self._plan_version = -1
+        self._layout: _PollLayout | None = None
+        self._tick_offsets_key: tuple[int, int] | None = None
+        self._tick_offsets_cache = np.zeros(0, dtype=np.int64)
         for d in range(6):  # round the power-on rates like a set would
             self._round_rate(f"/{self.device_id}/demods/{d}/rate")
 
@@ -222,7 +251,7 @@ class HF2DataServerTwin:
         if not fnmatch.fnmatchcase(p, f"/{self.device_id}/demods/*/sample"):
             raise NodeError(f"ZIAPIException: node {p} is not a demodulator sample node")
         if p in self._last_sample:
-            return {k: v.copy() for k, v in self._last_sample[p].items()}
+            return {k: v[-1:].copy() for k, v in self._last_sample[p].items()}
         return {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
 
     def get(self, paths: str, *args: Any, flat: bool = False, settingsonly: bool = True, **kwargs: Any) -> dict:
@@ -376,32 +405,46 @@ class HF2DataServerTwin:
         avg = int(self.nodes.peek("auxins/0/averaging"))
         return float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ
 
-    def _auxin_records(self, blk: GyroBlock, t_end: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """(rate AuxOut, dither) as the AuxIns report them at the sample instants t_end (module docstring).
+    def _auxin_records(
+        self, blk: GyroBlock, t_end: np.ndarray, dt: float, window_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(rate AuxOut, dither) as the AuxIns report them at the sample instants t_end (module docstring), for
+        the averaging window `window_s` (`auxin_window_s`).
 
         The AuxOut voltage V is linear between instants, V(t_i) = rate_auxout_v[i]; its mean over
         [t_i - W, t_i] (W <= dt) is V(t_i) - (V(t_i) - V(t_(i-1))) W / (2 dt)."""
-        w = min(self.auxin_window_s(), dt)
+        w = min(window_s, dt)
         v = np.asarray(blk.rate_auxout_v if blk.rate_auxout_v is not None else blk.rate_output_v, dtype=float)
-        prev = np.concatenate(([v[0] if self._auxout_prev is None else self._auxout_prev], v[:-1]))
+        both = np.empty((2, v.shape[0]))  # row 0 the rate AuxIn, row 1 the dither AuxIn
+        rate = both[0]
+        np.subtract(v[1:], v[:-1], out=rate[1:])  # V(t_i) - V(t_(i-1))
+        rate[0] = v[0] - (v[0] if self._auxout_prev is None else self._auxout_prev)
+        rate *= w / (2.0 * dt)
+        np.subtract(v, rate, out=rate)
         self._auxout_prev = float(v[-1])
-        rate = v - (v - prev) * (w / (2.0 * dt))
         if self.world.dither.amplitude_vpp == 0.0:
-            dither = np.full(t_end.shape, self.world.dither.offset_v)
+            both[1] = self.world.dither.offset_v
         else:
-            dither = self.world.window_means_at_step_ends(w)
-        return self._auxin_adc(rate), self._auxin_adc(dither)
+            both[1] = self.world.window_means_at_step_ends(w)
+        self._auxin_adc(both)
+        return both[0], both[1]
 
-    def _auxin_adc(self, v: np.ndarray) -> np.ndarray:
-        """What one AuxIn reports for the input v: plus white reading noise of sigma `auxin_noise_v_rms`, rounded to
-        the ADC step 2 R / 2^bits and clipped to +-R (R = `auxin_range_v`; bits = 0: ideal ADC)."""
+    def _auxin_adc(self, v: np.ndarray) -> None:
+        """What the AuxIns report for the inputs v (one row per AuxIn, overwritten in place): plus white reading
+        noise of sigma `auxin_noise_v_rms` (one stream, drawn row after row), rounded to the ADC step
+        2 R / 2^bits and clipped to +-R (R = `auxin_range_v`; bits = 0: ideal ADC)."""
         p = self.gyro_params
         if p.auxin_noise_v_rms > 0.0:
-            v = v + p.auxin_noise_v_rms * self._auxin_rng.standard_normal(v.shape)
+            noise = self._auxin_rng.standard_normal(v.shape)
+            noise *= p.auxin_noise_v_rms
+            v += noise
         lsb = p.auxin_lsb_v
         if lsb > 0.0:
-            v = np.clip(lsb * np.floor(v / lsb + 0.5), -p.auxin_range_v, p.auxin_range_v)
-        return v
+            v /= lsb
+            v += 0.5
+            np.floor(v, out=v)
+            v *= lsb
+            np.clip(v, -p.auxin_range_v, p.auxin_range_v, out=v)
 
     def _ensure_gyro(self, dt: float) -> Any:
         if self._gyro is None or self._gyro_dt != dt:
@@ -441,14 +484,67 @@ class HF2DataServerTwin:
         merged = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in _ARRAY_FIELDS}
         return type(blocks[0])(**merged, pll_locked=bool(locked.all())), locked
 
-    def _advance(self, rec_s: float, demods: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    def _poll_layout(self, demods: list[str]) -> _PollLayout:
+        """What a poll reads from the settings, read once per change of the settings or of the subscriptions: the
+        nodes change only through `set` (which bumps the settings version) or `poke` of read-only nodes and of the
+        PLL's own oscillator frequency (which the layout does not hold)."""
+        key = (self._settings_version, tuple(demods))
+        if self._layout is not None and self._layout.key == key:
+            return self._layout
         if self.last_plan is None or self._plan_version != self._settings_version:
             self.last_plan = identify_loops(self.nodes, self.wiring)
             self._plan_version = self._settings_version
         plan = self.last_plan
-        rate = float(self.nodes.peek(f"demods/{plan.sense_demod}/rate"))
+        nd = self.nodes
+        rate = float(nd.peek(f"demods/{plan.sense_demod}/rate"))
         tps = int(round(self.clockbase_hz / rate))
-        dt = tps / self.clockbase_hz
+        specs = []
+        used = {plan.ref_osc}
+        for path in demods:
+            d = int(path.split("/")[3])
+            osc = int(nd.peek(f"demods/{d}/oscselect"))
+            used.add(osc)
+            if not int(nd.peek(f"demods/{d}/enable")):
+                continue
+            specs.append(
+                _DemodSpec(
+                    path=path,
+                    sigin=int(nd.peek(f"demods/{d}/adcselect")),
+                    osc=osc,
+                    harmonic=int(nd.peek(f"demods/{d}/harmonic")),
+                    shift_rad=math.radians(float(nd.peek(f"demods/{d}/phaseshift"))),
+                )
+            )
+        fixed_hz = {o: float(nd.peek(f"oscs/{o}/freq")) for o in range(6) if o != plan.ref_osc}
+        self._layout = _PollLayout(
+            key=key,
+            plan=plan,
+            ticks_per_sample=tps,
+            dt=tps / self.clockbase_hz,
+            demods=tuple(specs),
+            used_oscs=frozenset(used),
+            fixed_osc_hz=fixed_hz,
+            auxin_window_s=self.auxin_window_s(),
+            pid_settings={
+                n: (float(nd.peek(f"pids/{n}/setpoint")), float(nd.peek(f"pids/{n}/center")))
+                for n in plan.pid_of.values()
+                if n is not None
+            },
+        )
+        return self._layout
+
+    def _tick_offsets(self, n: int, tps: int) -> np.ndarray:
+        """tps * [1, 2, ..., n] (int64, read-only): the sample timestamps of a block relative to its start."""
+        if self._tick_offsets_key != (n, tps):
+            offsets = tps * np.arange(1, n + 1, dtype=np.int64)
+            offsets.flags.writeable = False
+            self._tick_offsets_cache, self._tick_offsets_key = offsets, (n, tps)
+        return self._tick_offsets_cache
+
+    def _advance(self, rec_s: float, demods: list[str]) -> dict[str, dict[str, np.ndarray]]:
+        layout = self._poll_layout(demods)
+        plan = layout.plan
+        tps, dt = layout.ticks_per_sample, layout.dt
         n = int(round(rec_s / dt))
         if n < 1:
             return {}
@@ -458,67 +554,58 @@ class HF2DataServerTwin:
         inputs = self.world.advance(n, dt)
         self.world.set_forcer_gain(plan.settings.forcer_gain)
         blk, locked = self._run_gyro(inputs, plan, dt)
-        timestamps = (self._ticks + tps * np.arange(1, n + 1, dtype=np.int64)).astype(np.uint64)
+        timestamps = (self._ticks + self._tick_offsets(n, tps)).astype(np.uint64)
         self._ticks += n * tps
         # oscillator frequencies and phases (rad) at the end of each step
-        used = {plan.ref_osc} | {int(self.nodes.peek(f"demods/{p.split('/')[3]}/oscselect")) for p in demods}
         freqs: dict[int, np.ndarray] = {}
         phases: dict[int, np.ndarray] = {}
         for o in range(6):
-            if o not in used:  # keep its phase running without building arrays
-                f_fixed = float(self.nodes.peek(f"oscs/{o}/freq"))
-                self._osc_phase[o] = float(np.mod(self._osc_phase[o] + 2 * np.pi * f_fixed * n * dt, 2 * np.pi))
+            if o not in layout.used_oscs:  # keep its phase running without building arrays (x % y is np.mod)
+                self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
-            f_o = (
-                np.asarray(blk.frequency_hz, dtype=float)
-                if o == plan.ref_osc
-                else np.full(n, float(self.nodes.peek(f"oscs/{o}/freq")))
-            )
+            f_o = np.asarray(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
             ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f_o) * dt
             freqs[o], phases[o] = f_o, ph
-            self._osc_phase[o] = float(np.mod(ph[-1], 2 * np.pi))
+            self._osc_phase[o] = float(ph[-1] % (2 * np.pi))
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
-        aux = [np.zeros(n), np.zeros(n)]
-        aux[self.wiring.rate_auxin], aux[self.wiring.dither_auxin] = self._auxin_records(blk, inputs.t + dt, dt)
-        drive = np.asarray(blk.x_drive) + 1j * np.asarray(blk.y_drive)
-        sense = np.asarray(blk.x_sense) + 1j * np.asarray(blk.y_sense)
-        keep = np.ones(n, dtype=bool)
+        wired: list[np.ndarray | None] = [None, None]
+        rate_aux, dither_aux = self._auxin_records(blk, inputs.t + dt, dt, layout.auxin_window_s)
+        wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
+        aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
+        keep = None
         dropped = min(self._drop_next, max(0, n - 2))
         if dropped:
+            keep = np.ones(n, dtype=bool)
             i0 = (n - dropped) // 2
             keep[i0 : i0 + dropped] = False
         self._drop_next = 0
         out: dict[str, dict[str, np.ndarray]] = {}
-        for path in demods:
-            d = int(path.split("/")[3])
-            if not int(self.nodes.peek(f"demods/{d}/enable")):
-                continue
-            sigin = int(self.nodes.peek(f"demods/{d}/adcselect"))
-            osc = int(self.nodes.peek(f"demods/{d}/oscselect"))
-            harmonic = int(self.nodes.peek(f"demods/{d}/harmonic"))
-            z = drive if sigin == self.wiring.drive_sigin else sense if sigin == self.wiring.sense_sigin else None
-            if z is None or harmonic != 1:
-                z = np.zeros(n, dtype=complex)
-            shift = math.radians(float(self.nodes.peek(f"demods/{d}/phaseshift")))
-            if osc != plan.ref_osc or shift != 0.0:
-                z = z * np.exp(-1j * (phases[osc] + shift - phases[plan.ref_osc]))
+        # the frequency and wrapped phase streams of an oscillator harmonic, shared by the demods that use it
+        osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        for spec in layout.demods:
+            osc, harmonic = spec.osc, spec.harmonic
+            if (osc, harmonic) not in osc_streams:
+                wrapped = np.mod(phases[osc] * harmonic if harmonic != 1 else phases[osc], 2 * np.pi)
+                osc_streams[osc, harmonic] = (freqs[osc] * harmonic, wrapped)
+            frequency, phase = osc_streams[osc, harmonic]
+            x, y = self._demod_xy(blk, spec, plan.ref_osc, phases, n)
             sample = {
                 "timestamp": timestamps,
-                "x": z.real.copy(),
-                "y": z.imag.copy(),
-                "frequency": freqs[osc] * harmonic,
-                "phase": np.mod(phases[osc] * harmonic, 2 * np.pi),
+                "x": x,
+                "y": y,
+                "frequency": frequency,
+                "phase": phase,
                 "dio": np.zeros(n, dtype=np.uint32),
                 "trigger": np.zeros(n, dtype=np.uint32),
                 "auxin0": aux[0],
                 "auxin1": aux[1],
             }
-            if dropped:
+            if keep is not None:
                 sample = {k: v[keep] for k, v in sample.items()}
-            out[path] = sample
-            self._last_sample[path] = {k: v[-1:].copy() for k, v in sample.items()}
-        self._reflect(plan, blk, locked, sense, drive, aux, dropped)
+            out[spec.path] = sample
+            self._last_sample[spec.path] = sample  # getSample copies its last entries
+        self._reflect(plan, blk, locked, aux, dropped, layout.pid_settings)
         self.world.record_truth(
             TruthRecord(
                 time=timestamps.astype(float) / self.clockbase_hz,
@@ -529,17 +616,32 @@ class HF2DataServerTwin:
         )
         return out
 
+    def _demod_xy(
+        self, blk: GyroBlock, spec: _DemodSpec, ref_osc: int, phases: dict[int, np.ndarray], n: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """x, y of one demod: the physics' drive or sense signal (zero for another input or a harmonic != 1),
+        rotated by exp(-i(phi_osc + phaseshift - phi_ref)) if its oscillator is not the reference or it has a
+        phase shift."""
+        if spec.harmonic != 1 or spec.sigin not in (self.wiring.drive_sigin, self.wiring.sense_sigin):
+            return np.zeros(n), np.zeros(n)
+        drive = spec.sigin == self.wiring.drive_sigin
+        x = np.asarray(blk.x_drive if drive else blk.x_sense, dtype=float)
+        y = np.asarray(blk.y_drive if drive else blk.y_sense, dtype=float)
+        if spec.osc == ref_osc and spec.shift_rad == 0.0:
+            return x.copy(), y.copy()
+        z = (x + 1j * y) * np.exp(-1j * (phases[spec.osc] + spec.shift_rad - phases[ref_osc]))
+        return z.real.copy(), z.imag.copy()
+
     def _reflect(
         self,
         plan: LoopPlan,
         blk: GyroBlock,
         locked: np.ndarray,
-        sense: np.ndarray,
-        drive: np.ndarray,
         aux: list[np.ndarray],
         dropped: int,
+        pid_settings: dict[int, tuple[float, float]],
     ) -> None:
-        """Read-only nodes at the end of the block."""
+        """Read-only nodes at the end of the block; pid_settings: (setpoint, center) of each PID in use."""
         nd = self.nodes
         pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
         f_end = float(np.asarray(blk.frequency_hz)[-1])
@@ -551,16 +653,20 @@ class HF2DataServerTwin:
         nd.poke("status/flags/demodsampleloss", int(dropped > 0))
         nd.poke("status/time", self.world.now())
         ends = {
-            "agc": (abs(drive[-1]), float(np.asarray(blk.drive_output_v)[-1])),
-            "rate": (sense[-1].real, float(np.asarray(blk.rate_output_v)[-1])),
-            "quadrature": (sense[-1].imag, float(np.asarray(blk.quadrature_output_v)[-1])),
+            "agc": (
+                abs(complex(float(np.asarray(blk.x_drive)[-1]), float(np.asarray(blk.y_drive)[-1]))),
+                float(np.asarray(blk.drive_output_v)[-1]),
+            ),
+            "rate": (float(np.asarray(blk.x_sense)[-1]), float(np.asarray(blk.rate_output_v)[-1])),
+            "quadrature": (float(np.asarray(blk.y_sense)[-1]), float(np.asarray(blk.quadrature_output_v)[-1])),
         }
         for name, n in plan.pid_of.items():
             if n is None:
                 continue
             inp, out = ends[name]
-            nd.poke(f"pids/{n}/error", float(nd.peek(f"pids/{n}/setpoint")) - float(inp))
-            nd.poke(f"pids/{n}/shift", out - float(nd.peek(f"pids/{n}/center")))
+            setpoint, center = pid_settings[n]
+            nd.poke(f"pids/{n}/error", setpoint - float(inp))
+            nd.poke(f"pids/{n}/shift", out - center)
         nd.poke(f"auxouts/{self.wiring.rate_auxout}/value", ends["rate"][1])
         nd.poke(f"auxouts/{self.wiring.quadrature_auxout}/value", ends["quadrature"][1])
         for k in range(2):

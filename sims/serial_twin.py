@@ -54,6 +54,8 @@ class LineFramer:
         self._end = end
 
     def feed(self, data: bytes) -> list[bytes]:
+        if data and not self._buf and data.find(self._end) == len(data) - 1:  # the usual write: one whole line
+            return [bytes(data[:-1])]
         self._buf.extend(data)
         lines: list[bytes] = []
         while True:
@@ -69,7 +71,11 @@ class LineFramer:
 
 
 def _answer(twin: LineTwin, framer: LineFramer, data: bytes) -> bytes:
-    return b"".join(twin.respond(line) for line in framer.feed(data))
+    """The twin's replies to the complete lines `data` ends (with what the framer held before), in order."""
+    lines = framer.feed(data)
+    if len(lines) == 1:
+        return twin.respond(lines[0])
+    return b"".join([twin.respond(line) for line in lines])
 
 
 class InProcessSerial:
@@ -103,13 +109,15 @@ class InProcessSerial:
 
     # ---------------------------------------------------------------- writing
     def write(self, data: bytes) -> int:
-        self._check_open()
+        if not self._open:
+            raise serial.PortNotOpenError()
         data = bytes(data)
-        self._rx.extend(_answer(self.twin, self._framer, data))
+        self._rx += _answer(self.twin, self._framer, data)
         return len(data)
 
     def flush(self) -> None:
-        self._check_open()
+        if not self._open:
+            raise serial.PortNotOpenError()
 
     def reset_output_buffer(self) -> None:
         self._check_open()
@@ -117,15 +125,22 @@ class InProcessSerial:
     # ---------------------------------------------------------------- reading
     @property
     def in_waiting(self) -> int:
-        self._check_open()
+        if not self._open:
+            raise serial.PortNotOpenError()
         return len(self._rx)
 
     def reset_input_buffer(self) -> None:
-        self._check_open()
+        if not self._open:
+            raise serial.PortNotOpenError()
         self._rx.clear()
 
     def read(self, size: int = 1) -> bytes:
-        self._check_open()
+        if not self._open:
+            raise serial.PortNotOpenError()
+        if size >= len(self._rx):  # the usual read: everything there is
+            out = bytes(self._rx)
+            self._rx.clear()
+            return out
         out = bytes(self._rx[:size])
         del self._rx[:size]
         return out

@@ -44,9 +44,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
-DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
+from sims import world_kernel as wk
+
+DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = (
+    wk.DITHER_SINE,
+    wk.DITHER_SQUARE,
+    wk.DITHER_TRIANGLE,
+    wk.DITHER_RAMP,
+)
+
+
+_DEG = math.pi / 180.0  # rad per degree (numpy's deg2rad multiplies by this)
 
 
 @dataclass
@@ -122,15 +131,16 @@ class TruthRecord:
 
 
 def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
-    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion as a linear filter
-    (scipy.signal.lfilter with b = [0, 1 - a], a = [1, -a] and the initial state y0)."""
+    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion (for 0 < a, the compiled
+    loop sims.world_kernel.first_order_lag, scipy.signal.lfilter's b = [0, 1 - a], a = [1, -a] with the initial
+    state y0 step by step)."""
     n = u.shape[0]
+    y = np.empty(n)
     if a <= 0.0:
-        y = np.empty(n)
         y[0] = y0
         y[1:] = u[:-1]
         return y
-    y, _ = lfilter([0.0, 1.0 - a], [1.0, -a], np.asarray(u, dtype=np.float64), zi=[float(y0)])
+    wk.first_order_lag(np.ascontiguousarray(u, dtype=np.float64), float(y0), float(a), y)
     return y
 
 
@@ -152,6 +162,8 @@ class World:
         self._truth: deque[TruthRecord] = deque()
         self.forcer_gain = 1.0  # forcer-path gain set through the lock-in (CLSF correct mode)
         self._last_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last advance's dither phases
+        self._offsets_key: tuple[int, float] | None = None  # (n, dt) of the cached `_step_offsets`
+        self._offsets = (np.zeros(0), np.zeros(0), np.zeros(1))
         # called as fn(t_start_s, t_end_s) at the start of every advance, under the lock (fault injection)
         self.on_advance: list[Callable[[float, float], None]] = []
 
@@ -259,8 +271,13 @@ class World:
     def table_rate_dps(self) -> float:
         """Delivered table rate now, deg/s (scale error and ripple at the current angle)."""
         with self.lock:
-            ripple = self._ripple_factor(np.array([self.table.angle_deg]))[0]
-            return self.table.rate_dps * (1.0 + self.params.table_rate_scale_error_ppm * 1e-6) * ripple
+            p = self.params  # the ripple factor of _ripple_factor at one angle, in scalar arithmetic
+            ripple = 1.0
+            if p.table_rate_ripple_ppm != 0.0:
+                ripple += (
+                    p.table_rate_ripple_ppm * 1e-6 * math.sin((self.table.angle_deg + p.table_ripple_phase_deg) * _DEG)
+                )
+            return self.table.rate_dps * (1.0 + p.table_rate_scale_error_ppm * 1e-6) * ripple
 
     def _ripple_factor(self, angle_deg: np.ndarray) -> np.ndarray:
         """1 + r sin(theta + phi_r): the once-per-revolution rate ripple at table angles theta."""
@@ -362,20 +379,37 @@ class World:
 
     def _step_means(self, tb: np.ndarray) -> np.ndarray:
         """Exact means of the output over the steps [tb[k], tb[k+1]]; remembers the boundaries' phases for
-        `window_means_at_step_ends`."""
+        `window_means_at_step_ends` (the loop: sims.world_kernel.dither_grid)."""
         d = self.dither
         self._last_grid = None
         if d.amplitude_vpp == 0.0:
             return np.full(tb.shape[0] - 1, d.offset_v)
-        u = self._dither_phase(tb)
-        wint = self._wave_integral(u)
+        p = self.params
+        u, wint, means = np.empty(tb.shape[0]), np.empty(tb.shape[0]), np.empty(tb.shape[0] - 1)
+        per = p.ds345_timebase_wander_period_s
+        wk.dither_grid(
+            tb,
+            p.ds345_timebase_offset_ppm * 1e-6,
+            p.ds345_timebase_wander_ppm * 1e-6 * per / (2 * np.pi),
+            per,
+            float(self.ds345_time(d.origin_s)),
+            d.frequency_hz,
+            d.phase_deg / 360.0,
+            d.function,
+            d.offset_v,
+            0.5 * d.amplitude_vpp,
+            u,
+            wint,
+            means,
+        )
         self._last_grid = (tb, u, wint)
-        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - wint[:-1]) / (u[1:] - u[:-1])
+        return means
 
     def window_means_at_step_ends(self, window_s: float) -> np.ndarray:
         """For each step of the last advance, the exact mean of the output over [t_end - window_s, t_end] (an
         AuxIn reading), window_s <= the step. The phase at t_end - w is u(t_end) - w du/dt, du/dt taken over
-        the step (the timebase's wander changes it by 1e-12 within a step)."""
+        the step (the timebase's wander changes it by 1e-12 within a step; the loop:
+        sims.world_kernel.dither_window_means)."""
         grid = self._last_grid
         d = self.dither
         if grid is None:
@@ -383,10 +417,9 @@ class World:
         tb, u, wint = grid
         if window_s <= 0.0:
             return self._dither_wave(tb[1:])
-        rate = (u[1:] - u[:-1]) / (tb[1:] - tb[:-1])
-        du = rate * window_s
-        w0 = self._wave_integral(u[1:] - du)
-        return d.offset_v + 0.5 * d.amplitude_vpp * (wint[1:] - w0) / du
+        means = np.empty(tb.shape[0] - 1)
+        wk.dither_window_means(tb, u, wint, float(window_s), d.function, d.offset_v, 0.5 * d.amplitude_vpp, means)
+        return means
 
     def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
         c = self.chamber
@@ -396,6 +429,19 @@ class World:
         slope = c.ramp_c_per_min / 60.0
         return s0 + math.copysign(1.0, s1 - s0) * np.minimum(slope * tau, abs(s1 - s0))
 
+    def _step_offsets(self, n: int, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(k dt for k < n, k dt + dt/2 for k < n, k dt for k <= n): the step starts, mid-steps and boundaries of
+        a block of n steps from its start, s. Read-only arrays, kept while blocks keep their n and dt."""
+        if self._offsets_key != (n, dt):
+            k = np.arange(n + 1, dtype=np.float64)
+            bounds = k * dt
+            start = bounds[:n]
+            mid = start + 0.5 * dt
+            for a in (bounds, mid):
+                a.flags.writeable = False
+            self._offsets, self._offsets_key = (start, mid, bounds), (n, dt)
+        return self._offsets
+
     def advance(self, n: int, dt: float) -> BlockInputs:
         """Advance the clock by n steps of dt and return the inputs of each step."""
         if n <= 0:
@@ -403,18 +449,16 @@ class World:
         with self.lock:
             for fn in self.on_advance:
                 fn(self.t, self.t + n * dt)
-            k = np.arange(n, dtype=np.float64)
-            tau_start = k * dt
-            tau_mid = tau_start + 0.5 * dt
+            tau_start, tau_mid, tau_bounds = self._step_offsets(n, dt)
             t = self.t + tau_start
             # table
             prof_mid = self._table_profile(tau_mid)
             scale = 1.0 + self.params.table_rate_scale_error_ppm * 1e-6
-            rate = prof_mid * scale
-            if self.params.table_rate_ripple_ppm != 0.0:  # ripple at the ripple-free mid-step angle
-                mid = self.table.angle_deg + np.cumsum(rate) * dt - 0.5 * rate * dt
-                rate = rate * self._ripple_factor(mid)
-            angle = self.table.angle_deg + np.concatenate(([0.0], np.cumsum(rate[:-1]) * dt))
+            rate, angle = np.empty(n), np.empty(n)  # ripple at the ripple-free mid-step angle; step-start angles
+            ripple = self.params.table_rate_ripple_ppm * 1e-6
+            wk.table_block(
+                prof_mid, scale, dt, self.table.angle_deg, ripple, self.params.table_ripple_phase_deg, rate, angle
+            )
             # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
             c = self.chamber
             sp = self._chamber_setpoint(tau_start)
@@ -431,7 +475,7 @@ class World:
             c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
             c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
             c.controller_setpoint_c = sp_end
-            tb = self.t + dt * np.arange(n + 1, dtype=np.float64)  # step boundaries: one phase evaluation each
+            tb = self.t + tau_bounds  # step boundaries: one phase evaluation each
             dither = self._step_means(tb)
             self.t = self.t + end
             return BlockInputs(
