@@ -247,9 +247,13 @@ def _markdown(cfg: Config) -> str:
         for axis in (0.0, 20.0):
             df = split_for_nonlinearity_hz(cfg, target, axis_deg=axis)
             w = accuracy_tempco_window(cfg, df, axis, 1.5 * 350.0)
+            interval, width = "none: the minimum is above the bound", "0"
+            if not math.isnan(w.low_hz_per_c):
+                interval = f"[{w.low_hz_per_c:+.4f}, {w.high_hz_per_c:+.4f}]"
+                width = f"{w.width_hz_per_c / f0 * 1e6:.2f}"
             lines.append(
                 f"| {target:g} | {axis:g}° | {df:.3f} | {w.min_accuracy_ppm:.0f} at {w.tempco_at_min_hz_per_c:+.4f} "
-                f"| [{w.low_hz_per_c:+.4f}, {w.high_hz_per_c:+.4f}] | {w.width_hz_per_c / f0 * 1e6:.2f} |"
+                f"| {interval} | {width} |"
             )
     lines += ["", "### The split's start-up share: its sweep accuracy with nothing depending on temperature", ""]
     lines.append("| split (Hz), axis 0 | against pair 0 (the analysis) | against pair 3 (a lead-in) |")
