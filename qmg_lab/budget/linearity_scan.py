@@ -40,6 +40,7 @@ INTERLEAVED_DPS = (0.0, 1.0, -1.0, 2.0, -2.0, 3.0, -3.0, 4.0, -4.0, 5.0, -5.0)
 UP_DOWN_DPS = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 4.0, 3.0, 2.0, 1.0, 0.0)
 UP_AND_DOWN_DPS = (*UP_DOWN_DPS, *(-r for r in UP_DOWN_DPS[1:]))  # 0 up to +5, back, down to -5, back to 0
 PAPER_NONLINEARITY_PCT_FS = 0.5
+TABLE_RATE_ACCURACY_PPM = 100.0  # the 1291BR's rate accuracy, as the paper quotes it
 TEMPCO_SPAN_HZ_PER_C = 0.02  # the scan's split-tempco range: +-0.02 Hz/degC, 9 ppm/degC of the 2.2 kHz resonance
 
 
@@ -189,7 +190,7 @@ def other_source_requirements(cfg: Config, target_pct_fs: float) -> dict[str, di
       over +-auxout_range_v): RMS error LSB / sqrt(12), LSB = 2 range / 2^n; the value is the n giving target.
     """
     sim = cfg.sim
-    off = {"freq_mismatch_hz": 0.0, "table_rate_ripple_ppm": 0.0, "forcer_bias_v": 0.0}
+    off = DETERMINISTIC_OFF
     out: dict[str, dict[str, float]] = {}
     ripple = with_overrides(cfg, {**off, "table_rate_ripple_ppm": 1000.0})
     per_ppm = sweep_accuracy(ripple).nonlinearity_rms_pct_fs / 1000.0
@@ -206,8 +207,8 @@ def other_source_requirements(cfg: Config, target_pct_fs: float) -> dict[str, di
     fs = max(abs(r) for r in rates)
     rms_rate = math.sqrt(sum(r * r for r in rates) / len(rates))
     out["table_level_error_ppm"] = {
-        "value": 100.0,  # the 1291BR's rate accuracy specification
-        "alone_pct_fs": 100.0 * 1e-6 * rms_rate / fs * 100.0,
+        "value": TABLE_RATE_ACCURACY_PPM,
+        "alone_pct_fs": TABLE_RATE_ACCURACY_PPM * 1e-6 * rms_rate / fs * 100.0,
         "needed": target_pct_fs / 100.0 * fs / rms_rate * 1e6,
     }
     span_v = 2.0 * sim.auxout_range_v
