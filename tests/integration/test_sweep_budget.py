@@ -136,3 +136,20 @@ def test_default_twin_nonlinearity_is_the_budget_plus_its_noise(tmp_path: Path) 
     n = len(budget.linearity_rates_dps)
     cross = 3 * 2 * p * floor / (n - 2) ** 0.5
     assert abs(res**2 - p**2 - floor**2) <= cross + ((1 + REL_TOL) ** 2 - 1) * p**2
+
+
+def test_short_levels_give_the_predicted_lower_tail_nonlinearity(tmp_path: Path) -> None:
+    """Fig. 2-like levels (5 s each, 0.5 s settle: the paper's settling time) with a 0.3 Hz split on the sense axis:
+    the budget predicts about a fifth of the 60 s levels' nonlinearity (qmg_lab/budget/linearity_scan.py: first
+    order in dwell x z, z = 1/174 s), and the twin must give that prediction, not the 60 s figure."""
+    text = config_text({**QUIET, **DETERMINISTIC_OFF, "freq_mismatch_hz": 0.3, "stiffness_axis_deg": 0.0}, short=False)
+    for old, new in (("dwell_s = 60.0", "dwell_s = 5.0"), ("settle_s = 5.0", "settle_s = 0.5")):
+        assert old in text
+        text = text.replace(old, new)
+    budget = sweep_accuracy(parse_config(text))
+    long_levels = sweep_accuracy(
+        parse_config(config_text({"freq_mismatch_hz": 0.3, "stiffness_axis_deg": 0.0}, short=False))
+    )
+    assert budget.nonlinearity_rms_pct_fs < 0.5 * long_levels.nonlinearity_rms_pct_fs
+    res = run_linearity(tmp_path, text)
+    assert res["nonlinearity_rms_pct_fs"] == pytest.approx(budget.nonlinearity_rms_pct_fs, rel=REL_TOL, abs=PCT_FLOOR)
