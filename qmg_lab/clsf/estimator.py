@@ -67,6 +67,7 @@ from scipy import signal
 
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.dither_edges import EdgeTracker
+from qmg_lab.clsf.kernels import integrate_block, median_spacing, period_ratios, ramp_matrix, sosfilt_inplace
 
 
 @dataclass
@@ -176,23 +177,19 @@ class ClsfEstimator:
     def _sample_dt(self, t: np.ndarray) -> float:
         """The sample interval: the median spacing of (at most) the first 65 samples, s."""
         if len(t) >= 2:
-            return float(np.median(np.diff(t[:65])))
+            return float(median_spacing(t, 65))
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
-        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2)."""
+        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2; kernels.py)."""
         if self._last is None:
             t0, x0, a0, ix0, mr0 = float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0
         else:
             t0, x0, a0, ix0, mr0 = self._last
         tt = np.concatenate(([t0], t))
-        xx = np.concatenate(([x0], x))
-        aa = np.concatenate(([a0], aux))
-        h = np.diff(tt)
-        ix = ix0 + np.cumsum(0.5 * h * (xx[1:] + xx[:-1]))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            shift = np.where(h > 0, 0.5 * self.auxin_window_s / np.where(h > 0, h, 1.0), 0.0)
-        mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
+        y, ix, mr = integrate_block(
+            tt, np.concatenate(([x0], x)), np.concatenate(([a0], aux)), ix0, mr0, self.auxin_window_s, self.tau_s
+        )
         self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
         dt = self._sample_dt(tt)
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
@@ -204,11 +201,12 @@ class ClsfEstimator:
         if self._sos is not None:
             if self._zi is None:
                 self._zi = signal.sosfilt_zi(self._sos) * mr[0]
-            mf, self._zi = signal.sosfilt(self._sos, mr, zi=self._zi)
+            mf = mr.copy()
+            sosfilt_inplace(self._sos, mf, self._zi)
         else:
             mf = mr
         self._t = np.concatenate((self._t, t))
-        self._y = np.concatenate((self._y, x + ix / self.tau_s))
+        self._y = np.concatenate((self._y, y))
         self._mf = np.concatenate((self._mf, mf))
         self._mr = np.concatenate((self._mr, mr))
 
@@ -247,18 +245,7 @@ class ClsfEstimator:
             return ClsfPeriods.empty()
         r_prev, r0, r1, k0, k1, fa = r_prev[use], r0[use], r1[use], k0[use], k1[use], fa[use]
         edges = np.stack((r_prev, falling[fa], r0, falling[fa + 1], r1), axis=1)
-        lengths = k1 - k0
-        idx = np.concatenate([np.arange(a, b) for a, b in zip(k0, k1, strict=False)])
-        seg = np.repeat(np.arange(lengths.size), lengths)
-        starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
-        tk = t[idx]
-        md = self._filtered_triangles(tk, edges[seg], lo, hi)
-        r = _detrend_segments(tk, md, seg, starts, lengths)
-        m_f = self._mf[idx] + md
-        den = np.add.reduceat(m_f * r, starts)
-        num = np.add.reduceat(self._y[idx] * r, starts)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = np.where(den != 0.0, num / den, np.nan)
+        rho = self._ratios(edges, k0, k1, lo, hi)
         m_at = np.interp(np.stack((r0, r1)), self._t, self._mr)
         rate = (m_at[1] - m_at[0]) / (r1 - r0)
         t0, t1 = r0, r1
@@ -281,16 +268,19 @@ class ClsfEstimator:
             time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
         )
 
-    def _filtered_triangles(self, tk: np.ndarray, edges: np.ndarray, lo: float, hi: float) -> np.ndarray:
-        """H m_d at the instants tk, m_d = integral of the square wave whose alternating edges (rising first) for
-        each instant are the rows of `edges` (n x 5).
+    def _ratios(self, edges: np.ndarray, k0: np.ndarray, k1: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        """rho of each period, summed over the samples k0[p] <= k < k1[p] (kernels.period_ratios).
 
-        m_d is taken as lo (t - edges[0]) before the first edge (its history a whole period earlier has decayed out
-        of the filter); each edge adds a ramp of slope +-(hi - lo), whose filtered form is the ramp response."""
+        H m_d at those instants, m_d = integral of the square wave whose alternating edges (rising first) are the
+        period's row of `edges` (n x 5): m_d is taken as lo (t - edges[0]) before the first edge (its history a
+        whole period earlier has decayed out of the filter); each edge adds a ramp of slope +-(hi - lo), whose
+        filtered form is the ramp response."""
         filt = self.demod_filter
+        k0 = k0.astype(np.int64)
+        k1 = k1.astype(np.int64)
+        tk, ramps = ramp_matrix(self._t, k0, k1, edges, filt.order, filt.tc_s)
         signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
-        ramps = filt.ramp_response(tk[:, None] - edges)
-        return lo * (tk - edges[:, 0] - filt.delay_s) + ramps @ signs
+        return period_ratios(tk, ramps @ signs, edges[:, 0], k1 - k0, self._y, self._mf, k0, lo, filt.delay_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
@@ -312,23 +302,6 @@ class ClsfEstimator:
         for h0, h1 in self._holds:
             held |= (h0 <= t1) & (t0 <= h1)
         return held
-
-
-def _detrend_segments(
-    t: np.ndarray, v: np.ndarray, seg: np.ndarray, starts: np.ndarray, lengths: np.ndarray
-) -> np.ndarray:
-    """v minus its least-squares line a + b t within each segment: orthogonal to 1 and t on each segment."""
-
-    def mean(x: np.ndarray) -> np.ndarray:
-        return np.add.reduceat(x, starts) / lengths
-
-    tc = t - mean(t)[seg]
-    vc = v - mean(v)[seg]
-    stt = np.add.reduceat(tc * tc, starts)
-    stv = np.add.reduceat(tc * vc, starts)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b = np.where(stt > 0, stv / np.where(stt > 0, stt, 1.0), 0.0)
-    return vc - tc * b[seg]
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

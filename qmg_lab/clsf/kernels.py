@@ -1,0 +1,409 @@
+"""Compiled (numba) per-sample loops of the CLSF estimator, one pass over a block instead of many numpy calls.
+
+Each kernel computes exactly what the vectorised form named in its docstring computes, operation for operation and
+in the same order, so that the estimator's results do not depend on which form runs:
+
+* sums follow numpy's own orders: `np.cumsum` and the elementwise ufuncs are sequential; `np.sum` and `np.mean`
+  use numpy's pairwise summation (`pairwise_sum`); `np.add.reduceat` adds the pairwise sum of the rest of a
+  segment to its first element (`reduceat_sum`);
+* the ramp response's exponential is libm's exp, as numpy's float64 exp is on this hardware;
+* the demodulator filter's sections run scipy.signal.sosfilt's direct form II transposed recursion.
+
+Compiled with cache=True (the first import in a fresh environment compiles them once, about a second; later
+imports load them from __pycache__). Only the estimator and the edge tracker import this module.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partial sums
+
+
+@njit(cache=True)
+def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 128: sequential below 8 terms, else eight interleaved partial sums."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    m = n - n % 8
+    i = 8
+    while i < m:
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
+    of at most 128 terms (_block_sum), above that the sum of the two halves (the first a multiple of 8 long).
+
+    The halving is walked with an explicit stack: numba's cache cannot reload recursive functions."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    seg_lo = np.empty(64, dtype=np.int64)
+    seg_n = np.empty(64, dtype=np.int64)
+    seg_state = np.empty(64, dtype=np.int64)  # 0: split next, 1: left half done, 2: both halves done
+    vals = np.empty(64)
+    sp, vp = 1, 0
+    seg_lo[0], seg_n[0], seg_state[0] = lo, n, 0
+    while sp > 0:
+        top = sp - 1
+        m = seg_n[top]
+        if m <= PAIRWISE_BLOCK:
+            vals[vp] = _block_sum(a, seg_lo[top], m)
+            vp += 1
+            sp -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if seg_state[top] == 0:
+            seg_state[top] = 1
+            seg_lo[sp], seg_n[sp], seg_state[sp] = seg_lo[top], half, 0
+            sp += 1
+        elif seg_state[top] == 1:
+            seg_state[top] = 2
+            seg_lo[sp], seg_n[sp], seg_state[sp] = seg_lo[top] + half, m - half, 0
+            sp += 1
+        else:
+            vals[vp - 2] = vals[vp - 2] + vals[vp - 1]
+            vp -= 1
+            sp -= 1
+    return vals[0]
+
+
+@njit(cache=True)
+def reduceat_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
+    rest."""
+    return a[lo] + pairwise_sum(a, lo + 1, n - 1)
+
+
+@njit(cache=True)
+def median_spacing(t: np.ndarray, count: int) -> float:
+    """np.median(np.diff(t[:count])) for len(t) >= 2: the middle spacing, or the mean of the two middle ones."""
+    m = min(count, t.size) - 1
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = t[i + 1] - t[i]
+    d.sort()
+    if m % 2 == 1:
+        return d[m // 2]
+    return (d[m // 2 - 1] + d[m // 2]) / 2.0
+
+
+@njit(cache=True)
+def integrate_block(
+    tt: np.ndarray, xx: np.ndarray, aa: np.ndarray, ix0: float, mr0: float, window_s: float, tau_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(y, int x, m_r) of a block, tt/xx/aa with the previous block's last sample (or a copy of the first) first.
+
+    With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
+    is shifted by s_k = W / (2 h_k)):
+        int x_k = ix0 + sum_(i<=k) h_i (x_i + x_(i-1)) / 2
+        m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
+        y_k     = x_k + int x_k / tau."""
+    n = tt.size - 1
+    ix = np.empty(n)
+    mr = np.empty(n)
+    y = np.empty(n)
+    acc_x = 0.0
+    acc_m = 0.0
+    for k in range(n):
+        h = tt[k + 1] - tt[k]
+        acc_x += 0.5 * h * (xx[k + 1] + xx[k])
+        ix[k] = ix0 + acc_x
+        shift = 0.5 * window_s / h if h > 0 else 0.0
+        acc_m += h * (0.5 * (aa[k + 1] + aa[k]) + (aa[k + 1] - aa[k]) * shift)
+        mr[k] = mr0 + acc_m
+        y[k] = xx[k + 1] + ix[k] / tau_s
+    return y, ix, mr
+
+
+@njit(cache=True)
+def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
+    """scipy.signal.sosfilt(sos, x, zi=zi) in place on x and zi: per sample, each section s in turn
+    y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y;  u <- y."""
+    for k in range(x.size):
+        u = x[k]
+        for s in range(sos.shape[0]):
+            v = sos[s, 0] * u + zi[s, 0]
+            zi[s, 0] = sos[s, 1] * u - sos[s, 4] * v + zi[s, 1]
+            zi[s, 1] = sos[s, 2] * u - sos[s, 5] * v
+            u = v
+        x[k] = u
+
+
+@njit(cache=True)
+def ramp_matrix(
+    t: np.ndarray, k0: np.ndarray, k1: np.ndarray, edges: np.ndarray, order: int, tc_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(t_k, R) over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
+    the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
+    R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
+    beyond, 0 before; max(tau, 0) without a filter)."""
+    total = 0
+    for p in range(k0.size):
+        total += k1[p] - k0[p]
+    tk = np.empty(total)
+    r = np.empty((total, edges.shape[1]))
+    row = 0
+    delay = order * tc_s
+    for p in range(k0.size):
+        for k in range(k0[p], k1[p]):
+            tk[row] = t[k]
+            for j in range(edges.shape[1]):
+                tau = t[k] - edges[p, j]
+                if tc_s == 0.0:
+                    r[row, j] = max(tau, 0.0)
+                elif tau > 0.0:
+                    out = tau - delay
+                    if tau < 60.0 * tc_s:
+                        x = tau / tc_s
+                        acc = 0.0
+                        term = 1.0
+                        for i in range(order):
+                            acc += (order - i) * term
+                            term = term * x / (i + 1)
+                        out += tc_s * math.exp(-x) * acc
+                    r[row, j] = out
+                else:
+                    r[row, j] = 0.0
+            row += 1
+    return tk, r
+
+
+@njit(cache=True)
+def period_ratios(
+    tk: np.ndarray,
+    ramp_sum: np.ndarray,
+    first_edge: np.ndarray,
+    lengths: np.ndarray,
+    y: np.ndarray,
+    mf: np.ndarray,
+    k0: np.ndarray,
+    lo: float,
+    delay_s: float,
+) -> np.ndarray:
+    """rho = sum y r / sum (H m) r per period (the estimator's docstring), from the windows of ramp_matrix.
+
+    H m_d = lo (t - e_0 - n tc) + ramp_sum (the edges' ramps weighted +-(hi - lo)); r = H m_d minus its
+    least-squares line a + b t over the period's samples: with means over the window, t' = t - mean t,
+    v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'. H m = H m_r + H m_d.
+    NaN where sum (H m) r = 0."""
+    rho = np.empty(lengths.size)
+    start = 0
+    md = np.empty(tk.size)
+    tcn = np.empty(tk.size)
+    vcn = np.empty(tk.size)
+    prod = np.empty(tk.size)
+    for p in range(lengths.size):
+        n = lengths[p]
+        for i in range(start, start + n):
+            md[i] = lo * (tk[i] - first_edge[p] - delay_s) + ramp_sum[i]
+        mt = reduceat_sum(tk, start, n) / n
+        mv = reduceat_sum(md, start, n) / n
+        for i in range(start, start + n):
+            tcn[i] = tk[i] - mt
+            vcn[i] = md[i] - mv
+            prod[i] = tcn[i] * tcn[i]
+        stt = reduceat_sum(prod, start, n)
+        for i in range(start, start + n):
+            prod[i] = tcn[i] * vcn[i]
+        stv = reduceat_sum(prod, start, n)
+        b = stv / stt if stt > 0 else 0.0
+        for i in range(start, start + n):
+            r = vcn[i] - tcn[i] * b
+            vcn[i] = r
+            prod[i] = (mf[k0[p] + i - start] + md[i]) * r
+        den = reduceat_sum(prod, start, n)
+        for i in range(start, start + n):
+            prod[i] = y[k0[p] + i - start] * vcn[i]
+        num = reduceat_sum(prod, start, n)
+        rho[p] = num / den if den != 0.0 else np.nan
+        start += n
+    return rho
+
+
+@njit(cache=True)
+def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """(lo, hi) updated from a block's plateau readings: the means of the readings above mid + 0.45 span and
+    below mid - 0.45 span (mid, span of the current levels); a level with no such reading is kept."""
+    mid = 0.5 * (lo + hi)
+    span = hi - lo
+    above = mid + 0.45 * span
+    below = mid - 0.45 * span
+    high = np.empty(d.size)
+    low = np.empty(d.size)
+    nh = 0
+    nl = 0
+    for v in d:
+        if v > above:
+            high[nh] = v
+            nh += 1
+        if v < below:
+            low[nl] = v
+            nl += 1
+    new_hi = pairwise_sum(high, 0, nh) / nh if nh else hi
+    new_lo = pairwise_sum(low, 0, nl) / nl if nl else lo
+    return new_lo, new_hi
+
+
+@njit(cache=True)
+def level_crossings(
+    tt: np.ndarray, ss: np.ndarray, first_high: int, window_s: float, hysteresis: float, intermediate: float
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The edges in a record of fractions s_k = (d_k - lo) / (hi - lo) at times tt (dither_edges.py): (times,
+    kinds +1 rising / -1 falling, the side of the last sample).
+
+    A sample is high above 1 - hysteresis, low below hysteresis, else on the side of the last clear one; the first
+    sample's side is first_high (0 or 1), or its own (s > 1/2 if unclear) when first_high < 0. At each change of
+    side, k the first sample on the new side: the edge is at the middle of the gap t_e = (t_(k-1) + t_k - W) / 2,
+    unless a window holds it: t_e = t_(k-1) - W f_old if the window k-1 has a fraction f_old > intermediate on
+    the new level, and t_e = t_k - W f_new if window k has intermediate < f_new < 1 - intermediate (the latter
+    wins)."""
+    n = ss.size
+    te = np.empty(n)
+    kind = np.empty(n, dtype=np.int64)
+    m = 0
+    if n == 0:
+        return te[:0], kind[:0], False
+    if first_high >= 0:
+        high = first_high == 1
+    elif ss[0] > 1.0 - hysteresis:
+        high = True
+    elif ss[0] < hysteresis:
+        high = False
+    else:
+        high = ss[0] > 0.5
+    for k in range(1, n):
+        s = ss[k]
+        if s > 1.0 - hysteresis:
+            now = True
+        elif s < hysteresis:
+            now = False
+        else:
+            now = high
+        if now != high:
+            sp = ss[k - 1]
+            frac_new = s if now else 1.0 - s
+            frac_old = sp if now else 1.0 - sp
+            e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+            if window_s > 0.0:
+                if frac_old > intermediate:
+                    e = tt[k - 1] - window_s * frac_old
+                if frac_new > intermediate and frac_new < 1.0 - intermediate:
+                    e = tt[k] - window_s * frac_new
+            te[m] = e
+            kind[m] = 1 if now else -1
+            m += 1
+            high = now
+    return te[:m], kind[:m], high
+
+
+@njit(cache=True)
+def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The least-squares line t = a + b j through the pairs (hist_j, hist_t), at the indices j (EdgeTracker._line):
+    about the last pair (t0, j0), x = j - j0, y = t - t0, slope = sum (x - xm)(y - ym) / sum (x - xm)^2 (0 if the
+    latter is 0), t(j) = t0 + ym + slope (j - j0 - xm); the last time when fewer than two pairs."""
+    n = hist_t.size
+    out = np.empty(j.size)
+    if n < 2:
+        out[:] = hist_t[n - 1]
+        return out
+    t0 = hist_t[n - 1]
+    j0 = hist_j[n - 1]
+    x = hist_j - j0
+    y = hist_t - t0
+    xm = pairwise_sum(x, 0, n) / n
+    ym = pairwise_sum(y, 0, n) / n
+    dx = x - xm
+    sxx = pairwise_sum(dx * dx, 0, n)
+    slope = pairwise_sum(dx * (y - ym), 0, n) / sxx if sxx > 0 else 0.0
+    for i in range(j.size):
+        out[i] = t0 + ym + slope * (j[i] - j0 - xm)
+    return out
+
+
+@njit(cache=True)
+def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_edges: int) -> np.ndarray:
+    """For each point from start_new on, the least-squares line through it and the fit_edges - 1 points before
+    (fewer at the start), evaluated at its own index; the point itself where fewer than 4 points are fitted.
+
+    About the first point (t0, j0): x = j - j0, y = t - t0; with window sums n, Sx, Sy, Sxx, Sxy (differences of
+    running sums), slope = (n Sxy - Sx Sy) / (n Sxx - Sx^2) (0 if that is <= 0), intercept = (Sy - slope Sx) / n,
+    t = t0 + intercept + slope x."""
+    size = all_t.size
+    t0 = all_t[0]
+    j0 = all_j[0]
+    c = np.zeros((5, size + 1))
+    for i in range(size):
+        x = all_j[i] - j0
+        y = all_t[i] - t0
+        c[0, i + 1] = c[0, i] + 1.0
+        c[1, i + 1] = c[1, i] + x
+        c[2, i + 1] = c[2, i] + y
+        c[3, i + 1] = c[3, i] + x * x
+        c[4, i + 1] = c[4, i] + x * y
+    out = np.empty(size - start_new)
+    for i in range(start_new, size):
+        end = i + 1
+        start = max(0, end - fit_edges)
+        n = c[0, end] - c[0, start]
+        sx = c[1, end] - c[1, start]
+        sy = c[2, end] - c[2, start]
+        sxx = c[3, end] - c[3, start]
+        sxy = c[4, end] - c[4, start]
+        den = n * sxx - sx * sx
+        slope = (n * sxy - sx * sy) / den if den > 0 else 0.0
+        icpt = (sy - slope * sx) / n
+        out[i - start_new] = t0 + icpt + slope * (all_j[i] - j0) if n >= 4 else all_t[i]
+    return out
+
+
+@njit(cache=True)
+def continue_fit(
+    hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """New edges of one kind continuing a fit's history (the last fit_edges edges, times hist_t at cycle indices
+    hist_j): (they follow the line, their cycle indices, their smoothed times).
+
+    Each new edge's index advances by max(1, rint(gap / period)) cycles from the previous edge; when any lies more
+    than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed)
+    and nothing else is computed; otherwise each is replaced by rolling_line_fit's value."""
+    j = np.empty(te.size, dtype=np.int64)
+    last_t = hist_t[hist_t.size - 1]
+    last_j = np.int64(hist_j[hist_j.size - 1])
+    acc = np.int64(0)
+    for i in range(te.size):
+        step = max(1.0, np.rint((te[i] - last_t) / period))
+        acc += np.int64(step)
+        j[i] = last_j + acc
+        last_t = te[i]
+    jf = j.astype(np.float64)
+    pred = line_at(hist_t, hist_j, jf)
+    for i in range(te.size):
+        if abs(te[i] - pred[i]) > 0.25 * period:
+            return False, j, te
+    all_t = np.concatenate((hist_t, te))
+    all_j = np.concatenate((hist_j, jf))
+    return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
