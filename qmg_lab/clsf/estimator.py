@@ -67,7 +67,16 @@ from scipy import signal
 
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.clsf.kernels import integrate_block, median_spacing, period_ratios, ramp_matrix, sosfilt_inplace
+from qmg_lab.clsf.kernels import (
+    complete_periods,
+    integrate_block,
+    median_spacing,
+    period_ratios,
+    ramp_matrix,
+    sosfilt_inplace,
+)
+
+MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
 
 
 @dataclass
@@ -187,9 +196,7 @@ class ClsfEstimator:
         else:
             t0, x0, a0, ix0, mr0 = self._last
         tt = np.concatenate(([t0], t))
-        y, ix, mr = integrate_block(
-            tt, np.concatenate(([x0], x)), np.concatenate(([a0], aux)), ix0, mr0, self.auxin_window_s, self.tau_s
-        )
+        y, ix, mr = integrate_block(tt, x, aux, (x0, a0, ix0, mr0), self.auxin_window_s, self.tau_s)
         self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
         dt = self._sample_dt(tt)
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
@@ -222,32 +229,17 @@ class ClsfEstimator:
         if rising.size < 3 or t.size == 0 or lo is None or hi is None:
             self._trim(None)
             return ClsfPeriods.empty()
-        delay = self.demod_filter.delay_s
-        i_all = np.arange(1, rising.size - 1)
-        i_all = i_all[rising[i_all + 1] + delay <= t[-1]]  # windows complete in the buffer
-        if i_all.size == 0:
+        done, edges, k0, k1 = complete_periods(rising, falling, t, self.demod_filter.delay_s, MIN_PERIOD_SAMPLES)
+        if done < 0:  # no window complete in the buffer
             self._trim(None)
             return ClsfPeriods.empty()
-        done = int(i_all[-1])
-        r_prev, r0, r1 = rising[i_all - 1], rising[i_all], rising[i_all + 1]
-        fa = np.searchsorted(falling, r_prev, side="right")
-        two = (np.searchsorted(falling, r1) - fa == 2) & (r0 + delay >= t[0])
-        fa_c = np.minimum(fa, max(falling.size - 2, 0))
-        if falling.size >= 2:
-            two &= (falling[fa_c] < r0) & (falling[fa_c + 1] > r0)
-        else:
-            two[:] = False
-        k0 = np.searchsorted(t, r0 + delay)
-        k1 = np.searchsorted(t, r1 + delay)
-        use = two & (k1 - k0 >= 8)
-        if not use.any():
+        if edges.shape[0] == 0:
             self._trim(done)
             return ClsfPeriods.empty()
-        r_prev, r0, r1, k0, k1, fa = r_prev[use], r0[use], r1[use], k0[use], k1[use], fa[use]
-        edges = np.stack((r_prev, falling[fa], r0, falling[fa + 1], r1), axis=1)
         rho = self._ratios(edges, k0, k1, lo, hi)
-        m_at = np.interp(np.stack((r0, r1)), self._t, self._mr)
-        rate = (m_at[1] - m_at[0]) / (r1 - r0)
+        r0, r1 = edges[:, 2], edges[:, 4]
+        m_at = np.interp(np.concatenate((r0, r1)), self._t, self._mr)  # the integrated rate output at the edges
+        rate = (m_at[r0.size :] - m_at[: r0.size]) / (r1 - r0)
         t0, t1 = r0, r1
         self._trim(done)
         ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
@@ -276,11 +268,9 @@ class ClsfEstimator:
         whole period earlier has decayed out of the filter); each edge adds a ramp of slope +-(hi - lo), whose
         filtered form is the ramp response."""
         filt = self.demod_filter
-        k0 = k0.astype(np.int64)
-        k1 = k1.astype(np.int64)
         tk, ramps = ramp_matrix(self._t, k0, k1, edges, filt.order, filt.tc_s)
         signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
-        return period_ratios(tk, ramps @ signs, edges[:, 0], k1 - k0, self._y, self._mf, k0, lo, filt.delay_s)
+        return period_ratios(tk, ramps @ signs, edges[:, 0].copy(), k1 - k0, self._y, self._mf, k0, lo, filt.delay_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's

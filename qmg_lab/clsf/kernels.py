@@ -53,11 +53,49 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
 
 
 @njit(cache=True)
-def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
-    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
-    of at most 128 terms (_block_sum), above that the sum of the two halves (the first a multiple of 8 long).
+def _halves1(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 240: a block, or the sum of two blocks (the first half a multiple of 8)."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    h = n // 2
+    h -= h % 8
+    return _block_sum(a, lo, h) + _block_sum(a, lo + h, n - h)
 
-    The halving is walked with an explicit stack: numba's cache cannot reload recursive functions."""
+
+@njit(cache=True)
+def _halves2(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 464 (halves of at most 240)."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    h = n // 2
+    h -= h % 8
+    return _halves1(a, lo, h) + _halves1(a, lo + h, n - h)
+
+
+@njit(cache=True)
+def _halves3(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 912 (halves of at most 464)."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    h = n // 2
+    h -= h % 8
+    return _halves2(a, lo, h) + _halves2(a, lo + h, n - h)
+
+
+@njit(cache=True)
+def _halves4(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 1808 (halves of at most 912)."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    h = n // 2
+    h -= h % 8
+    return _halves3(a, lo, h) + _halves3(a, lo + h, n - h)
+
+
+@njit(cache=True)
+def _halves_stacked(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for any n, its halving walked with an explicit stack (numba's cache cannot reload
+    recursive functions)."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, n)
     seg_lo = np.empty(64, dtype=np.int64)
@@ -92,6 +130,16 @@ def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
 
 
 @njit(cache=True)
+def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
+    of at most 128 terms (_block_sum), above that the sum of the two halves (the first a multiple of 8 long).
+    Up to 1808 terms (a dither period at up to 7200 Sa/s) without allocating (_halves1.._halves4)."""
+    if n <= 1808:
+        return _halves4(a, lo, n)
+    return _halves_stacked(a, lo, n)
+
+
+@njit(cache=True)
 def reduceat_sum(a: np.ndarray, lo: int, n: int) -> float:
     """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
     rest."""
@@ -113,44 +161,55 @@ def median_spacing(t: np.ndarray, count: int) -> float:
 
 @njit(cache=True)
 def integrate_block(
-    tt: np.ndarray, xx: np.ndarray, aa: np.ndarray, ix0: float, mr0: float, window_s: float, tau_s: float
+    tt: np.ndarray,
+    x: np.ndarray,
+    aux: np.ndarray,
+    last: tuple[float, float, float, float],
+    window_s: float,
+    tau_s: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(y, int x, m_r) of a block, tt/xx/aa with the previous block's last sample (or a copy of the first) first.
+    """(y, int x, m_r) of a block: times tt (the previous block's last time, or a copy of the first, first), values
+    x and aux, last = (x, aux, int x, m_r) at tt[0].
 
     With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
     is shifted by s_k = W / (2 h_k)):
         int x_k = ix0 + sum_(i<=k) h_i (x_i + x_(i-1)) / 2
         m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
         y_k     = x_k + int x_k / tau."""
-    n = tt.size - 1
+    n = x.size
     ix = np.empty(n)
     mr = np.empty(n)
     y = np.empty(n)
+    x_prev, a_prev, ix0, mr0 = last
     acc_x = 0.0
     acc_m = 0.0
     for k in range(n):
         h = tt[k + 1] - tt[k]
-        acc_x += 0.5 * h * (xx[k + 1] + xx[k])
+        acc_x += 0.5 * h * (x[k] + x_prev)
         ix[k] = ix0 + acc_x
         shift = 0.5 * window_s / h if h > 0 else 0.0
-        acc_m += h * (0.5 * (aa[k + 1] + aa[k]) + (aa[k + 1] - aa[k]) * shift)
+        acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
         mr[k] = mr0 + acc_m
-        y[k] = xx[k + 1] + ix[k] / tau_s
+        y[k] = x[k] + ix[k] / tau_s
+        x_prev, a_prev = x[k], aux[k]
     return y, ix, mr
 
 
 @njit(cache=True)
 def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
-    """scipy.signal.sosfilt(sos, x, zi=zi) in place on x and zi: per sample, each section s in turn
-    y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y;  u <- y."""
-    for k in range(x.size):
-        u = x[k]
-        for s in range(sos.shape[0]):
-            v = sos[s, 0] * u + zi[s, 0]
-            zi[s, 0] = sos[s, 1] * u - sos[s, 4] * v + zi[s, 1]
-            zi[s, 1] = sos[s, 2] * u - sos[s, 5] * v
-            u = v
-        x[k] = u
+    """scipy.signal.sosfilt(sos, x, zi=zi) in place on x and zi: each section s in turn runs over the whole
+    block (the same operations as sample by sample through all sections, its state in registers):
+        y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y."""
+    for s in range(sos.shape[0]):
+        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+        z0, z1 = zi[s, 0], zi[s, 1]
+        for k in range(x.size):
+            u = x[k]
+            v = b0 * u + z0
+            z0 = b1 * u - a1 * v + z1
+            z1 = b2 * u - a2 * v
+            x[k] = v
+        zi[s, 0], zi[s, 1] = z0, z1
 
 
 @njit(cache=True)
@@ -160,35 +219,45 @@ def ramp_matrix(
     """(t_k, R) over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
     the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
     R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
-    beyond, 0 before; max(tau, 0) without a filter)."""
+    beyond, 0 before; max(tau, 0) without a filter).
+
+    t is sorted, so tau = t_k - e rises with k: each column is filled in its three ranges (0; the transient;
+    the steady ramp) found by scanning for tau > 0 and tau >= 60 tc."""
     total = 0
     for p in range(k0.size):
         total += k1[p] - k0[p]
     tk = np.empty(total)
     r = np.empty((total, edges.shape[1]))
-    row = 0
     delay = order * tc_s
+    transient_end = 60.0 * tc_s
+    row0 = 0
     for p in range(k0.size):
-        for k in range(k0[p], k1[p]):
-            tk[row] = t[k]
-            for j in range(edges.shape[1]):
-                tau = t[k] - edges[p, j]
-                if tc_s == 0.0:
-                    r[row, j] = max(tau, 0.0)
-                elif tau > 0.0:
-                    out = tau - delay
-                    if tau < 60.0 * tc_s:
-                        x = tau / tc_s
-                        acc = 0.0
-                        term = 1.0
-                        for i in range(order):
-                            acc += (order - i) * term
-                            term = term * x / (i + 1)
-                        out += tc_s * math.exp(-x) * acc
-                    r[row, j] = out
-                else:
-                    r[row, j] = 0.0
-            row += 1
+        a, b = k0[p], k1[p]
+        for k in range(a, b):
+            tk[row0 + k - a] = t[k]
+        for j in range(edges.shape[1]):
+            e = edges[p, j]
+            k = a
+            while k < b and not t[k] - e > 0.0:
+                r[row0 + k - a, j] = 0.0
+                k += 1
+            if tc_s == 0.0:
+                for kk in range(k, b):
+                    r[row0 + kk - a, j] = t[kk] - e
+                continue
+            while k < b and t[k] - e < transient_end:
+                tau = t[k] - e
+                x = tau / tc_s
+                acc = 0.0
+                term = 1.0
+                for i in range(order):
+                    acc += (order - i) * term
+                    term = term * x / (i + 1)
+                r[row0 + k - a, j] = tau - delay + tc_s * math.exp(-x) * acc
+                k += 1
+            for kk in range(k, b):
+                r[row0 + kk - a, j] = t[kk] - e - delay
+        row0 += b - a
     return tk, r
 
 
@@ -407,3 +476,54 @@ def continue_fit(
     all_t = np.concatenate((hist_t, te))
     all_j = np.concatenate((hist_j, jf))
     return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
+
+
+@njit(cache=True)
+def _first_at_or_after(a: np.ndarray, v: float, strictly: bool) -> int:
+    """np.searchsorted(a, v, side="right" if strictly else "left") on a sorted array."""
+    lo, hi = 0, a.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < v or (strictly and a[mid] == v):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def complete_periods(
+    rising: np.ndarray, falling: np.ndarray, t: np.ndarray, delay_s: float, min_samples: int
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """The periods [R_i, R_(i+1)) of the edge lists that can be evaluated on the sample times t: (the last i whose
+    window [R_i + D, R_(i+1) + D) ends within t, or -1; for the usable ones, the edges (R_(i-1), F_a, R_i, F_b,
+    R_(i+1)) and the window's sample range k0 <= k < k1).
+
+    Usable: exactly two falling edges F_a < R_i < F_b between R_(i-1) and R_(i+1), the window starting within t,
+    and at least min_samples samples in it."""
+    nr, nf = rising.size, falling.size
+    done = -1
+    edges = np.empty((max(nr - 2, 0), 5))
+    k0 = np.empty(max(nr - 2, 0), dtype=np.int64)
+    k1 = np.empty(max(nr - 2, 0), dtype=np.int64)
+    m = 0
+    for i in range(1, nr - 1):
+        r_prev, r0, r1 = rising[i - 1], rising[i], rising[i + 1]
+        if not r1 + delay_s <= t[t.size - 1]:
+            continue
+        done = i
+        fa = _first_at_or_after(falling, r_prev, True)
+        two = (_first_at_or_after(falling, r1, False) - fa == 2) and (r0 + delay_s >= t[0])
+        if nf >= 2:
+            fc = min(fa, max(nf - 2, 0))
+            two = two and (falling[fc] < r0) and (falling[fc + 1] > r0)
+        else:
+            two = False
+        a = _first_at_or_after(t, r0 + delay_s, False)
+        b = _first_at_or_after(t, r1 + delay_s, False)
+        if two and b - a >= min_samples:
+            edges[m, 0], edges[m, 1], edges[m, 2] = r_prev, falling[fa], r0
+            edges[m, 3], edges[m, 4] = falling[fa + 1], r1
+            k0[m], k1[m] = a, b
+            m += 1
+    return done, edges[:m], k0[:m], k1[:m]
