@@ -73,20 +73,15 @@ class EdgeTracker:
         self._update_levels(d)
         if self.lo is None or self.hi is None or self.hi - self.lo <= 0.0:
             return empty, empty
-        s = (d - self.lo) / (self.hi - self.lo)
-        first_high = -1
-        if self._prev_t is not None and self._prev_s is not None:
-            tt = np.concatenate(([self._prev_t], t))
-            ss = np.concatenate(([self._prev_s], s))
-            if self._prev_high is not None:
-                first_high = int(self._prev_high)
+        if self._prev_t is not None and self._prev_s is not None and self._prev_high is not None:
+            prev = (self._prev_t, self._prev_s, int(self._prev_high))
         else:
-            tt, ss = t, s
-        te, kind, last_high = level_crossings(tt, ss, first_high, self.window_s, HYSTERESIS, INTERMEDIATE)
-        self._prev_t, self._prev_s, self._prev_high = float(tt[-1]), float(ss[-1]), bool(last_high)
-        if te.size == 0:
-            return empty, empty
-        return self._smooth_all(1, te[kind == 1]), self._smooth_all(-1, te[kind == -1])
+            prev = (0.0, 0.0, -1)
+        rising, falling, last_s, last_high = level_crossings(
+            t, d, self.lo, self.hi, prev, self.window_s, HYSTERESIS, INTERMEDIATE
+        )
+        self._prev_t, self._prev_s, self._prev_high = float(t[-1]), float(last_s), bool(last_high)
+        return self._smooth_all(1, rising), self._smooth_all(-1, falling)
 
     def _smooth_all(self, kind: int, te: np.ndarray) -> np.ndarray:
         """Smoothed times of a block's new edges of one kind (a rolling least-squares line; kernels.continue_fit)."""

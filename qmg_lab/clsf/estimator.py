@@ -70,6 +70,7 @@ from qmg_lab.clsf.dither_edges import EdgeTracker
 from qmg_lab.clsf.kernels import (
     complete_periods,
     integrate_block,
+    mean_rates,
     median_spacing,
     period_ratios,
     ramp_matrix,
@@ -77,6 +78,7 @@ from qmg_lab.clsf.kernels import (
 )
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
+BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
 
 
 @dataclass
@@ -140,8 +142,7 @@ class ClsfEstimator:
 
     def reset_buffer(self) -> None:
         """Forget the stream's history (after a gap): integrals, filter state, edges and partial periods."""
-        e = np.empty(0)
-        self._t, self._y, self._mf, self._mr = e, e.copy(), e.copy(), e.copy()
+        self._buf = np.empty((4, 0))  # rows: t, y, H m_r, m_r (BUF_T, BUF_Y, BUF_MF, BUF_MR)
         self._last: tuple[float, float, float, float, float] | None = None  # t, x, aux, int x, m_r
         self._zi: np.ndarray | None = None
         self._rising: list[float] = []
@@ -196,8 +197,9 @@ class ClsfEstimator:
         else:
             t0, x0, a0, ix0, mr0 = self._last
         tt = np.concatenate(([t0], t))
-        y, ix, mr = integrate_block(tt, x, aux, (x0, a0, ix0, mr0), self.auxin_window_s, self.tau_s)
-        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
+        block, ix_end = integrate_block(tt, x, aux, x0, a0, ix0, mr0, self.auxin_window_s, self.tau_s)
+        mr = block[BUF_MR]
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), ix_end, float(mr[-1]))
         dt = self._sample_dt(tt)
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
@@ -208,14 +210,8 @@ class ClsfEstimator:
         if self._sos is not None:
             if self._zi is None:
                 self._zi = signal.sosfilt_zi(self._sos) * mr[0]
-            mf = mr.copy()
-            sosfilt_inplace(self._sos, mf, self._zi)
-        else:
-            mf = mr
-        self._t = np.concatenate((self._t, t))
-        self._y = np.concatenate((self._y, y))
-        self._mf = np.concatenate((self._mf, mf))
-        self._mr = np.concatenate((self._mr, mr))
+            sosfilt_inplace(self._sos, block[BUF_MF], self._zi)
+        self._buf = np.concatenate((self._buf, block), axis=1)
 
     def _periods(self) -> ClsfPeriods:
         """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too.
@@ -224,7 +220,7 @@ class ClsfEstimator:
         triangle is symmetric, so an error in the edges' timing enters the estimate at second order only."""
         rising = np.asarray(self._rising)
         falling = np.asarray(self._falling)
-        t = self._t
+        t = self._buf[BUF_T]
         lo, hi = self._edges.lo, self._edges.hi
         if rising.size < 3 or t.size == 0 or lo is None or hi is None:
             self._trim(None)
@@ -238,8 +234,7 @@ class ClsfEstimator:
             return ClsfPeriods.empty()
         rho = self._ratios(edges, k0, k1, lo, hi)
         r0, r1 = edges[:, 2], edges[:, 4]
-        m_at = np.interp(np.concatenate((r0, r1)), self._t, self._mr)  # the integrated rate output at the edges
-        rate = (m_at[r0.size :] - m_at[: r0.size]) / (r1 - r0)
+        rate = mean_rates(edges, t, self._buf[BUF_MR])
         t0, t1 = r0, r1
         self._trim(done)
         ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
@@ -268,9 +263,10 @@ class ClsfEstimator:
         whole period earlier has decayed out of the filter); each edge adds a ramp of slope +-(hi - lo), whose
         filtered form is the ramp response."""
         filt = self.demod_filter
-        tk, ramps = ramp_matrix(self._t, k0, k1, edges, filt.order, filt.tc_s)
+        t, y, mf, _ = self._buf
+        tk, ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
         signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
-        return period_ratios(tk, ramps @ signs, edges[:, 0].copy(), k1 - k0, self._y, self._mf, k0, lo, filt.delay_s)
+        return period_ratios(tk, ramps @ signs, edges[:, 0].copy(), k1 - k0, y, mf, k0, lo, filt.delay_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
@@ -280,12 +276,12 @@ class ClsfEstimator:
             self._rising = rising
             self._falling = [f for f in self._falling if f > rising[0]]
             start = rising[1] + self.demod_filter.delay_s if len(rising) > 1 else rising[0]
-            k = max(0, int(np.searchsorted(self._t, start)) - 2)
-        elif len(self._rising) == 0 and self._t.size > 100000:
-            k = self._t.size - 100000
+            k = max(0, int(np.searchsorted(self._buf[BUF_T], start)) - 2)
+        elif len(self._rising) == 0 and self._buf.shape[1] > 100000:
+            k = self._buf.shape[1] - 100000
         else:
             return
-        self._t, self._y, self._mf, self._mr = self._t[k:], self._y[k:], self._mf[k:], self._mr[k:]
+        self._buf = self._buf[:, k:]
 
     def _held_mask(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
         held = np.zeros(t0.shape, dtype=bool)

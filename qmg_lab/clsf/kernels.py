@@ -164,12 +164,16 @@ def integrate_block(
     tt: np.ndarray,
     x: np.ndarray,
     aux: np.ndarray,
-    last: tuple[float, float, float, float],
+    x_prev: float,
+    a_prev: float,
+    ix0: float,
+    mr0: float,
     window_s: float,
     tau_s: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(y, int x, m_r) of a block: times tt (the previous block's last time, or a copy of the first, first), values
-    x and aux, last = (x, aux, int x, m_r) at tt[0].
+) -> tuple[np.ndarray, float]:
+    """The estimator's buffer rows for a block, (t, y, m_r, m_r) (the third to be filtered in place into H m_r),
+    and int x at its end. tt: the block's times after the previous block's last time (or a copy of the first);
+    x, aux: its values; x_prev, a_prev, ix0, mr0: x, aux, int x and m_r at tt[0].
 
     With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
     is shifted by s_k = W / (2 h_k)):
@@ -177,22 +181,22 @@ def integrate_block(
         m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
         y_k     = x_k + int x_k / tau."""
     n = x.size
-    ix = np.empty(n)
-    mr = np.empty(n)
-    y = np.empty(n)
-    x_prev, a_prev, ix0, mr0 = last
+    out = np.empty((4, n))
     acc_x = 0.0
     acc_m = 0.0
+    ix = ix0
     for k in range(n):
         h = tt[k + 1] - tt[k]
         acc_x += 0.5 * h * (x[k] + x_prev)
-        ix[k] = ix0 + acc_x
+        ix = ix0 + acc_x
         shift = 0.5 * window_s / h if h > 0 else 0.0
         acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
-        mr[k] = mr0 + acc_m
-        y[k] = x[k] + ix[k] / tau_s
+        out[0, k] = tt[k + 1]
+        out[1, k] = x[k] + ix / tau_s
+        out[2, k] = mr0 + acc_m
+        out[3, k] = out[2, k]
         x_prev, a_prev = x[k], aux[k]
-    return y, ix, mr
+    return out, ix
 
 
 @njit(cache=True)
@@ -221,43 +225,48 @@ def ramp_matrix(
     R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
     beyond, 0 before; max(tau, 0) without a filter).
 
-    t is sorted, so tau = t_k - e rises with k: each column is filled in its three ranges (0; the transient;
-    the steady ramp) found by scanning for tau > 0 and tau >= 60 tc."""
+    t is sorted, so tau = t_k - e rises with k: per period and edge, the first samples with tau > 0 and with
+    tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the exponential."""
     total = 0
     for p in range(k0.size):
         total += k1[p] - k0[p]
+    ne = edges.shape[1]
     tk = np.empty(total)
-    r = np.empty((total, edges.shape[1]))
+    r = np.empty((total, ne))
     delay = order * tc_s
     transient_end = 60.0 * tc_s
-    row0 = 0
+    start = np.empty(ne, dtype=np.int64)  # first k with tau > 0
+    steady = np.empty(ne, dtype=np.int64)  # first k with tau >= 60 tc (with tau > 0)
+    row = 0
     for p in range(k0.size):
         a, b = k0[p], k1[p]
-        for k in range(a, b):
-            tk[row0 + k - a] = t[k]
-        for j in range(edges.shape[1]):
+        for j in range(ne):
             e = edges[p, j]
             k = a
             while k < b and not t[k] - e > 0.0:
-                r[row0 + k - a, j] = 0.0
                 k += 1
-            if tc_s == 0.0:
-                for kk in range(k, b):
-                    r[row0 + kk - a, j] = t[kk] - e
-                continue
-            while k < b and t[k] - e < transient_end:
-                tau = t[k] - e
-                x = tau / tc_s
-                acc = 0.0
-                term = 1.0
-                for i in range(order):
-                    acc += (order - i) * term
-                    term = term * x / (i + 1)
-                r[row0 + k - a, j] = tau - delay + tc_s * math.exp(-x) * acc
-                k += 1
-            for kk in range(k, b):
-                r[row0 + kk - a, j] = t[kk] - e - delay
-        row0 += b - a
+            start[j] = k
+            if tc_s > 0.0:
+                while k < b and t[k] - e < transient_end:
+                    k += 1
+            steady[j] = k
+        for k in range(a, b):
+            tk[row] = t[k]
+            for j in range(ne):
+                tau = t[k] - edges[p, j]
+                if k < start[j]:
+                    r[row, j] = 0.0
+                elif k >= steady[j]:
+                    r[row, j] = tau - delay
+                else:
+                    x = tau / tc_s
+                    acc = 0.0
+                    term = 1.0
+                    for i in range(order):
+                        acc += (order - i) * term
+                        term = term * x / (i + 1)
+                    r[row, j] = tau - delay + tc_s * math.exp(-x) * acc
+            row += 1
     return tk, r
 
 
@@ -284,7 +293,8 @@ def period_ratios(
     md = np.empty(tk.size)
     tcn = np.empty(tk.size)
     vcn = np.empty(tk.size)
-    prod = np.empty(tk.size)
+    p1 = np.empty(tk.size)
+    p2 = np.empty(tk.size)
     for p in range(lengths.size):
         n = lengths[p]
         for i in range(start, start + n):
@@ -294,20 +304,18 @@ def period_ratios(
         for i in range(start, start + n):
             tcn[i] = tk[i] - mt
             vcn[i] = md[i] - mv
-            prod[i] = tcn[i] * tcn[i]
-        stt = reduceat_sum(prod, start, n)
-        for i in range(start, start + n):
-            prod[i] = tcn[i] * vcn[i]
-        stv = reduceat_sum(prod, start, n)
+            p1[i] = tcn[i] * tcn[i]
+            p2[i] = tcn[i] * vcn[i]
+        stt = reduceat_sum(p1, start, n)
+        stv = reduceat_sum(p2, start, n)
         b = stv / stt if stt > 0 else 0.0
         for i in range(start, start + n):
             r = vcn[i] - tcn[i] * b
-            vcn[i] = r
-            prod[i] = (mf[k0[p] + i - start] + md[i]) * r
-        den = reduceat_sum(prod, start, n)
-        for i in range(start, start + n):
-            prod[i] = y[k0[p] + i - start] * vcn[i]
-        num = reduceat_sum(prod, start, n)
+            k = k0[p] + i - start
+            p1[i] = (mf[k] + md[i]) * r
+            p2[i] = y[k] * r
+        den = reduceat_sum(p1, start, n)
+        num = reduceat_sum(p2, start, n)
         rho[p] = num / den if den != 0.0 else np.nan
         start += n
     return rho
@@ -339,25 +347,42 @@ def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
 
 @njit(cache=True)
 def level_crossings(
-    tt: np.ndarray, ss: np.ndarray, first_high: int, window_s: float, hysteresis: float, intermediate: float
-) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The edges in a record of fractions s_k = (d_k - lo) / (hi - lo) at times tt (dither_edges.py): (times,
-    kinds +1 rising / -1 falling, the side of the last sample).
+    t: np.ndarray,
+    d: np.ndarray,
+    lo: float,
+    hi: float,
+    prev: tuple[float, float, int],
+    window_s: float,
+    hysteresis: float,
+    intermediate: float,
+) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The edges in a block of dither readings d at times t (dither_edges.py): (rising times, falling times, the
+    last reading's fraction s, its side). prev = (time, s, side 0/1) of the previous block's last reading, side -1
+    when there is none (then its time and s are not used).
 
-    A sample is high above 1 - hysteresis, low below hysteresis, else on the side of the last clear one; the first
-    sample's side is first_high (0 or 1), or its own (s > 1/2 if unclear) when first_high < 0. At each change of
-    side, k the first sample on the new side: the edge is at the middle of the gap t_e = (t_(k-1) + t_k - W) / 2,
-    unless a window holds it: t_e = t_(k-1) - W f_old if the window k-1 has a fraction f_old > intermediate on
-    the new level, and t_e = t_k - W f_new if window k has intermediate < f_new < 1 - intermediate (the latter
-    wins)."""
-    n = ss.size
-    te = np.empty(n)
-    kind = np.empty(n, dtype=np.int64)
-    m = 0
-    if n == 0:
-        return te[:0], kind[:0], False
-    if first_high >= 0:
-        high = first_high == 1
+    With s_k = (d_k - lo) / (hi - lo): a reading is high above 1 - hysteresis, low below hysteresis, else on the
+    side of the last clear one; the first reading's side is the previous block's, or its own (s > 1/2 if unclear).
+    At each change of side, k the first reading on the new side: the edge is at the middle of the gap
+    t_e = (t_(k-1) + t_k - W) / 2, unless a window holds it: t_e = t_(k-1) - W f_old if window k-1 has a fraction
+    f_old > intermediate on the new level, and t_e = t_k - W f_new if window k has intermediate < f_new <
+    1 - intermediate (the latter wins)."""
+    prev_t, prev_s, prev_side = prev
+    span = hi - lo
+    off = 1 if prev_side >= 0 else 0
+    n = d.size + off
+    tt = np.empty(n)
+    ss = np.empty(n)
+    if off:
+        tt[0], ss[0] = prev_t, prev_s
+    for k in range(d.size):
+        tt[k + off] = t[k]
+        ss[k + off] = (d[k] - lo) / span
+    rising = np.empty(n)
+    falling = np.empty(n)
+    nr = 0
+    nf = 0
+    if prev_side >= 0:
+        high = prev_side == 1
     elif ss[0] > 1.0 - hysteresis:
         high = True
     elif ss[0] < hysteresis:
@@ -382,11 +407,14 @@ def level_crossings(
                     e = tt[k - 1] - window_s * frac_old
                 if frac_new > intermediate and frac_new < 1.0 - intermediate:
                     e = tt[k] - window_s * frac_new
-            te[m] = e
-            kind[m] = 1 if now else -1
-            m += 1
+            if now:
+                rising[nr] = e
+                nr += 1
+            else:
+                falling[nf] = e
+                nf += 1
             high = now
-    return te[:m], kind[:m], high
+    return rising[:nr], falling[:nf], ss[n - 1], high
 
 
 @njit(cache=True)
@@ -527,3 +555,35 @@ def complete_periods(
             k0[m], k1[m] = a, b
             m += 1
     return done, edges[:m], k0[:m], k1[:m]
+
+
+@njit(cache=True)
+def interp_sorted(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
+    """np.interp(x, xp, fp) for strictly increasing xp: fp[0] / fp[-1] outside, fp[j] at a node, else
+    slope (x - xp[j]) + fp[j] with slope = (fp[j+1] - fp[j]) / (xp[j+1] - xp[j]) (numpy's own formula)."""
+    n = xp.size
+    if x > xp[n - 1]:
+        return fp[n - 1]
+    if x < xp[0]:
+        return fp[0]
+    j = _first_at_or_after(xp, x, True) - 1  # xp[j] <= x < xp[j+1]
+    if j >= n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    res = slope * (x - xp[j]) + fp[j]
+    if np.isnan(res):
+        res = slope * (x - xp[j + 1]) + fp[j + 1]
+        if np.isnan(res) and fp[j] == fp[j + 1]:
+            res = fp[j]
+    return res
+
+
+@njit(cache=True)
+def mean_rates(edges: np.ndarray, t: np.ndarray, mr: np.ndarray) -> np.ndarray:
+    """The rate output averaged over each period [R_i, R_(i+1)] (columns 2 and 4 of edges): the integral m_r
+    interpolated linearly at both ends, (m_r(R_(i+1)) - m_r(R_i)) / (R_(i+1) - R_i)."""
+    out = np.empty(edges.shape[0])
+    for p in range(edges.shape[0]):
+        r0, r1 = edges[p, 2], edges[p, 4]
+        out[p] = (interp_sorted(r1, t, mr) - interp_sorted(r0, t, mr)) / (r1 - r0)
+    return out
