@@ -78,6 +78,7 @@ from qmg_lab.clsf.kernels import (
 )
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
+EDGE_SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])  # the ramps' signs at R_(i-1), F_a, R_i, F_b, R_(i+1)
 BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
 
 
@@ -264,9 +265,9 @@ class ClsfEstimator:
         filtered form is the ramp response."""
         filt = self.demod_filter
         t, y, mf, _ = self._buf
-        tk, ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
-        signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
-        return period_ratios(tk, ramps @ signs, edges[:, 0].copy(), k1 - k0, y, mf, k0, lo, filt.delay_s)
+        ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
+        ramp_sum = ramps @ (EDGE_SIGNS * (hi - lo))  # a BLAS product, as in 38cd4c6: the same rounding
+        return period_ratios(t, y, mf, ramp_sum, edges, k0, k1, lo, filt.delay_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's

@@ -219,8 +219,8 @@ def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
 @njit(cache=True)
 def ramp_matrix(
     t: np.ndarray, k0: np.ndarray, k1: np.ndarray, edges: np.ndarray, order: int, tc_s: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(t_k, R) over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
+) -> np.ndarray:
+    """R over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
     the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
     R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
     beyond, 0 before; max(tau, 0) without a filter).
@@ -231,7 +231,6 @@ def ramp_matrix(
     for p in range(k0.size):
         total += k1[p] - k0[p]
     ne = edges.shape[1]
-    tk = np.empty(total)
     r = np.empty((total, ne))
     delay = order * tc_s
     transient_end = 60.0 * tc_s
@@ -251,7 +250,6 @@ def ramp_matrix(
                     k += 1
             steady[j] = k
         for k in range(a, b):
-            tk[row] = t[k]
             for j in range(ne):
                 tau = t[k] - edges[p, j]
                 if k < start[j]:
@@ -267,53 +265,55 @@ def ramp_matrix(
                         term = term * x / (i + 1)
                     r[row, j] = tau - delay + tc_s * math.exp(-x) * acc
             row += 1
-    return tk, r
+    return r
 
 
 @njit(cache=True)
 def period_ratios(
-    tk: np.ndarray,
-    ramp_sum: np.ndarray,
-    first_edge: np.ndarray,
-    lengths: np.ndarray,
+    t: np.ndarray,
     y: np.ndarray,
     mf: np.ndarray,
+    ramp_sum: np.ndarray,
+    edges: np.ndarray,
     k0: np.ndarray,
+    k1: np.ndarray,
     lo: float,
     delay_s: float,
 ) -> np.ndarray:
-    """rho = sum y r / sum (H m) r per period (the estimator's docstring), from the windows of ramp_matrix.
+    """rho = sum y r / sum (H m) r per period (the estimator's docstring) over its window k0[p] <= k < k1[p] of
+    the buffer (t, y, H m_r); ramp_sum: the windows' rows of ramp_matrix weighted by the edges' signs +-(hi - lo).
 
-    H m_d = lo (t - e_0 - n tc) + ramp_sum (the edges' ramps weighted +-(hi - lo)); r = H m_d minus its
-    least-squares line a + b t over the period's samples: with means over the window, t' = t - mean t,
-    v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'. H m = H m_r + H m_d.
-    NaN where sum (H m) r = 0."""
-    rho = np.empty(lengths.size)
+    H m_d = lo (t - e_0 - n tc) + ramp_sum; r = H m_d minus its least-squares line a + b t over the window: with
+    means over it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0),
+    r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
+    total = ramp_sum.size
+    rho = np.empty(k0.size)
+    md = np.empty(total)
+    tcn = np.empty(total)
+    vcn = np.empty(total)
+    p1 = np.empty(total)
+    p2 = np.empty(total)
     start = 0
-    md = np.empty(tk.size)
-    tcn = np.empty(tk.size)
-    vcn = np.empty(tk.size)
-    p1 = np.empty(tk.size)
-    p2 = np.empty(tk.size)
-    for p in range(lengths.size):
-        n = lengths[p]
-        for i in range(start, start + n):
-            md[i] = lo * (tk[i] - first_edge[p] - delay_s) + ramp_sum[i]
-        mt = reduceat_sum(tk, start, n) / n
+    for p in range(k0.size):
+        a = k0[p]
+        n = k1[p] - a
+        e0 = edges[p, 0]
+        for i in range(n):
+            md[start + i] = lo * (t[a + i] - e0 - delay_s) + ramp_sum[start + i]
+        mt = reduceat_sum(t, a, n) / n
         mv = reduceat_sum(md, start, n) / n
-        for i in range(start, start + n):
-            tcn[i] = tk[i] - mt
-            vcn[i] = md[i] - mv
-            p1[i] = tcn[i] * tcn[i]
-            p2[i] = tcn[i] * vcn[i]
+        for i in range(n):
+            tcn[start + i] = t[a + i] - mt
+            vcn[start + i] = md[start + i] - mv
+            p1[start + i] = tcn[start + i] * tcn[start + i]
+            p2[start + i] = tcn[start + i] * vcn[start + i]
         stt = reduceat_sum(p1, start, n)
         stv = reduceat_sum(p2, start, n)
         b = stv / stt if stt > 0 else 0.0
-        for i in range(start, start + n):
-            r = vcn[i] - tcn[i] * b
-            k = k0[p] + i - start
-            p1[i] = (mf[k] + md[i]) * r
-            p2[i] = y[k] * r
+        for i in range(n):
+            r = vcn[start + i] - tcn[start + i] * b
+            p1[start + i] = (mf[a + i] + md[start + i]) * r
+            p2[start + i] = y[a + i] * r
         den = reduceat_sum(p1, start, n)
         num = reduceat_sum(p2, start, n)
         rho[p] = num / den if den != 0.0 else np.nan
