@@ -38,12 +38,13 @@ from typing import Any
 import numpy as np
 import tomlkit
 
+from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import ClsfEstimator, ClsfPeriods
 from qmg_lab.config.schema import config_fingerprint, parse_config
 from qmg_lab.station import build_station, make_world
-from qmg_lab.storage.writer import RunWriter
+from qmg_lab.storage.summary import create_run_writer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -96,20 +97,21 @@ class RecordingEstimator:
 def record(text: str) -> tuple[list[Call], dict[str, Any], float]:
     """Run the campaign of `text` on the twins: the estimator's calls, its constructor arguments, the rate."""
     cfg = parse_config(text)
+    plan = checked_plan(cfg)
     station = build_station(cfg, make_world(cfg))
     with tempfile.TemporaryDirectory(prefix="qmg-clsf-bench-") as tmp:
-        writer = RunWriter.create(
+        writer = create_run_writer(  # as a study task writes its run file (qmg_lab.study.task)
             Path(tmp) / "run.h5",
+            cfg,
+            plan.steps,
             config_text=text,
             config_sha256=config_fingerprint(text),
             mode="sim",
             software_version="bench",
             t0_unix=0.0,
-            flush_interval_s=cfg.storage.flush_interval_s,
-            compression="none",
-            truth=True,
+            instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
         )
-        runner = CampaignRunner(cfg, station, writer)
+        runner = CampaignRunner(cfg, station, writer, plan=plan)
         est = runner.clsf
         kwargs = {
             "tau_s": est.tau_s,

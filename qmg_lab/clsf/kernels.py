@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partial sums
+PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
 
 
 @njit(cache=True)
@@ -52,98 +53,52 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     return res
 
 
-@njit(cache=True)
-def _halves1(a: np.ndarray, lo: int, n: int) -> float:
-    """numpy's pairwise_sum for n <= 240: a block, or the sum of two blocks (the first half a multiple of 8)."""
-    if n <= PAIRWISE_BLOCK:
-        return _block_sum(a, lo, n)
-    h = n // 2
-    h -= h % 8
-    return _block_sum(a, lo, h) + _block_sum(a, lo + h, n - h)
+def pairwise_workspace() -> np.ndarray:
+    """Scratch space for pairwise_sum's halving stack (allocated once per kernel call, not per sum)."""
+    return np.empty((PAIRWISE_DEPTH, 4))
 
 
 @njit(cache=True)
-def _halves2(a: np.ndarray, lo: int, n: int) -> float:
-    """numpy's pairwise_sum for n <= 464 (halves of at most 240)."""
+def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
+    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
+    of at most 128 terms (_block_sum), above that the sum of the two halves, the first a multiple of 8 long.
+
+    The halving is walked with an explicit stack in `work` (pairwise_workspace(); rows: start, length, state,
+    value), as numba's cache cannot reload recursive functions."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, n)
-    h = n // 2
-    h -= h % 8
-    return _halves1(a, lo, h) + _halves1(a, lo + h, n - h)
-
-
-@njit(cache=True)
-def _halves3(a: np.ndarray, lo: int, n: int) -> float:
-    """numpy's pairwise_sum for n <= 912 (halves of at most 464)."""
-    if n <= PAIRWISE_BLOCK:
-        return _block_sum(a, lo, n)
-    h = n // 2
-    h -= h % 8
-    return _halves2(a, lo, h) + _halves2(a, lo + h, n - h)
-
-
-@njit(cache=True)
-def _halves4(a: np.ndarray, lo: int, n: int) -> float:
-    """numpy's pairwise_sum for n <= 1808 (halves of at most 912)."""
-    if n <= PAIRWISE_BLOCK:
-        return _block_sum(a, lo, n)
-    h = n // 2
-    h -= h % 8
-    return _halves3(a, lo, h) + _halves3(a, lo + h, n - h)
-
-
-@njit(cache=True)
-def _halves_stacked(a: np.ndarray, lo: int, n: int) -> float:
-    """numpy's pairwise_sum for any n, its halving walked with an explicit stack (numba's cache cannot reload
-    recursive functions)."""
-    if n <= PAIRWISE_BLOCK:
-        return _block_sum(a, lo, n)
-    seg_lo = np.empty(64, dtype=np.int64)
-    seg_n = np.empty(64, dtype=np.int64)
-    seg_state = np.empty(64, dtype=np.int64)  # 0: split next, 1: left half done, 2: both halves done
-    vals = np.empty(64)
-    sp, vp = 1, 0
-    seg_lo[0], seg_n[0], seg_state[0] = lo, n, 0
+    sp, vp = 1, 0  # stack depth, values waiting
+    work[0, 0], work[0, 1], work[0, 2] = lo, n, 0.0  # state 0: split next, 1: left half done, 2: both done
     while sp > 0:
         top = sp - 1
-        m = seg_n[top]
+        m = int(work[top, 1])
         if m <= PAIRWISE_BLOCK:
-            vals[vp] = _block_sum(a, seg_lo[top], m)
+            work[vp, 3] = _block_sum(a, int(work[top, 0]), m)
             vp += 1
             sp -= 1
             continue
         half = m // 2
         half -= half % 8
-        if seg_state[top] == 0:
-            seg_state[top] = 1
-            seg_lo[sp], seg_n[sp], seg_state[sp] = seg_lo[top], half, 0
+        if work[top, 2] == 0.0:
+            work[top, 2] = 1.0
+            work[sp, 0], work[sp, 1], work[sp, 2] = work[top, 0], half, 0.0
             sp += 1
-        elif seg_state[top] == 1:
-            seg_state[top] = 2
-            seg_lo[sp], seg_n[sp], seg_state[sp] = seg_lo[top] + half, m - half, 0
+        elif work[top, 2] == 1.0:
+            work[top, 2] = 2.0
+            work[sp, 0], work[sp, 1], work[sp, 2] = work[top, 0] + half, m - half, 0.0
             sp += 1
         else:
-            vals[vp - 2] = vals[vp - 2] + vals[vp - 1]
+            work[vp - 2, 3] = work[vp - 2, 3] + work[vp - 1, 3]
             vp -= 1
             sp -= 1
-    return vals[0]
+    return work[0, 3]
 
 
 @njit(cache=True)
-def pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
-    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
-    of at most 128 terms (_block_sum), above that the sum of the two halves (the first a multiple of 8 long).
-    Up to 1808 terms (a dither period at up to 7200 Sa/s) without allocating (_halves1.._halves4)."""
-    if n <= 1808:
-        return _halves4(a, lo, n)
-    return _halves_stacked(a, lo, n)
-
-
-@njit(cache=True)
-def reduceat_sum(a: np.ndarray, lo: int, n: int) -> float:
+def reduceat_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
     rest."""
-    return a[lo] + pairwise_sum(a, lo + 1, n - 1)
+    return a[lo] + pairwise_sum(a, lo + 1, n - 1, work)
 
 
 @njit(cache=True)
@@ -287,6 +242,7 @@ def period_ratios(
     means over it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0),
     r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
     total = ramp_sum.size
+    work = np.empty((PAIRWISE_DEPTH, 4))
     rho = np.empty(k0.size)
     md = np.empty(total)
     tcn = np.empty(total)
@@ -300,22 +256,22 @@ def period_ratios(
         e0 = edges[p, 0]
         for i in range(n):
             md[start + i] = lo * (t[a + i] - e0 - delay_s) + ramp_sum[start + i]
-        mt = reduceat_sum(t, a, n) / n
-        mv = reduceat_sum(md, start, n) / n
+        mt = reduceat_sum(t, a, n, work) / n
+        mv = reduceat_sum(md, start, n, work) / n
         for i in range(n):
             tcn[start + i] = t[a + i] - mt
             vcn[start + i] = md[start + i] - mv
             p1[start + i] = tcn[start + i] * tcn[start + i]
             p2[start + i] = tcn[start + i] * vcn[start + i]
-        stt = reduceat_sum(p1, start, n)
-        stv = reduceat_sum(p2, start, n)
+        stt = reduceat_sum(p1, start, n, work)
+        stv = reduceat_sum(p2, start, n, work)
         b = stv / stt if stt > 0 else 0.0
         for i in range(n):
             r = vcn[start + i] - tcn[start + i] * b
             p1[start + i] = (mf[a + i] + md[start + i]) * r
             p2[start + i] = y[a + i] * r
-        den = reduceat_sum(p1, start, n)
-        num = reduceat_sum(p2, start, n)
+        den = reduceat_sum(p1, start, n, work)
+        num = reduceat_sum(p2, start, n, work)
         rho[p] = num / den if den != 0.0 else np.nan
         start += n
     return rho
@@ -329,6 +285,7 @@ def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
     span = hi - lo
     above = mid + 0.45 * span
     below = mid - 0.45 * span
+    work = np.empty((PAIRWISE_DEPTH, 4))
     high = np.empty(d.size)
     low = np.empty(d.size)
     nh = 0
@@ -340,8 +297,8 @@ def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
         if v < below:
             low[nl] = v
             nl += 1
-    new_hi = pairwise_sum(high, 0, nh) / nh if nh else hi
-    new_lo = pairwise_sum(low, 0, nl) / nl if nl else lo
+    new_hi = pairwise_sum(high, 0, nh, work) / nh if nh else hi
+    new_lo = pairwise_sum(low, 0, nl, work) / nl if nl else lo
     return new_lo, new_hi
 
 
@@ -427,15 +384,16 @@ def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray
     if n < 2:
         out[:] = hist_t[n - 1]
         return out
+    work = np.empty((PAIRWISE_DEPTH, 4))
     t0 = hist_t[n - 1]
     j0 = hist_j[n - 1]
     x = hist_j - j0
     y = hist_t - t0
-    xm = pairwise_sum(x, 0, n) / n
-    ym = pairwise_sum(y, 0, n) / n
+    xm = pairwise_sum(x, 0, n, work) / n
+    ym = pairwise_sum(y, 0, n, work) / n
     dx = x - xm
-    sxx = pairwise_sum(dx * dx, 0, n)
-    slope = pairwise_sum(dx * (y - ym), 0, n) / sxx if sxx > 0 else 0.0
+    sxx = pairwise_sum(dx * dx, 0, n, work)
+    slope = pairwise_sum(dx * (y - ym), 0, n, work) / sxx if sxx > 0 else 0.0
     for i in range(j.size):
         out[i] = t0 + ym + slope * (j[i] - j0 - xm)
     return out

@@ -22,11 +22,11 @@ def _spread(n: int) -> np.ndarray:
 
 
 def test_pairwise_sum_is_numpys_sum_bit_for_bit() -> None:
-    # below 8 terms, one block (<= 128), every halving depth up to 1808 terms, and the stacked path beyond
-    lengths = [*range(0, 300), 463, 464, 465, 911, 912, 913, 1807, 1808, 1809, 3600, 100_003]
-    for n in lengths:
+    # below 8 terms, one block (<= 128 terms), and one to ten levels of halving
+    work = kernels.pairwise_workspace()
+    for n in [*range(0, 300), 463, 464, 465, 911, 912, 913, 1807, 1808, 1809, 3600, 100_003]:
         a = _spread(n + 5)
-        assert kernels.pairwise_sum(a, 5, n) == np.sum(a[5 : 5 + n]), n
+        assert kernels.pairwise_sum(a, 5, n, work) == np.sum(a[5 : 5 + n]), n
 
 
 def test_reduceat_sum_is_numpys_reduceat_bit_for_bit() -> None:
@@ -34,7 +34,8 @@ def test_reduceat_sum_is_numpys_reduceat_bit_for_bit() -> None:
     starts = np.array([0, 1, 9, 137, 394, 651, 1900, 3999])
     expected = np.add.reduceat(a, starts)
     ends = np.append(starts[1:], a.size)
-    got = [kernels.reduceat_sum(a, int(s), int(e - s)) for s, e in zip(starts, ends, strict=True)]
+    work = kernels.pairwise_workspace()
+    got = [kernels.reduceat_sum(a, int(s), int(e - s), work) for s, e in zip(starts, ends, strict=True)]
     np.testing.assert_array_equal(got, expected)
 
 
