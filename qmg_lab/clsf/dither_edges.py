@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from qmg_lab.clsf.kernels import continue_fit, level_crossings, line_at, plateau_levels
+
 INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
 HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, else the previous side
 
@@ -55,19 +57,13 @@ class EdgeTracker:
         self._idx = {1: [], -1: []}
 
     def _update_levels(self, d: np.ndarray) -> None:
-        lo_b, hi_b = float(np.min(d)), float(np.max(d))
         if self.lo is None or self.hi is None:
+            lo_b, hi_b = float(np.min(d)), float(np.max(d))
             if hi_b - lo_b <= max(1e-9 * max(1.0, abs(hi_b)), self.min_step_v):
                 return
             self.lo, self.hi = lo_b, hi_b
-        mid = 0.5 * (self.lo + self.hi)
-        span = self.hi - self.lo
-        high = d[d > mid + 0.45 * span]  # plateau readings only: an edge's intermediate reading is excluded
-        low = d[d < mid - 0.45 * span]
-        if high.size:
-            self.hi = float(np.mean(high))
-        if low.size:
-            self.lo = float(np.mean(low))
+        # plateau readings only (beyond mid +- 0.45 span): an edge's intermediate reading is excluded
+        self.lo, self.hi = plateau_levels(d, self.lo, self.hi)
 
     def process(self, t: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rising, falling) smoothed edge times located in this block of samples (times t_k, values d_k)."""
@@ -77,38 +73,18 @@ class EdgeTracker:
         self._update_levels(d)
         if self.lo is None or self.hi is None or self.hi - self.lo <= 0.0:
             return empty, empty
-        s = (d - self.lo) / (self.hi - self.lo)
-        if self._prev_t is not None and self._prev_s is not None:
-            tt = np.concatenate(([self._prev_t], t))
-            ss = np.concatenate(([self._prev_s], s))
+        if self._prev_t is not None and self._prev_s is not None and self._prev_high is not None:
+            prev = (self._prev_t, self._prev_s, int(self._prev_high))
         else:
-            tt, ss = t, s
-        level = np.where(ss > 1.0 - HYSTERESIS, 1, np.where(ss < HYSTERESIS, 0, -1))
-        if self._prev_high is not None and tt.size > t.size:
-            level[0] = int(self._prev_high)
-        elif level[0] < 0:
-            level[0] = int(ss[0] > 0.5)
-        last = np.maximum.accumulate(np.where(level >= 0, np.arange(level.size), 0))
-        high = level[last] == 1  # an in-between reading keeps the side of the last clear one
-        self._prev_t, self._prev_s, self._prev_high = float(tt[-1]), float(ss[-1]), bool(high[-1])
-        k = np.flatnonzero(high[1:] != high[:-1]) + 1  # the first sample on the new side
-        if k.size == 0:
-            return empty, empty
-        kind = np.where(high[k], 1, -1)
-        sk, sp = ss[k], ss[k - 1]
-        frac_new = np.where(kind == 1, sk, 1.0 - sk)  # fraction of window k on the new level
-        frac_old = np.where(kind == 1, sp, 1.0 - sp)  # fraction of window k-1 on the new level
-        w = self.window_s
-        te = 0.5 * (tt[k - 1] + tt[k] - w)
-        if w > 0.0:
-            in_old = frac_old > INTERMEDIATE
-            te = np.where(in_old, tt[k - 1] - w * frac_old, te)
-            in_new = (frac_new > INTERMEDIATE) & (frac_new < 1.0 - INTERMEDIATE)
-            te = np.where(in_new, tt[k] - w * frac_new, te)
-        return self._smooth_all(1, te[kind == 1]), self._smooth_all(-1, te[kind == -1])
+            prev = (0.0, 0.0, -1)
+        rising, falling, last_s, last_high = level_crossings(
+            t, d, self.lo, self.hi, prev, self.window_s, HYSTERESIS, INTERMEDIATE
+        )
+        self._prev_t, self._prev_s, self._prev_high = float(t[-1]), float(last_s), bool(last_high)
+        return self._smooth_all(1, rising), self._smooth_all(-1, falling)
 
     def _smooth_all(self, kind: int, te: np.ndarray) -> np.ndarray:
-        """Smoothed times of a block's new edges of one kind (vectorised: a rolling least-squares line)."""
+        """Smoothed times of a block's new edges of one kind (a rolling least-squares line; kernels.continue_fit)."""
         if te.size == 0:
             return te
         raw, idx = self._raw[kind], self._idx[kind]
@@ -117,34 +93,18 @@ class EdgeTracker:
             period = (raw[-1] - raw[-self.fit_edges :][0]) / (idx[-1] - idx[-self.fit_edges :][0])
         else:
             period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
-        if raw and period > 0.0:
-            steps = np.maximum(1, np.rint(np.diff(np.concatenate(([raw[-1]], te))) / period)).astype(np.int64)
-            j = idx[-1] + np.cumsum(steps)
-            pred = self._line(raw, idx, np.asarray(j, dtype=float))
-            if np.any(np.abs(te - pred) > 0.25 * period):  # the generator was reprogrammed: edge by edge
-                return np.asarray([self._smooth(kind, float(x)) for x in te])
-        else:
+        if not raw or period <= 0.0:
             return np.asarray([self._smooth(kind, float(x)) for x in te])
-        all_t = np.concatenate((hist_t, te))
-        all_j = np.concatenate((np.asarray(idx[-self.fit_edges :], dtype=float), j.astype(float)))
+        hist_j = np.asarray(idx[-self.fit_edges :], dtype=float)
+        follows, j, fitted = continue_fit(hist_t, hist_j, te, period, self.fit_edges)
+        if not follows:  # the generator was reprogrammed: edge by edge
+            return np.asarray([self._smooth(kind, float(x)) for x in te])
         raw.extend(te.tolist())
         idx.extend(j.tolist())
         if len(raw) > 4 * self.fit_edges:
             del raw[: -self.fit_edges]
             del idx[: -self.fit_edges]
-        # rolling sums over the last fit_edges points ending at each new edge (local offsets keep precision)
-        t0, j0 = float(all_t[0]), float(all_j[0])
-        x, y = all_j - j0, all_t - t0
-        c = [np.concatenate(([0.0], np.cumsum(v))) for v in (np.ones_like(x), x, y, x * x, x * y)]
-        end = np.arange(hist_t.size, all_t.size) + 1
-        start = np.maximum(0, end - self.fit_edges)
-        n, sx, sy, sxx, sxy = (cc[end] - cc[start] for cc in c)
-        den = n * sxx - sx * sx
-        with np.errstate(divide="ignore", invalid="ignore"):
-            slope = np.where(den > 0, (n * sxy - sx * sy) / np.where(den > 0, den, 1.0), 0.0)
-        icpt = (sy - slope * sx) / n
-        fitted = t0 + icpt + slope * x[hist_t.size :]
-        return np.where(n >= 4, fitted, te)
+        return fitted
 
     def _smooth(self, kind: int, te: float) -> float:
         raw, idx = self._raw[kind], self._idx[kind]
@@ -153,7 +113,7 @@ class EdgeTracker:
             period = float(np.median(diffs)) if diffs.size else None
             if period is not None and period > 0.0:
                 j = idx[-1] + max(1, round((te - raw[-1]) / period))
-                pred = float(self._line(raw, idx, float(j)))
+                pred = self._line(raw, idx, float(j))
                 if abs(te - pred) > 0.25 * period:
                     raw.clear()
                     idx.clear()
@@ -169,17 +129,10 @@ class EdgeTracker:
             del idx[: -self.fit_edges]
         if len(raw) < 4:
             return te
-        return float(self._line(raw, idx, float(j)))
+        return self._line(raw, idx, float(j))
 
-    def _line(self, raw: list[float], idx: list[int], j: float | np.ndarray) -> np.ndarray:
-        """The least-squares line through the last fit_edges (index, time) pairs, at index j."""
+    def _line(self, raw: list[float], idx: list[int], j: float) -> float:
+        """The least-squares line through the last fit_edges (index, time) pairs, at index j (kernels.line_at)."""
         tr = np.asarray(raw[-self.fit_edges :])
         jr = np.asarray(idx[-self.fit_edges :], dtype=float)
-        if tr.size < 2:
-            return np.full(np.shape(j), float(tr[-1]))
-        t0, j0 = float(tr[-1]), float(jr[-1])
-        x, y = jr - j0, tr - t0
-        xm, ym = x.mean(), y.mean()
-        sxx = float(np.sum((x - xm) ** 2))
-        slope = float(np.sum((x - xm) * (y - ym)) / sxx) if sxx > 0 else 0.0
-        return t0 + ym + slope * (np.asarray(j, dtype=float) - j0 - xm)
+        return float(line_at(tr, jr, np.array([j]))[0])

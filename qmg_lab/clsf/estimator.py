@@ -67,6 +67,20 @@ from scipy import signal
 
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.dither_edges import EdgeTracker
+from qmg_lab.clsf.kernels import (
+    complete_periods,
+    integrate_block,
+    mean_rates,
+    median_spacing,
+    period_ratios,
+    ramp_matrix,
+    sosfilt_inplace,
+)
+
+MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
+EDGE_SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])  # the ramps' signs at R_(i-1), F_a, R_i, F_b, R_(i+1)
+BLAS_ROWS = 1024  # rows per matrix-vector product (_rows_times)
+BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
 
 
 @dataclass
@@ -130,8 +144,7 @@ class ClsfEstimator:
 
     def reset_buffer(self) -> None:
         """Forget the stream's history (after a gap): integrals, filter state, edges and partial periods."""
-        e = np.empty(0)
-        self._t, self._y, self._mf, self._mr = e, e.copy(), e.copy(), e.copy()
+        self._buf = np.empty((4, 0))  # rows: t, y, H m_r, m_r (BUF_T, BUF_Y, BUF_MF, BUF_MR)
         self._last: tuple[float, float, float, float, float] | None = None  # t, x, aux, int x, m_r
         self._zi: np.ndarray | None = None
         self._rising: list[float] = []
@@ -176,24 +189,19 @@ class ClsfEstimator:
     def _sample_dt(self, t: np.ndarray) -> float:
         """The sample interval: the median spacing of (at most) the first 65 samples, s."""
         if len(t) >= 2:
-            return float(np.median(np.diff(t[:65])))
+            return float(median_spacing(t, 65))
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
-        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2)."""
+        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2; kernels.py)."""
         if self._last is None:
             t0, x0, a0, ix0, mr0 = float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0
         else:
             t0, x0, a0, ix0, mr0 = self._last
         tt = np.concatenate(([t0], t))
-        xx = np.concatenate(([x0], x))
-        aa = np.concatenate(([a0], aux))
-        h = np.diff(tt)
-        ix = ix0 + np.cumsum(0.5 * h * (xx[1:] + xx[:-1]))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            shift = np.where(h > 0, 0.5 * self.auxin_window_s / np.where(h > 0, h, 1.0), 0.0)
-        mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
-        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
+        block, ix_end = integrate_block(tt, x, aux, x0, a0, ix0, mr0, self.auxin_window_s, self.tau_s)
+        mr = block[BUF_MR]
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), ix_end, float(mr[-1]))
         dt = self._sample_dt(tt)
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
@@ -204,13 +212,8 @@ class ClsfEstimator:
         if self._sos is not None:
             if self._zi is None:
                 self._zi = signal.sosfilt_zi(self._sos) * mr[0]
-            mf, self._zi = signal.sosfilt(self._sos, mr, zi=self._zi)
-        else:
-            mf = mr
-        self._t = np.concatenate((self._t, t))
-        self._y = np.concatenate((self._y, x + ix / self.tau_s))
-        self._mf = np.concatenate((self._mf, mf))
-        self._mr = np.concatenate((self._mr, mr))
+            sosfilt_inplace(self._sos, block[BUF_MF], self._zi)
+        self._buf = np.concatenate((self._buf, block), axis=1)
 
     def _periods(self) -> ClsfPeriods:
         """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too.
@@ -219,48 +222,21 @@ class ClsfEstimator:
         triangle is symmetric, so an error in the edges' timing enters the estimate at second order only."""
         rising = np.asarray(self._rising)
         falling = np.asarray(self._falling)
-        t = self._t
+        t = self._buf[BUF_T]
         lo, hi = self._edges.lo, self._edges.hi
         if rising.size < 3 or t.size == 0 or lo is None or hi is None:
             self._trim(None)
             return ClsfPeriods.empty()
-        delay = self.demod_filter.delay_s
-        i_all = np.arange(1, rising.size - 1)
-        i_all = i_all[rising[i_all + 1] + delay <= t[-1]]  # windows complete in the buffer
-        if i_all.size == 0:
+        done, edges, k0, k1 = complete_periods(rising, falling, t, self.demod_filter.delay_s, MIN_PERIOD_SAMPLES)
+        if done < 0:  # no window complete in the buffer
             self._trim(None)
             return ClsfPeriods.empty()
-        done = int(i_all[-1])
-        r_prev, r0, r1 = rising[i_all - 1], rising[i_all], rising[i_all + 1]
-        fa = np.searchsorted(falling, r_prev, side="right")
-        two = (np.searchsorted(falling, r1) - fa == 2) & (r0 + delay >= t[0])
-        fa_c = np.minimum(fa, max(falling.size - 2, 0))
-        if falling.size >= 2:
-            two &= (falling[fa_c] < r0) & (falling[fa_c + 1] > r0)
-        else:
-            two[:] = False
-        k0 = np.searchsorted(t, r0 + delay)
-        k1 = np.searchsorted(t, r1 + delay)
-        use = two & (k1 - k0 >= 8)
-        if not use.any():
+        if edges.shape[0] == 0:
             self._trim(done)
             return ClsfPeriods.empty()
-        r_prev, r0, r1, k0, k1, fa = r_prev[use], r0[use], r1[use], k0[use], k1[use], fa[use]
-        edges = np.stack((r_prev, falling[fa], r0, falling[fa + 1], r1), axis=1)
-        lengths = k1 - k0
-        idx = np.concatenate([np.arange(a, b) for a, b in zip(k0, k1, strict=False)])
-        seg = np.repeat(np.arange(lengths.size), lengths)
-        starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
-        tk = t[idx]
-        md = self._filtered_triangles(tk, edges[seg], lo, hi)
-        r = _detrend_segments(tk, md, seg, starts, lengths)
-        m_f = self._mf[idx] + md
-        den = np.add.reduceat(m_f * r, starts)
-        num = np.add.reduceat(self._y[idx] * r, starts)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = np.where(den != 0.0, num / den, np.nan)
-        m_at = np.interp(np.stack((r0, r1)), self._t, self._mr)
-        rate = (m_at[1] - m_at[0]) / (r1 - r0)
+        rho = self._ratios(edges, k0, k1, lo, hi)
+        r0, r1 = edges[:, 2], edges[:, 4]
+        rate = mean_rates(edges, t, self._buf[BUF_MR])
         t0, t1 = r0, r1
         self._trim(done)
         ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
@@ -281,16 +257,18 @@ class ClsfEstimator:
             time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
         )
 
-    def _filtered_triangles(self, tk: np.ndarray, edges: np.ndarray, lo: float, hi: float) -> np.ndarray:
-        """H m_d at the instants tk, m_d = integral of the square wave whose alternating edges (rising first) for
-        each instant are the rows of `edges` (n x 5).
+    def _ratios(self, edges: np.ndarray, k0: np.ndarray, k1: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        """rho of each period, summed over the samples k0[p] <= k < k1[p] (kernels.period_ratios).
 
-        m_d is taken as lo (t - edges[0]) before the first edge (its history a whole period earlier has decayed out
-        of the filter); each edge adds a ramp of slope +-(hi - lo), whose filtered form is the ramp response."""
+        H m_d at those instants, m_d = integral of the square wave whose alternating edges (rising first) are the
+        period's row of `edges` (n x 5): m_d is taken as lo (t - edges[0]) before the first edge (its history a
+        whole period earlier has decayed out of the filter); each edge adds a ramp of slope +-(hi - lo), whose
+        filtered form is the ramp response."""
         filt = self.demod_filter
-        signs = np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo)
-        ramps = filt.ramp_response(tk[:, None] - edges)
-        return lo * (tk - edges[:, 0] - filt.delay_s) + ramps @ signs
+        t, y, mf, _ = self._buf
+        ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
+        ramp_sum = _rows_times(ramps, EDGE_SIGNS * (hi - lo))
+        return period_ratios(t, y, mf, ramp_sum, edges, k0, k1, lo, filt.delay_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
@@ -300,12 +278,12 @@ class ClsfEstimator:
             self._rising = rising
             self._falling = [f for f in self._falling if f > rising[0]]
             start = rising[1] + self.demod_filter.delay_s if len(rising) > 1 else rising[0]
-            k = max(0, int(np.searchsorted(self._t, start)) - 2)
-        elif len(self._rising) == 0 and self._t.size > 100000:
-            k = self._t.size - 100000
+            k = max(0, int(np.searchsorted(self._buf[BUF_T], start)) - 2)
+        elif len(self._rising) == 0 and self._buf.shape[1] > 100000:
+            k = self._buf.shape[1] - 100000
         else:
             return
-        self._t, self._y, self._mf, self._mr = self._t[k:], self._y[k:], self._mf[k:], self._mr[k:]
+        self._buf = self._buf[:, k:]
 
     def _held_mask(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
         held = np.zeros(t0.shape, dtype=bool)
@@ -314,21 +292,14 @@ class ClsfEstimator:
         return held
 
 
-def _detrend_segments(
-    t: np.ndarray, v: np.ndarray, seg: np.ndarray, starts: np.ndarray, lengths: np.ndarray
-) -> np.ndarray:
-    """v minus its least-squares line a + b t within each segment: orthogonal to 1 and t on each segment."""
-
-    def mean(x: np.ndarray) -> np.ndarray:
-        return np.add.reduceat(x, starts) / lengths
-
-    tc = t - mean(t)[seg]
-    vc = v - mean(v)[seg]
-    stt = np.add.reduceat(tc * tc, starts)
-    stv = np.add.reduceat(tc * vc, starts)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b = np.where(stt > 0, stv / np.where(stt > 0, stt, 1.0), 0.0)
-    return vc - tc * b[seg]
+def _rows_times(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """m @ v, taken BLAS_ROWS rows at a time: small enough that OpenBLAS stays on the calling thread (waking its
+    threads costs more than the product on a loaded machine), a multiple of its 4-row kernel so that each row is
+    rounded as in a single m @ v (checked bit for bit against one product on 760 000 random rows)."""
+    out = np.empty(m.shape[0])
+    for i in range(0, m.shape[0], BLAS_ROWS):
+        np.matmul(m[i : i + BLAS_ROWS], v, out=out[i : i + BLAS_ROWS])
+    return out
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

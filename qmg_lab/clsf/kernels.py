@@ -1,0 +1,547 @@
+"""Compiled (numba) per-sample loops of the CLSF estimator, one pass over a block instead of many numpy calls.
+
+Each kernel computes exactly what the vectorised form named in its docstring computes, operation for operation and
+in the same order, so that the estimator's results do not depend on which form runs:
+
+* sums follow numpy's own orders: `np.cumsum` and the elementwise ufuncs are sequential; `np.sum` and `np.mean`
+  use numpy's pairwise summation (`pairwise_sum`); `np.add.reduceat` adds the pairwise sum of the rest of a
+  segment to its first element (`reduceat_sum`);
+* the ramp response's exponential is libm's exp, as numpy's float64 exp is on this hardware;
+* the demodulator filter's sections run scipy.signal.sosfilt's direct form II transposed recursion.
+
+Compiled with cache=True (the first import in a fresh environment compiles them once, about a second; later
+imports load them from __pycache__). Only the estimator and the edge tracker import this module.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partial sums
+PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
+
+
+@njit(cache=True)
+def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum for n <= 128: sequential below 8 terms, else eight interleaved partial sums."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    m = n - n % 8
+    i = 8
+    while i < m:
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+def pairwise_workspace() -> np.ndarray:
+    """Scratch space for pairwise_sum's halving stack (allocated once per kernel call, not per sum)."""
+    return np.empty((PAIRWISE_DEPTH, 4))
+
+
+@njit(cache=True)
+def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
+    """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
+    of at most 128 terms (_block_sum), above that the sum of the two halves, the first a multiple of 8 long.
+
+    The halving is walked with an explicit stack in `work` (pairwise_workspace(); rows: start, length, state,
+    value), as numba's cache cannot reload recursive functions."""
+    if n <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, n)
+    sp, vp = 1, 0  # stack depth, values waiting
+    work[0, 0], work[0, 1], work[0, 2] = lo, n, 0.0  # state 0: split next, 1: left half done, 2: both done
+    while sp > 0:
+        top = sp - 1
+        m = int(work[top, 1])
+        if m <= PAIRWISE_BLOCK:
+            work[vp, 3] = _block_sum(a, int(work[top, 0]), m)
+            vp += 1
+            sp -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if work[top, 2] == 0.0:
+            work[top, 2] = 1.0
+            work[sp, 0], work[sp, 1], work[sp, 2] = work[top, 0], half, 0.0
+            sp += 1
+        elif work[top, 2] == 1.0:
+            work[top, 2] = 2.0
+            work[sp, 0], work[sp, 1], work[sp, 2] = work[top, 0] + half, m - half, 0.0
+            sp += 1
+        else:
+            work[vp - 2, 3] = work[vp - 2, 3] + work[vp - 1, 3]
+            vp -= 1
+            sp -= 1
+    return work[0, 3]
+
+
+@njit(cache=True)
+def reduceat_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
+    """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
+    rest."""
+    return a[lo] + pairwise_sum(a, lo + 1, n - 1, work)
+
+
+@njit(cache=True)
+def median_spacing(t: np.ndarray, count: int) -> float:
+    """np.median(np.diff(t[:count])) for len(t) >= 2: the middle spacing, or the mean of the two middle ones."""
+    m = min(count, t.size) - 1
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = t[i + 1] - t[i]
+    d.sort()
+    if m % 2 == 1:
+        return d[m // 2]
+    return (d[m // 2 - 1] + d[m // 2]) / 2.0
+
+
+@njit(cache=True)
+def integrate_block(
+    tt: np.ndarray,
+    x: np.ndarray,
+    aux: np.ndarray,
+    x_prev: float,
+    a_prev: float,
+    ix0: float,
+    mr0: float,
+    window_s: float,
+    tau_s: float,
+) -> tuple[np.ndarray, float]:
+    """The estimator's buffer rows for a block, (t, y, m_r, m_r) (the third to be filtered in place into H m_r),
+    and int x at its end. tt: the block's times after the previous block's last time (or a copy of the first);
+    x, aux: its values; x_prev, a_prev, ix0, mr0: x, aux, int x and m_r at tt[0].
+
+    With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
+    is shifted by s_k = W / (2 h_k)):
+        int x_k = ix0 + sum_(i<=k) h_i (x_i + x_(i-1)) / 2
+        m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
+        y_k     = x_k + int x_k / tau."""
+    n = x.size
+    out = np.empty((4, n))
+    acc_x = 0.0
+    acc_m = 0.0
+    ix = ix0
+    for k in range(n):
+        h = tt[k + 1] - tt[k]
+        acc_x += 0.5 * h * (x[k] + x_prev)
+        ix = ix0 + acc_x
+        shift = 0.5 * window_s / h if h > 0 else 0.0
+        acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
+        out[0, k] = tt[k + 1]
+        out[1, k] = x[k] + ix / tau_s
+        out[2, k] = mr0 + acc_m
+        out[3, k] = out[2, k]
+        x_prev, a_prev = x[k], aux[k]
+    return out, ix
+
+
+@njit(cache=True)
+def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
+    """scipy.signal.sosfilt(sos, x, zi=zi) in place on x and zi: each section s in turn runs over the whole
+    block (the same operations as sample by sample through all sections, its state in registers):
+        y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y."""
+    for s in range(sos.shape[0]):
+        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+        z0, z1 = zi[s, 0], zi[s, 1]
+        for k in range(x.size):
+            u = x[k]
+            v = b0 * u + z0
+            z0 = b1 * u - a1 * v + z1
+            z1 = b2 * u - a2 * v
+            x[k] = v
+        zi[s, 0], zi[s, 1] = z0, z1
+
+
+@njit(cache=True)
+def ramp_matrix(
+    t: np.ndarray, k0: np.ndarray, k1: np.ndarray, edges: np.ndarray, order: int, tc_s: float
+) -> np.ndarray:
+    """R over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
+    the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
+    R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
+    beyond, 0 before; max(tau, 0) without a filter).
+
+    t is sorted, so tau = t_k - e rises with k: per period and edge, the first samples with tau > 0 and with
+    tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the exponential."""
+    total = 0
+    for p in range(k0.size):
+        total += k1[p] - k0[p]
+    ne = edges.shape[1]
+    r = np.empty((total, ne))
+    delay = order * tc_s
+    transient_end = 60.0 * tc_s
+    start = np.empty(ne, dtype=np.int64)  # first k with tau > 0
+    steady = np.empty(ne, dtype=np.int64)  # first k with tau >= 60 tc (with tau > 0)
+    row = 0
+    for p in range(k0.size):
+        a, b = k0[p], k1[p]
+        for j in range(ne):
+            e = edges[p, j]
+            k = a
+            while k < b and not t[k] - e > 0.0:
+                k += 1
+            start[j] = k
+            if tc_s > 0.0:
+                while k < b and t[k] - e < transient_end:
+                    k += 1
+            steady[j] = k
+        for k in range(a, b):
+            for j in range(ne):
+                tau = t[k] - edges[p, j]
+                if k < start[j]:
+                    r[row, j] = 0.0
+                elif k >= steady[j]:
+                    r[row, j] = tau - delay
+                else:
+                    x = tau / tc_s
+                    acc = 0.0
+                    term = 1.0
+                    for i in range(order):
+                        acc += (order - i) * term
+                        term = term * x / (i + 1)
+                    r[row, j] = tau - delay + tc_s * math.exp(-x) * acc
+            row += 1
+    return r
+
+
+@njit(cache=True)
+def period_ratios(
+    t: np.ndarray,
+    y: np.ndarray,
+    mf: np.ndarray,
+    ramp_sum: np.ndarray,
+    edges: np.ndarray,
+    k0: np.ndarray,
+    k1: np.ndarray,
+    lo: float,
+    delay_s: float,
+) -> np.ndarray:
+    """rho = sum y r / sum (H m) r per period (the estimator's docstring) over its window k0[p] <= k < k1[p] of
+    the buffer (t, y, H m_r); ramp_sum: the windows' rows of ramp_matrix weighted by the edges' signs +-(hi - lo).
+
+    H m_d = lo (t - e_0 - n tc) + ramp_sum; r = H m_d minus its least-squares line a + b t over the window: with
+    means over it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0),
+    r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
+    total = ramp_sum.size
+    work = np.empty((PAIRWISE_DEPTH, 4))
+    rho = np.empty(k0.size)
+    md = np.empty(total)
+    tcn = np.empty(total)
+    vcn = np.empty(total)
+    p1 = np.empty(total)
+    p2 = np.empty(total)
+    start = 0
+    for p in range(k0.size):
+        a = k0[p]
+        n = k1[p] - a
+        e0 = edges[p, 0]
+        for i in range(n):
+            md[start + i] = lo * (t[a + i] - e0 - delay_s) + ramp_sum[start + i]
+        mt = reduceat_sum(t, a, n, work) / n
+        mv = reduceat_sum(md, start, n, work) / n
+        for i in range(n):
+            tcn[start + i] = t[a + i] - mt
+            vcn[start + i] = md[start + i] - mv
+            p1[start + i] = tcn[start + i] * tcn[start + i]
+            p2[start + i] = tcn[start + i] * vcn[start + i]
+        stt = reduceat_sum(p1, start, n, work)
+        stv = reduceat_sum(p2, start, n, work)
+        b = stv / stt if stt > 0 else 0.0
+        for i in range(n):
+            r = vcn[start + i] - tcn[start + i] * b
+            p1[start + i] = (mf[a + i] + md[start + i]) * r
+            p2[start + i] = y[a + i] * r
+        den = reduceat_sum(p1, start, n, work)
+        num = reduceat_sum(p2, start, n, work)
+        rho[p] = num / den if den != 0.0 else np.nan
+        start += n
+    return rho
+
+
+@njit(cache=True)
+def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """(lo, hi) updated from a block's plateau readings: the means of the readings above mid + 0.45 span and
+    below mid - 0.45 span (mid, span of the current levels); a level with no such reading is kept."""
+    mid = 0.5 * (lo + hi)
+    span = hi - lo
+    above = mid + 0.45 * span
+    below = mid - 0.45 * span
+    work = np.empty((PAIRWISE_DEPTH, 4))
+    high = np.empty(d.size)
+    low = np.empty(d.size)
+    nh = 0
+    nl = 0
+    for v in d:
+        if v > above:
+            high[nh] = v
+            nh += 1
+        if v < below:
+            low[nl] = v
+            nl += 1
+    new_hi = pairwise_sum(high, 0, nh, work) / nh if nh else hi
+    new_lo = pairwise_sum(low, 0, nl, work) / nl if nl else lo
+    return new_lo, new_hi
+
+
+@njit(cache=True)
+def level_crossings(
+    t: np.ndarray,
+    d: np.ndarray,
+    lo: float,
+    hi: float,
+    prev: tuple[float, float, int],
+    window_s: float,
+    hysteresis: float,
+    intermediate: float,
+) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The edges in a block of dither readings d at times t (dither_edges.py): (rising times, falling times, the
+    last reading's fraction s, its side). prev = (time, s, side 0/1) of the previous block's last reading, side -1
+    when there is none (then its time and s are not used).
+
+    With s_k = (d_k - lo) / (hi - lo): a reading is high above 1 - hysteresis, low below hysteresis, else on the
+    side of the last clear one; the first reading's side is the previous block's, or its own (s > 1/2 if unclear).
+    At each change of side, k the first reading on the new side: the edge is at the middle of the gap
+    t_e = (t_(k-1) + t_k - W) / 2, unless a window holds it: t_e = t_(k-1) - W f_old if window k-1 has a fraction
+    f_old > intermediate on the new level, and t_e = t_k - W f_new if window k has intermediate < f_new <
+    1 - intermediate (the latter wins)."""
+    prev_t, prev_s, prev_side = prev
+    span = hi - lo
+    off = 1 if prev_side >= 0 else 0
+    n = d.size + off
+    tt = np.empty(n)
+    ss = np.empty(n)
+    if off:
+        tt[0], ss[0] = prev_t, prev_s
+    for k in range(d.size):
+        tt[k + off] = t[k]
+        ss[k + off] = (d[k] - lo) / span
+    rising = np.empty(n)
+    falling = np.empty(n)
+    nr = 0
+    nf = 0
+    if prev_side >= 0:
+        high = prev_side == 1
+    elif ss[0] > 1.0 - hysteresis:
+        high = True
+    elif ss[0] < hysteresis:
+        high = False
+    else:
+        high = ss[0] > 0.5
+    for k in range(1, n):
+        s = ss[k]
+        if s > 1.0 - hysteresis:
+            now = True
+        elif s < hysteresis:
+            now = False
+        else:
+            now = high
+        if now != high:
+            sp = ss[k - 1]
+            frac_new = s if now else 1.0 - s
+            frac_old = sp if now else 1.0 - sp
+            e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+            if window_s > 0.0:
+                if frac_old > intermediate:
+                    e = tt[k - 1] - window_s * frac_old
+                if frac_new > intermediate and frac_new < 1.0 - intermediate:
+                    e = tt[k] - window_s * frac_new
+            if now:
+                rising[nr] = e
+                nr += 1
+            else:
+                falling[nf] = e
+                nf += 1
+            high = now
+    return rising[:nr], falling[:nf], ss[n - 1], high
+
+
+@njit(cache=True)
+def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The least-squares line t = a + b j through the pairs (hist_j, hist_t), at the indices j (EdgeTracker._line):
+    about the last pair (t0, j0), x = j - j0, y = t - t0, slope = sum (x - xm)(y - ym) / sum (x - xm)^2 (0 if the
+    latter is 0), t(j) = t0 + ym + slope (j - j0 - xm); the last time when fewer than two pairs."""
+    n = hist_t.size
+    out = np.empty(j.size)
+    if n < 2:
+        out[:] = hist_t[n - 1]
+        return out
+    work = np.empty((PAIRWISE_DEPTH, 4))
+    t0 = hist_t[n - 1]
+    j0 = hist_j[n - 1]
+    x = hist_j - j0
+    y = hist_t - t0
+    xm = pairwise_sum(x, 0, n, work) / n
+    ym = pairwise_sum(y, 0, n, work) / n
+    dx = x - xm
+    sxx = pairwise_sum(dx * dx, 0, n, work)
+    slope = pairwise_sum(dx * (y - ym), 0, n, work) / sxx if sxx > 0 else 0.0
+    for i in range(j.size):
+        out[i] = t0 + ym + slope * (j[i] - j0 - xm)
+    return out
+
+
+@njit(cache=True)
+def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_edges: int) -> np.ndarray:
+    """For each point from start_new on, the least-squares line through it and the fit_edges - 1 points before
+    (fewer at the start), evaluated at its own index; the point itself where fewer than 4 points are fitted.
+
+    About the first point (t0, j0): x = j - j0, y = t - t0; with window sums n, Sx, Sy, Sxx, Sxy (differences of
+    running sums), slope = (n Sxy - Sx Sy) / (n Sxx - Sx^2) (0 if that is <= 0), intercept = (Sy - slope Sx) / n,
+    t = t0 + intercept + slope x."""
+    size = all_t.size
+    t0 = all_t[0]
+    j0 = all_j[0]
+    c = np.zeros((5, size + 1))
+    for i in range(size):
+        x = all_j[i] - j0
+        y = all_t[i] - t0
+        c[0, i + 1] = c[0, i] + 1.0
+        c[1, i + 1] = c[1, i] + x
+        c[2, i + 1] = c[2, i] + y
+        c[3, i + 1] = c[3, i] + x * x
+        c[4, i + 1] = c[4, i] + x * y
+    out = np.empty(size - start_new)
+    for i in range(start_new, size):
+        end = i + 1
+        start = max(0, end - fit_edges)
+        n = c[0, end] - c[0, start]
+        sx = c[1, end] - c[1, start]
+        sy = c[2, end] - c[2, start]
+        sxx = c[3, end] - c[3, start]
+        sxy = c[4, end] - c[4, start]
+        den = n * sxx - sx * sx
+        slope = (n * sxy - sx * sy) / den if den > 0 else 0.0
+        icpt = (sy - slope * sx) / n
+        out[i - start_new] = t0 + icpt + slope * (all_j[i] - j0) if n >= 4 else all_t[i]
+    return out
+
+
+@njit(cache=True)
+def continue_fit(
+    hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """New edges of one kind continuing a fit's history (the last fit_edges edges, times hist_t at cycle indices
+    hist_j): (they follow the line, their cycle indices, their smoothed times).
+
+    Each new edge's index advances by max(1, rint(gap / period)) cycles from the previous edge; when any lies more
+    than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed)
+    and nothing else is computed; otherwise each is replaced by rolling_line_fit's value."""
+    j = np.empty(te.size, dtype=np.int64)
+    last_t = hist_t[hist_t.size - 1]
+    last_j = np.int64(hist_j[hist_j.size - 1])
+    acc = np.int64(0)
+    for i in range(te.size):
+        step = max(1.0, np.rint((te[i] - last_t) / period))
+        acc += np.int64(step)
+        j[i] = last_j + acc
+        last_t = te[i]
+    jf = j.astype(np.float64)
+    pred = line_at(hist_t, hist_j, jf)
+    for i in range(te.size):
+        if abs(te[i] - pred[i]) > 0.25 * period:
+            return False, j, te
+    all_t = np.concatenate((hist_t, te))
+    all_j = np.concatenate((hist_j, jf))
+    return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
+
+
+@njit(cache=True)
+def _first_at_or_after(a: np.ndarray, v: float, strictly: bool) -> int:
+    """np.searchsorted(a, v, side="right" if strictly else "left") on a sorted array."""
+    lo, hi = 0, a.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < v or (strictly and a[mid] == v):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True)
+def complete_periods(
+    rising: np.ndarray, falling: np.ndarray, t: np.ndarray, delay_s: float, min_samples: int
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """The periods [R_i, R_(i+1)) of the edge lists that can be evaluated on the sample times t: (the last i whose
+    window [R_i + D, R_(i+1) + D) ends within t, or -1; for the usable ones, the edges (R_(i-1), F_a, R_i, F_b,
+    R_(i+1)) and the window's sample range k0 <= k < k1).
+
+    Usable: exactly two falling edges F_a < R_i < F_b between R_(i-1) and R_(i+1), the window starting within t,
+    and at least min_samples samples in it."""
+    nr, nf = rising.size, falling.size
+    done = -1
+    edges = np.empty((max(nr - 2, 0), 5))
+    k0 = np.empty(max(nr - 2, 0), dtype=np.int64)
+    k1 = np.empty(max(nr - 2, 0), dtype=np.int64)
+    m = 0
+    for i in range(1, nr - 1):
+        r_prev, r0, r1 = rising[i - 1], rising[i], rising[i + 1]
+        if not r1 + delay_s <= t[t.size - 1]:
+            continue
+        done = i
+        fa = _first_at_or_after(falling, r_prev, True)
+        two = (_first_at_or_after(falling, r1, False) - fa == 2) and (r0 + delay_s >= t[0])
+        if nf >= 2:
+            fc = min(fa, max(nf - 2, 0))
+            two = two and (falling[fc] < r0) and (falling[fc + 1] > r0)
+        else:
+            two = False
+        a = _first_at_or_after(t, r0 + delay_s, False)
+        b = _first_at_or_after(t, r1 + delay_s, False)
+        if two and b - a >= min_samples:
+            edges[m, 0], edges[m, 1], edges[m, 2] = r_prev, falling[fa], r0
+            edges[m, 3], edges[m, 4] = falling[fa + 1], r1
+            k0[m], k1[m] = a, b
+            m += 1
+    return done, edges[:m], k0[:m], k1[:m]
+
+
+@njit(cache=True)
+def interp_sorted(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
+    """np.interp(x, xp, fp) for strictly increasing xp: fp[0] / fp[-1] outside, fp[j] at a node, else
+    slope (x - xp[j]) + fp[j] with slope = (fp[j+1] - fp[j]) / (xp[j+1] - xp[j]) (numpy's own formula)."""
+    n = xp.size
+    if x > xp[n - 1]:
+        return fp[n - 1]
+    if x < xp[0]:
+        return fp[0]
+    j = _first_at_or_after(xp, x, True) - 1  # xp[j] <= x < xp[j+1]
+    if j >= n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    res = slope * (x - xp[j]) + fp[j]
+    if np.isnan(res):
+        res = slope * (x - xp[j + 1]) + fp[j + 1]
+        if np.isnan(res) and fp[j] == fp[j + 1]:
+            res = fp[j]
+    return res
+
+
+@njit(cache=True)
+def mean_rates(edges: np.ndarray, t: np.ndarray, mr: np.ndarray) -> np.ndarray:
+    """The rate output averaged over each period [R_i, R_(i+1)] (columns 2 and 4 of edges): the integral m_r
+    interpolated linearly at both ends, (m_r(R_(i+1)) - m_r(R_i)) / (R_(i+1) - R_i)."""
+    out = np.empty(edges.shape[0])
+    for p in range(edges.shape[0]):
+        r0, r1 = edges[p, 2], edges[p, 4]
+        out[p] = (interp_sorted(r1, t, mr) - interp_sorted(r0, t, mr)) / (r1 - r0)
+    return out

@@ -1,0 +1,100 @@
+"""The CLSF estimator's compiled kernels (qmg_lab/clsf/kernels.py) against the numpy and scipy forms they replace.
+
+Each kernel promises the same operations in the same order as a vectorised form, so the comparisons are exact
+(bit for bit), on data spread over six decades so that any change of summation order would show. The line fits
+are checked against the least-squares equations as well.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from qmg_lab.clsf import kernels
+from qmg_lab.clsf.demod_filter import DemodFilter
+
+RNG = np.random.default_rng(20131)
+
+
+def _spread(n: int) -> np.ndarray:
+    return RNG.standard_normal(n) * 10.0 ** RNG.uniform(-3.0, 3.0, n)
+
+
+def test_pairwise_sum_is_numpys_sum_bit_for_bit() -> None:
+    # below 8 terms, one block (<= 128 terms), and one to ten levels of halving
+    work = kernels.pairwise_workspace()
+    for n in [*range(0, 300), 463, 464, 465, 911, 912, 913, 1807, 1808, 1809, 3600, 100_003]:
+        a = _spread(n + 5)
+        assert kernels.pairwise_sum(a, 5, n, work) == np.sum(a[5 : 5 + n]), n
+
+
+def test_reduceat_sum_is_numpys_reduceat_bit_for_bit() -> None:
+    a = _spread(4000)
+    starts = np.array([0, 1, 9, 137, 394, 651, 1900, 3999])
+    expected = np.add.reduceat(a, starts)
+    ends = np.append(starts[1:], a.size)
+    work = kernels.pairwise_workspace()
+    got = [kernels.reduceat_sum(a, int(s), int(e - s), work) for s, e in zip(starts, ends, strict=True)]
+    np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("count", [2, 3, 64, 65, 300])
+def test_median_spacing_is_the_median_of_the_first_spacings(count: int) -> None:
+    t = np.cumsum(RNG.uniform(0.5, 1.5, 300)) / 1800.0
+    assert kernels.median_spacing(t[:count], 65) == np.median(np.diff(t[:count][:65]))
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 8])
+def test_sosfilt_inplace_is_scipys_sosfilt_bit_for_bit(order: int) -> None:
+    sos = DemodFilter(order, 3e-4).foh_sos(1 / 1800)
+    x = np.cumsum(_spread(3600))
+    zi0 = signal.sosfilt_zi(sos) * x[0]
+    expected, zf = signal.sosfilt(sos, x, zi=zi0)
+    got, zi = x.copy(), zi0.copy()
+    kernels.sosfilt_inplace(sos, got, zi)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(zi, zf)
+
+
+@pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
+def test_ramp_matrix_is_the_filters_ramp_response(order: int, tc: float) -> None:
+    t = np.arange(2000) / 1800.0
+    k0 = np.array([3, 600, 1200])
+    k1 = np.array([300, 900, 1999])
+    # edges anywhere: before the window, inside it, on a sample, after it
+    edges = np.array(
+        [
+            [t[1] - 1e-5, t[100], t[150] + 1e-4, t[299] + 2e-4, t[400]],
+            [t[500], t[650] - 3e-5, t[700], t[800] + tc, t[899]],
+            [t[1100], t[1300] + 1e-7, t[1500], t[1700], t[1998] + 1e-3],
+        ]
+    )
+    r = kernels.ramp_matrix(t, k0, k1, edges, order, tc)
+    filt = DemodFilter(order, tc)
+    rows = [filt.ramp_response(t[a:b, None] - e) for a, b, e in zip(k0, k1, edges, strict=True)]
+    np.testing.assert_array_equal(r, np.concatenate(rows))
+
+
+def test_interp_sorted_is_numpys_interp() -> None:
+    xp = np.cumsum(RNG.uniform(1e-4, 1e-3, 500)) + 12.0
+    fp = np.cumsum(_spread(500))
+    x = np.concatenate((RNG.uniform(xp[0] - 0.01, xp[-1] + 0.01, 200), xp[[0, 1, 250, -1]]))
+    got = [kernels.interp_sorted(float(v), xp, fp) for v in x]
+    np.testing.assert_array_equal(got, np.interp(x, xp, fp))
+
+
+def test_line_fits_are_the_least_squares_lines() -> None:
+    j = np.arange(40, dtype=float) * 2.0 + np.repeat([0.0, 1.0], 20)  # uneven index steps
+    t = 3.0 + 0.142857 * j + 1e-5 * RNG.standard_normal(j.size)
+    # line_at: the least-squares line through all pairs, at new indices
+    slope, icpt = np.polyfit(j[:32], t[:32], 1)
+    at = np.array([j[31] + 1.0, j[31] + 5.0])
+    np.testing.assert_allclose(kernels.line_at(t[:32], j[:32], at), icpt + slope * at, rtol=0, atol=1e-12)
+    # rolling_line_fit: each point from the 10th on, from the line through it and the (up to) 7 points before
+    fit = kernels.rolling_line_fit(t, j, 10, 8)
+    for i in range(10, j.size):
+        s, c = np.polyfit(j[i - 7 : i + 1], t[i - 7 : i + 1], 1)
+        assert fit[i - 10] == pytest.approx(c + s * j[i], abs=1e-12)
+    # fewer than 4 points in a window: the point itself
+    np.testing.assert_array_equal(kernels.rolling_line_fit(t[:3], j[:3], 0, 8), t[:3])
