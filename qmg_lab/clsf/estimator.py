@@ -194,11 +194,11 @@ class ClsfEstimator:
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
         """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2; kernels.py)."""
-        first = self._last is None
-        if self._last is None:
+        last = self._last  # None before the first block (and after a gap)
+        if last is None:
             t0, x0, a0, ix0, mr0 = float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0
         else:
-            t0, x0, a0, ix0, mr0 = self._last
+            t0, x0, a0, ix0, mr0 = last
         tt = np.concatenate(([t0], t))
         block, ix_end = integrate_block(tt, x, aux, x0, a0, ix0, mr0, self.auxin_window_s, self.tau_s)
         mr = block[BUF_MR]
@@ -206,7 +206,7 @@ class ClsfEstimator:
         # tt repeats the first sample of a first block; a first block of 1-2 samples cannot outvote that zero
         # spacing in the median, so its interval comes from its own samples (one sample: the last design, or 1 s;
         # a single sample's filter output is its steady state whatever dt is, and the next block redesigns)
-        dt = self._sample_dt(t if first and len(t) < 3 else tt)
+        dt = self._sample_dt(t if last is None and len(t) < 3 else tt)
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
