@@ -63,9 +63,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import signal
 
-from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
 from qmg_lab.clsf.kernels import (
     complete_periods,
@@ -215,7 +214,7 @@ class ClsfEstimator:
             self._zi = None
         if self._sos is not None:
             if self._zi is None:
-                self._zi = signal.sosfilt_zi(self._sos) * mr[0]
+                self._zi = sos_steady_state(self._sos) * mr[0]
             sosfilt_inplace(self._sos, block[BUF_MF], self._zi)
         self._buf = np.concatenate((self._buf, block), axis=1)
 
