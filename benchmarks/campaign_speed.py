@@ -4,7 +4,9 @@ Runs `python -m qmg_lab run configs/paper_campaign.toml --sim -o <tmp> -q` in a 
 reports the median real-time factor (simulated seconds per wall second of the whole process: start-up, physics,
 driver and twin code, CLSF, logging) and the process's peak resident memory (from wait4's rusage). Then runs
 the same campaign with a chamber ramp three times slower (about three times longer) and reports its peak
-memory: a campaign's memory must not grow with its length.
+memory: a campaign's memory must not grow with its length. Last, the start-up: the same process for the paper
+campaign cut to a few dwell steps (about 40 simulated seconds, `SHORT`), whose wall and CPU time are almost
+all fixed cost (interpreter, imports, numba's cached kernels, configuration, connecting the twins, the file).
 
     python benchmarks/campaign_speed.py [--json] [--runs N]
 
@@ -55,20 +57,37 @@ def run_once(config: Path, out: Path) -> tuple[float, float, float, float, float
     return wall, usage.ru_maxrss / 1024.0, simulated, out.stat().st_size / 1e6, usage.ru_utime + usage.ru_stime
 
 
-def slower_ramp(tmp: Path, factor: float) -> Path:
-    """The paper campaign with its chamber ramp `factor` times slower (so about that much longer)."""
-    lines = PAPER.read_text(encoding="utf-8").splitlines()
+# the paper campaign cut to its start-up: 1 s of lock, 1 s of soak, a 0.1 degC ramp at the chamber's 5 degC/min
+# and 7 s dwells (6 steps, about 40 simulated seconds)
+SHORT = {
+    "lock_settle_s": 1.0,
+    "chamber_soak_s": 1.0,
+    "chamber_end_c": 25.1,
+    "chamber_ramp_c_per_min": 5.0,
+    "chamber_end_hold_s": 0.0,
+    "dwell_s": 7.0,
+}
+
+
+def paper_variant(tmp: Path, name: str, values: dict[str, float]) -> Path:
+    """The paper campaign with the given keys' values replaced (each key appears once in the file)."""
     out = []
-    for line in lines:
+    for line in PAPER.read_text(encoding="utf-8").splitlines():
         key = line.split("=")[0].strip()
-        if key == "chamber_ramp_c_per_min":
-            value = float(line.split("=")[1].split("#")[0])
-            out.append(f"chamber_ramp_c_per_min = {value / factor!r}")
-            continue
-        out.append(line)
-    path = tmp / "paper_slow.toml"
+        out.append(f"{key} = {values[key]!r}" if key in values else line)
+    path = tmp / f"{name}.toml"
     path.write_text("\n".join(out) + "\n", encoding="utf-8")
     return path
+
+
+def slower_ramp(tmp: Path, factor: float) -> Path:
+    """The paper campaign with its chamber ramp `factor` times slower (so about that much longer)."""
+    ramp = next(
+        float(line.split("=")[1].split("#")[0])
+        for line in PAPER.read_text(encoding="utf-8").splitlines()
+        if line.split("=")[0].strip() == "chamber_ramp_c_per_min"
+    )
+    return paper_variant(tmp, "paper_slow", {"chamber_ramp_c_per_min": ramp / factor})
 
 
 def main() -> None:
@@ -84,6 +103,8 @@ def main() -> None:
         simulated = runs[0][2]
         rss = max(r[1] for r in runs)
         long_wall, long_rss, long_sim, _, _ = run_once(slower_ramp(tmp, 3.0), tmp / "long.h5")
+        short_cfg = paper_variant(tmp, "paper_short", SHORT)
+        short = [run_once(short_cfg, tmp / "short.h5") for _ in range(args.runs)]
     result = {
         "config": str(PAPER.relative_to(ROOT)),
         "runs": args.runs,
@@ -102,6 +123,10 @@ def main() -> None:
         "long_realtime_factor": long_sim / long_wall,
         "long_peak_rss_mb": long_rss,
         "peak_rss_ratio_long_vs_paper": long_rss / rss,
+        # the fixed cost of a process: the short campaign's wall and CPU time (medians of --runs)
+        "startup_simulated_s": short[0][2],
+        "startup_wall_s_median": statistics.median(r[0] for r in short),
+        "startup_cpu_s_median": statistics.median(r[4] for r in short),
         "cpu_count": os.cpu_count(),
     }
     if args.json:
