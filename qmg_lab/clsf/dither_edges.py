@@ -25,22 +25,62 @@ that lies more than a quarter period off the line (the generator was reprogramme
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
-
-from qmg_lab.clsf.kernels import continue_fit, level_crossings, line_at, plateau_levels
 
 INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
 HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, else the previous side
 
 
+class EdgeKernels(Protocol):
+    """The tracker's per-sample work: qmg_lab/clsf/kernels.py (numba) or qmg_lab/clsf/edges_numpy.py (numpy),
+    which give the same results bit for bit."""
+
+    def plateau_levels(self, d: np.ndarray, lo: float, hi: float) -> tuple[float, float]: ...
+
+    def level_crossings(
+        self,
+        t: np.ndarray,
+        d: np.ndarray,
+        lo: float,
+        hi: float,
+        prev: tuple[float, float, int],
+        window_s: float,
+        hysteresis: float,
+        intermediate: float,
+    ) -> tuple[np.ndarray, np.ndarray, float, bool]: ...
+
+    def line_at(self, hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray: ...
+
+    def continue_fit(
+        self, hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
+    ) -> tuple[bool, np.ndarray, np.ndarray]: ...
+
+
+def edge_kernels(compiled: bool) -> EdgeKernels:
+    """The numba kernels (a campaign streams small blocks and loads numba anyway) or their numpy forms (one pass
+    over a whole file, in a process that need not pay numba's ~1 s start-up: `qmg-lab analyze`)."""
+    if compiled:
+        from qmg_lab.clsf import kernels
+
+        return kernels
+    from qmg_lab.clsf import edges_numpy
+
+    return edges_numpy
+
+
 @dataclass
 class EdgeTracker:
-    """Streams dither samples in; returns the smoothed times of the rising and falling edges found."""
+    """Streams dither samples in; returns the smoothed times of the rising and falling edges found.
+
+    compiled: run the per-sample work in numba's kernels (True) or in their numpy forms (False: same edges,
+    bit for bit, without importing numba)."""
 
     window_s: float = 0.0  # the AuxIn averaging window W, s
     fit_edges: int = 32
     min_step_v: float = 0.0  # the smallest level step taken for a running dither, V
+    compiled: bool = True
     lo: float | None = None
     hi: float | None = None
     _prev_t: float | None = None
@@ -48,6 +88,9 @@ class EdgeTracker:
     _prev_high: bool | None = None
     _raw: dict[int, list[float]] = field(default_factory=lambda: {1: [], -1: []})
     _idx: dict[int, list[int]] = field(default_factory=lambda: {1: [], -1: []})
+
+    def __post_init__(self) -> None:
+        self._k = edge_kernels(self.compiled)
 
     def reset(self) -> None:
         """Forget the sample history and the fits (after a gap in the stream)."""
@@ -63,7 +106,7 @@ class EdgeTracker:
                 return
             self.lo, self.hi = lo_b, hi_b
         # plateau readings only (beyond mid +- 0.45 span): an edge's intermediate reading is excluded
-        self.lo, self.hi = plateau_levels(d, self.lo, self.hi)
+        self.lo, self.hi = self._k.plateau_levels(d, self.lo, self.hi)
 
     def process(self, t: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rising, falling) smoothed edge times located in this block of samples (times t_k, values d_k)."""
@@ -77,7 +120,7 @@ class EdgeTracker:
             prev = (self._prev_t, self._prev_s, int(self._prev_high))
         else:
             prev = (0.0, 0.0, -1)
-        rising, falling, last_s, last_high = level_crossings(
+        rising, falling, last_s, last_high = self._k.level_crossings(
             t, d, self.lo, self.hi, prev, self.window_s, HYSTERESIS, INTERMEDIATE
         )
         self._prev_t, self._prev_s, self._prev_high = float(t[-1]), float(last_s), bool(last_high)
@@ -96,7 +139,7 @@ class EdgeTracker:
         if not raw or period <= 0.0:
             return np.asarray([self._smooth(kind, float(x)) for x in te])
         hist_j = np.asarray(idx[-self.fit_edges :], dtype=float)
-        follows, j, fitted = continue_fit(hist_t, hist_j, te, period, self.fit_edges)
+        follows, j, fitted = self._k.continue_fit(hist_t, hist_j, te, period, self.fit_edges)
         if not follows:  # the generator was reprogrammed: edge by edge
             return np.asarray([self._smooth(kind, float(x)) for x in te])
         raw.extend(te.tolist())
@@ -135,4 +178,4 @@ class EdgeTracker:
         """The least-squares line through the last fit_edges (index, time) pairs, at index j (kernels.line_at)."""
         tr = np.asarray(raw[-self.fit_edges :])
         jr = np.asarray(idx[-self.fit_edges :], dtype=float)
-        return float(line_at(tr, jr, np.array([j]))[0])
+        return float(self._k.line_at(tr, jr, np.array([j]))[0])

@@ -159,6 +159,36 @@ def test_edges_between_instantaneous_readings_are_refined_by_the_line_fit() -> N
     assert np.sqrt(np.mean((falling[40:] - true_f[40:]) ** 2)) < 0.1 * dt
 
 
+@pytest.mark.parametrize("window_frac", [0.0, 0.8])
+@pytest.mark.parametrize("chunk", [1, 7, 3600, 36000])
+def test_numpy_edge_kernels_give_the_compiled_trackers_edges_bit_for_bit(window_frac: float, chunk: int) -> None:
+    # a record with all the tracker's paths: a muted start (AuxIn noise only), the dither switched on, noise
+    # that crosses the hysteresis band near the edges, readings inside the window, a reprogrammed generator
+    # (phase jump: the fit restarts edge by edge), and the record cut into blocks of any length
+    rng = np.random.default_rng(7)
+    dt, w = 1 / 1800, window_frac / 1800
+    t = np.arange(1, 1800 * 12) * dt
+    d = 0.3 * _square_record(t, 1 / 7.0003, 0.01234, w)
+    d[t > 7.3] = 0.3 * _square_record(t[t > 7.3], 1 / 7.0003, 0.01234 + 0.061, w)[:]
+    d[t < 1.5] = 0.0
+    d += 1e-3 * rng.normal(size=t.size) + 0.04 * (rng.random(t.size) < 0.002) * rng.normal(size=t.size)
+    cuts = list(range(0, t.size, chunk))
+    if chunk == 1:  # one sample at a time from 0.2 s before the dither starts to 0.3 s after, blocks elsewhere
+        cuts = [0, *range(2340, 3240), *range(3240, t.size, 3600)]
+    compiled = EdgeTracker(window_s=w, min_step_v=0.3, compiled=True)
+    plain = EdgeTracker(window_s=w, min_step_v=0.3, compiled=False)
+    found = 0
+    for i, j in zip(cuts, [*cuts[1:], t.size], strict=True):
+        a = compiled.process(t[i:j], d[i:j])
+        b = plain.process(t[i:j], d[i:j])
+        for x, y in zip(a, b, strict=True):
+            assert x.dtype == y.dtype == np.float64
+            np.testing.assert_array_equal(x, y)
+            found += x.size
+        assert (compiled.lo, compiled.hi) == (plain.lo, plain.hi)
+    assert found >= 2 * 73 - 4  # 10.5 s of a 7 Hz dither after the muted start: 73 periods, two edges each
+
+
 # ---------------------------------------------------------------------------------------------- stream plan
 def test_edge_phase_gap() -> None:
     assert edge_phase_gap(200.0) == pytest.approx(1.0)  # every edge at the same place
