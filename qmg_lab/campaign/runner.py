@@ -125,6 +125,7 @@ class CampaignRunner:
 
     def __post_init__(self) -> None:
         self.steps: list[Step] = list((self.plan or checked_plan(self.cfg)).steps)
+        self._planned_s = plan_duration_s(self.steps)  # the progress line's total, summed once
         self.clsf = ClsfEstimator(
             tau_s=self.cfg.device.tau_s,
             mode=self.cfg.clsf.mode,
@@ -442,7 +443,7 @@ class CampaignRunner:
                     n_steps=len(self.steps),
                     step_elapsed_s=step_elapsed,
                     run_time_s=self._t,
-                    planned_s=plan_duration_s(self.steps),
+                    planned_s=self._planned_s,
                     done_s=self._done_s + step_elapsed,
                     chamber_c=self._read.chamber_c,
                     chamber_setpoint_c=self._read.chamber_sp,

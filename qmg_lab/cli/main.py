@@ -26,7 +26,6 @@ from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
-from qmg_lab.config.edit import with_values
 from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
@@ -400,6 +399,7 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
 # ====================================================================================== characterize
 def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Path | None, quiet: bool) -> None:
     from qmg_lab.analysis.compute import analyze
+    from qmg_lab.config.edit import with_values  # tomlkit: only characterize rewrites the configuration's text
 
     cfg, text = _load(config, sim, campaign=True)
     text = with_values(text, {"campaign.kind": kind})
