@@ -24,6 +24,7 @@ that lies more than a quarter period off the line (the generator was reprogramme
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -35,27 +36,23 @@ HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, els
 
 class EdgeKernels(Protocol):
     """The tracker's per-sample work: qmg_lab/clsf/kernels.py (numba) or qmg_lab/clsf/edges_numpy.py (numpy),
-    which give the same results bit for bit."""
+    which give the same results bit for bit (read-only members: module functions and numba dispatchers both fit)."""
 
-    def plateau_levels(self, d: np.ndarray, lo: float, hi: float) -> tuple[float, float]: ...
-
+    @property
+    def plateau_levels(self) -> Callable[[np.ndarray, float, float], tuple[float, float]]: ...
+    @property
     def level_crossings(
         self,
-        t: np.ndarray,
-        d: np.ndarray,
-        lo: float,
-        hi: float,
-        prev: tuple[float, float, int],
-        window_s: float,
-        hysteresis: float,
-        intermediate: float,
-    ) -> tuple[np.ndarray, np.ndarray, float, bool]: ...
-
-    def line_at(self, hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray: ...
-
+    ) -> Callable[
+        [np.ndarray, np.ndarray, float, float, tuple[float, float, int], float, float, float],
+        tuple[np.ndarray, np.ndarray, float, bool],
+    ]: ...
+    @property
+    def line_at(self) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]: ...
+    @property
     def continue_fit(
-        self, hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
-    ) -> tuple[bool, np.ndarray, np.ndarray]: ...
+        self,
+    ) -> Callable[[np.ndarray, np.ndarray, np.ndarray, float, int], tuple[bool, np.ndarray, np.ndarray]]: ...
 
 
 def edge_kernels(compiled: bool) -> EdgeKernels:
