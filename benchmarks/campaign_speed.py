@@ -5,7 +5,7 @@ reports the median real-time factor (simulated seconds per wall second of the wh
 driver and twin code, CLSF, logging) and the process's peak resident memory (from wait4's rusage). Then runs
 the same campaign with a chamber ramp three times slower (about three times longer) and reports its peak
 memory: a campaign's memory must not grow with its length. Last, the start-up: the same process for the paper
-campaign cut to a few dwell steps (about 40 simulated seconds, `SHORT`), whose wall and CPU time are almost
+campaign cut to a few dwell steps (28 simulated seconds, `SHORT`), whose wall and CPU time are almost
 all fixed cost (interpreter, imports, numba's cached kernels, configuration, connecting the twins, the file).
 
     python benchmarks/campaign_speed.py [--json] [--runs N]
@@ -58,7 +58,7 @@ def run_once(config: Path, out: Path) -> tuple[float, float, float, float, float
 
 
 # the paper campaign cut to its start-up: 1 s of lock, 1 s of soak, a 0.1 degC ramp at the chamber's 5 degC/min
-# and 7 s dwells (6 steps, about 40 simulated seconds)
+# and 7 s dwells (6 steps, 28 simulated seconds)
 SHORT = {
     "lock_settle_s": 1.0,
     "chamber_soak_s": 1.0,
