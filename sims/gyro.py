@@ -12,8 +12,10 @@ X_s + iY_s = G_py (c_y - i s_y)/sqrt(2); AGC (input R_d) -> V_d, F_xs = -K_dx V_
 quadrature PID (input Y_s) -> V_q; F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc = +K_f G_f(T) V_q; Omega = table rate
 + Gauss-Markov bias; ARW as white force noise on the sense axis; pickoff noise white on the demod outputs.
 
-Memory: a block allocates only its own outputs (the kernel writes into them in place) and its noise draws in chunks
-of CHUNK_STEPS; between blocks only the state vector (about 80 numbers) is kept.
+Memory: a block allocates only its own outputs (the kernel writes into them in place) and runs the kernel in chunks
+of CHUNK_STEPS; between blocks the state vector (about 80 numbers) and the noise rows drawn ahead (at most two
+prefetches of PREFETCH_ROWS per-step rows, sims/noise.py) are kept. The kernels release the GIL, so the noise
+stream's background thread draws the next rows while they run.
 """
 
 from __future__ import annotations
