@@ -108,7 +108,7 @@ class _RowStream:
         self._width = width
         self._dtype = dtype
         self._ahead = ahead
-        self._background = background
+        self.background = background
         self._rows: np.ndarray = np.empty((0, width), dtype=dtype)  # drawn rows; [_pos:] not yet handed out
         self._pos = 0
         self._job: _Prefetch | None = None
@@ -122,7 +122,7 @@ class _RowStream:
             self._pos = pos + n
         else:
             out = self._take_across(n)
-        if self._background and self._job is None:
+        if self.background and self._job is None:
             if self._called:
                 self._prefetch(max(self._ahead, n))
             self._called = True
@@ -144,7 +144,7 @@ class _RowStream:
             need -= take
             self._rows, self._pos = drawn, take
         if need > 0:
-            if self._background:  # the next prefetch is started by take()
+            if self.background:  # the next prefetch is started by take()
                 parts.append(self._draw(need))
             else:
                 drawn = self._draw(max(self._ahead, need))
@@ -191,17 +191,28 @@ class NoiseStream:
     The per-step rows are prefetched: from the second call of `steps` on, the next PREFETCH_ROWS (or n, if
     larger) rows are drawn on the shared background thread while the caller computes; the bias rows are drawn
     GM_ROWS_AHEAD at a time. Either way each stream is read in order, so the values are those of drawing
-    exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch."""
+    exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch.
+    `prefetch=False` (or setting `.prefetch` later) draws the per-step rows in the caller's thread instead, with
+    the same values (benchmarks compare the two)."""
 
-    def __init__(self, seed: int, per_step: int, n_gm: int) -> None:
+    def __init__(self, seed: int, per_step: int, n_gm: int, prefetch: bool = True) -> None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         ss = np.random.SeedSequence(int(seed))
         s1, s2 = ss.spawn(2)
         self.per_step = per_step
         self.n_gm = n_gm
-        self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, True)
+        self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, prefetch)
         self._gm = _RowStream(np.random.Generator(np.random.PCG64(s2)), n_gm, np.float64, GM_ROWS_AHEAD, False)
+
+    @property
+    def prefetch(self) -> bool:
+        """Whether the per-step rows are drawn ahead on the background thread."""
+        return self._step.background
+
+    @prefetch.setter
+    def prefetch(self, on: bool) -> None:
+        self._step.background = bool(on)
 
     def steps(self, n: int, enabled: bool = True) -> np.ndarray:
         """(n, per_step) float32 draws (ziggurat; single precision is ample for noise and twice as fast), the

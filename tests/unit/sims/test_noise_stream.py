@@ -56,6 +56,18 @@ def test_per_step_rows_are_the_stream_in_order_for_any_block_pattern(seed: int, 
     np.testing.assert_array_equal(np.concatenate(got), whole)
 
 
+@pytest.mark.parametrize("pattern", list(PATTERNS.values()), ids=list(PATTERNS))
+def test_switching_prefetch_off_and_on_mid_stream_keeps_the_order(pattern: list[int]) -> None:
+    stream = NoiseStream(8, gk.NOISE_PER_STEP, gk.N_GM, prefetch=False)
+    got = []
+    for k, n in enumerate(pattern):
+        if k % 3 == 2:
+            stream.prefetch = not stream.prefetch  # a pending prefetch is still collected in order
+        got.append(stream.steps(n))
+    for g, ref in zip(got, _reference_steps(8, pattern), strict=True):
+        np.testing.assert_array_equal(g, ref)
+
+
 def test_rows_handed_out_stay_valid_while_the_stream_draws_on() -> None:
     stream = NoiseStream(3, gk.NOISE_PER_STEP, gk.N_GM)
     pattern = [900] * 40
