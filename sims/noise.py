@@ -87,6 +87,13 @@ class _PrefetchThread:
 _PREFETCH = _PrefetchThread()
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one, else os.cpu_count())."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
 @dataclass
 class _Prefetch:
     """Rows being drawn ahead: the future of the draw, its size, the generator state before it (to redo it in a
@@ -193,15 +200,18 @@ class NoiseStream:
     GM_ROWS_AHEAD at a time. Either way each stream is read in order, so the values are those of drawing
     exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch.
     `prefetch=False` (or setting `.prefetch` later) draws the per-step rows in the caller's thread instead, with
-    the same values (benchmarks compare the two)."""
+    the same values (benchmarks compare the two); the default prefetches when the process may run on more than
+    one CPU."""
 
-    def __init__(self, seed: int, per_step: int, n_gm: int, prefetch: bool = True) -> None:
+    def __init__(self, seed: int, per_step: int, n_gm: int, prefetch: bool | None = None) -> None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         ss = np.random.SeedSequence(int(seed))
         s1, s2 = ss.spawn(2)
         self.per_step = per_step
         self.n_gm = n_gm
+        if prefetch is None:  # a second thread only pays with a second CPU to run on
+            prefetch = usable_cpus() > 1
         self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, prefetch)
         self._gm = _RowStream(np.random.Generator(np.random.PCG64(s2)), n_gm, np.float64, GM_ROWS_AHEAD, False)
 

@@ -13,7 +13,10 @@ import os
 import pickle
 import select
 import signal
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +26,7 @@ from sims.gyro import GyroParams, GyroSim, held_inputs
 from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream
 from tests.support.paper_loops import paper_loops
 
+ROOT = Path(__file__).resolve().parents[3]
 P = PREFETCH_ROWS
 PATTERNS = {
     "hf2 poll blocks": [900] * 30,
@@ -46,7 +50,7 @@ def _reference_steps(seed: int, pattern: list[int]) -> list[np.ndarray]:
 @pytest.mark.parametrize("pattern", list(PATTERNS.values()), ids=list(PATTERNS))
 @pytest.mark.parametrize("seed", [0, 5, 2**40 + 3])
 def test_per_step_rows_are_the_stream_in_order_for_any_block_pattern(seed: int, pattern: list[int]) -> None:
-    stream = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM)
+    stream = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
     got = [stream.steps(n) for n in pattern]
     for g, ref in zip(got, _reference_steps(seed, pattern), strict=True):
         assert g.dtype == np.float32
@@ -69,7 +73,7 @@ def test_switching_prefetch_off_and_on_mid_stream_keeps_the_order(pattern: list[
 
 
 def test_rows_handed_out_stay_valid_while_the_stream_draws_on() -> None:
-    stream = NoiseStream(3, gk.NOISE_PER_STEP, gk.N_GM)
+    stream = NoiseStream(3, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
     pattern = [900] * 40
     kept = [stream.steps(n) for n in pattern]  # every array kept until the end: none may be overwritten
     for g, ref in zip(kept, _reference_steps(3, pattern), strict=True):
@@ -77,7 +81,7 @@ def test_rows_handed_out_stay_valid_while_the_stream_draws_on() -> None:
 
 
 def test_off_calls_draw_nothing_and_bias_rows_are_their_own_stream_in_order() -> None:
-    stream = NoiseStream(9, gk.NOISE_PER_STEP, gk.N_GM)
+    stream = NoiseStream(9, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
     step_pattern = [900, 900, 900, 900]
     gm_pattern = [5, 0, 1, GM_ROWS_AHEAD - 6, 1, 2 * GM_ROWS_AHEAD + 1, 3]
     steps, gms = [], []
@@ -97,7 +101,7 @@ def test_off_calls_draw_nothing_and_bias_rows_are_their_own_stream_in_order() ->
 
 
 def test_a_copy_continues_the_stream_like_the_original() -> None:
-    stream = NoiseStream(4, gk.NOISE_PER_STEP, gk.N_GM)
+    stream = NoiseStream(4, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
     pattern = [900, 900, 900, P, 900, 900]
     ref = _reference_steps(4, pattern)
     for n in pattern[:3]:
@@ -115,6 +119,7 @@ def test_many_sims_share_one_prefetch_thread() -> None:
     before = threading.active_count()
     for seed in range(150):
         sim = GyroSim(GyroParams(), 1.0 / 1800.0, seed=seed)
+        sim._noise.prefetch = True  # whatever the CPU count of the machine running the test
         for _ in range(3):  # the second block starts a prefetch
             sim.run(inputs, loops)
         sims.append(sim)
@@ -127,7 +132,7 @@ def test_many_sims_share_one_prefetch_thread() -> None:
 def test_a_forked_child_continues_the_stream_with_its_own_prefetch_thread() -> None:
     pattern = [900] * 12
     ref = np.concatenate(_reference_steps(6, pattern))
-    stream = NoiseStream(6, gk.NOISE_PER_STEP, gk.N_GM)
+    stream = NoiseStream(6, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
     head = [stream.steps(n) for n in pattern[:2]]  # the second call left a prefetch pending (or finished)
     r, w = os.pipe()
     pid = os.fork()
@@ -160,3 +165,18 @@ def test_a_forked_child_continues_the_stream_with_its_own_prefetch_thread() -> N
     # the parent's stream is untouched by the child
     parent = np.concatenate(head + [stream.steps(n) for n in pattern[2:]])
     np.testing.assert_array_equal(parent, ref)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
+def test_the_default_prefetches_only_with_a_second_cpu_to_run_on() -> None:
+    code = (
+        "import os; from sims.noise import NoiseStream, usable_cpus; "
+        "print(usable_cpus(), NoiseStream(1, 6, 16).prefetch); "
+        "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
+        "print(usable_cpus(), NoiseStream(1, 6, 16).prefetch)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    first, pinned = out.stdout.split("\n")[:2]
+    n = len(os.sched_getaffinity(0))
+    assert first == f"{n} {n > 1}"
+    assert pinned == "1 False"
