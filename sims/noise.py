@@ -71,15 +71,15 @@ class _PrefetchThread:
         self._lock = threading.Lock()
         self._executor = None
 
-    def submit(self, gen: np.random.Generator, rows: int, per_step: int) -> Future[np.ndarray] | None:
-        """Start drawing (rows, per_step) float32 normals from gen; None when no thread can take it (the
+    def submit(self, gen: np.random.Generator, rows: int, width: int, dtype: type) -> Future[np.ndarray] | None:
+        """Start drawing (rows, width) standard normals of dtype from gen; None when no thread can take it (the
         interpreter is shutting down): the caller then draws them itself when it needs them."""
         with self._lock:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sims-noise-prefetch")
             executor = self._executor
         try:
-            return executor.submit(gen.standard_normal, (rows, per_step), np.float32)
+            return executor.submit(gen.standard_normal, (rows, width), dtype)
         except RuntimeError:  # "cannot schedule new futures after (interpreter) shutdown"
             return None
 
@@ -164,7 +164,7 @@ class _RowStream:
         """Start drawing the next `rows` rows on the background thread (the generator is not touched here until
         they are collected)."""
         state = self._gen.bit_generator.state
-        future = _PREFETCH.submit(self._gen, rows, self._width)
+        future = _PREFETCH.submit(self._gen, rows, self._width, self._dtype)
         if future is not None:
             self._job = _Prefetch(future, rows, state, os.getpid())
 
