@@ -7,9 +7,14 @@ temperature ramp, so every per-step term is exercised.
 
 * averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (what the HF2 twin polls)
   and of 60 s; real-time factor = simulated seconds per wall second, and per second of this process's CPU time
-  (`*_cpu_*`: less sensitive to other processes on a shared machine; the two agree on an idle one).
-* averaged, where the CPU time of a 0.5 s block goes: the compiled kernel alone, the per-step normal draws
-  alone, and the rest of GyroSim.run (Python per block).
+  (`*_cpu_*`, all threads: less sensitive to other processes on a shared machine; without the prefetch the two
+  agree on an idle one).
+  The per-step normal draws are prefetched on a background thread while the kernel runs (sims/noise.py): the
+  0.5 s figure is also given with the prefetch off (`*_no_prefetch`, the same values drawn in the caller's
+  thread), and the CPU time of the calling thread alone (`averaged_cpu_ns_per_step_main_thread`): on a machine
+  with a free core the wall-clock time follows it.
+* averaged, where the CPU time of a 0.5 s block goes (prefetch off): the compiled kernel alone, the per-step
+  normal draws alone, and the rest of GyroSim.run (Python per block).
 * carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
 * memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
   HF2 twin would after converting them), peak RSS from resource.getrusage(RUSAGE_SELF).ru_maxrss.
@@ -61,27 +66,35 @@ def _inputs(n: int, dt: float, t0: float):
     return held_inputs(n, dt, dither_v=square, temperature_c=25.0 + t / 3600.0, t0_s=t0)
 
 
-def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[float, float]:
-    """(wall-clock, process-CPU-time) real-time factors of sim.run over sim_seconds in blocks of block_s.
+def _rt_factors(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[float, float, float]:
+    """(wall-clock, process-CPU-time, calling-thread-CPU-time) real-time factors of sim.run over sim_seconds in
+    blocks of block_s.
 
-    The CPU-time figure counts only the time this process ran, so it moves less than the wall-clock one when
-    other processes share the cores (both are equal on an idle machine)."""
+    The CPU-time figure counts only the time this process ran (all its threads), so it moves less than the
+    wall-clock one when other processes share the cores (both are equal on an idle machine without the prefetch
+    thread); the thread figure leaves out the prefetch thread's draws."""
     loops = _loops()
     n = int(round(block_s / dt))
     blocks = max(1, int(sim_seconds / block_s))
     pre = [_inputs(n, dt, k * block_s) for k in range(min(blocks, 8))]
     sim.run(pre[0], loops)  # compile / warm up
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, th0 = time.perf_counter(), time.process_time(), time.thread_time()
     for k in range(blocks):
         sim.run(pre[k % len(pre)], loops)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return blocks * n * dt / wall, blocks * n * dt / cpu
+    wall, cpu, thread = time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - th0
+    return blocks * n * dt / wall, blocks * n * dt / cpu, blocks * n * dt / thread
+
+
+def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[float, float]:
+    """(wall-clock, process-CPU-time) real-time factors (_rt_factors)."""
+    wall, cpu, _ = _rt_factors(sim, dt, block_s, sim_seconds)
+    return wall, cpu
 
 
 def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
-    """CPU ns per averaged step, split: the compiled kernel alone (noise drawn once beforehand), the per-step
-    normal draws alone (NoiseStream.steps), and the rest of GyroSim.run (Python per block: input checks, loop
-    vector, bias draws, output block), measured as run minus the two."""
+    """CPU ns per averaged step with the prefetch off, split: the compiled kernel alone (noise drawn once
+    beforehand), the per-step normal draws alone (NoiseStream.steps), and the rest of GyroSim.run (Python per
+    block: input checks, loop vector, bias draws, output block), measured as run minus the two."""
     from sims.gyro import GyroParams, GyroSim
     from sims.noise import NoiseStream
 
@@ -89,8 +102,9 @@ def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
     n = int(round(block_s / DT))
     inp = _inputs(n, DT, 0.0)
     sim = GyroSim(GyroParams(), DT, seed=1)
+    sim._noise.prefetch = False
     sim.run(inp, loops)
-    stream = NoiseStream(2, 6, 16)
+    stream = NoiseStream(2, 6, 16, prefetch=False)
     noise = stream.steps(n)
     gm = np.zeros((n // sim.gm_steps + 2, 16))
     out = np.empty((11, n))
@@ -161,12 +175,18 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
         res["compile_cold_s"] = _run_child(["--child-compile"], env)["seconds"]
         res["compile_warm_s"] = _run_child(["--child-compile"], env)["seconds"]
 
-    rt_avg, cpu_avg = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
+    rt_avg, cpu_avg, main_avg = _rt_factors(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
     res["averaged_realtime_factor"] = rt_avg
     res["averaged_steps_per_s"] = rt_avg / DT
     res["averaged_ns_per_step"] = 1e9 * DT / rt_avg
     res["averaged_cpu_realtime_factor"] = cpu_avg
     res["averaged_cpu_ns_per_step"] = 1e9 * DT / cpu_avg
+    res["averaged_cpu_ns_per_step_main_thread"] = 1e9 * DT / main_avg
+    plain = GyroSim(GyroParams(), DT, seed=1)
+    plain._noise.prefetch = False
+    rt_plain, cpu_plain = _rt_factor(plain, DT, 0.5, 600.0)
+    res["averaged_realtime_factor_no_prefetch"] = rt_plain
+    res["averaged_cpu_realtime_factor_no_prefetch"] = cpu_plain
     rt60, cpu60 = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 60.0, 1200.0)
     res["averaged_realtime_factor_60s_blocks"] = rt60
     res["averaged_cpu_realtime_factor_60s_blocks"] = cpu60

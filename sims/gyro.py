@@ -12,8 +12,10 @@ X_s + iY_s = G_py (c_y - i s_y)/sqrt(2); AGC (input R_d) -> V_d, F_xs = -K_dx V_
 quadrature PID (input Y_s) -> V_q; F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc = +K_f G_f(T) V_q; Omega = table rate
 + Gauss-Markov bias; ARW as white force noise on the sense axis; pickoff noise white on the demod outputs.
 
-Memory: a block allocates only its own outputs (the kernel writes into them in place) and its noise draws in chunks
-of CHUNK_STEPS; between blocks only the state vector (about 80 numbers) is kept.
+Memory: a block allocates only its own outputs (the kernel writes into them in place) and runs the kernel in chunks
+of CHUNK_STEPS; between blocks the state vector (about 80 numbers) and the noise rows drawn ahead (at most two
+prefetches of PREFETCH_ROWS per-step rows, sims/noise.py) are kept. The kernels release the GIL, so the noise
+stream's background thread draws the next rows while they run.
 """
 
 from __future__ import annotations
@@ -309,9 +311,9 @@ class _TwinBase:
 
     def _loops_vector(self, loops: LoopSettings) -> np.ndarray:
         """pack_loops(loops), kept while the settings stay equal (the HF2 twin passes the same settings every
-        poll; comparing is a third of the cost of packing and checking). The key is a private copy, so changing
+        poll; comparing is a sixth of the cost of packing and checking). The key is a private copy, so changing
         the caller's LoopSettings in place is seen."""
-        if self._loops_key is not None and loops == self._loops_key[0]:
+        if self._loops_key is not None and _same_loops(loops, self._loops_key[0]):
             return self._loops_key[1]
         vec = pack_loops(loops)
         self._loops_key = (copy.deepcopy(loops), vec)
@@ -328,17 +330,15 @@ class _TwinBase:
             self._pending = "none"
         n = temp.shape[0]
         out = np.empty((gk.N_OUT, n))
-        err_max = 0.0
-        for a in range(0, n, CHUNK_STEPS):
-            b = min(n, a + CHUNK_STEPS)
-            m = b - a
-            noise = self._noise.steps(m, self._step_noise_on)
-            n_upd = (int(self._S[gk.S_GMK]) + m) // self.gm_steps
-            gm = self._noise.gm(n_upd, self._bias_on)
-            used, chunk_err = self._kernel(temp[a:b], rate[a:b], dither[a:b], noise, gm, out[:, a:b], lvec)
-            if used != n_upd:
-                raise RuntimeError(f"bias update count mismatch ({used} != {n_upd}): kernel and planner disagree")
-            err_max = max(err_max, chunk_err)
+        if n <= CHUNK_STEPS:  # a poll's block: one chunk, no slicing
+            err_max = self._run_chunk(temp, rate, dither, out, lvec)
+        else:
+            err_max = 0.0
+            for a in range(0, n, CHUNK_STEPS):
+                b = min(n, a + CHUNK_STEPS)
+                chunk_err = self._run_chunk(temp[a:b], rate[a:b], dither[a:b], out[:, a:b], lvec)
+                if not chunk_err <= err_max:  # also keeps a NaN: the block then reads as unlocked
+                    err_max = chunk_err
         locked = bool(loops.pll.enabled and err_max < PLL_LOCK_DEG)
         return GyroBlock(
             x_drive=out[gk.O_XD],
@@ -355,6 +355,33 @@ class _TwinBase:
             pll_locked=locked,
             rate_auxout_v=out[gk.O_AUX],
         )
+
+    def _run_chunk(
+        self, temp: np.ndarray, rate: np.ndarray, dither: np.ndarray, out: np.ndarray, lvec: np.ndarray
+    ) -> float:
+        """Draw one chunk's noise and run the kernel on it (outputs into `out`); returns its max |PLL error|."""
+        m = temp.shape[0]
+        noise = self._noise.steps(m, self._step_noise_on)
+        n_upd = (int(self._S[gk.S_GMK]) + m) // self.gm_steps
+        gm = self._noise.gm(n_upd, self._bias_on)
+        used, err_max = self._kernel(temp, rate, dither, noise, gm, out, lvec)
+        if used != n_upd:
+            raise RuntimeError(f"bias update count mismatch ({used} != {n_upd}): kernel and planner disagree")
+        return err_max
+
+
+def _same_loops(a: LoopSettings, b: LoopSettings) -> bool:
+    """a == b as the dataclasses compare them, with each settings object's field dictionary compared in C (half
+    the time of the generated __eq__, which builds tuples). A test holds it to == for every field."""
+    return (
+        a.pll.__dict__ == b.pll.__dict__
+        and a.agc.__dict__ == b.agc.__dict__
+        and a.rate.__dict__ == b.rate.__dict__
+        and a.quadrature.__dict__ == b.quadrature.__dict__
+        and a.forcer_gain == b.forcer_gain
+        and a.demod_timeconstant_s == b.demod_timeconstant_s
+        and a.demod_order == b.demod_order
+    )
 
 
 class GyroSim(_TwinBase):

@@ -51,6 +51,9 @@ True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| t
 (equal to sqrt2 R_setpoint once the AGC has settled; during the slow AGC transient after a rate step, caused by
 the Coriolis load k Omega c_y on the drive, the rate output follows the actual amplitude).
 Bias: a sum of first-order Gauss-Markov rates x_j <- a_j x_j + b_j w, updated every `gm_steps` steps and held.
+
+The kernels are compiled with nogil=True: they touch only the arrays they are given, so the noise stream's
+background thread (sims/noise.py) draws the next block's normals while they run.
 """
 
 from __future__ import annotations
@@ -343,7 +346,7 @@ def _lowpass_sections(P, L, dt):
     return fj, fs, fr, order, a_d, c_d, sections
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):
     """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`.
 
@@ -495,7 +498,7 @@ def _expm_taylor(A, dt, term, tmp, phi_m, psi):
                 psi[r, c] += tmp[r, c] * dt / (nn + 1)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise, gm_noise, out):
     """Advance the carrier-level model by len(temp_c) demod samples of m_per carrier samples of P[P_DT].
 

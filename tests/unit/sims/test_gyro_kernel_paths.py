@@ -7,6 +7,8 @@ equal. Each must give what the general formula or the unsplit run gives.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import itertools
 import math
 
@@ -14,8 +16,8 @@ import numpy as np
 import pytest
 
 from sims import gyro_kernel as gk
-from sims.gyro import CHUNK_STEPS, GyroParams, GyroSim, held_inputs
-from sims.gyro_params import pack_loops
+from sims.gyro import CHUNK_STEPS, GyroParams, GyroSim, _same_loops, held_inputs
+from sims.gyro_params import LoopSettings, pack_loops
 from tests.support.paper_loops import paper_loops
 
 DT = 1.0 / 1800.0
@@ -90,6 +92,32 @@ def test_loop_settings_changed_in_place_between_blocks_take_effect() -> None:
     loops.rate.enabled = False  # the same object, changed in place
     second = sim.run(held_inputs(200, DT, rate_dps=5.0), loops)
     np.testing.assert_array_equal(second.rate_output_v, np.full(200, loops.rate.center))
+
+
+@pytest.mark.parametrize("n", [300, CHUNK_STEPS + 300])
+def test_a_block_whose_state_went_nan_reads_as_unlocked(n: int) -> None:
+    sim = GyroSim(GyroParams.noiseless(), DT, seed=1)
+    loops = paper_loops(1.0)
+    assert sim.run(held_inputs(n, DT), loops).pll_locked
+    sim._S[gk.S_CX] = float("nan")  # a diverged state: the PLL error is NaN from then on
+    assert not sim.run(held_inputs(n, DT), loops).pll_locked
+
+
+def test_the_loop_settings_comparison_sees_every_field() -> None:
+    base = paper_loops(1.0)
+    assert _same_loops(base, copy.deepcopy(base))
+    for name in [f.name for f in dataclasses.fields(LoopSettings)]:
+        value = getattr(base, name)
+        if dataclasses.is_dataclass(value):
+            for sub in dataclasses.fields(value):
+                changed = copy.deepcopy(base)
+                old = getattr(value, sub.name)
+                setattr(getattr(changed, name), sub.name, (not old) if isinstance(old, bool) else old + 0.5)
+                assert changed != base and not _same_loops(changed, base), (name, sub.name)
+        else:
+            changed = copy.deepcopy(base)
+            setattr(changed, name, value + 1)
+            assert changed != base and not _same_loops(changed, base), name
 
 
 def test_a_disabled_pll_never_reads_as_locked() -> None:
