@@ -614,7 +614,7 @@ class HF2DataServerTwin:
         self.world.record_truth(
             TruthRecord(
                 time=truth_time,
-                scale_factor=np.asarray(blk.sf_true_v_per_dps, dtype=float),
+                scale_factor=np.array(blk.sf_true_v_per_dps, dtype=float),  # a copy: the truth outlives the block
                 temperature=np.asarray(inputs.gyro_c, dtype=float),
                 rate=np.asarray(blk.rate_true_dps, dtype=float),
             )
