@@ -14,9 +14,11 @@ the same numbers whichever evaluated them (tests/unit/sims/test_hf2_kernel.py):
   in seconds, T_k / clockbase.
 * `auxin_readings`: row 0, the rate AuxOut's mean over the AuxIn window W ending at each sample instant,
   V_i - (V_i - V_(i-1)) W / (2 dt) (V piecewise linear between instants; V_(-1) the previous block's last value);
-  row 1 the dither's window means as given; then every reading + sigma n (n standard normal, drawn row 0 then
-  row 1, sample after sample), rounded to the ADC step, floor(v / lsb + 0.5) lsb, and clipped to +-R (lsb = 0:
-  an ideal ADC, neither rounded nor clipped).
+  row 1 the dither's window means as given; then every reading + sigma n (n the given standard normals, which
+  the twin draws with numpy into a reused 2 x n buffer, row 0 then row 1: drawing inside the loop through
+  numba's Generator support gives the same numbers but costs ~24 us per call to unbox the generator),
+  rounded to the ADC step, floor(v / lsb + 0.5) lsb, and clipped to +-R (lsb = 0: an ideal ADC, neither rounded
+  nor clipped).
 
 Compiled on first use and cached on disk (cache=True); the first campaign after an install pays about a second.
 """
@@ -62,7 +64,7 @@ def auxin_readings(
     previous_v: float,
     window_over_2dt: float,
     dither_v: np.ndarray,
-    rng: np.random.Generator,
+    normals: np.ndarray,
     noise_v_rms: float,
     lsb_v: float,
     range_v: float,
@@ -70,7 +72,7 @@ def auxin_readings(
 ) -> None:
     """What the two AuxIns report (module docstring) into `out` (2 x n: row 0 the rate AuxOut, row 1 the dither).
     previous_v: the AuxOut at the instant before the block (its first value if there is none);
-    window_over_2dt = W / (2 dt); noise_v_rms = 0: no noise drawn."""
+    window_over_2dt = W / (2 dt); normals: 2 x n standard normal draws (read only if noise_v_rms > 0)."""
     n = auxout_v.shape[0]
     for i in range(n):
         before = previous_v if i == 0 else auxout_v[i - 1]
@@ -79,7 +81,7 @@ def auxin_readings(
     if noise_v_rms > 0.0:
         for r in range(2):
             for i in range(n):
-                out[r, i] += rng.standard_normal() * noise_v_rms
+                out[r, i] += normals[r, i] * noise_v_rms
     if lsb_v > 0.0:
         for r in range(2):
             for i in range(n):

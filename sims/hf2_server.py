@@ -171,6 +171,7 @@ class HF2DataServerTwin:
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
         # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
         self._auxin_rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
+        self._auxin_normals = np.empty((2, 0))  # the AuxIn noise draws of one block (reused while n stays)
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
         self.nodes = HF2NodeTree(device_id, clockbase_hz)
@@ -439,15 +440,20 @@ class HF2DataServerTwin:
             dither = np.full(v.shape[0], self.world.dither.offset_v)
         else:
             dither = self.world.window_means_at_step_ends(w)
-        both = np.empty((2, v.shape[0]))  # row 0 the rate AuxIn, row 1 the dither AuxIn
+        n = v.shape[0]
+        both = np.empty((2, n))  # row 0 the rate AuxIn, row 1 the dither AuxIn
         p = self.gyro_params
+        if self._auxin_normals.shape[1] != n:
+            self._auxin_normals = np.empty((2, n))
+        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order), into the reused buffer
+            self._auxin_rng.standard_normal(out=self._auxin_normals)
         previous = float(v[0]) if self._auxout_prev is None else self._auxout_prev
         hk.auxin_readings(
             v,
             previous,
             w / (2.0 * dt),
             dither,
-            self._auxin_rng,
+            self._auxin_normals,
             p.auxin_noise_v_rms,
             p.auxin_lsb_v,
             p.auxin_range_v,

@@ -1,5 +1,5 @@
 """The compiled loops of the HF2 twin's poll equal the vectorised equations they replace, bit for bit
-(sims/hf2_kernel.py), and draw the same AuxIn noise from the same generator.
+(sims/hf2_kernel.py), with the AuxIn noise drawn as the twin draws it.
 
 Each reference is the equation of the module docstring written as numpy array expressions (a sequential
 cumulative sum, numpy's floor-modulo, the AuxIn window mean, noise drawn as one (2, n) array, rounding to the ADC
@@ -86,10 +86,13 @@ def test_auxin_readings_are_the_window_mean_noise_adc_and_clip(sigma: float, bit
     seed = np.random.SeedSequence(1, spawn_key=(7,))
     ref_rng, rng = (np.random.Generator(np.random.PCG64(seed)) for _ in range(2))
     ref = _auxin_reference(v, 0.123, factor, dither, ref_rng, sigma, lsb, r)
+    normals = np.full((2, N), np.nan)  # as the twin draws them: into its reused buffer, only with noise on
+    if sigma > 0.0:
+        rng.standard_normal(out=normals)
     out = np.empty((2, N))
-    hk.auxin_readings(v, 0.123, factor, dither, rng, sigma, lsb, r, out)
+    hk.auxin_readings(v, 0.123, factor, dither, normals, sigma, lsb, r, out)
     np.testing.assert_array_equal(out, ref)
-    # the generator was advanced by exactly the 2 n draws (or none): the next block continues the same stream
+    # both drew the same 2 n numbers (or none): the next block continues the same stream
     assert rng.standard_normal() == ref_rng.standard_normal()
     if bits:
         assert np.max(np.abs(out)) == r  # the wandering AuxOut was clipped at the range
@@ -102,6 +105,6 @@ def test_auxin_window_mean_of_a_ramp_is_its_value_half_a_window_back() -> None:
     v = slope_v_per_s * DT * np.arange(1, N + 1)
     w = 2.5e-6
     out = np.empty((2, N))
-    hk.auxin_readings(v, 0.0, w / (2.0 * DT), np.zeros(N), np.random.default_rng(0), 0.0, 0.0, 10.0, out)
+    hk.auxin_readings(v, 0.0, w / (2.0 * DT), np.zeros(N), np.zeros((2, N)), 0.0, 0.0, 10.0, out)
     np.testing.assert_allclose(out[0], v - slope_v_per_s * w / 2.0, rtol=0.0, atol=1e-15)
     np.testing.assert_array_equal(out[1], 0.0)
