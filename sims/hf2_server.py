@@ -472,17 +472,18 @@ class HF2DataServerTwin:
             self._gyro_count += 1
         return self._gyro
 
-    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, np.ndarray]:
-        """Run the block, split where a forced PLL unlock ends; returns the block and a per-step locked mask."""
+    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, bool]:
+        """Run the block, split where a forced PLL unlock ends; returns the block and whether the PLL stayed
+        locked (closed and within its lock error) through every step of it."""
         gyro = self._ensure_gyro(dt)
+        if self._unlock_until is None:  # the usual poll: one run over the whole block
+            blk = gyro.run(inputs, plan.settings)
+            return blk, blk.pll_locked
         n = len(inputs.t)
         t_end = inputs.t + dt
-        cut = n  # steps [0, cut) end inside the forced-unlock window
-        if self._unlock_until is not None:
-            cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))
-        segments = [(0, cut, True), (cut, n, False)] if self._unlock_until is not None else [(0, n, False)]
+        cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))  # steps [0, cut) end while forced open
         blocks, locked = [], np.ones(n, dtype=bool)
-        for a, b, forced in segments:
+        for a, b, forced in ((0, cut, True), (cut, n, False)):
             if b <= a:
                 continue
             s = plan.settings
@@ -493,12 +494,12 @@ class HF2DataServerTwin:
             if not blk.pll_locked:
                 locked[a:b] = False
             blocks.append(blk)
-        if self._unlock_until is not None and t_end[-1] >= self._unlock_until:
+        if t_end[-1] >= self._unlock_until:
             self._unlock_until = None
         if len(blocks) == 1:
-            return blocks[0], locked
+            return blocks[0], bool(locked.all())
         merged = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in _ARRAY_FIELDS}
-        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), locked
+        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), bool(locked.all())
 
     def _poll_layout(self, demods: list[str]) -> _PollLayout:
         """What a poll reads from the settings, read once per change of the settings or of the subscriptions: the
@@ -662,13 +663,11 @@ class HF2DataServerTwin:
             auxin_values=(f"{dev}/auxins/0/values/0", f"{dev}/auxins/0/values/1"),
         )
 
-    def _reflect(
-        self, layout: _PollLayout, blk: GyroBlock, locked: np.ndarray, aux: list[np.ndarray], dropped: int
-    ) -> None:
+    def _reflect(self, layout: _PollLayout, blk: GyroBlock, locked: bool, aux: list[np.ndarray], dropped: int) -> None:
         """Read-only nodes at the end of the block (module docstring, item 4), written straight into the node
         values under the layout's absolute paths."""
         plan, paths, values = layout.plan, layout.paths, self.nodes.values
-        pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
+        pll_locked = bool(plan.pll_closed and blk.pll_locked and locked)
         f_end = float(blk.frequency_hz[-1])
         values[paths.pll_locked] = int(pll_locked)
         values[paths.pll_freqdelta] = f_end - float(values[paths.pll_freqcenter]) if plan.pll_closed else 0.0
