@@ -4,7 +4,7 @@ One `World` is shared by every twin: the DS345 twin writes the dither, the table
 chamber twin the setpoint; the HF2 twin advances the clock block by block (`advance`), receiving the inputs the
 gyro physics needs at every step. Nothing here sleeps: a 3-hour campaign takes as long as its arithmetic.
 
-Dynamics (all exact for inputs held over a step, evaluated vectorised per block):
+Dynamics (all exact for inputs held over a step; a block is one compiled call, sims/world_kernel.block_inputs):
 
 * Table, rate mode: rate moves toward the command at the acceleration limit a,
   r(t) = r0 + sign(r1 - r0) * min(a t, |r1 - r0|); sinusoid mode: r(t) = A sin(2 pi f (t - t_s)).
