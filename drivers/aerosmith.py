@@ -104,6 +104,8 @@ class Aerosmith1291BR(RateTable):
         return result
 
     def _raise_if_error(self, raw: bytes, line: str) -> None:
+        if not line.startswith("E"):  # every error line does (proto.ERROR_LINE); values and the prompt do not
+            return
         m = proto.ERROR_LINE.match(line)
         if m is None:
             return

@@ -109,6 +109,8 @@ class SerialLink:
         self.name = name
         self.framing = framing
         self.command_terminator = framing.command_end
+        self._reply_end = framing.reply_end  # the framing is frozen: its bytes are looked up once
+        self._prompt = framing.prompt.encode("ascii")
         self.max_reply_bytes = int(max_reply_bytes)
         self._rx = bytearray()  # bytes read from the port but not yet consumed by a line
         self._log = logging.getLogger(f"{__name__}.{name}")
@@ -143,7 +145,7 @@ class SerialLink:
 
     def _line_end(self) -> tuple[int, int] | None:
         """(end of content, end of terminator) of the first complete line in the buffer, or None."""
-        exact = self.framing.reply_end
+        exact = self._reply_end
         if exact is not None:
             i = self._rx.find(exact)
             return None if i < 0 else (i, i + len(exact))
@@ -160,7 +162,7 @@ class SerialLink:
         max_reply_bytes, or bytes that are not printable ASCII (garbled).
         """
         received = bytearray()  # what this line consumed, for messages
-        prompt = self.framing.prompt.encode("ascii")
+        prompt = self._prompt
         if not self._rx and not self._fill(command):  # nothing buffered: nothing to look at before reading
             raise InstrumentError(f"{self.name}: timeout: no reply to {self._show(command)} (received b'')")
         while True:

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
 from sims.hf2_nodetree import HF2NodeTree, NodeError
 from sims.world import BlockInputs, TruthRecord, World
@@ -99,6 +100,25 @@ class _DemodSpec:
 
 
 @dataclass(frozen=True)
+class _ReflectPaths:
+    """The absolute paths of the read-only nodes a poll writes (`_reflect`), built once per layout."""
+
+    ref_osc_freq: str
+    pll_locked: str
+    pll_freqdelta: str
+    pll_freqcenter: str
+    pll_error: str
+    flags_binary: str
+    flags_sampleloss: str
+    status_time: str
+    pid_error: dict[str, str]  # by loop name ("agc", "rate", "quadrature"), for the PIDs the loop plan uses
+    pid_shift: dict[str, str]
+    rate_auxout: str
+    quadrature_auxout: str
+    auxin_values: tuple[str, str]
+
+
+@dataclass(frozen=True)
 class _PollLayout:
     """The settings a poll needs, valid for one (settings version, subscribed demods) `key`."""
 
@@ -110,7 +130,8 @@ class _PollLayout:
     used_oscs: frozenset[int]  # the reference oscillator and those of every subscribed demod
     fixed_osc_hz: dict[int, float]  # the set frequency of every oscillator but the reference
     auxin_window_s: float
-    pid_settings: dict[int, tuple[float, float]]  # (setpoint, center) of every PID the loop plan uses
+    pid_settings: dict[str, tuple[float, float]]  # (setpoint, center) of every PID the loop plan uses, by loop
+    paths: _ReflectPaths
 
 
 def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
@@ -150,6 +171,7 @@ class HF2DataServerTwin:
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
         # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
         self._auxin_rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
+        self._auxin_normals = np.empty((2, 0))  # the AuxIn noise draws of one block (reused while n stays)
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
         self.nodes = HF2NodeTree(device_id, clockbase_hz)
@@ -169,8 +191,6 @@ class HF2DataServerTwin:
         self._settings_version = 0  # bumped by every client set: the loop plan is re-read only then
         self._plan_version = -1
         self._layout: _PollLayout | None = None
-        self._tick_offsets_key: tuple[int, int] | None = None
-        self._tick_offsets_cache = np.zeros(0, dtype=np.int64)
         for d in range(6):  # round the power-on rates like a set would
             self._round_rate(f"/{self.device_id}/demods/{d}/rate")
 
@@ -405,46 +425,42 @@ class HF2DataServerTwin:
         avg = int(self.nodes.peek("auxins/0/averaging"))
         return float(2 ** max(0, min(15, avg))) / AUXIN_ADC_RATE_HZ
 
-    def _auxin_records(
-        self, blk: GyroBlock, t_end: np.ndarray, dt: float, window_s: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(rate AuxOut, dither) as the AuxIns report them at the sample instants t_end (module docstring), for
-        the averaging window `window_s` (`auxin_window_s`).
+    def _auxin_records(self, blk: GyroBlock, dt: float, window_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(rate AuxOut, dither) as the AuxIns report them at the block's sample instants (module docstring), for
+        the averaging window `window_s` (`auxin_window_s`), in one compiled pass (sims/hf2_kernel.py).
 
         The AuxOut voltage V is linear between instants, V(t_i) = rate_auxout_v[i]; its mean over
-        [t_i - W, t_i] (W <= dt) is V(t_i) - (V(t_i) - V(t_(i-1))) W / (2 dt)."""
+        [t_i - W, t_i] (W <= dt) is V(t_i) - (V(t_i) - V(t_(i-1))) W / (2 dt). Each reading then gets white
+        reading noise of sigma `auxin_noise_v_rms` (one stream, drawn row after row: the rate AuxIn's block,
+        then the dither's), is rounded to the ADC step 2 R / 2^bits and clipped to +-R (R = `auxin_range_v`;
+        bits = 0: ideal ADC)."""
         w = min(window_s, dt)
-        v = np.asarray(blk.rate_auxout_v if blk.rate_auxout_v is not None else blk.rate_output_v, dtype=float)
-        both = np.empty((2, v.shape[0]))  # row 0 the rate AuxIn, row 1 the dither AuxIn
-        rate = both[0]
-        np.subtract(v[1:], v[:-1], out=rate[1:])  # V(t_i) - V(t_(i-1))
-        rate[0] = v[0] - (v[0] if self._auxout_prev is None else self._auxout_prev)
-        rate *= w / (2.0 * dt)
-        np.subtract(v, rate, out=rate)
-        self._auxout_prev = float(v[-1])
+        v = np.ascontiguousarray(blk.rate_auxout_v if blk.rate_auxout_v is not None else blk.rate_output_v, dtype=float)
         if self.world.dither.amplitude_vpp == 0.0:
-            both[1] = self.world.dither.offset_v
+            dither = np.full(v.shape[0], self.world.dither.offset_v)
         else:
-            both[1] = self.world.window_means_at_step_ends(w)
-        self._auxin_adc(both)
-        return both[0], both[1]
-
-    def _auxin_adc(self, v: np.ndarray) -> None:
-        """What the AuxIns report for the inputs v (one row per AuxIn, overwritten in place): plus white reading
-        noise of sigma `auxin_noise_v_rms` (one stream, drawn row after row), rounded to the ADC step
-        2 R / 2^bits and clipped to +-R (R = `auxin_range_v`; bits = 0: ideal ADC)."""
+            dither = self.world.window_means_at_step_ends(w)
+        n = v.shape[0]
+        both = np.empty((2, n))  # row 0 the rate AuxIn, row 1 the dither AuxIn
         p = self.gyro_params
-        if p.auxin_noise_v_rms > 0.0:
-            noise = self._auxin_rng.standard_normal(v.shape)
-            noise *= p.auxin_noise_v_rms
-            v += noise
-        lsb = p.auxin_lsb_v
-        if lsb > 0.0:
-            v /= lsb
-            v += 0.5
-            np.floor(v, out=v)
-            v *= lsb
-            np.clip(v, -p.auxin_range_v, p.auxin_range_v, out=v)
+        if self._auxin_normals.shape[1] != n:
+            self._auxin_normals = np.empty((2, n))
+        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order), into the reused buffer
+            self._auxin_rng.standard_normal(out=self._auxin_normals)
+        previous = float(v[0]) if self._auxout_prev is None else self._auxout_prev
+        hk.auxin_readings(
+            v,
+            previous,
+            w / (2.0 * dt),
+            dither,
+            self._auxin_normals,
+            p.auxin_noise_v_rms,
+            p.auxin_lsb_v,
+            p.auxin_range_v,
+            both,
+        )
+        self._auxout_prev = float(v[-1])
+        return both[0], both[1]
 
     def _ensure_gyro(self, dt: float) -> Any:
         if self._gyro is None or self._gyro_dt != dt:
@@ -456,17 +472,18 @@ class HF2DataServerTwin:
             self._gyro_count += 1
         return self._gyro
 
-    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, np.ndarray]:
-        """Run the block, split where a forced PLL unlock ends; returns the block and a per-step locked mask."""
+    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, bool]:
+        """Run the block, split where a forced PLL unlock ends; returns the block and whether the PLL stayed
+        locked (closed and within its lock error) through every step of it."""
         gyro = self._ensure_gyro(dt)
+        if self._unlock_until is None:  # the usual poll: one run over the whole block
+            blk = gyro.run(inputs, plan.settings)
+            return blk, blk.pll_locked
         n = len(inputs.t)
         t_end = inputs.t + dt
-        cut = n  # steps [0, cut) end inside the forced-unlock window
-        if self._unlock_until is not None:
-            cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))
-        segments = [(0, cut, True), (cut, n, False)] if self._unlock_until is not None else [(0, n, False)]
+        cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))  # steps [0, cut) end while forced open
         blocks, locked = [], np.ones(n, dtype=bool)
-        for a, b, forced in segments:
+        for a, b, forced in ((0, cut, True), (cut, n, False)):
             if b <= a:
                 continue
             s = plan.settings
@@ -477,12 +494,12 @@ class HF2DataServerTwin:
             if not blk.pll_locked:
                 locked[a:b] = False
             blocks.append(blk)
-        if self._unlock_until is not None and t_end[-1] >= self._unlock_until:
+        if t_end[-1] >= self._unlock_until:
             self._unlock_until = None
         if len(blocks) == 1:
-            return blocks[0], locked
+            return blocks[0], bool(locked.all())
         merged = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in _ARRAY_FIELDS}
-        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), locked
+        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), bool(locked.all())
 
     def _poll_layout(self, demods: list[str]) -> _PollLayout:
         """What a poll reads from the settings, read once per change of the settings or of the subscriptions: the
@@ -526,20 +543,13 @@ class HF2DataServerTwin:
             fixed_osc_hz=fixed_hz,
             auxin_window_s=self.auxin_window_s(),
             pid_settings={
-                n: (float(nd.peek(f"pids/{n}/setpoint")), float(nd.peek(f"pids/{n}/center")))
-                for n in plan.pid_of.values()
+                name: (float(nd.peek(f"pids/{n}/setpoint")), float(nd.peek(f"pids/{n}/center")))
+                for name, n in plan.pid_of.items()
                 if n is not None
             },
+            paths=self._reflect_paths(plan),
         )
         return self._layout
-
-    def _tick_offsets(self, n: int, tps: int) -> np.ndarray:
-        """tps * [1, 2, ..., n] (int64, read-only): the sample timestamps of a block relative to its start."""
-        if self._tick_offsets_key != (n, tps):
-            offsets = tps * np.arange(1, n + 1, dtype=np.int64)
-            offsets.flags.writeable = False
-            self._tick_offsets_cache, self._tick_offsets_key = offsets, (n, tps)
-        return self._tick_offsets_cache
 
     def _advance(self, rec_s: float, demods: list[str]) -> dict[str, dict[str, np.ndarray]]:
         layout = self._poll_layout(demods)
@@ -554,23 +564,27 @@ class HF2DataServerTwin:
         inputs = self.world.advance(n, dt)
         self.world.set_forcer_gain(plan.settings.forcer_gain)
         blk, locked = self._run_gyro(inputs, plan, dt)
-        timestamps = (self._ticks + self._tick_offsets(n, tps)).astype(np.uint64)
+        timestamps, truth_time = np.empty(n, dtype=np.uint64), np.empty(n)
+        hk.sample_times(self._ticks, tps, self.clockbase_hz, timestamps, truth_time)
         self._ticks += n * tps
-        # oscillator frequencies and phases (rad) at the end of each step
+        # oscillator frequencies, unwrapped phases (rad) at the end of each step and the demods' wrapped phases
         freqs: dict[int, np.ndarray] = {}
         phases: dict[int, np.ndarray] = {}
+        osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         for o in range(6):
             if o not in layout.used_oscs:  # keep its phase running without building arrays (x % y is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
-            f_o = np.asarray(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
-            ph = self._osc_phase[o] + 2 * np.pi * np.cumsum(f_o) * dt
+            f_o = np.array(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
+            ph, wrapped = np.empty(n), np.empty(n)
+            hk.oscillator_phases(f_o, float(self._osc_phase[o]), dt, 1.0, ph, wrapped)
             freqs[o], phases[o] = f_o, ph
+            osc_streams[o, 1] = (f_o, wrapped)
             self._osc_phase[o] = float(ph[-1] % (2 * np.pi))
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
-            self.nodes.poke(f"oscs/{plan.ref_osc}/freq", float(freqs[plan.ref_osc][-1]))
+            self.nodes.values[layout.paths.ref_osc_freq] = float(freqs[plan.ref_osc][-1])
         wired: list[np.ndarray | None] = [None, None]
-        rate_aux, dither_aux = self._auxin_records(blk, inputs.t + dt, dt, layout.auxin_window_s)
+        rate_aux, dither_aux = self._auxin_records(blk, dt, layout.auxin_window_s)
         wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
         aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
         keep = None
@@ -581,12 +595,10 @@ class HF2DataServerTwin:
             keep[i0 : i0 + dropped] = False
         self._drop_next = 0
         out: dict[str, dict[str, np.ndarray]] = {}
-        # the frequency and wrapped phase streams of an oscillator harmonic, shared by the demods that use it
-        osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         for spec in layout.demods:
             osc, harmonic = spec.osc, spec.harmonic
-            if (osc, harmonic) not in osc_streams:
-                wrapped = np.mod(phases[osc] * harmonic if harmonic != 1 else phases[osc], 2 * np.pi)
+            if (osc, harmonic) not in osc_streams:  # a harmonic other than 1: (h phi) mod 2 pi
+                wrapped = np.mod(phases[osc] * harmonic, 2 * np.pi)
                 osc_streams[osc, harmonic] = (freqs[osc] * harmonic, wrapped)
             frequency, phase = osc_streams[osc, harmonic]
             x, y = self._demod_xy(blk, spec, plan.ref_osc, phases, n)
@@ -605,11 +617,11 @@ class HF2DataServerTwin:
                 sample = {k: v[keep] for k, v in sample.items()}
             out[spec.path] = sample
             self._last_sample[spec.path] = sample  # getSample copies its last entries
-        self._reflect(plan, blk, locked, aux, dropped, layout.pid_settings)
+        self._reflect(layout, blk, locked, aux, dropped)
         self.world.record_truth(
             TruthRecord(
-                time=timestamps.astype(float) / self.clockbase_hz,
-                scale_factor=np.asarray(blk.sf_true_v_per_dps, dtype=float),
+                time=truth_time,
+                scale_factor=np.array(blk.sf_true_v_per_dps, dtype=float),  # a copy: the truth outlives the block
                 temperature=np.asarray(inputs.gyro_c, dtype=float),
                 rate=np.asarray(blk.rate_true_dps, dtype=float),
             )
@@ -632,45 +644,51 @@ class HF2DataServerTwin:
         z = (x + 1j * y) * np.exp(-1j * (phases[spec.osc] + spec.shift_rad - phases[ref_osc]))
         return z.real.copy(), z.imag.copy()
 
-    def _reflect(
-        self,
-        plan: LoopPlan,
-        blk: GyroBlock,
-        locked: np.ndarray,
-        aux: list[np.ndarray],
-        dropped: int,
-        pid_settings: dict[int, tuple[float, float]],
-    ) -> None:
-        """Read-only nodes at the end of the block; pid_settings: (setpoint, center) of each PID in use."""
-        nd = self.nodes
-        pll_locked = bool(plan.pll_closed and blk.pll_locked and locked.all())
-        f_end = float(np.asarray(blk.frequency_hz)[-1])
-        nd.poke("plls/0/locked", int(pll_locked))
-        nd.poke("plls/0/freqdelta", f_end - float(nd.peek("plls/0/freqcenter")) if plan.pll_closed else 0.0)
-        nd.poke("plls/0/error", float(np.asarray(blk.pll_error_deg)[-1]) if plan.pll_closed else 0.0)
-        binary = int(nd.peek("status/flags/binary")) & ~PLL_LOCKED_BITS[0]
-        nd.poke("status/flags/binary", binary | (PLL_LOCKED_BITS[0] if pll_locked else 0))
-        nd.poke("status/flags/demodsampleloss", int(dropped > 0))
-        nd.poke("status/time", self.world.now())
+    def _reflect_paths(self, plan: LoopPlan) -> _ReflectPaths:
+        dev = f"/{self.device_id}"
+        pids = {name: n for name, n in plan.pid_of.items() if n is not None}
+        return _ReflectPaths(
+            ref_osc_freq=f"{dev}/oscs/{plan.ref_osc}/freq",
+            pll_locked=f"{dev}/plls/0/locked",
+            pll_freqdelta=f"{dev}/plls/0/freqdelta",
+            pll_freqcenter=f"{dev}/plls/0/freqcenter",
+            pll_error=f"{dev}/plls/0/error",
+            flags_binary=f"{dev}/status/flags/binary",
+            flags_sampleloss=f"{dev}/status/flags/demodsampleloss",
+            status_time=f"{dev}/status/time",
+            pid_error={name: f"{dev}/pids/{n}/error" for name, n in pids.items()},
+            pid_shift={name: f"{dev}/pids/{n}/shift" for name, n in pids.items()},
+            rate_auxout=f"{dev}/auxouts/{self.wiring.rate_auxout}/value",
+            quadrature_auxout=f"{dev}/auxouts/{self.wiring.quadrature_auxout}/value",
+            auxin_values=(f"{dev}/auxins/0/values/0", f"{dev}/auxins/0/values/1"),
+        )
+
+    def _reflect(self, layout: _PollLayout, blk: GyroBlock, locked: bool, aux: list[np.ndarray], dropped: int) -> None:
+        """Read-only nodes at the end of the block (module docstring, item 4), written straight into the node
+        values under the layout's absolute paths."""
+        plan, paths, values = layout.plan, layout.paths, self.nodes.values
+        pll_locked = bool(plan.pll_closed and blk.pll_locked and locked)
+        f_end = float(blk.frequency_hz[-1])
+        values[paths.pll_locked] = int(pll_locked)
+        values[paths.pll_freqdelta] = f_end - float(values[paths.pll_freqcenter]) if plan.pll_closed else 0.0
+        values[paths.pll_error] = float(blk.pll_error_deg[-1]) if plan.pll_closed else 0.0
+        binary = int(values[paths.flags_binary]) & ~PLL_LOCKED_BITS[0]
+        values[paths.flags_binary] = binary | (PLL_LOCKED_BITS[0] if pll_locked else 0)
+        values[paths.flags_sampleloss] = int(dropped > 0)
+        values[paths.status_time] = self.world.now()
         ends = {
-            "agc": (
-                abs(complex(float(np.asarray(blk.x_drive)[-1]), float(np.asarray(blk.y_drive)[-1]))),
-                float(np.asarray(blk.drive_output_v)[-1]),
-            ),
-            "rate": (float(np.asarray(blk.x_sense)[-1]), float(np.asarray(blk.rate_output_v)[-1])),
-            "quadrature": (float(np.asarray(blk.y_sense)[-1]), float(np.asarray(blk.quadrature_output_v)[-1])),
+            "agc": (abs(complex(float(blk.x_drive[-1]), float(blk.y_drive[-1]))), float(blk.drive_output_v[-1])),
+            "rate": (float(blk.x_sense[-1]), float(blk.rate_output_v[-1])),
+            "quadrature": (float(blk.y_sense[-1]), float(blk.quadrature_output_v[-1])),
         }
-        for name, n in plan.pid_of.items():
-            if n is None:
-                continue
+        for name, (setpoint, center) in layout.pid_settings.items():
             inp, out = ends[name]
-            setpoint, center = pid_settings[n]
-            nd.poke(f"pids/{n}/error", setpoint - float(inp))
-            nd.poke(f"pids/{n}/shift", out - center)
-        nd.poke(f"auxouts/{self.wiring.rate_auxout}/value", ends["rate"][1])
-        nd.poke(f"auxouts/{self.wiring.quadrature_auxout}/value", ends["quadrature"][1])
-        for k in range(2):
-            nd.poke(f"auxins/0/values/{k}", float(aux[k][-1]))
+            values[paths.pid_error[name]] = setpoint - inp
+            values[paths.pid_shift[name]] = out - center
+        values[paths.rate_auxout] = ends["rate"][1]
+        values[paths.quadrature_auxout] = ends["quadrature"][1]
+        values[paths.auxin_values[0]] = float(aux[0][-1])
+        values[paths.auxin_values[1]] = float(aux[1][-1])
 
 
 _ARRAY_FIELDS = (

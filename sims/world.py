@@ -4,7 +4,7 @@ One `World` is shared by every twin: the DS345 twin writes the dither, the table
 chamber twin the setpoint; the HF2 twin advances the clock block by block (`advance`), receiving the inputs the
 gyro physics needs at every step. Nothing here sleeps: a 3-hour campaign takes as long as its arithmetic.
 
-Dynamics (all exact for inputs held over a step, evaluated vectorised per block):
+Dynamics (all exact for inputs held over a step; a block is one compiled call, sims/world_kernel.block_inputs):
 
 * Table, rate mode: rate moves toward the command at the acceleration limit a,
   r(t) = r0 + sign(r1 - r0) * min(a t, |r1 - r0|); sinusoid mode: r(t) = A sin(2 pi f (t - t_s)).
@@ -271,20 +271,13 @@ class World:
     def table_rate_dps(self) -> float:
         """Delivered table rate now, deg/s (scale error and ripple at the current angle)."""
         with self.lock:
-            p = self.params  # the ripple factor of _ripple_factor at one angle, in scalar arithmetic
+            p = self.params  # the ripple factor 1 + r sin(theta + phi_r) at the current angle
             ripple = 1.0
             if p.table_rate_ripple_ppm != 0.0:
                 ripple += (
                     p.table_rate_ripple_ppm * 1e-6 * math.sin((self.table.angle_deg + p.table_ripple_phase_deg) * _DEG)
                 )
             return self.table.rate_dps * (1.0 + p.table_rate_scale_error_ppm * 1e-6) * ripple
-
-    def _ripple_factor(self, angle_deg: np.ndarray) -> np.ndarray:
-        """1 + r sin(theta + phi_r): the once-per-revolution rate ripple at table angles theta."""
-        p = self.params
-        if p.table_rate_ripple_ppm == 0.0:
-            return np.ones_like(angle_deg)
-        return 1.0 + p.table_rate_ripple_ppm * 1e-6 * np.sin(np.deg2rad(angle_deg + p.table_ripple_phase_deg))
 
     def table_angle_deg(self) -> float:
         with self.lock:
@@ -304,6 +297,8 @@ class World:
             recs.append(self._truth.popleft())
         if not recs:
             return None
+        if len(recs) == 1:  # the usual drain, once per poll: the record itself (its arrays are the twin's own copies)
+            return recs[0]
         return TruthRecord(
             *(np.concatenate([getattr(r, f) for r in recs]) for f in ("time", "scale_factor", "temperature", "rate"))
         )
@@ -363,48 +358,6 @@ class World:
             w = np.sin(2 * np.pi * u)
         return d.offset_v + 0.5 * d.amplitude_vpp * w
 
-    def _wave_integral(self, u: np.ndarray) -> np.ndarray:
-        """W(u) = integral of the unit waveform from 0 to u, in cycles (periodic: each waveform has zero mean)."""
-        fn = self.dither.function
-        if fn == DITHER_SQUARE:
-            frac = u - np.floor(u)
-            return np.where(frac < 0.5, frac, 1.0 - frac)
-        if fn == DITHER_TRIANGLE:
-            f = u - np.floor(u)
-            return np.where(f < 0.5, -f + 2 * f * f, 3 * (f - 0.5) - 2 * (f * f - 0.25))
-        if fn == DITHER_RAMP:
-            f = u - np.floor(u)
-            return f * f - f
-        return (1.0 - np.cos(2 * np.pi * u)) / (2 * np.pi)
-
-    def _step_means(self, tb: np.ndarray) -> np.ndarray:
-        """Exact means of the output over the steps [tb[k], tb[k+1]]; remembers the boundaries' phases for
-        `window_means_at_step_ends` (the loop: sims.world_kernel.dither_grid)."""
-        d = self.dither
-        self._last_grid = None
-        if d.amplitude_vpp == 0.0:
-            return np.full(tb.shape[0] - 1, d.offset_v)
-        p = self.params
-        u, wint, means = np.empty(tb.shape[0]), np.empty(tb.shape[0]), np.empty(tb.shape[0] - 1)
-        per = p.ds345_timebase_wander_period_s
-        wk.dither_grid(
-            tb,
-            p.ds345_timebase_offset_ppm * 1e-6,
-            p.ds345_timebase_wander_ppm * 1e-6 * per / (2 * np.pi),
-            per,
-            float(self.ds345_time(d.origin_s)),
-            d.frequency_hz,
-            d.phase_deg / 360.0,
-            d.function,
-            d.offset_v,
-            0.5 * d.amplitude_vpp,
-            u,
-            wint,
-            means,
-        )
-        self._last_grid = (tb, u, wint)
-        return means
-
     def window_means_at_step_ends(self, window_s: float) -> np.ndarray:
         """For each step of the last advance, the exact mean of the output over [t_end - window_s, t_end] (an
         AuxIn reading), window_s <= the step. The phase at t_end - w is u(t_end) - w du/dt, du/dt taken over
@@ -421,14 +374,6 @@ class World:
         wk.dither_window_means(tb, u, wint, float(window_s), d.function, d.offset_v, 0.5 * d.amplitude_vpp, means)
         return means
 
-    def _chamber_setpoint(self, tau: np.ndarray) -> np.ndarray:
-        c = self.chamber
-        s0, s1 = c.controller_setpoint_c, c.target_c
-        if s0 == s1:
-            return np.full_like(tau, s0)
-        slope = c.ramp_c_per_min / 60.0
-        return s0 + math.copysign(1.0, s1 - s0) * np.minimum(slope * tau, abs(s1 - s0))
-
     def _step_offsets(self, n: int, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(k dt for k < n, k dt + dt/2 for k < n, k dt for k <= n): the step starts, mid-steps and boundaries of
         a block of n steps from its start, s. Read-only arrays, kept while blocks keep their n and dt."""
@@ -443,41 +388,84 @@ class World:
         return self._offsets
 
     def advance(self, n: int, dt: float) -> BlockInputs:
-        """Advance the clock by n steps of dt and return the inputs of each step."""
+        """Advance the clock by n steps of dt and return the inputs of each step (one compiled pass:
+        sims.world_kernel.block_inputs)."""
         if n <= 0:
             raise ValueError("advance needs n >= 1")
         with self.lock:
             for fn in self.on_advance:
                 fn(self.t, self.t + n * dt)
-            tau_start, tau_mid, tau_bounds = self._step_offsets(n, dt)
-            t = self.t + tau_start
-            # table
-            prof_mid = self._table_profile(tau_mid)
-            scale = 1.0 + self.params.table_rate_scale_error_ppm * 1e-6
-            rate, angle = np.empty(n), np.empty(n)  # ripple at the ripple-free mid-step angle; step-start angles
-            ripple = self.params.table_rate_ripple_ppm * 1e-6
-            wk.table_block(
-                prof_mid, scale, dt, self.table.angle_deg, ripple, self.params.table_ripple_phase_deg, rate, angle
+            p, tab, c, d = self.params, self.table, self.chamber, self.dither
+            rate_mode = tab.mode != "sine"
+            profile_mid = np.empty(n) if rate_mode else self._table_profile(self._step_offsets(n, dt)[1])
+            r0, r1, s0, s1 = tab.rate_dps, tab.rate_command_dps, c.controller_setpoint_c, c.target_c
+            a_air = math.exp(-dt / p.chamber_time_constant_s)
+            a_gyro = math.exp(-dt / p.thermal_lag_s)
+            table = np.array(
+                [
+                    self.t,
+                    dt,
+                    r0,
+                    math.copysign(1.0, r1 - r0),
+                    tab.accel_dps2,
+                    abs(r1 - r0),
+                    1.0 + p.table_rate_scale_error_ppm * 1e-6,
+                    tab.angle_deg,
+                    p.table_rate_ripple_ppm * 1e-6,
+                    p.table_ripple_phase_deg,
+                ]
             )
-            # chamber: setpoint ramp, air lag, gyro lag (exact ZOH recursions)
-            c = self.chamber
-            sp = self._chamber_setpoint(tau_start)
-            a_air = math.exp(-dt / self.params.chamber_time_constant_s)
-            a_gyro = math.exp(-dt / self.params.thermal_lag_s)
-            air = first_order_lag(sp, c.air_c, a_air)
-            air_meas = air + c.disturbance_c
-            gyro = first_order_lag(air_meas, c.gyro_c, a_gyro)
+            chamber = np.array(
+                [
+                    s0,
+                    math.copysign(1.0, s1 - s0),
+                    c.ramp_c_per_min / 60.0,
+                    abs(s1 - s0),
+                    a_air,
+                    c.air_c,
+                    c.disturbance_c,
+                    a_gyro,
+                    c.gyro_c,
+                ]
+            )
+            dither_on = d.amplitude_vpp != 0.0
+            per = p.ds345_timebase_wander_period_s
+            dither = np.array(
+                [
+                    p.ds345_timebase_offset_ppm * 1e-6,
+                    p.ds345_timebase_wander_ppm * 1e-6 * per / (2 * np.pi),
+                    per,
+                    float(self.ds345_time(d.origin_s)) if dither_on else 0.0,
+                    d.frequency_hz,
+                    d.phase_deg / 360.0,
+                    d.offset_v,
+                    0.5 * d.amplitude_vpp,
+                ]
+            )
+            t, tb = np.empty(n), np.empty(n + 1)
+            rate, angle, sp, air, air_meas, gyro = (np.empty(n) for _ in range(6))
+            u, wint = np.empty(n + 1), np.empty(n + 1)
+            means = np.empty(n) if dither_on else np.full(n, d.offset_v)
+            wk.block_inputs(
+                table, chamber, dither, rate_mode, dither_on, d.function,
+                t, tb, profile_mid, rate, angle, sp, air, air_meas, gyro, u, wint, means,
+            )  # fmt: skip
+            self._last_grid = (tb, u, wint) if dither_on else None
             # state at the end of the block
             end = float(n * dt)
-            self.table.rate_dps = float(self._table_profile(np.array([end]))[0])
-            self.table.angle_deg = float(angle[-1] + rate[-1] * dt)
-            sp_end = float(self._chamber_setpoint(np.array([end]))[0])
+            if rate_mode:  # _table_profile at `end`, in scalar arithmetic
+                tab.rate_dps = (
+                    r0 if r0 == r1 else r0 + math.copysign(1.0, r1 - r0) * min(tab.accel_dps2 * end, abs(r1 - r0))
+                )
+            else:
+                tab.rate_dps = float(self._table_profile(np.array([end]))[0])
+            tab.angle_deg = float(angle[-1] + rate[-1] * dt)
             c.air_c = float(a_air * air[-1] + (1.0 - a_air) * sp[-1])
             c.gyro_c = float(a_gyro * gyro[-1] + (1.0 - a_gyro) * air_meas[-1])
-            c.controller_setpoint_c = sp_end
-            tb = self.t + tau_bounds  # step boundaries: one phase evaluation each
-            dither = self._step_means(tb)
+            c.controller_setpoint_c = (
+                s0 if s0 == s1 else s0 + math.copysign(1.0, s1 - s0) * min(c.ramp_c_per_min / 60.0 * end, abs(s1 - s0))
+            )
             self.t = self.t + end
             return BlockInputs(
-                t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas, gyro_c=gyro, dither_v=dither
+                t=t, table_rate_dps=rate, table_angle_deg=angle, chamber_c=air_meas, gyro_c=gyro, dither_v=means
             )

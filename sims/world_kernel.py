@@ -16,6 +16,12 @@ fastmath=False):
   and the exact step means offset + (Vpp/2) (W(u_(k+1)) - W(u_k)) / (u_(k+1) - u_k).
 * `dither_window_means`: the means over [t_(k+1) - w, t_(k+1)] with du = w (u_(k+1) - u_k) / (t_(k+1) - t_k):
   offset + (Vpp/2) (W(u_(k+1)) - W(u_(k+1) - du)) / du.
+* `ramp_block`: the block's times and the two ramps, per step k of dt from t0: step starts t0 + k dt and
+  boundaries t0 + k dt (k <= n); the table's rate-mode profile at mid-step, r0 + sign(r1 - r0) min(a (k dt +
+  dt/2), |r1 - r0|) (r0 where r1 = r0); the chamber controller's setpoint at the step starts,
+  s0 + sign(s1 - s0) min(slope k dt, |s1 - s0|) (s0 where s1 = s0).
+* `block_inputs`: one block in one compiled call: `ramp_block` (or a given table profile), `table_block`, the air
+  lag behind the setpoint, the measured air (+ disturbance), the gyro lag behind it, and `dither_grid`.
 """
 
 from __future__ import annotations
@@ -75,7 +81,7 @@ def first_order_lag(u: np.ndarray, y0: float, a: float, y: np.ndarray) -> None:
 
 @njit(cache=True, inline="always")
 def _wave_integral(fn: int, u: float) -> float:
-    """W(u): the integral of the unit waveform from 0 to u (cycles), as World._wave_integral."""
+    """W(u): the integral of the unit waveform from 0 to u (cycles; sims/world.py docstring)."""
     if fn == DITHER_SQUARE:
         frac = u - math.floor(u)
         return frac if frac < 0.5 else 1.0 - frac
@@ -133,3 +139,104 @@ def dither_window_means(
         du = rate * window_s
         w0 = _wave_integral(function, u[k + 1] - du)
         means_v[k] = offset_v + half_vpp * (w[k + 1] - w0) / du
+
+
+@njit(cache=True)
+def ramp_block(
+    t0_s: float,
+    dt: float,
+    rate_mode: bool,
+    r0_dps: float,
+    r_sign: float,
+    accel_dps2: float,
+    r_span_dps: float,
+    s0_c: float,
+    s_sign: float,
+    slope_c_per_s: float,
+    s_span_c: float,
+    t_start_s: np.ndarray,
+    t_bounds_s: np.ndarray,
+    profile_mid_dps: np.ndarray,
+    setpoint_c: np.ndarray,
+) -> None:
+    """Step starts, boundaries, the rate-mode table profile at mid-step (left alone unless `rate_mode`) and the
+    chamber setpoint at the step starts (module docstring); span 0: the ramp has arrived (r1 = r0, s1 = s0)."""
+    n = t_start_s.shape[0]
+    for k in range(n + 1):
+        tau = float(k) * dt
+        t_bounds_s[k] = t0_s + tau
+        if k == n:
+            break
+        t_start_s[k] = t0_s + tau
+        if rate_mode:
+            mid = tau + 0.5 * dt
+            profile_mid_dps[k] = r0_dps if r_span_dps == 0.0 else r0_dps + r_sign * min(accel_dps2 * mid, r_span_dps)
+        setpoint_c[k] = s0_c if s_span_c == 0.0 else s0_c + s_sign * min(slope_c_per_s * tau, s_span_c)
+
+
+@njit(cache=True)
+def block_inputs(
+    table: np.ndarray,
+    chamber: np.ndarray,
+    dither: np.ndarray,
+    rate_mode: bool,
+    dither_on: bool,
+    function: int,
+    t_start_s: np.ndarray,
+    t_bounds_s: np.ndarray,
+    profile_mid_dps: np.ndarray,
+    rate_dps: np.ndarray,
+    angle_deg: np.ndarray,
+    setpoint_c: np.ndarray,
+    air_c: np.ndarray,
+    air_measured_c: np.ndarray,
+    gyro_c: np.ndarray,
+    u: np.ndarray,
+    w: np.ndarray,
+    dither_v: np.ndarray,
+) -> None:
+    """One block of World inputs (module docstring) into the output arrays (n steps; t_bounds_s, u, w: n + 1).
+
+    table = [t0, dt, r0, sign(r1 - r0), a, |r1 - r0|, scale, angle0, ripple, ripple phase (deg)];
+    chamber = [s0, sign(s1 - s0), slope (degC/s), |s1 - s0|, a_air, air0, disturbance, a_gyro, gyro0];
+    dither = [e0, e_w P / (2 pi), P, tau_origin, f, phase (cycles), offset, Vpp / 2] (see `dither_grid`).
+    `profile_mid_dps` is an input unless `rate_mode`; without `dither_on` u, w and dither_v are left alone."""
+    t0, dt = table[0], table[1]
+    ramp_block(
+        t0,
+        dt,
+        rate_mode,
+        table[2],
+        table[3],
+        table[4],
+        table[5],
+        chamber[0],
+        chamber[1],
+        chamber[2],
+        chamber[3],
+        t_start_s,
+        t_bounds_s,
+        profile_mid_dps,
+        setpoint_c,
+    )
+    table_block(profile_mid_dps, table[6], dt, table[7], table[8], table[9], rate_dps, angle_deg)
+    first_order_lag(setpoint_c, chamber[5], chamber[4], air_c)
+    for k in range(air_c.shape[0]):
+        air_measured_c[k] = air_c[k] + chamber[6]
+    first_order_lag(air_measured_c, chamber[8], chamber[7], gyro_c)
+    if dither_on:
+        dither_grid(
+            t_bounds_s,
+            dither[0],
+            dither[1],
+            dither[2],
+            dither[3],
+            dither[4],
+            dither[5],
+            function,
+            dither[6],
+            dither[7],
+            u,
+            w,
+            dither_v,
+        )

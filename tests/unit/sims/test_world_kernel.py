@@ -84,3 +84,70 @@ def test_dither_grid_and_window_means_are_the_exact_integral_means(fn: int) -> N
     # and the means are what they mean: a square wave's step mean is the time-weighted mix of its two levels
     if fn == wk.DITHER_SQUARE:
         assert np.all(np.abs(means - offset) <= half * (1 + 1e-12))
+
+
+@pytest.mark.parametrize(("r0", "r1"), [(5.0, 5.0), (5.0, -5.0), (0.0, 5.0)])
+@pytest.mark.parametrize(("s0", "s1"), [(25.0, 25.0), (25.0, 35.0), (35.0, 34.99)])
+def test_ramp_block_is_the_vectorised_profile_and_setpoint(r0: float, r1: float, s0: float, s1: float) -> None:
+    t0, accel, slope = 1234.5678, 300.0, 0.25 / 60.0
+    k = np.arange(N + 1, dtype=np.float64) * DT  # the block's offsets from its start, as World.advance had them
+    mid = k[:N] + 0.5 * DT
+    prof_ref = np.full(N, r0) if r0 == r1 else r0 + math.copysign(1.0, r1 - r0) * np.minimum(accel * mid, abs(r1 - r0))
+    sp_ref = np.full(N, s0) if s0 == s1 else s0 + math.copysign(1.0, s1 - s0) * np.minimum(slope * k[:N], abs(s1 - s0))
+    t, tb, prof, sp = np.empty(N), np.empty(N + 1), np.empty(N), np.empty(N)
+    wk.ramp_block(
+        t0, DT, True, r0, math.copysign(1.0, r1 - r0), accel, abs(r1 - r0),
+        s0, math.copysign(1.0, s1 - s0), slope, abs(s1 - s0), t, tb, prof, sp,
+    )  # fmt: skip
+    np.testing.assert_array_equal(tb, t0 + k)
+    np.testing.assert_array_equal(t, t0 + k[:N])
+    np.testing.assert_array_equal(prof, prof_ref)
+    np.testing.assert_array_equal(sp, sp_ref)
+    if r0 != r1:  # the reversal takes |r1 - r0| / a = 33 ms, well inside the block, and then holds r1
+        assert prof[-1] == r1
+    # not in rate mode: the profile (the sine's, computed by the World) is left as given
+    given = np.linspace(-3.0, 3.0, N)
+    kept = given.copy()
+    wk.ramp_block(t0, DT, False, r0, 1.0, accel, abs(r1 - r0), s0, 1.0, slope, abs(s1 - s0), t, tb, kept, sp)
+    np.testing.assert_array_equal(kept, given)
+
+
+@pytest.mark.parametrize("dither_on", [True, False])
+def test_block_inputs_is_the_loops_one_after_another(dither_on: bool) -> None:
+    t0, r0, r1, accel, s0, s1, slope = 600.25, -5.0, 5.0, 300.0, 26.0, 35.0, 0.25 / 60.0
+    a_air, a_gyro, air0, gyro0, disturbance = math.exp(-DT / 60.0), math.exp(-DT / 600.0), 25.9, 25.1, 0.4
+    scale, angle0, ripple, ripple_phase = 1.0 + 60e-6, 123.4, 100e-6, 17.0
+    e0, amp_s, per, tau_origin, f_hz, phase, offset, half = 3e-6, 2.9e-4, 3600.0, 7.5, 7.0, 0.0, 0.0, 0.3
+    # reference: each loop on its own, the measured air in numpy
+    t, tb, prof, sp = np.empty(N), np.empty(N + 1), np.empty(N), np.empty(N)
+    sign_r, sign_s = math.copysign(1.0, r1 - r0), math.copysign(1.0, s1 - s0)
+    wk.ramp_block(t0, DT, True, r0, sign_r, accel, abs(r1 - r0), s0, sign_s, slope, abs(s1 - s0), t, tb, prof, sp)
+    rate, angle, air, gyro = np.empty(N), np.empty(N), np.empty(N), np.empty(N)
+    wk.table_block(prof, scale, DT, angle0, ripple, ripple_phase, rate, angle)
+    wk.first_order_lag(sp, air0, a_air, air)
+    air_meas = air + disturbance
+    wk.first_order_lag(air_meas, gyro0, a_gyro, gyro)
+    u, w, means = np.empty(N + 1), np.empty(N + 1), np.empty(N)
+    wk.dither_grid(tb, e0, amp_s, per, tau_origin, f_hz, phase, wk.DITHER_SQUARE, offset, half, u, w, means)
+    # the fused call
+    out = {name: np.empty(N) for name in ("t", "prof", "rate", "angle", "sp", "air", "air_meas", "gyro", "means")}
+    out_tb, out_u, out_w = np.empty(N + 1), np.empty(N + 1), np.empty(N + 1)
+    out["means"][:] = offset
+    wk.block_inputs(
+        np.array([t0, DT, r0, sign_r, accel, abs(r1 - r0), scale, angle0, ripple, ripple_phase]),
+        np.array([s0, sign_s, slope, abs(s1 - s0), a_air, air0, disturbance, a_gyro, gyro0]),
+        np.array([e0, amp_s, per, tau_origin, f_hz, phase, offset, half]),
+        True, dither_on, wk.DITHER_SQUARE,
+        out["t"], out_tb, out["prof"], out["rate"], out["angle"], out["sp"], out["air"], out["air_meas"],
+        out["gyro"], out_u, out_w, out["means"],
+    )  # fmt: skip
+    for name, ref in (("t", t), ("prof", prof), ("rate", rate), ("angle", angle), ("sp", sp), ("air", air)):
+        np.testing.assert_array_equal(out[name], ref, err_msg=name)
+    np.testing.assert_array_equal(out["air_meas"], air_meas)
+    np.testing.assert_array_equal(out["gyro"], gyro)
+    np.testing.assert_array_equal(out_tb, tb)
+    if dither_on:
+        np.testing.assert_array_equal(out["means"], means)
+        np.testing.assert_array_equal(out_u, u)
+    else:  # a muted generator: its constant output is left as the caller filled it
+        np.testing.assert_array_equal(out["means"], offset)
