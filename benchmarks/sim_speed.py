@@ -7,9 +7,9 @@ temperature ramp, so every per-step term is exercised.
 
 * averaged: dt = 1/1800 s (the HF2 power-on rate the campaigns use), blocks of 0.5 s (the [lockin]
   poll_interval_s a real HF2 is polled at), of 2 s (sim_poll_interval_s: the block the HF2 twin runs the gyro in
-  during a simulated campaign) and of 60 s; real-time factor = simulated seconds per wall second, and per second of this process's CPU time
-  (`*_cpu_*`, all threads: less sensitive to other processes on a shared machine; without the prefetch the two
-  agree on an idle one).
+  during a simulated campaign) and of 60 s; real-time factor = simulated seconds per wall second, and per second
+  of this process's CPU time (`*_cpu_*`, all threads: less sensitive to other processes on a shared machine;
+  without the prefetch the two agree on an idle one).
   The per-step normal draws are prefetched on a background thread while the kernel runs (sims/noise.py): the
   0.5 s figure is also given with the prefetch off (`*_no_prefetch`, the same values drawn in the caller's
   thread), and the CPU time of the calling thread alone (`averaged_cpu_ns_per_step_main_thread`): on a machine
