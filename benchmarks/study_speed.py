@@ -8,7 +8,11 @@
    run file's size at both levels.
 2. Throughput: `--tasks` paper campaigns at the study level on a LocalCluster of 1 and of 2 single-threaded worker
    processes (every worker warmed up by a short campaign first; the cluster's start is not counted): simulated
-   campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)).
+   campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)). Both with one
+   core per worker, as `qmg-lab study` runs a LocalCluster that fills the cores: the twins draw their noise in
+   the worker's thread (station.set_twin_noise_draw_ahead(False)), so that the one-worker figure does not borrow
+   the idle second core for its noise thread. The one worker is also run with the noise drawn ahead
+   (`one_worker_draw_ahead`: what a single worker on an otherwise idle 2-core machine does).
 
     python benchmarks/study_speed.py [--json] [--runs N] [--tasks N]
 
@@ -48,13 +52,13 @@ def paper_text(level: str, sim_poll_interval_s: float | None = None, **plan: flo
 WARM_UP = {"chamber_end_c": 25.5, "chamber_soak_s": 10.0, "chamber_end_hold_s": 0.0}
 
 
-def timed_campaign(text: str) -> tuple[float, float, float]:
+def timed_campaign(text: str, twin_draw_ahead: bool | None = None) -> tuple[float, float, float]:
     """(simulated s, wall s, file MB) of one campaign and its analysis, as a study task runs it."""
     from qmg_lab.study.task import run_campaign
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        _, simulated = run_campaign(text, Path(tmp) / "run.h5")
+        _, simulated = run_campaign(text, Path(tmp) / "run.h5", twin_draw_ahead)
         wall = time.perf_counter() - t0
         return simulated, wall, (Path(tmp) / "run.h5").stat().st_size / 1e6
 
@@ -75,7 +79,7 @@ def per_task(runs: int) -> dict[str, Any]:
     }
 
 
-def throughput(n_workers: int, tasks: int) -> dict[str, Any]:
+def throughput(n_workers: int, tasks: int, draw_ahead: bool | None = False) -> dict[str, Any]:
     from distributed import Client, LocalCluster, wait
 
     with (
@@ -84,17 +88,19 @@ def throughput(n_workers: int, tasks: int) -> dict[str, Any]:
     ):
         addresses = list(client.scheduler_info(n_workers=-1)["workers"])
         warm = [
-            client.submit(timed_campaign, paper_text("study", **WARM_UP), workers=[a], pure=False) for a in addresses
+            client.submit(timed_campaign, paper_text("study", **WARM_UP), draw_ahead, workers=[a], pure=False)
+            for a in addresses
         ]
         wait(warm)
         text = paper_text("study")
         t0 = time.perf_counter()
-        futures = [client.submit(timed_campaign, text, pure=False) for _ in range(tasks)]
+        futures = [client.submit(timed_campaign, text, draw_ahead, pure=False) for _ in range(tasks)]
         results = client.gather(futures)
         wall = time.perf_counter() - t0
     simulated_h = sum(s for s, _, _ in results) / 3600.0
     return {
         "workers": n_workers,
+        "twin_draw_ahead": draw_ahead,
         "tasks": tasks,
         "wall_s": wall,
         "campaign_hours": simulated_h,
@@ -113,6 +119,7 @@ def main() -> None:
     task = per_task(args.runs)
     one = throughput(1, args.tasks)
     two = throughput(2, args.tasks)
+    one_ahead = throughput(1, args.tasks, draw_ahead=None)
     report = {
         "cores": os.cpu_count(),
         "load_average_before": [round(x, 2) for x in load_before],
@@ -120,6 +127,7 @@ def main() -> None:
         "per_task": task,
         "one_worker": one,
         "two_workers": two,
+        "one_worker_draw_ahead": one_ahead,
         "campaign_hours_per_wall_hour_1": one["campaign_hours_per_wall_hour"],
         "campaign_hours_per_wall_hour_2": two["campaign_hours_per_wall_hour"],
         "scaling_efficiency": two["campaign_hours_per_wall_hour"] / (2 * one["campaign_hours_per_wall_hour"]),
@@ -139,9 +147,10 @@ def main() -> None:
         f"{task['realtime_factor_full_level']:.0f}x at the full level; file {task['file_mb_study_level']:.1f} MB "
         f"instead of {task['file_mb_full_level']:.0f} MB"
     )
-    for r in (one, two):
+    for r in (one, two, one_ahead):
+        ahead = ", noise drawn ahead" if r["twin_draw_ahead"] is None else ""
         print(
-            f"{r['workers']} worker(s): {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
+            f"{r['workers']} worker(s){ahead}: {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
             f"({r['tasks']} campaigns, {r['wall_s']:.1f} s)"
         )
     print(f"scaling efficiency: {report['scaling_efficiency']:.2f} (target 0.8)")

@@ -94,6 +94,23 @@ def usable_cpus() -> int:
     return os.cpu_count() or 1
 
 
+_DEFAULTS: dict[str, bool | None] = {"prefetch": None}  # set_default_prefetch's process-wide setting
+
+
+def set_default_prefetch(enabled: bool | None) -> None:
+    """The prefetch of NoiseStreams created from now on in this process when they are not told: True (draw ahead
+    on the background thread), False (draw in the caller's thread), None (the automatic choice: draw ahead when
+    the process may run on more than one CPU). For processes that share the machine's cores with as many others
+    as there are cores (a study's workers): there the second thread finds no idle core and only takes turns."""
+    _DEFAULTS["prefetch"] = enabled
+
+
+def default_prefetch() -> bool:
+    """What a NoiseStream created now prefetches by default (set_default_prefetch, else usable_cpus() > 1)."""
+    chosen = _DEFAULTS["prefetch"]
+    return chosen if chosen is not None else usable_cpus() > 1
+
+
 @dataclass
 class _Prefetch:
     """Rows being drawn ahead: the future of the draw, its size, the generator state before it (to redo it in a
@@ -200,8 +217,8 @@ class NoiseStream:
     GM_ROWS_AHEAD at a time. Either way each stream is read in order, so the values are those of drawing
     exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch.
     `prefetch=False` (or setting `.prefetch` later) draws the per-step rows in the caller's thread instead, with
-    the same values (benchmarks compare the two); the default prefetches when the process may run on more than
-    one CPU."""
+    the same values (benchmarks compare the two); the default (default_prefetch) prefetches when the process may
+    run on more than one CPU, unless set_default_prefetch says otherwise."""
 
     def __init__(self, seed: int, per_step: int, n_gm: int, prefetch: bool | None = None) -> None:
         if not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -211,7 +228,7 @@ class NoiseStream:
         self.per_step = per_step
         self.n_gm = n_gm
         if prefetch is None:  # a second thread only pays with a second CPU to run on
-            prefetch = usable_cpus() > 1
+            prefetch = default_prefetch()
         self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, prefetch)
         self._gm = _RowStream(np.random.Generator(np.random.PCG64(s2)), n_gm, np.float64, GM_ROWS_AHEAD, False)
 

@@ -23,7 +23,7 @@ import pytest
 
 from sims import gyro_kernel as gk
 from sims.gyro import GyroParams, GyroSim, held_inputs
-from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream
+from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream, set_default_prefetch
 from tests.support.paper_loops import paper_loops
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -180,3 +180,25 @@ def test_the_default_prefetches_only_with_a_second_cpu_to_run_on() -> None:
     n = len(os.sched_getaffinity(0))
     assert first == f"{n} {n > 1}"
     assert pinned == "1 False"
+
+
+def test_a_process_wide_default_overrides_the_automatic_choice_and_keeps_the_values() -> None:
+    """set_default_prefetch (what a study's full LocalCluster sets in its workers) decides for streams created
+    afterwards; None restores the automatic choice; an explicit prefetch= still wins; the values do not change."""
+    auto = len(os.sched_getaffinity(0)) > 1 if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1) > 1
+    pattern = PATTERNS["hf2 poll blocks"]
+    try:
+        set_default_prefetch(False)
+        off = NoiseStream(3, 6, 16)
+        forced_on = NoiseStream(3, 6, 16, prefetch=True)
+        assert (off.prefetch, forced_on.prefetch) == (False, True)
+        set_default_prefetch(True)
+        assert NoiseStream(3, 6, 16).prefetch is True
+        set_default_prefetch(None)
+        assert NoiseStream(3, 6, 16).prefetch is auto
+    finally:
+        set_default_prefetch(None)
+    rows_off = np.concatenate([off.steps(n) for n in pattern])
+    rows_on = np.concatenate([forced_on.steps(n) for n in pattern])
+    np.testing.assert_array_equal(rows_off, rows_on)
+    np.testing.assert_array_equal(rows_off, np.concatenate(_reference_steps(3, pattern)))
