@@ -154,6 +154,11 @@ class World:
         self.clock = clock
         self.lock = threading.RLock()
         self.t = 0.0
+        if clock == "wall":
+            # A wall-clock world answers the instruments' commands in real time (a serial twin's reply within the
+            # driver's timeout), and its first advance would compile the block kernel (seconds on a fresh install,
+            # against a 1291BR timeout of 2 s): compile it, or load it from numba's cache, on a throwaway world now.
+            World(self.params).advance(1, 0.01)
         self._wall0 = time.monotonic()
         self.dither = DitherState()
         self.table = TableState()
