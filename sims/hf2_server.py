@@ -482,24 +482,22 @@ class HF2DataServerTwin:
         n = len(inputs.t)
         t_end = inputs.t + dt
         cut = int(np.searchsorted(t_end, self._unlock_until, side="right"))  # steps [0, cut) end while forced open
-        blocks, locked = [], np.ones(n, dtype=bool)
+        blocks, locked = [], True  # locked: no step forced open, every part's PLL within its lock error
         for a, b, forced in ((0, cut, True), (cut, n, False)):
             if b <= a:
                 continue
             s = plan.settings
             if forced:
                 s = replace(s, pll=replace(s.pll, enabled=False))
-                locked[a:b] = False
             blk = gyro.run(_slice_inputs(inputs, slice(a, b)), s)
-            if not blk.pll_locked:
-                locked[a:b] = False
+            locked = locked and not forced and blk.pll_locked
             blocks.append(blk)
         if t_end[-1] >= self._unlock_until:
             self._unlock_until = None
         if len(blocks) == 1:
-            return blocks[0], bool(locked.all())
+            return blocks[0], locked
         merged = {f: np.concatenate([getattr(b, f) for b in blocks]) for f in _ARRAY_FIELDS}
-        return type(blocks[0])(**merged, pll_locked=bool(locked.all())), bool(locked.all())
+        return type(blocks[0])(**merged, pll_locked=locked), locked
 
     def _poll_layout(self, demods: list[str]) -> _PollLayout:
         """What a poll reads from the settings, read once per change of the settings or of the subscriptions: the
