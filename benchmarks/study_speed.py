@@ -5,7 +5,10 @@
    campaign (numba's compiled kernels loaded), `--runs` times at the study storage level and once at the full
    level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis; also with the
    twin's blocks 10 s long instead of 2 s ([lockin] sim_poll_interval_s, as the shipped studies set it), and the
-   run file's size at both levels.
+   run file's size at both levels. And the ceiling: the real-time factor of the gyro twin's physics alone
+   (sims.gyro.GyroSim's kernel and noise draws, sim_speed.py's inputs, in the same 2 s and 10 s blocks, noise drawn
+   ahead as in this process's tasks): no task can beat it, since a task runs that and the world, the HF2 twin's
+   demodulators, the drivers, CLSF, the file and the analysis besides.
 2. Throughput: `--tasks` paper campaigns at the study level on a LocalCluster of 1 and of 2 single-threaded worker
    processes (every worker warmed up by a short campaign first; the cluster's start is not counted): simulated
    campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)). Both with one
@@ -26,6 +29,7 @@ import argparse
 import json
 import os
 import statistics
+import sys
 import tempfile
 import time
 import tomllib
@@ -63,6 +67,17 @@ def timed_campaign(text: str, twin_draw_ahead: bool | None = None) -> tuple[floa
         return simulated, wall, (Path(tmp) / "run.h5").stat().st_size / 1e6
 
 
+def gyro_alone_realtime_factor(simulated_s: float, block_s: float) -> float:
+    """Real-time factor of GyroSim.run alone (kernel + noise draws) over simulated_s in block_s blocks."""
+    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from sim_speed import DT, _rt_factor
+
+    from sims.gyro import GyroParams, GyroSim
+
+    return _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, block_s, simulated_s)[0]
+
+
 def per_task(runs: int) -> dict[str, Any]:
     timed_campaign(paper_text("study", **WARM_UP))
     study = [timed_campaign(paper_text("study")) for _ in range(runs)]
@@ -74,6 +89,8 @@ def per_task(runs: int) -> dict[str, Any]:
         "realtime_factor_study_level": statistics.median(s / w for s, w, _ in study),
         "realtime_factor_study_level_10s_blocks": statistics.median(s / w for s, w, _ in blocks10),
         "realtime_factor_full_level": full[0] / full[1],
+        "ceiling_realtime_factor": gyro_alone_realtime_factor(study[0][0], 2.0),
+        "ceiling_realtime_factor_10s_blocks": gyro_alone_realtime_factor(study[0][0], 10.0),
         "file_mb_study_level": study[0][2],
         "file_mb_full_level": full[2],
     }
@@ -132,6 +149,7 @@ def main() -> None:
         "campaign_hours_per_wall_hour_2": two["campaign_hours_per_wall_hour"],
         "scaling_efficiency": two["campaign_hours_per_wall_hour"] / (2 * one["campaign_hours_per_wall_hour"]),
         "realtime_factor_per_task": task["realtime_factor_study_level"],
+        "ceiling_realtime_factor_per_task": task["ceiling_realtime_factor"],
         "targets": {"scaling_efficiency": 0.8, "realtime_factor_per_task": 3000},
     }
     if args.json:
@@ -146,6 +164,10 @@ def main() -> None:
         f"real time at the study level ({task['realtime_factor_study_level_10s_blocks']:.0f}x with 10 s twin blocks), "
         f"{task['realtime_factor_full_level']:.0f}x at the full level; file {task['file_mb_study_level']:.1f} MB "
         f"instead of {task['file_mb_full_level']:.0f} MB"
+    )
+    print(
+        f"ceiling (the gyro twin's physics alone): {task['ceiling_realtime_factor']:.0f}x in 2 s blocks, "
+        f"{task['ceiling_realtime_factor_10s_blocks']:.0f}x in 10 s blocks"
     )
     for r in (one, two, one_ahead):
         ahead = ", noise drawn ahead" if r["twin_draw_ahead"] is None else ""
