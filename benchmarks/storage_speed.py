@@ -10,10 +10,18 @@ temperature, a constant rate) at the lock-in sample times. Two write patterns, a
 * hardware (`realtime=True`, smaller chunks): blocks of 0.5 s (700 samples, lockin.poll_interval_s) and a flush
   every 1 s of data (every second block).
 
-    python benchmarks/storage_speed.py [--minutes 10]
+Then the campaign's own recording path per lock-in block (`per_block`): `BlockRecorder.record` as the runner calls
+it, for `--blocks` blocks of 2 s at 1800 Sa/s (3600 samples: the paper campaign's twin blocks; a 7 Hz square
+dither, 14 CLSF rows, a table and a chamber reading, /truth), a /steps row every 30 blocks (a 60 s dwell) and the
+wall-clock `maybe_flush`, into a run file created as `qmg-lab run` creates it (configs/paper_campaign.toml at the
+full and at the study storage level). Per block: the campaign thread's CPU time (what recording takes from the
+simulation), the process's CPU time (the writer thread's writing and compression included) and the wall time,
+medians of `--repeats` runs in this process after a short warm-up (numba's cached kernels loaded).
+
+    python benchmarks/storage_speed.py [--minutes 10] [--blocks 1660] [--repeats 5]
 
 Prints JSON: per case MB per campaign hour, write CPU s per campaign hour (append + flush + close), and the
-seconds to read one hour of /lockin/rate_output with plain h5py.
+seconds to read one hour of /lockin/rate_output with plain h5py; per_block: microseconds per block per level.
 """
 
 from __future__ import annotations
@@ -21,16 +29,29 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import statistics
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 import h5py
 import numpy as np
+import tomlkit
 
+from qmg_lab.campaign.plan import checked_plan
+from qmg_lab.campaign.recorder import BlockRecorder
+from qmg_lab.clsf.estimator import ClsfPeriods
+from qmg_lab.config.schema import parse_config
+from qmg_lab.instruments import ChamberReading, LockInBlock, TableReading, TruthBlock
+from qmg_lab.storage.summary import create_run_writer
 from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0
+ROOT = Path(__file__).resolve().parents[1]
+BLOCK_FS = 1800.0  # the paper campaign's twin: 1800 Sa/s in blocks of 2 s
+BLOCK_SAMPLES = 3600
+DWELL_BLOCKS = 30
 
 
 def write_campaign(path: Path, compression: str, minutes: float, truth: bool, realtime: bool) -> dict[str, float]:
@@ -104,12 +125,106 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     }
 
 
+def campaign_blocks(n_blocks: int, seed: int = 2) -> list[tuple[np.ndarray, LockInBlock, ClsfPeriods, TruthBlock]]:
+    """The lock-in blocks, CLSF periods and truth of n_blocks 2 s blocks of a campaign stream (fresh arrays each)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n_blocks):
+        t = (k * BLOCK_SAMPLES + np.arange(BLOCK_SAMPLES)) / BLOCK_FS
+        block = LockInBlock(
+            time=t,
+            x_sense=1e-6 * rng.standard_normal(BLOCK_SAMPLES),
+            y_sense=1e-6 * rng.standard_normal(BLOCK_SAMPLES),
+            rate_output=0.3 + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
+            drive_amplitude=0.5 + 1e-6 * rng.standard_normal(BLOCK_SAMPLES),
+            drive_frequency=2200.0 + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
+            dither=0.3 * np.sign(np.sin(2 * np.pi * 7.0 * t + 0.1)) + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
+        )
+        tc = t[0] + (np.arange(14) + 1) / 7.0 - 0.5 / BLOCK_FS
+        periods = ClsfPeriods(
+            *(x + 1e-5 * rng.standard_normal(14) for x in (tc, 0 * tc, 0 * tc, 1 + 0 * tc, 0.3 + 0 * tc))
+        )
+        truth = TruthBlock(t, 0.06 * (1 + 1e-6 * t / 60), 25 + 1e-3 * t, 5.0 + 0 * t)
+        out.append((t, block, periods, truth))
+    return out
+
+
+def record_per_block(
+    level: str, blocks: list[tuple[np.ndarray, LockInBlock, ClsfPeriods, TruthBlock]], d: Path
+) -> dict[str, float]:
+    """Microseconds per block of BlockRecorder.record (+ the /steps rows, close) into a new run file at `level`."""
+    doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
+    doc.setdefault("storage", {})["level"] = level
+    for name in ("lockin", "generator", "table", "chamber"):
+        doc[name]["sim"] = True
+    text = tomlkit.dumps(doc)
+    cfg = parse_config(text, "paper_campaign.toml")
+    path = d / f"per_block_{level}.h5"
+    path.unlink(missing_ok=True)
+    writer = create_run_writer(
+        path,
+        cfg,
+        checked_plan(cfg).steps,
+        config_text=text,
+        config_sha256=hashlib.sha256(text.encode()).hexdigest(),
+        mode="sim",
+        software_version="bench",
+        t0_unix=time.time(),
+        instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
+    )
+    recorder = BlockRecorder(writer)
+    t_step = 0.0
+    wall0, main0, proc0 = time.perf_counter(), time.thread_time(), time.process_time()
+    for k, (t, block, periods, truth) in enumerate(blocks):
+        reading = TableReading(5.0 * (-1) ** (k // DWELL_BLOCKS), (2.5 * k) % 360.0, 11)
+        recorder.record(
+            t, block, periods, reading, reading.rate_dps, ChamberReading(25.0, 25.0), truth, 1 / BLOCK_FS, 0.12
+        )
+        if k % DWELL_BLOCKS == DWELL_BLOCKS - 1:
+            t_end = float(t[-1])
+            writer.append_step(
+                index=k // DWELL_BLOCKS,
+                kind="rate",
+                t_start=t_step,
+                t_end=t_end,
+                table_rate=5.0,
+                chamber_setpoint=25.0,
+                status="completed",
+            )
+            t_step = t_end
+    writer.set_status("completed")
+    writer.close()
+    n = len(blocks)
+    return {
+        "main_thread_cpu_us": (time.thread_time() - main0) / n * 1e6,
+        "process_cpu_us": (time.process_time() - proc0) / n * 1e6,
+        "wall_us": (time.perf_counter() - wall0) / n * 1e6,
+    }
+
+
+def per_block(n_blocks: int, repeats: int, d: Path) -> dict[str, object]:
+    blocks = campaign_blocks(n_blocks)
+    out: dict[str, object] = {"blocks": n_blocks, "block_samples": BLOCK_SAMPLES, "repeats": repeats}
+    runs: dict[str, list[dict[str, float]]] = {"full": [], "study": []}
+    for level in runs:  # warm-up: numba's cached kernels (edge tracker, integral) load on first use
+        record_per_block(level, blocks[:DWELL_BLOCKS], d)
+    for _ in range(repeats):
+        for level, rs in runs.items():
+            rs.append(record_per_block(level, blocks, d))
+    for level, rs in runs.items():
+        out[level] = {k: round(statistics.median(r[k] for r in rs), 1) for k in rs[0]}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="minutes of campaign data to write per case")
+    ap.add_argument("--blocks", type=int, default=1660, help="lock-in blocks recorded per level (per_block)")
+    ap.add_argument("--repeats", type=int, default=5, help="runs per level for per_block (median quoted)")
     args = ap.parse_args()
     out: dict[str, object] = {"minutes_written": args.minutes, "sample_rate_hz": FS}
     with tempfile.TemporaryDirectory() as d:
+        out["per_block"] = per_block(args.blocks, args.repeats, Path(d))
         for pattern, realtime, truth in (("twins", False, True), ("hardware", True, False)):
             for comp in ("none", "lzf", "gzip"):
                 key = f"{pattern}_{comp}{'_with_truth' if truth else ''}"
