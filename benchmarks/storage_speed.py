@@ -54,6 +54,20 @@ BLOCK_SAMPLES = 3600
 DWELL_BLOCKS = 30
 
 
+def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndarray]:
+    """The /lockin columns at times t: noisy demodulator and AuxIn readings, a +-0.3 V 7 Hz square dither."""
+    n = t.shape[0]
+    return dict(
+        time=t,
+        x_sense=1e-6 * rng.standard_normal(n),
+        y_sense=1e-6 * rng.standard_normal(n),
+        rate_output=0.3 + 1e-4 * rng.standard_normal(n),
+        drive_amplitude=0.5 + 1e-6 * rng.standard_normal(n),
+        drive_frequency=2200.0 + 1e-4 * rng.standard_normal(n),
+        dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(n),
+    )
+
+
 def write_campaign(path: Path, compression: str, minutes: float, truth: bool, realtime: bool) -> dict[str, float]:
     rng = np.random.default_rng(1)
     text = "[campaign]\nname='bench'\n"
@@ -75,15 +89,7 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     t_cpu = 0.0
     for k in range(n_blocks):
         t = (k * block + np.arange(block)) / FS
-        cols = dict(
-            time=t,
-            x_sense=1e-6 * rng.standard_normal(block),
-            y_sense=1e-6 * rng.standard_normal(block),
-            rate_output=0.3 + 1e-4 * rng.standard_normal(block),
-            drive_amplitude=0.5 + 1e-6 * rng.standard_normal(block),
-            drive_frequency=2200.0 + 1e-4 * rng.standard_normal(block),
-            dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(block),
-        )
+        cols = lockin_columns(rng, t)
         n_clsf = block // 200
         tc = t[199::200][:n_clsf]
         tr = dict(time=t, scale_factor=0.06 * (1 + 1e-6 * t / 60), temperature=25 + 1e-3 * t, rate=5.0 + 0 * t)
@@ -131,15 +137,7 @@ def campaign_blocks(n_blocks: int, seed: int = 2) -> list[tuple[np.ndarray, Lock
     out = []
     for k in range(n_blocks):
         t = (k * BLOCK_SAMPLES + np.arange(BLOCK_SAMPLES)) / BLOCK_FS
-        block = LockInBlock(
-            time=t,
-            x_sense=1e-6 * rng.standard_normal(BLOCK_SAMPLES),
-            y_sense=1e-6 * rng.standard_normal(BLOCK_SAMPLES),
-            rate_output=0.3 + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
-            drive_amplitude=0.5 + 1e-6 * rng.standard_normal(BLOCK_SAMPLES),
-            drive_frequency=2200.0 + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
-            dither=0.3 * np.sign(np.sin(2 * np.pi * 7.0 * t + 0.1)) + 1e-4 * rng.standard_normal(BLOCK_SAMPLES),
-        )
+        block = LockInBlock(**lockin_columns(rng, t))
         tc = t[0] + (np.arange(14) + 1) / 7.0 - 0.5 / BLOCK_FS
         periods = ClsfPeriods(
             *(x + 1e-5 * rng.standard_normal(14) for x in (tc, 0 * tc, 0 * tc, 1 + 0 * tc, 0.3 + 0 * tc))
