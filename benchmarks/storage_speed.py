@@ -10,10 +10,18 @@ temperature, a constant rate) at the lock-in sample times. Two write patterns, a
 * hardware (`realtime=True`, smaller chunks): blocks of 0.5 s (700 samples, lockin.poll_interval_s) and a flush
   every 1 s of data (every second block).
 
-    python benchmarks/storage_speed.py [--minutes 10]
+Then the campaign's own recording path per lock-in block (`per_block`): `BlockRecorder.record` as the runner calls
+it, for `--blocks` blocks of 2 s at 1800 Sa/s (3600 samples: the paper campaign's twin blocks; a 7 Hz square
+dither, 14 CLSF rows, a table and a chamber reading, /truth), a /steps row every 30 blocks (a 60 s dwell) and the
+wall-clock `maybe_flush`, into a run file created as `qmg-lab run` creates it (configs/paper_campaign.toml at the
+full and at the study storage level). Per block: the campaign thread's CPU time (what recording takes from the
+simulation), the process's CPU time (the writer thread's writing and compression included) and the wall time,
+medians of `--repeats` runs in this process after a short warm-up (numba's cached kernels loaded).
+
+    python benchmarks/storage_speed.py [--minutes 10] [--blocks 1660] [--repeats 5]
 
 Prints JSON: per case MB per campaign hour, write CPU s per campaign hour (append + flush + close), and the
-seconds to read one hour of /lockin/rate_output with plain h5py.
+seconds to read one hour of /lockin/rate_output with plain h5py; per_block: microseconds per block per level.
 """
 
 from __future__ import annotations
@@ -21,16 +29,45 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import statistics
 import tempfile
 import time
+import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
 import numpy as np
+import tomlkit
 
+from qmg_lab.campaign.plan import checked_plan
+from qmg_lab.campaign.recorder import BlockRecorder
+from qmg_lab.clsf.estimator import ClsfPeriods
+from qmg_lab.config.schema import parse_config
+from qmg_lab.instruments import ChamberReading, LockInBlock, TableReading, TruthBlock
+from qmg_lab.storage.summary import create_run_writer
 from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0
+ROOT = Path(__file__).resolve().parents[1]
+BLOCK_FS = 1800.0  # the paper campaign's twin: 1800 Sa/s in blocks of 2 s
+BLOCK_SAMPLES = 3600
+DWELL_BLOCKS = 30
+POOL_BLOCKS = 10
+
+
+def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndarray]:
+    """The /lockin columns at times t: noisy demodulator and AuxIn readings, a +-0.3 V 7 Hz square dither."""
+    n = t.shape[0]
+    return dict(
+        time=t,
+        x_sense=1e-6 * rng.standard_normal(n),
+        y_sense=1e-6 * rng.standard_normal(n),
+        rate_output=0.3 + 1e-4 * rng.standard_normal(n),
+        drive_amplitude=0.5 + 1e-6 * rng.standard_normal(n),
+        drive_frequency=2200.0 + 1e-4 * rng.standard_normal(n),
+        dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(n),
+    )
 
 
 def write_campaign(path: Path, compression: str, minutes: float, truth: bool, realtime: bool) -> dict[str, float]:
@@ -54,15 +91,7 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     t_cpu = 0.0
     for k in range(n_blocks):
         t = (k * block + np.arange(block)) / FS
-        cols = dict(
-            time=t,
-            x_sense=1e-6 * rng.standard_normal(block),
-            y_sense=1e-6 * rng.standard_normal(block),
-            rate_output=0.3 + 1e-4 * rng.standard_normal(block),
-            drive_amplitude=0.5 + 1e-6 * rng.standard_normal(block),
-            drive_frequency=2200.0 + 1e-4 * rng.standard_normal(block),
-            dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(block),
-        )
+        cols = lockin_columns(rng, t)
         n_clsf = block // 200
         tc = t[199::200][:n_clsf]
         tr = dict(time=t, scale_factor=0.06 * (1 + 1e-6 * t / 60), temperature=25 + 1e-3 * t, rate=5.0 + 0 * t)
@@ -104,12 +133,103 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     }
 
 
+def campaign_blocks(n_blocks: int, seed: int = 2) -> Iterator[tuple[np.ndarray, LockInBlock, ClsfPeriods, TruthBlock]]:
+    """The lock-in blocks, CLSF periods and truth of n_blocks 2 s blocks of a campaign stream. Their noise comes
+    from a pool of POOL_BLOCKS blocks (a few MB, warm in the caches as a block the twin has just produced is; a
+    compressed chunk spans fewer blocks than the pool); every block gets its own time arrays."""
+    rng = np.random.default_rng(seed)
+    t0 = np.arange(BLOCK_SAMPLES) / BLOCK_FS
+    pool = [lockin_columns(rng, t0 + j * BLOCK_SAMPLES / BLOCK_FS) for j in range(POOL_BLOCKS)]
+    tc0 = (np.arange(14) + 1) / 7.0 - 0.5 / BLOCK_FS
+    clsf = [[1e-5 * rng.standard_normal(14) for _ in range(4)] for _ in range(POOL_BLOCKS)]
+    for k in range(n_blocks):
+        cols, noise = pool[k % POOL_BLOCKS], clsf[k % POOL_BLOCKS]
+        t = t0 + k * BLOCK_SAMPLES / BLOCK_FS
+        block = LockInBlock(**{**cols, "time": t})
+        periods = ClsfPeriods(t[0] + tc0, noise[0], noise[1], 1.0 + noise[2], 0.3 + noise[3])
+        truth = TruthBlock(t, 0.06 * (1 + 1e-6 * t / 60), 25 + 1e-3 * t, 5.0 + 0 * t)
+        yield t, block, periods, truth
+
+
+def record_per_block(level: str, n_blocks: int, d: Path) -> dict[str, float]:
+    """Microseconds per block of BlockRecorder.record and the /steps rows (and set_status, close at the end) into a
+    new run file at `level`; the blocks' construction (timed on its own) is subtracted."""
+    doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
+    doc.setdefault("storage", {})["level"] = level
+    for name in ("lockin", "generator", "table", "chamber"):
+        doc[name]["sim"] = True
+    text = tomlkit.dumps(doc)
+    cfg = parse_config(text, "paper_campaign.toml")
+    path = d / f"per_block_{level}.h5"
+    path.unlink(missing_ok=True)
+    writer = create_run_writer(
+        path,
+        cfg,
+        checked_plan(cfg).steps,
+        config_text=text,
+        config_sha256=hashlib.sha256(text.encode()).hexdigest(),
+        mode="sim",
+        software_version="bench",
+        t0_unix=time.time(),
+        instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
+    )
+    recorder = BlockRecorder(writer)
+    t_step = 0.0
+    start = _clocks()
+    for k, (t, block, periods, truth) in enumerate(campaign_blocks(n_blocks)):
+        reading = TableReading(5.0 * (-1) ** (k // DWELL_BLOCKS), (2.5 * k) % 360.0, 11)
+        recorder.record(
+            t, block, periods, reading, reading.rate_dps, ChamberReading(25.0, 25.0), truth, 1 / BLOCK_FS, 0.12
+        )
+        if k % DWELL_BLOCKS == DWELL_BLOCKS - 1:
+            writer.append_step(
+                index=k // DWELL_BLOCKS,
+                kind="rate",
+                t_start=t_step,
+                t_end=float(t[-1]),
+                table_rate=5.0,
+                chamber_setpoint=25.0,
+                status="completed",
+            )
+            t_step = float(t[-1])
+    writer.set_status("completed")
+    writer.close()
+    spent = [end - s for end, s in zip(_clocks(), start, strict=True)]
+    start = _clocks()  # the same loop without recording: the blocks' construction, not counted
+    for k, _ in enumerate(campaign_blocks(n_blocks)):
+        TableReading(5.0 * (-1) ** (k // DWELL_BLOCKS), (2.5 * k) % 360.0, 11)
+    made = [end - s for end, s in zip(_clocks(), start, strict=True)]
+    wall, main, process = ((x - y) / n_blocks * 1e6 for x, y in zip(spent, made, strict=True))
+    return {"main_thread_cpu_us": main, "process_cpu_us": process, "wall_us": wall}
+
+
+def _clocks() -> list[float]:
+    """Wall time, the calling thread's CPU time, the process's CPU time (all threads), s."""
+    return [time.perf_counter(), time.thread_time(), time.process_time()]
+
+
+def per_block(n_blocks: int, repeats: int, d: Path) -> dict[str, object]:
+    out: dict[str, object] = {"blocks": n_blocks, "block_samples": BLOCK_SAMPLES, "repeats": repeats}
+    runs: dict[str, list[dict[str, float]]] = {"full": [], "study": []}
+    for level in runs:  # warm-up: numba's cached kernels (edge tracker, integral) load on first use
+        record_per_block(level, DWELL_BLOCKS, d)
+    for _ in range(repeats):
+        for level, rs in runs.items():
+            rs.append(record_per_block(level, n_blocks, d))
+    for level, rs in runs.items():
+        out[level] = {k: round(statistics.median(r[k] for r in rs), 1) for k in rs[0]}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="minutes of campaign data to write per case")
+    ap.add_argument("--blocks", type=int, default=1660, help="lock-in blocks recorded per level (per_block)")
+    ap.add_argument("--repeats", type=int, default=5, help="runs per level for per_block (median quoted)")
     args = ap.parse_args()
     out: dict[str, object] = {"minutes_written": args.minutes, "sample_rate_hz": FS}
     with tempfile.TemporaryDirectory() as d:
+        out["per_block"] = per_block(args.blocks, args.repeats, Path(d))
         for pattern, realtime, truth in (("twins", False, True), ("hardware", True, False)):
             for comp in ("none", "lzf", "gzip"):
                 key = f"{pattern}_{comp}{'_with_truth' if truth else ''}"

@@ -69,6 +69,10 @@ class Aerosmith1291BR(RateTable):
         if not self.framing.prompt:
             raise ValueError("the 1291BR framing needs a prompt (the controller's ready prompt, e.g. '>')")
         self._link = SerialLink(port, name=self.NAME, framing=self.framing, max_reply_bytes=proto.MAX_REPLY_BYTES)
+        # the bytes of every command without a value, encoded once (the framing is fixed for the driver's life)
+        self._encoded = {
+            key: cmd.encode(None, self.framing.command_end) for key, cmd in proto.COMMANDS.items() if not cmd.arg_format
+        }
         self._factory = port_factory
         self._mode = "rate"
         self._rate_command_dps = 0.0
@@ -79,11 +83,14 @@ class Aerosmith1291BR(RateTable):
     def _transact(self, key: str, value: float | None = None) -> Any:
         """Send one command from the table; return its parsed reply (None for prompt-only commands)."""
         cmd = proto.COMMANDS[key]
-        raw = cmd.encode(value, self.framing.command_end)
+        raw = self._encoded.get(key) if value is None else None
+        if raw is None:
+            raw = cmd.encode(value, self.framing.command_end)
         self._link.send(raw)
         result: Any = None
         line = self._link.read_line(raw)
-        self._raise_if_error(raw, line)
+        if line.startswith("E"):  # every error line does (proto.ERROR_LINE); values and the prompt do not
+            self._raise_if_error(raw, line)
         if cmd.reply is not None:
             try:
                 result = cmd.reply(line)
@@ -95,7 +102,8 @@ class Aerosmith1291BR(RateTable):
                 line = self._link.read_line(raw)
             except InstrumentError as exc:
                 raise InstrumentError(f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: {exc}") from exc
-            self._raise_if_error(raw, line)
+            if line.startswith("E"):
+                self._raise_if_error(raw, line)
         if line != self.framing.prompt:
             raise InstrumentError(
                 f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of the prompt "
@@ -104,8 +112,7 @@ class Aerosmith1291BR(RateTable):
         return result
 
     def _raise_if_error(self, raw: bytes, line: str) -> None:
-        if not line.startswith("E"):  # every error line does (proto.ERROR_LINE); values and the prompt do not
-            return
+        """InterlockError / InstrumentError if `line` is an error line "E<nn> <text>" (after reading its prompt)."""
         m = proto.ERROR_LINE.match(line)
         if m is None:
             return

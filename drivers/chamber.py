@@ -110,13 +110,14 @@ class SunEC1xChamber(ThermalChamber):
         self.safe_setpoint_c = float(safe_setpoint_c)
         self.framing = framing or FRAMING
         self._link = SerialLink(port, name=self.NAME, framing=self.framing)
+        self._command_end = self.framing.command_end  # the framing is fixed for the driver's life
         self._factory = port_factory
         self._target_c: float | None = None
         self._ramp_c_per_min: float | None = None
 
     # ------------------------------------------------------------------ transactions
     def _transact(self, text: str) -> str:
-        raw = text.encode("ascii") + self.framing.command_end
+        raw = text.encode("ascii") + self._command_end
         self._link.send(raw)
         line = self._link.read_line(raw)
         if line.startswith(ERROR_PREFIX):

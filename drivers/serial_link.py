@@ -161,7 +161,7 @@ class SerialLink:
         Raises InstrumentError: nothing received (timeout), no terminator (truncated), more than
         max_reply_bytes, or bytes that are not printable ASCII (garbled).
         """
-        received = bytearray()  # what this line consumed, for messages
+        received = bytearray()  # what this line consumed before its content (skipped bytes), for messages
         prompt = self._prompt
         if not self._rx and not self._fill(command):  # nothing buffered: nothing to look at before reading
             raise InstrumentError(f"{self.name}: timeout: no reply to {self._show(command)} (received b'')")
@@ -181,9 +181,9 @@ class SerialLink:
                     return self.framing.prompt
             end = self._line_end()
             if end is not None:
-                body = bytes(self._rx[: end[0]])
-                received += self._rx[: end[1]]
+                line = bytes(self._rx[: end[1]])  # content and terminator
                 del self._rx[: end[1]]
+                body = line[: end[0]]
                 break
             if len(self._rx) > self.max_reply_bytes:
                 data = bytes(received + self._rx)
@@ -204,10 +204,11 @@ class SerialLink:
                     f"without a terminator ({self.framing.describe()})"
                 )
         if self._log.isEnabledFor(logging.DEBUG):
-            self._log.debug("received %r for %r", bytes(received), command)
+            self._log.debug("received %r for %r", bytes(received) + line, command)
         body = body.strip(_BLANKS)
         if not body or body.translate(None, _PRINTABLE):  # empty, or bytes left that are not printable ASCII
-            raise InstrumentError(f"{self.name}: garbled reply to {self._show(command)}: received {bytes(received)!r}")
+            data = bytes(received) + line
+            raise InstrumentError(f"{self.name}: garbled reply to {self._show(command)}: received {data!r}")
         return body.decode("ascii")
 
     def replace_port(self, port: SerialPort) -> None:

@@ -74,10 +74,11 @@ class ChamberTwin(FaultableTwin):
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
         try:
-            if not self.command_complete(line):
+            body = self.command_body(line)
+            if body is None:
                 raise _Refused("FRAMING")
             try:
-                text = self.command_text(line).decode("ascii")
+                text = body.decode("ascii")
             except UnicodeDecodeError:
                 raise _Refused("UNKNOWN COMMAND") from None
             with self.world.lock:
@@ -88,8 +89,9 @@ class ChamberTwin(FaultableTwin):
         return answer.encode("ascii") + self.reply_end
 
     def _dispatch(self, text: str) -> str:
-        if text in self._queries:
-            return self._queries[text]()
+        query = self._queries.get(text)
+        if query is not None:
+            return query()
         if text == "ON":
             self._power_on()
             return "OK"

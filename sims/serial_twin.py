@@ -330,6 +330,13 @@ class FaultableTwin:
         head = self.command_end[:-1]
         return line[: -len(head)] if head else line
 
+    def command_body(self, line: bytes) -> bytes | None:
+        """`command_text(line)` if `command_complete(line)`, else None (one call per command line)."""
+        head = self.command_end[:-1]
+        if not head:
+            return line
+        return line[: -len(head)] if line.endswith(head) else None
+
     def execute(self, line: bytes) -> bytes:
         raise NotImplementedError
 

@@ -62,6 +62,7 @@ class RateTableTwin(FaultableTwin):
             raise ValueError("prompt_end must be empty, CR, LF or CR LF")
         self.command_end, self.reply_end = command_end, reply_end
         self.prompt = PROMPT_TEXT + prompt_end
+        self._line_tail = reply_end + self.prompt  # what follows a value line
         self.world = world
         self.max_rate_dps = float(max_rate_dps)
         self.max_accel_dps2 = float(max_accel_dps2)
@@ -88,24 +89,29 @@ class RateTableTwin(FaultableTwin):
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
         try:
-            if not self.command_complete(line):
+            body = self.command_body(line)
+            if body is None:
                 raise _Refused(5, "FRAMING")
             try:
-                text = self.command_text(line).decode("ascii")
+                text = body.decode("ascii")
             except UnicodeDecodeError:
                 raise _Refused(1, "UNKNOWN COMMAND") from None
-            m = _LINE.match(text)
-            handler = self._handlers.get(m.group(1)) if m else None
-            if m is None or handler is None:
-                raise _Refused(1, "UNKNOWN COMMAND")
+            handler = self._handlers.get(text)  # a bare mnemonic (the queries): no argument to split off
+            arg = ""
+            if handler is None:
+                m = _LINE.match(text)
+                handler = self._handlers.get(m.group(1)) if m else None
+                if m is None or handler is None:
+                    raise _Refused(1, "UNKNOWN COMMAND")
+                arg = m.group(2)
             with self.world.lock:
                 self.world.now()  # wall-clock worlds integrate up to now
-                value = handler(m.group(2))
+                value = handler(arg)
         except _Refused as r:
             return f"E{r.code:02d} {r.text}".encode("ascii") + self.reply_end + self.prompt
         if value is None:
             return self.prompt
-        return value.encode("ascii") + self.reply_end + self.prompt
+        return value.encode("ascii") + self._line_tail
 
     @staticmethod
     def _number(arg: str) -> float:

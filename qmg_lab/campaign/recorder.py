@@ -52,21 +52,18 @@ class BlockRecorder:
         self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
         if len(periods):
             self.writer.append("clsf", **{c: getattr(periods, c) for c in CLSF_COLUMNS})
-        t_end = np.array([t[-1]])
+        t_end = float(t[-1])
         if table is not None:
-            self.writer.append(
+            self.writer.append_row(
                 "table",
                 time=t_end,
-                rate_command=np.array([table_command_dps]),
-                rate_measured=np.array([table.rate_dps]),
-                position=np.array([table.position_deg]),
+                rate_command=table_command_dps,
+                rate_measured=table.rate_dps,
+                position=table.position_deg,
             )
         if chamber is not None:
-            self.writer.append(
-                "chamber",
-                time=t_end,
-                setpoint=np.array([chamber.setpoint_c]),
-                temperature=np.array([chamber.temperature_c]),
+            self.writer.append_row(
+                "chamber", time=t_end, setpoint=chamber.setpoint_c, temperature=chamber.temperature_c
             )
         if truth is not None and len(truth.time):
             self.writer.append("truth", **aligned_truth(truth, t, dt_s))

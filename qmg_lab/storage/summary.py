@@ -35,7 +35,7 @@ import numpy as np
 from qmg_lab.campaign.plan import Step, dither_amplitude_vpp
 from qmg_lab.clsf.dither_edges import EdgeTracker
 from qmg_lab.config.schema import Config
-from qmg_lab.storage.writer import RunWriter, StorageError, _append_rows
+from qmg_lab.storage.writer import RunWriter, StorageError
 
 #: the analysis hands the recorded dither to its edge tracker in chunks of this many samples (the tracker's level
 #: estimate is updated per chunk): the study writer uses the same chunks, so it finds the same edges
@@ -142,23 +142,36 @@ class _EdgeIntegrator:
 
     Bit for bit the analysis's computation on a full file: the integral is the sequential sum
     I_k = I_(k-1) + (t_k - t_(k-1)) (r_k + r_(k-1)) / 2 from I_0 = 0 (what numpy's cumsum does over the whole
-    column), interpolated linearly at each edge between the samples around it."""
+    column), interpolated linearly at each edge between the samples around it.
+
+    The integral is carried block by block as the blocks arrive, in one compiled pass per block
+    (qmg_lab/storage/trapezoid.py: each term and each partial sum the same floating-point operation on the same
+    operands as over the whole column); a chunk only joins its samples' times, dither and integral for the edge
+    tracker and the interpolation."""
 
     tracker: EdgeTracker = field(default_factory=EdgeTracker)
-    _t: list[np.ndarray] = field(default_factory=list)
-    _d: list[np.ndarray] = field(default_factory=list)
-    _r: list[np.ndarray] = field(default_factory=list)
+    _t: list[np.ndarray] = field(default_factory=list)  # the current chunk's pieces: times,
+    _d: list[np.ndarray] = field(default_factory=list)  # dither values,
+    _i: list[np.ndarray] = field(default_factory=list)  # and the integral at those samples
     _pending: int = 0
     _hist_t: np.ndarray = field(default_factory=lambda: np.empty(0))
     _hist_i: np.ndarray = field(default_factory=lambda: np.empty(0))
-    _last_r: float | None = None
+    _last: tuple[float, float, float] | None = None  # (t, r, I) of the last sample fed
+
+    def __post_init__(self) -> None:
+        from qmg_lab.storage.trapezoid import running_trapezoid  # numba: loaded by the writer, never by analyze
+
+        self._running_trapezoid = running_trapezoid
 
     def feed(self, t: np.ndarray, dither: np.ndarray, rate_output: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Buffer a block; returns (edge times, integrals) of every whole chunk completed by it."""
+        """Integrate and buffer a block; returns (edge times, integrals) of every whole chunk completed by it."""
+        n = t.shape[0]
+        if n == 0:
+            return []
         self._t.append(t)
         self._d.append(dither)
-        self._r.append(rate_output)
-        self._pending += t.shape[0]
+        self._i.append(self._integrate(t, rate_output))
+        self._pending += n
         out = []
         while self._pending >= EDGE_CHUNK_SAMPLES:
             out.append(self._chunk(EDGE_CHUNK_SAMPLES))
@@ -168,25 +181,46 @@ class _EdgeIntegrator:
         """The last, partial chunk (the analysis processes it too)."""
         return [self._chunk(self._pending)] if self._pending else []
 
+    def _integrate(self, t: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """I at the block's samples, from the last sample fed (from I_0 = 0 at the very first sample)."""
+        t_prev, r_prev, i_prev = self._last if self._last is not None else (0.0, 0.0, 0.0)
+        integral: np.ndarray = self._running_trapezoid(
+            np.ascontiguousarray(t, dtype=np.float64),
+            np.ascontiguousarray(r, dtype=np.float64),
+            t_prev,
+            r_prev,
+            i_prev,
+            self._last is None,
+        )
+        self._last = (float(t[-1]), float(r[-1]), float(integral[-1]))
+        return integral
+
     def _chunk(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        t_all, d_all, r_all = (np.concatenate(x) for x in (self._t, self._d, self._r))
-        t, d, r = t_all[:n], d_all[:n], r_all[:n]
-        self._t, self._d, self._r = [t_all[n:]], [d_all[n:]], [r_all[n:]]
+        """Edges of the first n pending samples, and the integral interpolated at them."""
+        t_parts, d_parts, i_parts = self._take(self._t, n), self._take(self._d, n), self._take(self._i, n)
         self._pending -= n
-        if self._last_r is None:  # the first sample: I_0 = 0
-            steps = 0.5 * np.diff(t) * (r[1:] + r[:-1])
-            integral = np.cumsum(np.concatenate(([0.0], steps)))
-        else:
-            tt = np.concatenate((self._hist_t[-1:], t))
-            rr = np.concatenate(([self._last_r], r))
-            steps = 0.5 * np.diff(tt) * (rr[1:] + rr[:-1])
-            integral = np.cumsum(np.concatenate((self._hist_i[-1:], steps)))[1:]
-        self._last_r = float(r[-1])
+        xp = np.concatenate([self._hist_t, *t_parts])  # the chunk's times after the last ones of the chunk before
+        fp = np.concatenate([self._hist_i, *i_parts])
+        t = xp[self._hist_t.shape[0] :]
+        d = d_parts[0] if len(d_parts) == 1 else np.concatenate(d_parts)
         rising, _ = self.tracker.process(t, d)
-        xp = np.concatenate((self._hist_t, t))
-        fp = np.concatenate((self._hist_i, integral))
-        self._hist_t, self._hist_i = xp[-_INTERP_HISTORY:], fp[-_INTERP_HISTORY:]
+        self._hist_t, self._hist_i = xp[-_INTERP_HISTORY:].copy(), fp[-_INTERP_HISTORY:].copy()
         return rising, np.interp(rising, xp, fp)
+
+    @staticmethod
+    def _take(pieces: list[np.ndarray], n: int) -> list[np.ndarray]:
+        """The first n rows of `pieces` (views), removed from it."""
+        taken: list[np.ndarray] = []
+        while n:
+            p = pieces[0]
+            if p.shape[0] <= n:
+                taken.append(pieces.pop(0))
+                n -= p.shape[0]
+            else:
+                taken.append(p[:n])
+                pieces[0] = p[n:]
+                n = 0
+        return taken
 
 
 @dataclass
@@ -197,6 +231,23 @@ class _Window:
     samples: int = 0
     sf_sum: float = 0.0
     temp_sum: float = 0.0
+
+    def add(self, time: np.ndarray, scale_factor: np.ndarray, temperature: np.ndarray) -> None:
+        """Add the truth samples at or after start_s: their count, and the sums (numpy's) of their scale factor and
+        temperature. A block wholly inside the window (all but the first of a step) is summed as it is, with the
+        same sums as over the selected samples (the same values in the same order)."""
+        t = np.asarray(time, dtype=np.float64)
+        m = t >= self.start_s
+        k = int(np.count_nonzero(m))
+        if k == 0:
+            return
+        sf = np.asarray(scale_factor, dtype=np.float64)
+        temp = np.asarray(temperature, dtype=np.float64)
+        if k < t.shape[0]:
+            sf, temp = sf[m], temp[m]
+        self.samples += k
+        self.sf_sum += float(np.sum(sf))
+        self.temp_sum += float(np.sum(temp))
 
 
 class StudyRunWriter(RunWriter):
@@ -216,20 +267,15 @@ class StudyRunWriter(RunWriter):
         self._edges_done = False
         self._tail: list[dict[str, np.ndarray]] = []
         self._window = _Window(start_s=0.0 + settle_s)  # the first step starts at t = 0
-        self._summary_ds = {
-            g: [(c, self._h5[g][c]) for c in units] for g, units in (("windows", WINDOWS_UNITS), ("edges", EDGES_UNITS))
-        }
+        # /windows and /edges rows are buffered and written by the writer thread, like every other group's
+        for g, units in (("windows", WINDOWS_UNITS), ("edges", EDGES_UNITS)):
+            self._buffer_group(g, list(units))
 
     def append(self, group: str, **columns: np.ndarray) -> None:
         """Reduce /lockin and /truth blocks to the summaries; every other group as at the full level."""
         if group == "truth":
             self._check_open()
-            t = np.asarray(columns["time"], dtype=np.float64)
-            m = t >= self._window.start_s
-            if m.any():
-                self._window.samples += int(m.sum())
-                self._window.sf_sum += float(np.sum(np.asarray(columns["scale_factor"], dtype=np.float64)[m]))
-                self._window.temp_sum += float(np.sum(np.asarray(columns["temperature"], dtype=np.float64)[m]))
+            self._window.add(columns["time"], columns["scale_factor"], columns["temperature"])
             return
         if group != "lockin":
             super().append(group, **columns)
@@ -249,6 +295,13 @@ class StudyRunWriter(RunWriter):
             while len(self._tail) > 1 and self._tail[-1]["time"][-1] - self._tail[1]["time"][0] >= TAIL_S:
                 self._tail.pop(0)
 
+    def append_row(self, group: str, **values: float) -> None:
+        """As RunWriter.append_row; a /lockin or /truth row goes through `append`'s reductions."""
+        if group in ("lockin", "truth"):
+            self.append(group, **{c: np.array([v], dtype=np.float64) for c, v in values.items()})
+            return
+        super().append_row(group, **values)
+
     def append_step(self, **step: Any) -> None:
         """The step's /windows row and the settling step's raw rows, then the /steps row (RunWriter.append_step's
         keywords: index, kind, t_start, t_end, table_rate, chamber_setpoint, status)."""
@@ -265,8 +318,7 @@ class StudyRunWriter(RunWriter):
                 "truth_scale_factor": w.sf_sum / n if w.samples else math.nan,
                 "truth_temperature": w.temp_sum / n if w.samples else math.nan,
             }
-            for c, ds in self._summary_ds["windows"]:
-                _append_rows(ds, np.array([row[c]]))
+            self._buffer_row("windows", tuple(row[c] for c in WINDOWS_UNITS))
             if self._recording and index == self._settling_index:
                 self._recording = False
                 self._settling_index = None
@@ -299,9 +351,7 @@ class StudyRunWriter(RunWriter):
     def _write_edges(self, rising: np.ndarray, integral: np.ndarray) -> None:
         if rising.shape[0] == 0:
             return
-        for c, data in (("time", rising), ("rate_integral", integral)):
-            ds = dict(self._summary_ds["edges"])[c]
-            _append_rows(ds, np.ascontiguousarray(data, dtype=np.float64))
+        self._buffer_block("edges", (np.asarray(rising, dtype=np.float64), np.asarray(integral, dtype=np.float64)))
 
 
 def create_run_writer(

@@ -37,10 +37,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 import socket
 import time as _time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -153,7 +154,11 @@ class RunWriter:
         self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
             g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups
         }
-        self._buffer: dict[str, list[dict[str, np.ndarray]]] = {g: [] for g in self._groups}
+        # per group: blocks of rows appended as arrays (one array per column, in the group's column order, held by
+        # reference until written), and single rows appended as numbers (append_row), joined into a block at the
+        # next hand-over or array append of their group
+        self._buffer: dict[str, list[tuple[np.ndarray, ...]]] = {g: [] for g in self._groups}
+        self._rows: dict[str, list[tuple[float, ...]]] = {g: [] for g in self._groups}
         self._buffered_rows = 0
         self._last_time: dict[str, float] = {}
         for g in self._groups:
@@ -372,29 +377,19 @@ class RunWriter:
     # ---- appending ------------------------------------------------------------------------------------------
 
     def append(self, group: str, **columns: np.ndarray) -> None:
-        """Buffer rows for `group`: every column of the group, 1-D, same length; time non-decreasing."""
+        """Buffer rows for `group`: every column of the group, 1-D, same length; time finite and non-decreasing.
+
+        The arrays are kept by reference until the writer thread has written them: the caller must not write into
+        them afterwards (the campaign hands over fresh arrays every block)."""
         self._check_open()
-        if group not in GROUP_UNITS:
-            raise StorageError(
-                f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
-                f"(steps are written with append_step)"
-            )
-        if group not in self._buffer:
-            raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
-        expected = GROUP_UNITS[group]
-        if columns.keys() != expected.keys():
-            missing = sorted(set(expected) - set(columns))
-            extra = sorted(set(columns) - set(expected))
-            raise StorageError(
-                f"{self.path}: /{group} append needs exactly the columns {list(expected)}; "
-                f"missing {missing}, unknown {extra}"
-            )
-        arrays = {c: np.asarray(columns[c], dtype=np.float64) for c in expected}
-        for c, arr in arrays.items():
+        expected = self._columns_of(group, columns, "append")
+        arrays = [np.asarray(columns[c], dtype=np.float64) for c in expected]
+        for i, arr in enumerate(arrays):
             if arr.ndim == 0:
-                arrays[c] = arr.reshape(1)
-        n = arrays["time"].shape[0]
-        for c, arr in arrays.items():
+                arrays[i] = arr.reshape(1)
+        t = arrays[0]
+        n = t.shape[0]
+        for c, arr in zip(expected, arrays, strict=True):
             if arr.ndim != 1 or arr.shape[0] != n:
                 raise StorageError(
                     f"{self.path}: /{group}/{c} has shape {arr.shape}; every column of the append "
@@ -402,19 +397,93 @@ class RunWriter:
                 )
         if n == 0:
             return
-        t = arrays["time"]
-        if not np.all(np.isfinite(t)):
+        first, last = float(t[0]), float(t[-1])
+        # finite ends and no step down in between: then every value is finite (a NaN fails >=, an infinity would
+        # need an infinite end); only a failing block pays for finding out which rule it breaks
+        ordered = math.isfinite(first) and math.isfinite(last) and (n == 1 or bool((t[1:] >= t[:-1]).all()))
+        if not ordered and not np.all(np.isfinite(t)):
             raise StorageError(f"{self.path}: /{group}/time contains NaN or infinite values")
-        if t[0] < self._last_time[group] or (n > 1 and np.any(np.diff(t) < 0)):
-            raise StorageError(
-                f"{self.path}: /{group}/time must not decrease (last stored "
-                f"{self._last_time[group]:.6f} s, this block starts at {t[0]:.6f} s)"
-            )
-        self._last_time[group] = float(t[-1])
-        self._buffer[group].append(arrays)
+        if not ordered or first < self._last_time[group]:
+            raise self._decreasing(group, first)
+        self._last_time[group] = last
+        if self._rows[group]:  # rows appended one by one before this block go first
+            self._join_rows(group)
+        self._buffer[group].append(tuple(arrays))
         self._buffered_rows += n
         if self._buffered_rows >= BUFFER_ROWS_MAX:  # bounded memory: hand the rows to HDF5 (no file flush)
             self._hand_over(flush_file=False)
+
+    def append_row(self, group: str, **values: float) -> None:
+        """Buffer one row of `group`: every column of the group as a number; time finite and not before the
+        group's last. The same rows as `append` with one-element columns, without building an array per value
+        (the table and chamber readings of every lock-in block)."""
+        self._check_open()
+        expected = self._columns_of(group, values, "append_row")
+        try:
+            row = tuple([float(values[c]) for c in expected])
+        except (TypeError, ValueError) as exc:
+            raise StorageError(f"{self.path}: /{group} append_row needs a number for every column: {exc}") from None
+        t = row[0]
+        if not math.isfinite(t):
+            raise StorageError(f"{self.path}: /{group}/time contains NaN or infinite values")
+        if t < self._last_time[group]:
+            raise self._decreasing(group, t)
+        self._last_time[group] = t
+        self._rows[group].append(row)
+        self._buffered_rows += 1
+        if self._buffered_rows >= BUFFER_ROWS_MAX:
+            self._hand_over(flush_file=False)
+
+    def _columns_of(self, group: str, columns: Mapping[str, object], method: str) -> dict[str, str]:
+        """The group's columns (name -> units), once `group` and the given column names are checked."""
+        expected = GROUP_UNITS.get(group)
+        if expected is None:
+            raise StorageError(
+                f"{self.path}: unknown group {group!r}; groups: {', '.join(GROUP_UNITS)} "
+                f"(steps are written with append_step)"
+            )
+        if group not in self._buffer:
+            raise StorageError(f"{self.path}: this file has no /{group} group (created with truth=False)")
+        if columns.keys() != expected.keys():
+            missing = sorted(set(expected) - set(columns))
+            extra = sorted(set(columns) - set(expected))
+            raise StorageError(
+                f"{self.path}: /{group} {method} needs exactly the columns {list(expected)}; "
+                f"missing {missing}, unknown {extra}"
+            )
+        return expected
+
+    def _decreasing(self, group: str, first: float) -> StorageError:
+        return StorageError(
+            f"{self.path}: /{group}/time must not decrease (last stored "
+            f"{self._last_time[group]:.6f} s, this block starts at {first:.6f} s)"
+        )
+
+    def _join_rows(self, group: str) -> None:
+        """The rows appended one by one (append_row) become one buffered block, column by column."""
+        rows = self._rows[group]
+        self._buffer[group].append(tuple(np.array(rows, dtype=np.float64).T.copy()))
+        rows.clear()
+
+    def _buffer_group(self, group: str, columns: Sequence[str]) -> None:
+        """Buffer and hand over a further group of the file (laid out by `create`'s extra_layout) like the
+        contract's groups, its rows given by `_buffer_block` / `_buffer_row` (no checks: the writer's own data)."""
+        self._ds[group] = [(c, self._h5[group][c]) for c in columns]
+        self._buffer[group], self._rows[group] = [], []
+        self._handed[group] = int(self._h5[group][columns[0]].shape[0])
+        self._direct_chunk_rows.update({(group, c): 0 for c in columns})
+
+    def _buffer_block(self, group: str, block: tuple[np.ndarray, ...]) -> None:
+        """Buffer rows of a `_buffer_group` group: one 1-D float64 array per column, in its column order."""
+        if self._rows[group]:
+            self._join_rows(group)
+        self._buffer[group].append(block)
+        self._buffered_rows += block[0].shape[0]
+
+    def _buffer_row(self, group: str, row: tuple[float, ...]) -> None:
+        """Buffer one row of a `_buffer_group` group (its values in column order)."""
+        self._rows[group].append(row)
+        self._buffered_rows += 1
 
     def append_step(
         self,
@@ -448,7 +517,10 @@ class RunWriter:
             "chamber_setpoint": float(chamber_setpoint),
             "status": sb,
         }
-        need = {g: self._handed[g] + sum(b["time"].shape[0] for b in self._buffer[g]) for g in self._whole_chunk_rows}
+        need = {
+            g: self._handed[g] + len(self._rows[g]) + sum(b[0].shape[0] for b in self._buffer[g])
+            for g in self._whole_chunk_rows
+        }
         self._pending_steps.append((row, need))
         if status == "completed":
             self._completed.add(int(index))
@@ -597,26 +669,25 @@ class RunWriter:
     def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
         """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
         whose data are all in, then flushes the file if asked (or if it wrote a step row). In the twins' layout
-        /lockin and /truth are handed over up to their last whole chunk unless `complete`. The rows of a group
-        are joined here, so the job owns its arrays (nothing ever writes into them)."""
-        batch: list[tuple[h5py.Dataset, np.ndarray, int]] = []
+        /lockin and /truth are handed over up to their last whole chunk unless `complete`. The job gets each
+        column as the pieces it was appended in (views, no copy here): it joins them itself, or, for a chunk
+        compressed here, inside the chunk's byte shuffle (qmg_lab/storage/deflate.py)."""
+        batch: list[tuple[h5py.Dataset, list[np.ndarray], int]] = []
         kept = 0
         for g, blocks in self._buffer.items():
+            if self._rows[g]:
+                self._join_rows(g)
             if not blocks:
                 continue
-            cols = {
-                c: blocks[0][c] if len(blocks) == 1 else np.concatenate([b[c] for b in blocks]) for c, _ in self._ds[g]
-            }
-            n = cols["time"].shape[0]
+            n = sum(b[0].shape[0] for b in blocks)
             chunk = self._whole_chunk_rows.get(g, 0)
             keep = 0 if complete or not chunk else (self._handed[g] + n) % chunk
-            blocks.clear()
-            if keep:
-                blocks.append({c: v[n - keep :] for c, v in cols.items()})
-                kept += keep
+            written = _split_blocks(blocks, n - keep)  # `blocks` keeps the last `keep` rows
+            kept += keep
             if n > keep:
-                for c, ds in self._ds[g]:  # time first: a partial write leaves time the column to be cut
-                    batch.append((ds, np.ascontiguousarray(cols[c][: n - keep]), self._direct_chunk_rows[g, c]))
+                # time first: a partial write leaves time the column to be cut
+                for i, (c, ds) in enumerate(self._ds[g]):
+                    batch.append((ds, [b[i] for b in written], self._direct_chunk_rows[g, c]))
                 self._handed[g] += n - keep
         self._buffered_rows = kept
         rows: list[dict[str, Any]] = []
@@ -628,8 +699,8 @@ class RunWriter:
         h5, completed = self._h5, len(self._completed_in_file)
 
         def write() -> None:
-            for ds, data, direct_rows in batch:
-                _append_rows(ds, data, direct_rows)
+            for ds, pieces, direct_rows in batch:
+                _append_pieces(ds, pieces, direct_rows)
             if rows:
                 steps = h5["steps"]
                 n = steps["index"].shape[0]
@@ -650,24 +721,74 @@ class RunWriter:
         self._last_flush = self._clock()
 
 
+def _split_blocks(blocks: list[tuple[np.ndarray, ...]], rows: int) -> list[tuple[np.ndarray, ...]]:
+    """Take the first `rows` rows out of `blocks` (buffered blocks, column arrays of equal length): returns them as
+    blocks and leaves the rest in `blocks` (a block cut in two is split into views)."""
+    taken: list[tuple[np.ndarray, ...]] = []
+    left: list[tuple[np.ndarray, ...]] = []
+    start = 0
+    for b in blocks:
+        m = b[0].shape[0]
+        if start + m <= rows:
+            taken.append(b)
+        elif start >= rows:
+            left.append(b)
+        else:
+            cut = rows - start
+            taken.append(tuple(c[:cut] for c in b))
+            left.append(tuple(c[cut:] for c in b))
+        start += m
+    blocks[:] = left
+    return taken
+
+
+def _rows_of(pieces: Sequence[np.ndarray], start: int, stop: int) -> list[np.ndarray]:
+    """Views of rows [start, stop) of `pieces` taken end to end."""
+    out: list[np.ndarray] = []
+    first = 0
+    for p in pieces:
+        end = first + p.shape[0]
+        if end > start and first < stop:
+            out.append(p[max(start - first, 0) : min(stop, end) - first])
+        if end >= stop:
+            break
+        first = end
+    return out
+
+
+def _joined(pieces: Sequence[np.ndarray]) -> np.ndarray:
+    """The pieces as one C-contiguous array (a single contiguous piece is not copied)."""
+    return np.ascontiguousarray(pieces[0]) if len(pieces) == 1 else np.concatenate(pieces)
+
+
 def _append_rows(ds: h5py.Dataset, data: np.ndarray, direct_chunk_rows: int = 0) -> None:
-    """Extend a 1-D dataset by `data` (C-contiguous float64) with the HDF5 calls themselves: h5py's
-    `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small writes take.
+    """Extend a 1-D dataset by `data` (float64): `_append_pieces` with one piece."""
+    _append_pieces(ds, [data], direct_chunk_rows)
+
+
+def _append_pieces(ds: h5py.Dataset, pieces: Sequence[np.ndarray], direct_chunk_rows: int = 0) -> None:
+    """Extend a 1-D dataset by the rows of `pieces` (float64 arrays, taken end to end) with the HDF5 calls
+    themselves: h5py's `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small
+    writes take.
 
     direct_chunk_rows (a shuffle + gzip column of the twins' layout, whose chunks are written whole): the chunks
-    that start at or after the old end are compressed by `shuffled_deflate` and written as stored chunks; only
-    rows that fill an already stored partial chunk (the first append after a resume) go through HDF5's filters.
+    that start at or after the old end are compressed by `shuffled_deflate` straight from the pieces and written
+    as stored chunks; only rows that fill an already stored partial chunk (the first append after a resume) go
+    through HDF5's filters.
     """
     dsid = ds.id
-    n, m = dsid.shape[0], data.shape[0]
+    n, m = dsid.shape[0], sum(p.shape[0] for p in pieces)
+    if m == 0:
+        return
     dsid.set_extent((n + m,))
     head = m if not direct_chunk_rows else min(m, -n % direct_chunk_rows)
     if head:
         fspace = dsid.get_space()
         fspace.select_hyperslab((n,), (head,))
-        dsid.write(h5s.create_simple((head,)), fspace, data[:head])
+        dsid.write(h5s.create_simple((head,)), fspace, _joined(_rows_of(pieces, 0, head)))
     for i in range(head, m, direct_chunk_rows or 1):
-        dsid.write_direct_chunk((n + i,), shuffled_deflate(data[i : i + direct_chunk_rows], direct_chunk_rows))
+        rows = _rows_of(pieces, i, min(i + direct_chunk_rows, m))
+        dsid.write_direct_chunk((n + i,), shuffled_deflate(rows, direct_chunk_rows))
 
 
 def _filter(filt: dict[str, Any], col: str) -> dict[str, Any]:

@@ -14,6 +14,7 @@ import sys
 from typing import ClassVar
 
 import h5py
+import numpy as np
 import pytest
 
 from qmg_lab.campaign.runner import CampaignInterrupted
@@ -50,12 +51,21 @@ class _SecondCtrlCInsideAWrite(RunWriter):
     fired = False
     finished_writes_after: ClassVar[list[str]] = []
 
-    def append(self, group, **columns):
-        if group == "table" and not self.fired and columns["time"][0] >= self.armed_at_s:
+    def _maybe_fire(self, group, time_s):
+        if group == "table" and not self.fired and time_s >= self.armed_at_s:
             type(self).fired = True
             _ctrl_c()
             _ctrl_c()  # the second one raises KeyboardInterrupt unless deferred
+
+    def append(self, group, **columns):
+        self._maybe_fire(group, float(np.atleast_1d(columns["time"])[0]))
         super().append(group, **columns)
+        if self.fired:
+            self.finished_writes_after.append(group)
+
+    def append_row(self, group, **values):  # the recorder appends the table and chamber readings as rows
+        self._maybe_fire(group, float(values["time"]))
+        super().append_row(group, **values)
         if self.fired:
             self.finished_writes_after.append(group)
 

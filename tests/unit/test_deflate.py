@@ -64,3 +64,23 @@ def test_an_append_into_a_stored_partial_chunk_goes_through_hdf5_then_whole_chun
 def test_a_chunk_larger_than_the_chunk_size_is_refused() -> None:
     with pytest.raises(ValueError, match="1 to 64 rows"):
         shuffled_deflate(np.zeros(CHUNK + 1), CHUNK)
+
+
+def test_a_chunk_from_pieces_is_the_chunk_of_the_joined_rows() -> None:
+    """Pieces (a strided one among them) are joined inside the shuffle: the same planes, the same zlib stream."""
+    rng = np.random.default_rng(5)
+    strided = rng.standard_normal(40)[::2]
+    pieces = [rng.standard_normal(7), strided, rng.standard_normal(1), rng.standard_normal(30)]
+    joined = np.concatenate(pieces)
+    planes = np.frombuffer(joined.tobytes() + bytes(8 * (CHUNK - joined.shape[0])), np.uint8).reshape(CHUNK, 8).T
+    assert zlib.decompress(shuffled_deflate(pieces, CHUNK)) == planes.tobytes()
+    assert shuffled_deflate(pieces, CHUNK) == shuffled_deflate(joined, CHUNK)
+
+
+def test_pieces_of_another_shape_or_dtype_are_refused() -> None:
+    with pytest.raises(ValueError, match="one dtype"):
+        shuffled_deflate([np.zeros(3), np.zeros(3, dtype=np.float32)], CHUNK)
+    with pytest.raises(ValueError, match="1 to 64 rows"):
+        shuffled_deflate([np.zeros((2, 2))], CHUNK)
+    with pytest.raises(ValueError, match="1 to 64 rows"):
+        shuffled_deflate([], CHUNK)
