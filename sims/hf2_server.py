@@ -52,6 +52,7 @@ import numpy as np
 from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
 from sims.hf2_nodetree import HF2NodeTree, NodeError
+from sims.noise import NormalStream
 from sims.world import BlockInputs, TruthRecord, World
 
 if TYPE_CHECKING:
@@ -169,9 +170,12 @@ class HF2DataServerTwin:
         self.rate_set = rate_set
         self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
-        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
-        self._auxin_rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
-        self._auxin_normals = np.empty((2, 0))  # the AuxIn noise draws of one block (reused while n stays)
+        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7), drawn
+        # ahead on the noise thread while the block runs (sims/noise.py)
+        self._auxin_noise = NormalStream(
+            np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
+        )
+        self._no_auxin_noise = np.empty((2, 0))  # what the readings get without AuxIn noise (not read)
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
         self.nodes = HF2NodeTree(device_id, clockbase_hz)
@@ -443,17 +447,19 @@ class HF2DataServerTwin:
         n = v.shape[0]
         both = np.empty((2, n))  # row 0 the rate AuxIn, row 1 the dither AuxIn
         p = self.gyro_params
-        if self._auxin_normals.shape[1] != n:
-            self._auxin_normals = np.empty((2, n))
-        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order), into the reused buffer
-            self._auxin_rng.standard_normal(out=self._auxin_normals)
+        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order): the rate AuxIn's n, then the dither's
+            normals = self._auxin_noise.take(2 * n).reshape(2, n)
+        else:
+            if self._no_auxin_noise.shape[1] != n:
+                self._no_auxin_noise = np.empty((2, n))
+            normals = self._no_auxin_noise
         previous = float(v[0]) if self._auxout_prev is None else self._auxout_prev
         hk.auxin_readings(
             v,
             previous,
             w / (2.0 * dt),
             dither,
-            self._auxin_normals,
+            normals,
             p.auxin_noise_v_rms,
             p.auxin_lsb_v,
             p.auxin_range_v,

@@ -207,6 +207,34 @@ class _RowStream:
         return self.__dict__.copy()
 
 
+class NormalStream:
+    """Float64 standard normals of one generator, handed out in stream order and drawn ahead like NoiseStream's
+    per-step rows: from the second call on, the shared background thread draws as many values as the last call
+    asked for while the caller computes, so a caller that asks for the same count every time (a poll's block)
+    finds its values drawn and gets them without a copy. The values are those of drawing exactly what each call
+    asks for in the caller's thread: numpy's float64 normals keep no state between draws but the bit
+    generator's, so a draw split into pieces is the same sequence as one draw of the whole.
+    `prefetch`: as NoiseStream's (None: default_prefetch())."""
+
+    def __init__(self, gen: np.random.Generator, prefetch: bool | None = None) -> None:
+        if prefetch is None:
+            prefetch = default_prefetch()
+        self._values = _RowStream(gen, 1, np.float64, 1, prefetch)  # ahead = 1: each prefetch draws the last n
+
+    @property
+    def prefetch(self) -> bool:
+        """Whether the values are drawn ahead on the background thread."""
+        return self._values.background
+
+    @prefetch.setter
+    def prefetch(self, on: bool) -> None:
+        self._values.background = bool(on)
+
+    def take(self, n: int) -> np.ndarray:
+        """The next n values, shape (n,) (a view of drawn values, never reused)."""
+        return self._values.take(n).reshape(n)
+
+
 class NoiseStream:
     """Reproducible standard-normal draws for one simulator: per-step draws and bias-update draws come from
     two independent PCG64 streams seeded from `seed`, so the draws do not depend on how a run is split
