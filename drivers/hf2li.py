@@ -103,6 +103,8 @@ class HF2LI(LockIn):
             raise InstrumentError(f"{self.device_id} identifies as {devtype!r}, not an HF2 instrument")
         self._clockbase = float(self._device.clockbase())
         self._pll_osc = int(self._device.plls[0].oscselect())
+        dev = f"/{self.device_id}"  # the nodes every poll reads (plain getInt on the data server)
+        self._poll_nodes = (f"{dev}/status/flags/demodsampleloss", f"{dev}/plls/0/locked", f"{dev}/status/flags/binary")
 
     def _send(self, pairs: list[tuple[str, Any]]) -> None:
         """All pairs in one transaction: one set([...]) call to the data server."""
@@ -233,9 +235,10 @@ class HF2LI(LockIn):
         try:
             raw = self._session.poll(duration_s, timeout=0.5, flags=PollFlags.DETECT)
             server = self._session.daq_server  # plain getInt: the toolkit node layer costs ~0.1 ms per read
-            flag = server.getInt(f"/{self.device_id}/status/flags/demodsampleloss")
-            locked = server.getInt(f"/{self.device_id}/plls/0/locked")
-            binary = server.getInt(f"/{self.device_id}/status/flags/binary")
+            loss_node, locked_node, binary_node = self._poll_nodes
+            flag = server.getInt(loss_node)
+            locked = server.getInt(locked_node)
+            binary = server.getInt(binary_node)
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: poll failed: {exc}") from exc
         drive = self._samples(raw, DRIVE_DEMOD)
@@ -284,7 +287,7 @@ class HF2LI(LockIn):
         n = len(ticks)
         if n == 0 or (n == 1 and self._last_ts is None):
             return 0
-        inner = np.diff(ticks)
+        inner = ticks[1:] - ticks[:-1]  # np.diff's subtraction without its argument handling
         first = [] if self._last_ts is None else [int(ticks[0]) - self._last_ts]
         widest = max(first + ([int(inner.max())] if n > 1 else []))
         if np.rint(widest / self._ticks_per_sample) <= 1:
