@@ -183,6 +183,7 @@ class HF2DataServerTwin:
         self._zi = _zi_nodes(port, clockbase_hz)
         self.connected = False
         self.subscribed: set[str] = set()
+        self._read_paths: dict[str, str] = {}  # device paths as a client spelled them -> the readable value node
         self._gyro: Any = None
         self._gyro_dt: float | None = None
         self._gyro_count = 0
@@ -243,13 +244,20 @@ class HF2DataServerTwin:
         )
 
     def _read(self, path: str) -> Any:
+        """A node's value. A device path read once before goes straight to its value (the driver reads three
+        nodes every poll): what the checks decided for it cannot change but for the connection, checked anew."""
+        known = self._read_paths.get(path)
+        if known is not None and self.connected:
+            return self.nodes.values[known]
         p = path.lower()
         if p.startswith("/zi/"):
             if p not in self._zi:
                 raise NodeError(f"ZIAPINotFoundException: node {p} does not exist")
             return self._zi[p]
         self._check_device(p)
-        return self.nodes.read(p)
+        value = self.nodes.read(p)
+        self._read_paths[path] = self.nodes.meta_of(p).path
+        return value
 
     def getInt(self, path: str) -> int:
         v = self._read(path)

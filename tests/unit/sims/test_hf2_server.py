@@ -92,6 +92,27 @@ def test_read_only_and_enumerated_nodes_are_enforced() -> None:
     assert twin.getDouble(f"{DEV}/sigouts/0/range") == 10.0
 
 
+def test_a_node_read_again_gives_its_current_value_and_the_same_refusals() -> None:
+    """The second read of a path takes the twin's shortcut: it sees every change of the value, in any spelling
+    of the path, and a disconnected device or a stream/branch node is refused as on the first read."""
+    _, twin = make_twin()
+    for path in (f"{DEV}/pids/0/p", f"{DEV.upper()}/PIDS/0/P", "pids/0/p"):
+        twin.set(f"{DEV}/pids/0/p", 1.5)
+        assert twin.getDouble(path) == 1.5
+        twin.set(f"{DEV}/pids/0/p", -2.0)
+        assert twin.getDouble(path) == -2.0
+        assert twin.getInt(path) == -2
+    with pytest.raises(RuntimeError, match="cannot be read as a value"):
+        twin.getDouble(f"{DEV}/demods/0/sample")
+    with pytest.raises(RuntimeError, match="cannot be read as a value"):
+        twin.getDouble(f"{DEV}/demods/0/sample")
+    twin.disconnectDevice("dev1234")
+    with pytest.raises(RuntimeError, match="not connected"):
+        twin.getDouble(f"{DEV}/pids/0/p")
+    twin.connectDevice("dev1234", "USB")
+    assert twin.getDouble(f"{DEV}/pids/0/p") == -2.0
+
+
 def test_list_set_is_validated_before_any_node_changes() -> None:
     _, twin = make_twin()
     with pytest.raises(RuntimeError):
