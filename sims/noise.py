@@ -34,7 +34,7 @@ GM_UPDATE_S = 0.1
 GM_TIMES_S = 10.0 ** (np.arange(16) / 3.0)
 N_E = 3.0 / math.log(10.0)
 RAD_S_PER_DEG_H = math.pi / 180.0 / 3600.0
-PREFETCH_ROWS = 1 << 13  # per-step rows drawn ahead per prefetch (8192 x 6 float32 = 192 kB; larger requests: n)
+PREFETCH_ROWS = 1 << 13  # per-step rows drawn ahead per prefetch, at most (8192 x 6 float32 = 192 kB; larger calls: n)
 GM_ROWS_AHEAD = 1 << 7  # bias-update rows drawn at a time (128 x 16 float64 = 16 kB: 12.8 s of updates at 0.1 s)
 
 
@@ -123,9 +123,11 @@ class _Prefetch:
 
 
 class _RowStream:
-    """Rows of standard normals (width per row, float32 or float64) handed out in stream order, drawn ahead in
-    chunks of at least `ahead` rows: on the shared background thread (`background`, from the second call on, at
-    most one chunk outstanding) or here when rows run out. Handed-out arrays are never reused."""
+    """Rows of standard normals (width per row, float32 or float64) handed out in stream order, drawn ahead: on
+    the shared background thread (`background`, from the second call on, at most one chunk outstanding: as many
+    whole calls of the last call's n rows as fit in `ahead` rows, at least one, so that calls of one size never
+    straddle two chunks and need no copy) or here, `ahead` rows at least, when rows run out. Handed-out arrays
+    are never reused."""
 
     def __init__(self, gen: np.random.Generator, width: int, dtype: type, ahead: int, background: bool) -> None:
         self._gen = gen
@@ -147,8 +149,8 @@ class _RowStream:
         else:
             out = self._take_across(n)
         if self.background and self._job is None:
-            if self._called:
-                self._prefetch(max(self._ahead, n))
+            if self._called:  # whole calls of this size: the next ones are handed out without a copy
+                self._prefetch(n * max(1, self._ahead // n) if n > 0 else self._ahead)
             self._called = True
         return out
 
@@ -240,8 +242,9 @@ class NoiseStream:
     two independent PCG64 streams seeded from `seed`, so the draws do not depend on how a run is split
     into blocks.
 
-    The per-step rows are prefetched: from the second call of `steps` on, the next PREFETCH_ROWS (or n, if
-    larger) rows are drawn on the shared background thread while the caller computes; the bias rows are drawn
+    The per-step rows are prefetched: from the second call of `steps` on, the next rows are drawn on the shared
+    background thread while the caller computes (as many whole calls of the last call's n as fit in
+    PREFETCH_ROWS, at least n); the bias rows are drawn
     GM_ROWS_AHEAD at a time. Either way each stream is read in order, so the values are those of drawing
     exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch.
     `prefetch=False` (or setting `.prefetch` later) draws the per-step rows in the caller's thread instead, with

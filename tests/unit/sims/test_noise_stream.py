@@ -241,3 +241,15 @@ def test_normal_stream_switched_mid_stream_and_copied_keeps_the_order() -> None:
     for other in (stream, copy.deepcopy(stream), pickle.loads(pickle.dumps(stream))):
         tail = [other.take(n) for n in pattern[5:]]
         np.testing.assert_array_equal(np.concatenate(head + tail), ref)
+
+
+def test_calls_of_one_size_come_from_whole_prefetched_chunks_without_a_copy() -> None:
+    """From the third call on, calls of one size (a poll's block) are views of a prefetch of whole calls: no call
+    straddles two chunks (PREFETCH_ROWS // n calls per chunk), and the values are the stream's."""
+    n = 3600
+    stream = NoiseStream(2, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
+    got = [stream.steps(n) for _ in range(9)]
+    for rows in got[2:]:
+        assert rows.base is not None and rows.base.shape[0] == n * (PREFETCH_ROWS // n)
+    for g, ref in zip(got, _reference_steps(2, [n] * 9), strict=True):
+        np.testing.assert_array_equal(g, ref)
