@@ -188,7 +188,7 @@ class HF2DataServerTwin:
         self._gyro_dt: float | None = None
         self._gyro_count = 0
         self._ticks: int | None = None
-        self._osc_phase = np.zeros(6)
+        self._osc_phase = [0.0] * 6  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
         self._drop_next = 0
         self._unlock_until: float | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
@@ -584,15 +584,15 @@ class HF2DataServerTwin:
         phases: dict[int, np.ndarray] = {}
         osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         for o in range(6):
-            if o not in layout.used_oscs:  # keep its phase running without building arrays (x % y is np.mod)
+            if o not in layout.used_oscs:  # keep its phase running without building arrays (float % is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
             f_o = np.array(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
             ph, wrapped = np.empty(n), np.empty(n)
-            hk.oscillator_phases(f_o, float(self._osc_phase[o]), dt, 1.0, ph, wrapped)
+            hk.oscillator_phases(f_o, self._osc_phase[o], dt, 1.0, ph, wrapped)
             freqs[o], phases[o] = f_o, ph
             osc_streams[o, 1] = (f_o, wrapped)
-            self._osc_phase[o] = float(ph[-1] % (2 * np.pi))
+            self._osc_phase[o] = float(ph[-1]) % (2 * np.pi)
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.values[layout.paths.ref_osc_freq] = float(freqs[plan.ref_osc][-1])
         wired: list[np.ndarray | None] = [None, None]

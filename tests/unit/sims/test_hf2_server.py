@@ -162,6 +162,26 @@ def test_nothing_subscribed_no_data_and_world_stands_still() -> None:
     assert world.t == 0.0
 
 
+def test_an_oscillator_no_demod_uses_keeps_turning_and_a_demod_taking_it_sees_its_phase() -> None:
+    """Oscillator 1 (fixed at 1234.5 Hz) runs on while no subscribed demod uses it (its phase advanced block by
+    block, 2 pi f n dt each, floor-modulo 2 pi); demod 2, switched to it after three blocks, reports its phase
+    continuing from there: phi_k = (phi + 2 pi (f_0 + ... + f_k) dt) mod 2 pi, computed here in numpy."""
+    _, twin = make_twin()
+    stream_demods(twin)
+    f1, n, dt = 1234.5, 700, 150_000 / 210e6
+    twin.set(f"{DEV}/oscs/1/freq", f1)
+    phase = np.float64(0.0)
+    for _ in range(3):
+        twin.poll(0.5, 500, 0, True)
+        phase = (phase + 2 * np.pi * f1 * n * dt) % (2 * np.pi)
+    twin.set([(f"{DEV}/demods/2/oscselect", 1), (f"{DEV}/demods/2/enable", 1), (f"{DEV}/demods/2/rate", 1400.0)])
+    twin.subscribe(f"{DEV}/demods/2/sample")
+    s = twin.poll(0.5, 500, 0, True)[f"{DEV}/demods/2/sample"]
+    expected = np.mod(phase + 2 * np.pi * np.cumsum(np.full(n, f1)) * dt, 2 * np.pi)
+    np.testing.assert_array_equal(s["phase"], expected)
+    np.testing.assert_array_equal(s["frequency"], np.full(n, f1))
+
+
 def test_poll_returns_samples_at_the_rate_with_exact_timestamps() -> None:
     world, twin = make_twin()
     stream_demods(twin)
