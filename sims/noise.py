@@ -209,7 +209,22 @@ class _RowStream:
         return self.__dict__.copy()
 
 
-class NormalStream:
+class _DrawnAhead:
+    """The `prefetch` switch of a stream whose values `_ahead` draws ahead."""
+
+    _ahead: _RowStream
+
+    @property
+    def prefetch(self) -> bool:
+        """Whether the values are drawn ahead on the background thread."""
+        return self._ahead.background
+
+    @prefetch.setter
+    def prefetch(self, on: bool) -> None:
+        self._ahead.background = bool(on)
+
+
+class NormalStream(_DrawnAhead):
     """Float64 standard normals of one generator, handed out in stream order and drawn ahead like NoiseStream's
     per-step rows: from the second call on, the shared background thread draws as many values as the last call
     asked for while the caller computes, so a caller that asks for the same count every time (a poll's block)
@@ -221,23 +236,14 @@ class NormalStream:
     def __init__(self, gen: np.random.Generator, prefetch: bool | None = None) -> None:
         if prefetch is None:
             prefetch = default_prefetch()
-        self._values = _RowStream(gen, 1, np.float64, 1, prefetch)  # ahead = 1: each prefetch draws the last n
-
-    @property
-    def prefetch(self) -> bool:
-        """Whether the values are drawn ahead on the background thread."""
-        return self._values.background
-
-    @prefetch.setter
-    def prefetch(self, on: bool) -> None:
-        self._values.background = bool(on)
+        self._ahead = _RowStream(gen, 1, np.float64, 1, prefetch)  # ahead = 1: each prefetch draws the last n
 
     def take(self, n: int) -> np.ndarray:
         """The next n values, shape (n,) (a view of drawn values, never reused)."""
-        return self._values.take(n).reshape(n)
+        return self._ahead.take(n).reshape(n)
 
 
-class NoiseStream:
+class NoiseStream(_DrawnAhead):
     """Reproducible standard-normal draws for one simulator: per-step draws and bias-update draws come from
     two independent PCG64 streams seeded from `seed`, so the draws do not depend on how a run is split
     into blocks.
@@ -260,24 +266,16 @@ class NoiseStream:
         self.n_gm = n_gm
         if prefetch is None:  # a second thread only pays with a second CPU to run on
             prefetch = default_prefetch()
-        self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, prefetch)
-        self._gm = _RowStream(np.random.Generator(np.random.PCG64(s2)), n_gm, np.float64, GM_ROWS_AHEAD, False)
-
-    @property
-    def prefetch(self) -> bool:
-        """Whether the per-step rows are drawn ahead on the background thread."""
-        return self._step.background
-
-    @prefetch.setter
-    def prefetch(self, on: bool) -> None:
-        self._step.background = bool(on)
+        step_gen, gm_gen = np.random.Generator(np.random.PCG64(s1)), np.random.Generator(np.random.PCG64(s2))
+        self._ahead = _RowStream(step_gen, per_step, np.float32, PREFETCH_ROWS, prefetch)  # the per-step rows
+        self._gm = _RowStream(gm_gen, n_gm, np.float64, GM_ROWS_AHEAD, False)
 
     def steps(self, n: int, enabled: bool = True) -> np.ndarray:
         """(n, per_step) float32 draws (ziggurat; single precision is ample for noise and twice as fast), the
         next n rows of the per-step stream; zeros without drawing when every per-step noise is off."""
         if not enabled:
             return np.zeros((n, self.per_step), dtype=np.float32)
-        return self._step.take(n)
+        return self._ahead.take(n)
 
     def gm(self, n_updates: int, enabled: bool = True) -> np.ndarray:
         """(n_updates, n_gm) draws for the bias processes (at least one row so the kernel can index it)."""
