@@ -587,7 +587,7 @@ class HF2DataServerTwin:
             if o not in layout.used_oscs:  # keep its phase running without building arrays (float % is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
-            f_o = np.array(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
+            f_o = blk.frequency_hz if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
             ph, wrapped = np.empty(n), np.empty(n)
             hk.oscillator_phases(f_o, self._osc_phase[o], dt, 1.0, ph, wrapped)
             freqs[o], phases[o] = f_o, ph
@@ -651,8 +651,8 @@ class HF2DataServerTwin:
         drive = spec.sigin == self.wiring.drive_sigin
         x = np.asarray(blk.x_drive if drive else blk.x_sense, dtype=float)
         y = np.asarray(blk.y_drive if drive else blk.y_sense, dtype=float)
-        if spec.osc == ref_osc and spec.shift_rad == 0.0:
-            return x.copy(), y.copy()
+        if spec.osc == ref_osc and spec.shift_rad == 0.0:  # the block's own rows (fresh every block: no copy)
+            return x, y
         z = (x + 1j * y) * np.exp(-1j * (phases[spec.osc] + spec.shift_rad - phases[ref_osc]))
         return z.real.copy(), z.imag.copy()
 
