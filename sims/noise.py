@@ -126,8 +126,8 @@ class _RowStream:
     """Rows of standard normals (width per row, float32 or float64) handed out in stream order, drawn ahead: on
     the shared background thread (`background`, from the second call on, at most one chunk outstanding: as many
     whole calls of the last call's n rows as fit in `ahead` rows, at least one, so that calls of one size never
-    straddle two chunks and need no copy) or here, `ahead` rows at least, when rows run out. Handed-out arrays
-    are never reused."""
+    straddle two chunks and need no copy) or here when rows run out (`ahead` rows at least without the
+    background thread). Handed-out arrays are never reused."""
 
     def __init__(self, gen: np.random.Generator, width: int, dtype: type, ahead: int, background: bool) -> None:
         self._gen = gen
