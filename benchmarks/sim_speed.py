@@ -21,6 +21,13 @@ temperature ramp, so every per-step term is exercised.
   HF2 twin would after converting them), peak RSS from resource.getrusage(RUSAGE_SELF).ru_maxrss.
 * compile: a fresh process with an empty NUMBA_CACHE_DIR (cold: compile both kernels and run one block each),
   then another with the cache just written (warm).
+* HF2 poll path (`hf2_poll_*`, alone with `--hf2-poll-only`): what a simulated campaign's block costs from
+  `HF2LI.poll(2 s)` to the arrays it returns, through zhinst-toolkit's Session to the HF2 twin (the world's block
+  inputs, the gyro block, the twin's samples and read-only nodes, the driver's arrays): the paper campaign's
+  configuration, the 7 Hz square dither, the chamber ramping and the table alternating +-5 deg/s every 60 s.
+  Per block: wall time, the time inside the compiled gyro kernel (timed around GyroSim._kernel), and the rest,
+  "outside the kernel" (wall, and the calling thread's CPU time); medians over runs of 300 blocks, with the
+  noise drawn ahead (the default on 2+ CPUs) and drawn in the calling thread (`*_no_prefetch`).
 """
 
 from __future__ import annotations
@@ -128,6 +135,94 @@ def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
     }
 
 
+def _hf2_lockin(draw_ahead: bool | None):
+    """The HF2LI driver on the HF2 twin (the paper campaign's configuration, every instrument simulated), loops
+    configured, streaming, the DS345's 7 Hz square wave on, the chamber ramping to 35 degC, the table at 5 deg/s.
+    The twins' noise is drawn ahead as `draw_ahead` says (station.set_twin_noise_draw_ahead, left set: the gyro
+    twin is built at the first poll)."""
+    import tomllib
+
+    import tomlkit
+
+    from qmg_lab.campaign.loops import lockin_setup
+    from qmg_lab.config.schema import parse_config
+    from qmg_lab.station import connect_instrument, set_twin_noise_draw_ahead
+    from sims.world import DITHER_SQUARE
+
+    doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
+    for name in ("lockin", "generator", "table", "chamber"):
+        doc[name]["sim"] = True
+    cfg = parse_config(tomlkit.dumps(doc))
+    set_twin_noise_draw_ahead(draw_ahead)  # for the twins built from now on: reset by the caller
+    connected = connect_instrument(cfg, "lockin")
+    lockin = connected.instrument
+    world = lockin._session.daq_server.world  # the twin's world: the benchmark plays the other instruments
+    lockin.configure(lockin_setup(cfg))
+    world.set_dither(function=DITHER_SQUARE, frequency_hz=cfg.dither.frequency_hz, amplitude_vpp=0.6)
+    world.set_chamber(35.0, cfg.plan.chamber_ramp_c_per_min)
+    world.set_table_rate(cfg.plan.table_rate_dps, cfg.plan.table_accel_dps2)
+    lockin.start_stream()
+    return connected, lockin, world, cfg
+
+
+def hf2_poll_costs(blocks: int = 300, runs: int = 5, block_s: float = 2.0) -> dict[str, float]:
+    """Per-block cost of the HF2 path of a simulated campaign (module docstring), us: medians over `runs` runs of
+    `blocks` polls, with the noise drawn ahead and drawn in the calling thread."""
+    import statistics
+
+    from qmg_lab.station import set_twin_noise_draw_ahead
+    from sims.gyro import GyroSim
+
+    res: dict[str, float] = {}
+    original = GyroSim._kernel
+    spent = {"wall": 0.0, "thread": 0.0}
+
+    def timed_kernel(self, *args):
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = original(self, *args)
+        spent["wall"] += time.perf_counter() - t0
+        spent["thread"] += time.thread_time() - c0
+        return out
+
+    GyroSim._kernel = timed_kernel  # the benchmark's stopwatch around the compiled kernel, removed below
+    try:
+        for suffix, draw_ahead in (("", None), ("_no_prefetch", False)):
+            connected, lockin, world, cfg = _hf2_lockin(draw_ahead)
+            rate = cfg.plan.table_rate_dps
+            dwell_blocks = max(1, int(round(cfg.plan.dwell_s / block_s)))
+            for _ in range(20):  # warm up: compiled code loaded, the loops settled, the prefetch running
+                lockin.poll(block_s)
+                world.drain_truth()
+            walls, kernels, outside, outside_thread = [], [], [], []
+            count = 0
+            for _ in range(runs):
+                spent["wall"] = spent["thread"] = 0.0
+                t0, c0 = time.perf_counter(), time.thread_time()
+                for _ in range(blocks):
+                    lockin.poll(block_s)
+                    world.drain_truth()  # what the recorder does with the truth every block
+                    count += 1
+                    if count % dwell_blocks == 0:
+                        rate = -rate
+                        world.set_table_rate(rate, cfg.plan.table_accel_dps2)
+                wall = (time.perf_counter() - t0) / blocks * 1e6
+                thread = (time.thread_time() - c0) / blocks * 1e6
+                walls.append(wall)
+                kernels.append(spent["wall"] / blocks * 1e6)
+                outside.append(wall - spent["wall"] / blocks * 1e6)
+                outside_thread.append(thread - spent["thread"] / blocks * 1e6)
+            connected.close()
+            res[f"hf2_poll_us_per_block{suffix}"] = statistics.median(walls)
+            res[f"hf2_poll_kernel_us_per_block{suffix}"] = statistics.median(kernels)
+            res[f"hf2_poll_outside_kernel_us_per_block{suffix}"] = statistics.median(outside)
+            res[f"hf2_poll_outside_kernel_thread_cpu_us_per_block{suffix}"] = statistics.median(outside_thread)
+    finally:
+        GyroSim._kernel = original
+        set_twin_noise_draw_ahead(None)
+    res["hf2_poll_block_s"] = block_s
+    return res
+
+
 def _child_memory(hours: float) -> None:
     from sims.gyro import GyroParams, GyroSim
 
@@ -201,6 +296,7 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
     res["carrier_samples_per_s"] = rt_car * 32 * 2200.0
     res["carrier_cpu_realtime_factor"] = cpu_car
 
+    res.update(hf2_poll_costs())
     short, long_ = memory_hours
     m1 = _run_child(["--child-memory", str(short)])["maxrss_kb"]
     m4 = _run_child(["--child-memory", str(long_)])["maxrss_kb"]
@@ -217,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--child-memory", type=float, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--child-compile", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--hf2-poll-only", action="store_true", help="only the HF2 poll path figures (hf2_poll_*)")
     a = ap.parse_args(argv)
     if a.child_memory is not None:
         _child_memory(a.child_memory)
@@ -224,7 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.child_compile:
         _child_compile()
         return 0
-    res = measure()
+    res: dict[str, float | int | str] = dict(hf2_poll_costs()) if a.hf2_poll_only else measure()
+    if a.hf2_poll_only:
+        res["load_average_1min"] = os.getloadavg()[0]
     if a.json:
         print(json.dumps(res))
     else:

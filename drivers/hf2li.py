@@ -103,6 +103,8 @@ class HF2LI(LockIn):
             raise InstrumentError(f"{self.device_id} identifies as {devtype!r}, not an HF2 instrument")
         self._clockbase = float(self._device.clockbase())
         self._pll_osc = int(self._device.plls[0].oscselect())
+        dev = f"/{self.device_id}"  # the nodes every poll reads (plain getInt on the data server)
+        self._poll_nodes = (f"{dev}/status/flags/demodsampleloss", f"{dev}/plls/0/locked", f"{dev}/status/flags/binary")
 
     def _send(self, pairs: list[tuple[str, Any]]) -> None:
         """All pairs in one transaction: one set([...]) call to the data server."""
@@ -233,26 +235,28 @@ class HF2LI(LockIn):
         try:
             raw = self._session.poll(duration_s, timeout=0.5, flags=PollFlags.DETECT)
             server = self._session.daq_server  # plain getInt: the toolkit node layer costs ~0.1 ms per read
-            flag = server.getInt(f"/{self.device_id}/status/flags/demodsampleloss")
-            locked = server.getInt(f"/{self.device_id}/plls/0/locked")
-            binary = server.getInt(f"/{self.device_id}/status/flags/binary")
+            loss_node, locked_node, binary_node = self._poll_nodes
+            flag = server.getInt(loss_node)
+            locked = server.getInt(locked_node)
+            binary = server.getInt(binary_node)
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: poll failed: {exc}") from exc
         drive = self._samples(raw, DRIVE_DEMOD)
         sense = self._samples(raw, SENSE_DEMOD)
         ts, i_d, i_s = _common_samples(drive["timestamp"], sense["timestamp"])
-        lost = self._count_lost(ts)
+        ticks = _as_int64(ts)
+        lost = self._count_lost(ticks)
         if flag and lost == 0:
             lost = 1
-        if len(ts):
+        if len(ticks):
             if self._t0_ticks is None:
-                self._t0_ticks = int(ts[0])
-            self._last_ts = int(ts[-1])
+                self._t0_ticks = int(ticks[0])
+            self._last_ts = int(ticks[-1])
         t0 = self._t0_ticks if self._t0_ticks is not None else 0
         w = self.wiring
         rate_key, dither_key = f"auxin{w.rate_auxin}", f"auxin{w.dither_auxin}"
         return LockInBlock(
-            time=(ts.astype(np.int64) - t0) / self._clockbase,
+            time=(ticks - t0) / self._clockbase,
             x_sense=np.asarray(sense["x"])[i_s],
             y_sense=np.asarray(sense["y"])[i_s],
             rate_output=np.asarray(sense[rate_key])[i_s],
@@ -274,17 +278,21 @@ class HF2LI(LockIn):
             }
         return {k: np.asarray(v) for k, v in data.items() if k != "time"}
 
-    def _count_lost(self, ts: np.ndarray) -> int:
-        if len(ts) == 0:
+    def _count_lost(self, ticks: np.ndarray) -> int:
+        """Samples lost in the gaps of the block's timestamps `ticks` (int64) and in the gap from the previous
+        block's last sample: sum over gaps of max(rint(gap / ticks_per_sample) - 1, 0) (module docstring).
+
+        rint is monotonic, so no gap spans two samples exactly when the largest one does not: that is checked
+        first (the usual block), and the per-gap sum is formed only for a block that lost samples."""
+        n = len(ticks)
+        if n == 0 or (n == 1 and self._last_ts is None):
             return 0
-        edges = ts.astype(np.int64)
-        if self._last_ts is not None:
-            edges = np.concatenate(([self._last_ts], edges))
-        if len(edges) < 2:
+        inner = ticks[1:] - ticks[:-1]  # np.diff's subtraction without its argument handling
+        first = [] if self._last_ts is None else [int(ticks[0]) - self._last_ts]
+        widest = max(first + ([int(inner.max())] if n > 1 else []))
+        if np.rint(widest / self._ticks_per_sample) <= 1:
             return 0
-        gaps = np.diff(edges)
-        if np.rint(gaps.max() / self._ticks_per_sample) <= 1:  # rint is monotonic: no gap spans two samples
-            return 0
+        gaps = np.concatenate((first, inner)) if first else inner
         steps = np.rint(gaps / self._ticks_per_sample).astype(np.int64)
         return int(np.sum(np.maximum(steps - 1, 0)))
 
@@ -316,6 +324,15 @@ class HF2LI(LockIn):
 __all__ = ["HF2LI", "LimitError"]
 
 
+def _as_int64(timestamps: np.ndarray) -> np.ndarray:
+    """Timestamps (clockbase ticks, uint64 from the data server) as int64: a view of the same 8-byte integers
+    when they are 64-bit (the values astype(int64) gives: ticks stay below 2**63 for 1390 years at 210 MHz),
+    else a converted copy."""
+    if timestamps.dtype in (np.uint64, np.int64):
+        return timestamps.view(np.int64)
+    return timestamps.astype(np.int64)
+
+
 def _common_samples(
     drive_ts: np.ndarray, sense_ts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray | slice, np.ndarray | slice]:
@@ -323,7 +340,7 @@ def _common_samples(
 
     Usually both streams carry the same samples: then every sample is common and no search is needed (the
     intersection of two sorted arrays costs a sort, ~1 ms per 10 s block at 1800 Sa/s)."""
-    if drive_ts.shape == sense_ts.shape and np.array_equal(drive_ts, sense_ts):
+    if drive_ts is sense_ts or (drive_ts.shape == sense_ts.shape and np.array_equal(drive_ts, sense_ts)):
         return drive_ts, slice(None), slice(None)
     ts, i_d, i_s = np.intersect1d(drive_ts, sense_ts, assume_unique=True, return_indices=True)
     return ts, i_d, i_s

@@ -52,6 +52,7 @@ import numpy as np
 from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
 from sims.hf2_nodetree import HF2NodeTree, NodeError
+from sims.noise import NormalStream
 from sims.world import BlockInputs, TruthRecord, World
 
 if TYPE_CHECKING:
@@ -169,9 +170,12 @@ class HF2DataServerTwin:
         self.rate_set = rate_set
         self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
-        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
-        self._auxin_rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
-        self._auxin_normals = np.empty((2, 0))  # the AuxIn noise draws of one block (reused while n stays)
+        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7), drawn
+        # ahead on the noise thread while the block runs (sims/noise.py)
+        self._auxin_noise = NormalStream(
+            np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
+        )
+        self._no_auxin_noise = np.empty((2, 0))  # what the readings get without AuxIn noise (not read)
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
         self.nodes = HF2NodeTree(device_id, clockbase_hz)
@@ -179,11 +183,12 @@ class HF2DataServerTwin:
         self._zi = _zi_nodes(port, clockbase_hz)
         self.connected = False
         self.subscribed: set[str] = set()
+        self._read_paths: dict[str, str] = {}  # device paths as a client spelled them -> the readable value node
         self._gyro: Any = None
         self._gyro_dt: float | None = None
         self._gyro_count = 0
         self._ticks: int | None = None
-        self._osc_phase = np.zeros(6)
+        self._osc_phase = [0.0] * 6  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
         self._drop_next = 0
         self._unlock_until: float | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
@@ -239,13 +244,20 @@ class HF2DataServerTwin:
         )
 
     def _read(self, path: str) -> Any:
+        """A node's value. A device path read once before goes straight to its value (the driver reads three
+        nodes every poll): what the checks decided for it cannot change but for the connection, checked anew."""
+        known = self._read_paths.get(path)
+        if known is not None and self.connected:
+            return self.nodes.values[known]
         p = path.lower()
         if p.startswith("/zi/"):
             if p not in self._zi:
                 raise NodeError(f"ZIAPINotFoundException: node {p} does not exist")
             return self._zi[p]
         self._check_device(p)
-        return self.nodes.read(p)
+        value = self.nodes.read(p)
+        self._read_paths[path] = self.nodes.meta_of(p).path
+        return value
 
     def getInt(self, path: str) -> int:
         v = self._read(path)
@@ -443,17 +455,19 @@ class HF2DataServerTwin:
         n = v.shape[0]
         both = np.empty((2, n))  # row 0 the rate AuxIn, row 1 the dither AuxIn
         p = self.gyro_params
-        if self._auxin_normals.shape[1] != n:
-            self._auxin_normals = np.empty((2, n))
-        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order), into the reused buffer
-            self._auxin_rng.standard_normal(out=self._auxin_normals)
+        if p.auxin_noise_v_rms > 0.0:  # one stream, row after row (C order): the rate AuxIn's n, then the dither's
+            normals = self._auxin_noise.take(2 * n).reshape(2, n)
+        else:
+            if self._no_auxin_noise.shape[1] != n:
+                self._no_auxin_noise = np.empty((2, n))
+            normals = self._no_auxin_noise
         previous = float(v[0]) if self._auxout_prev is None else self._auxout_prev
         hk.auxin_readings(
             v,
             previous,
             w / (2.0 * dt),
             dither,
-            self._auxin_normals,
+            normals,
             p.auxin_noise_v_rms,
             p.auxin_lsb_v,
             p.auxin_range_v,
@@ -570,15 +584,15 @@ class HF2DataServerTwin:
         phases: dict[int, np.ndarray] = {}
         osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         for o in range(6):
-            if o not in layout.used_oscs:  # keep its phase running without building arrays (x % y is np.mod)
+            if o not in layout.used_oscs:  # keep its phase running without building arrays (float % is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
-            f_o = np.array(blk.frequency_hz, dtype=float) if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
+            f_o = blk.frequency_hz if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
             ph, wrapped = np.empty(n), np.empty(n)
-            hk.oscillator_phases(f_o, float(self._osc_phase[o]), dt, 1.0, ph, wrapped)
+            hk.oscillator_phases(f_o, self._osc_phase[o], dt, 1.0, ph, wrapped)
             freqs[o], phases[o] = f_o, ph
             osc_streams[o, 1] = (f_o, wrapped)
-            self._osc_phase[o] = float(ph[-1] % (2 * np.pi))
+            self._osc_phase[o] = float(ph[-1]) % (2 * np.pi)
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.values[layout.paths.ref_osc_freq] = float(freqs[plan.ref_osc][-1])
         wired: list[np.ndarray | None] = [None, None]
@@ -637,8 +651,8 @@ class HF2DataServerTwin:
         drive = spec.sigin == self.wiring.drive_sigin
         x = np.asarray(blk.x_drive if drive else blk.x_sense, dtype=float)
         y = np.asarray(blk.y_drive if drive else blk.y_sense, dtype=float)
-        if spec.osc == ref_osc and spec.shift_rad == 0.0:
-            return x.copy(), y.copy()
+        if spec.osc == ref_osc and spec.shift_rad == 0.0:  # the block's own rows (fresh every block: no copy)
+            return x, y
         z = (x + 1j * y) * np.exp(-1j * (phases[spec.osc] + spec.shift_rad - phases[ref_osc]))
         return z.real.copy(), z.imag.copy()
 

@@ -34,7 +34,7 @@ GM_UPDATE_S = 0.1
 GM_TIMES_S = 10.0 ** (np.arange(16) / 3.0)
 N_E = 3.0 / math.log(10.0)
 RAD_S_PER_DEG_H = math.pi / 180.0 / 3600.0
-PREFETCH_ROWS = 1 << 13  # per-step rows drawn ahead per prefetch (8192 x 6 float32 = 192 kB; larger requests: n)
+PREFETCH_ROWS = 1 << 13  # per-step rows drawn ahead per prefetch, at most (8192 x 6 float32 = 192 kB; larger calls: n)
 GM_ROWS_AHEAD = 1 << 7  # bias-update rows drawn at a time (128 x 16 float64 = 16 kB: 12.8 s of updates at 0.1 s)
 
 
@@ -123,9 +123,11 @@ class _Prefetch:
 
 
 class _RowStream:
-    """Rows of standard normals (width per row, float32 or float64) handed out in stream order, drawn ahead in
-    chunks of at least `ahead` rows: on the shared background thread (`background`, from the second call on, at
-    most one chunk outstanding) or here when rows run out. Handed-out arrays are never reused."""
+    """Rows of standard normals (width per row, float32 or float64) handed out in stream order, drawn ahead: on
+    the shared background thread (`background`, from the second call on, at most one chunk outstanding: as many
+    whole calls of the last call's n rows as fit in `ahead` rows, at least one, so that calls of one size never
+    straddle two chunks and need no copy) or here when rows run out (`ahead` rows at least without the
+    background thread). Handed-out arrays are never reused."""
 
     def __init__(self, gen: np.random.Generator, width: int, dtype: type, ahead: int, background: bool) -> None:
         self._gen = gen
@@ -147,8 +149,8 @@ class _RowStream:
         else:
             out = self._take_across(n)
         if self.background and self._job is None:
-            if self._called:
-                self._prefetch(max(self._ahead, n))
+            if self._called:  # whole calls of this size: the next ones are handed out without a copy
+                self._prefetch(n * max(1, self._ahead // n) if n > 0 else self._ahead)
             self._called = True
         return out
 
@@ -207,13 +209,48 @@ class _RowStream:
         return self.__dict__.copy()
 
 
-class NoiseStream:
+class _DrawnAhead:
+    """The `prefetch` switch of a stream whose values `_ahead` draws ahead."""
+
+    _ahead: _RowStream
+
+    @property
+    def prefetch(self) -> bool:
+        """Whether the values are drawn ahead on the background thread."""
+        return self._ahead.background
+
+    @prefetch.setter
+    def prefetch(self, on: bool) -> None:
+        self._ahead.background = bool(on)
+
+
+class NormalStream(_DrawnAhead):
+    """Float64 standard normals of one generator, handed out in stream order and drawn ahead like NoiseStream's
+    per-step rows: from the second call on, the shared background thread draws as many values as the last call
+    asked for while the caller computes, so a caller that asks for the same count every time (a poll's block)
+    finds its values drawn and gets them without a copy. The values are those of drawing exactly what each call
+    asks for in the caller's thread: numpy's float64 normals keep no state between draws but the bit
+    generator's, so a draw split into pieces is the same sequence as one draw of the whole.
+    `prefetch`: as NoiseStream's (None: default_prefetch())."""
+
+    def __init__(self, gen: np.random.Generator, prefetch: bool | None = None) -> None:
+        if prefetch is None:
+            prefetch = default_prefetch()
+        self._ahead = _RowStream(gen, 1, np.float64, 1, prefetch)  # ahead = 1: each prefetch draws the last n
+
+    def take(self, n: int) -> np.ndarray:
+        """The next n values, shape (n,) (a view of drawn values, never reused)."""
+        return self._ahead.take(n).reshape(n)
+
+
+class NoiseStream(_DrawnAhead):
     """Reproducible standard-normal draws for one simulator: per-step draws and bias-update draws come from
     two independent PCG64 streams seeded from `seed`, so the draws do not depend on how a run is split
     into blocks.
 
-    The per-step rows are prefetched: from the second call of `steps` on, the next PREFETCH_ROWS (or n, if
-    larger) rows are drawn on the shared background thread while the caller computes; the bias rows are drawn
+    The per-step rows are prefetched: from the second call of `steps` on, the next rows are drawn on the shared
+    background thread while the caller computes (as many whole calls of the last call's n as fit in
+    PREFETCH_ROWS, at least n); the bias rows are drawn
     GM_ROWS_AHEAD at a time. Either way each stream is read in order, so the values are those of drawing
     exactly what each call asks for. A copy (copy.deepcopy, pickle) first collects a pending prefetch.
     `prefetch=False` (or setting `.prefetch` later) draws the per-step rows in the caller's thread instead, with
@@ -229,24 +266,16 @@ class NoiseStream:
         self.n_gm = n_gm
         if prefetch is None:  # a second thread only pays with a second CPU to run on
             prefetch = default_prefetch()
-        self._step = _RowStream(np.random.Generator(np.random.PCG64(s1)), per_step, np.float32, PREFETCH_ROWS, prefetch)
-        self._gm = _RowStream(np.random.Generator(np.random.PCG64(s2)), n_gm, np.float64, GM_ROWS_AHEAD, False)
-
-    @property
-    def prefetch(self) -> bool:
-        """Whether the per-step rows are drawn ahead on the background thread."""
-        return self._step.background
-
-    @prefetch.setter
-    def prefetch(self, on: bool) -> None:
-        self._step.background = bool(on)
+        step_gen, gm_gen = np.random.Generator(np.random.PCG64(s1)), np.random.Generator(np.random.PCG64(s2))
+        self._ahead = _RowStream(step_gen, per_step, np.float32, PREFETCH_ROWS, prefetch)  # the per-step rows
+        self._gm = _RowStream(gm_gen, n_gm, np.float64, GM_ROWS_AHEAD, False)
 
     def steps(self, n: int, enabled: bool = True) -> np.ndarray:
         """(n, per_step) float32 draws (ziggurat; single precision is ample for noise and twice as fast), the
         next n rows of the per-step stream; zeros without drawing when every per-step noise is off."""
         if not enabled:
             return np.zeros((n, self.per_step), dtype=np.float32)
-        return self._step.take(n)
+        return self._ahead.take(n)
 
     def gm(self, n_updates: int, enabled: bool = True) -> np.ndarray:
         """(n_updates, n_gm) draws for the bias processes (at least one row so the kernel can index it)."""

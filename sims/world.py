@@ -169,6 +169,8 @@ class World:
         self._last_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # last advance's dither phases
         self._offsets_key: tuple[int, float] | None = None  # (n, dt) of the cached `_step_offsets`
         self._offsets = (np.zeros(0), np.zeros(0), np.zeros(1))
+        self._tau_origin_key: tuple[float, float, float, float] | None = None  # what `_tau_origin_s` was formed from
+        self._tau_origin_s = 0.0
         # called as fn(t_start_s, t_end_s) at the start of every advance, under the lock (fault injection)
         self.on_advance: list[Callable[[float, float], None]] = []
 
@@ -341,6 +343,20 @@ class World:
         tt = np.asarray(t, dtype=np.float64)
         return tt * (1.0 + e0) + (ew * per / (2 * np.pi)) * (1.0 - np.cos(2 * np.pi * tt / per))
 
+    def _tau_origin(self) -> float:
+        """tau(t_origin), the DS345 timebase's reading at the dither's phase origin: `ds345_time`, kept while the
+        origin and the timebase parameters stay as they were (it changes only with a new frequency)."""
+        p = self.params
+        key = (
+            self.dither.origin_s,
+            p.ds345_timebase_offset_ppm,
+            p.ds345_timebase_wander_ppm,
+            p.ds345_timebase_wander_period_s,
+        )
+        if key != self._tau_origin_key:
+            self._tau_origin_key, self._tau_origin_s = key, float(self.ds345_time(self.dither.origin_s))
+        return self._tau_origin_s
+
     def _dither_phase(self, t: np.ndarray) -> np.ndarray:
         """u(t): the generator's phase in cycles at World times t."""
         d = self.dither
@@ -440,7 +456,7 @@ class World:
                     p.ds345_timebase_offset_ppm * 1e-6,
                     p.ds345_timebase_wander_ppm * 1e-6 * per / (2 * np.pi),
                     per,
-                    float(self.ds345_time(d.origin_s)) if dither_on else 0.0,
+                    self._tau_origin() if dither_on else 0.0,
                     d.frequency_hz,
                     d.phase_deg / 360.0,
                     d.offset_v,

@@ -20,8 +20,10 @@ fastmath=False):
   boundaries t0 + k dt (k <= n); the table's rate-mode profile at mid-step, r0 + sign(r1 - r0) min(a (k dt +
   dt/2), |r1 - r0|) (r0 where r1 = r0); the chamber controller's setpoint at the step starts,
   s0 + sign(s1 - s0) min(slope k dt, |s1 - s0|) (s0 where s1 = s0).
-* `block_inputs`: one block in one compiled call: `ramp_block` (or a given table profile), `table_block`, the air
-  lag behind the setpoint, the measured air (+ disturbance), the gyro lag behind it, and `dither_grid`.
+* `chamber_lags`: the air lag behind the setpoint, the measured air (+ disturbance) and the gyro lag behind it,
+  each `first_order_lag`, in one interleaved pass.
+* `block_inputs`: one block in one compiled call: `ramp_block` (or a given table profile), `table_block`,
+  `chamber_lags` and `dither_grid`.
 """
 
 from __future__ import annotations
@@ -77,6 +79,36 @@ def first_order_lag(u: np.ndarray, y0: float, a: float, y: np.ndarray) -> None:
         yk = z + b0 * x
         y[k] = yk
         z = x * b1 - yk * a1
+
+
+@njit(cache=True)
+def chamber_lags(
+    setpoint_c: np.ndarray,
+    air0_c: float,
+    a_air: float,
+    disturbance_c: float,
+    gyro0_c: float,
+    a_gyro: float,
+    air_c: np.ndarray,
+    air_measured_c: np.ndarray,
+    gyro_c: np.ndarray,
+) -> None:
+    """The air lag behind the setpoint, the measured air (+ disturbance) and the gyro lag behind it, in one pass:
+    `first_order_lag` of each, step k of the gyro's recursion taking the measured air of step k as soon as it
+    is formed (the two dependency chains interleave; the operations are those of the separate loops)."""
+    b1_air, a1_air = 1.0 - a_air, -a_air
+    b1_gyro, a1_gyro = 1.0 - a_gyro, -a_gyro
+    z_air, z_gyro = air0_c, gyro0_c
+    for k in range(setpoint_c.shape[0]):
+        x = setpoint_c[k]
+        air = z_air + 0.0 * x
+        air_c[k] = air
+        z_air = x * b1_air - air * a1_air
+        measured = air + disturbance_c
+        air_measured_c[k] = measured
+        gyro = z_gyro + 0.0 * measured
+        gyro_c[k] = gyro
+        z_gyro = measured * b1_gyro - gyro * a1_gyro
 
 
 @njit(cache=True, inline="always")
@@ -220,10 +252,7 @@ def block_inputs(
         setpoint_c,
     )
     table_block(profile_mid_dps, table[6], dt, table[7], table[8], table[9], rate_dps, angle_deg)
-    first_order_lag(setpoint_c, chamber[5], chamber[4], air_c)
-    for k in range(air_c.shape[0]):
-        air_measured_c[k] = air_c[k] + chamber[6]
-    first_order_lag(air_measured_c, chamber[8], chamber[7], gyro_c)
+    chamber_lags(setpoint_c, chamber[5], chamber[4], chamber[6], chamber[8], chamber[7], air_c, air_measured_c, gyro_c)
     if dither_on:
         dither_grid(
             t_bounds_s,

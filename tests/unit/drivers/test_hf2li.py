@@ -8,6 +8,7 @@ clock (the HF2 rate 1800 Sa/s as whole 210 MHz ticks: 116667 ticks per sample) a
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from typing import Any
 
@@ -199,6 +200,55 @@ def test_samples_lost_equals_the_injected_drop() -> None:
     b = li.poll(0.5)
     assert b.samples_lost == 13 and len(b) == 900 - 13
     assert li.poll(0.5).samples_lost == 0
+
+
+def _lost_by_definition(ticks: np.ndarray, last_ts: int | None, ticks_per_sample: float) -> int:
+    """The module docstring's count, gap by gap in Python: sum of max(rint(gap / ticks_per_sample) - 1, 0) over
+    the gaps between consecutive timestamps, the first one from the previous block's last sample."""
+    edges = ([] if last_ts is None else [last_ts]) + [int(v) for v in ticks]
+    return sum(max(int(np.rint((b - a) / ticks_per_sample)) - 1, 0) for a, b in itertools.pairwise(edges))
+
+
+@pytest.mark.parametrize("last_ts", [None, 10_000_000])
+def test_lost_samples_are_the_gap_count_of_the_definition_for_any_gaps(last_ts: int | None) -> None:
+    """_count_lost against the definition for gap patterns on both sides of every rounding boundary: whole-sample
+    gaps, gaps of 1.5 samples (rint to even: 2, one lost) and just below, a first gap (from the previous block)
+    that alone loses samples, out-of-order and repeated timestamps, single samples and an empty block."""
+    _, _, _, li = bench()
+    m = 116667.0
+    li._ticks_per_sample = m
+    rng = np.random.default_rng(3)
+    start = 10_000_000 + int(m)
+    patterns: list[list[float]] = [
+        [1.0] * 50,
+        [1.0, 1.5, 1.0],
+        [1.0, 1.4999, 1.0],
+        [1.0, 2.5, 1.0, 3.0],
+        [1.0, 0.0, 1.0],
+        [1.0, -1.0, 2.0],
+        [1.0],
+        [],
+        list(rng.choice([1.0, 1.0, 1.0, 2.0, 1.5, 7.0, 0.5], size=400)),
+    ]
+    for gaps in patterns:
+        for first in (0, 1, 3):  # the block starts right after the previous one, or `first` samples later
+            offsets = np.concatenate(([0.0], np.cumsum(gaps))) if gaps or first != 3 else np.zeros(0)
+            ticks = (start + first * int(m) + np.round(offsets * m)).astype(np.int64)
+            li._last_ts = last_ts
+            expected = _lost_by_definition(ticks, last_ts, m)
+            assert li._count_lost(ticks) == expected, (gaps, first)
+    li._last_ts = last_ts
+    assert li._count_lost(np.zeros(0, dtype=np.int64)) == 0
+
+
+def test_timestamps_are_read_as_the_int64_values_astype_gives() -> None:
+    from drivers.hf2li import _as_int64
+
+    ts = np.array([0, 1, 116667, 2**62 + 5, 2**63 - 1, 2**63, 2**64 - 1], dtype=np.uint64)
+    np.testing.assert_array_equal(_as_int64(ts), ts.astype(np.int64))
+    np.testing.assert_array_equal(_as_int64(ts[::2]), ts[::2].astype(np.int64))  # a strided view too
+    small = np.array([3, 4], dtype=np.uint32)
+    assert _as_int64(small).dtype == np.int64 and list(_as_int64(small)) == [3, 4]
 
 
 def test_poll_before_start_stream_is_an_error() -> None:

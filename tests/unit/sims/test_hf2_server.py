@@ -92,6 +92,27 @@ def test_read_only_and_enumerated_nodes_are_enforced() -> None:
     assert twin.getDouble(f"{DEV}/sigouts/0/range") == 10.0
 
 
+def test_a_node_read_again_gives_its_current_value_and_the_same_refusals() -> None:
+    """The second read of a path takes the twin's shortcut: it sees every change of the value, in any spelling
+    of the path, and a disconnected device or a stream/branch node is refused as on the first read."""
+    _, twin = make_twin()
+    for path in (f"{DEV}/pids/0/p", f"{DEV.upper()}/PIDS/0/P", "pids/0/p"):
+        twin.set(f"{DEV}/pids/0/p", 1.5)
+        assert twin.getDouble(path) == 1.5
+        twin.set(f"{DEV}/pids/0/p", -2.0)
+        assert twin.getDouble(path) == -2.0
+        assert twin.getInt(path) == -2
+    with pytest.raises(RuntimeError, match="cannot be read as a value"):
+        twin.getDouble(f"{DEV}/demods/0/sample")
+    with pytest.raises(RuntimeError, match="cannot be read as a value"):
+        twin.getDouble(f"{DEV}/demods/0/sample")
+    twin.disconnectDevice("dev1234")
+    with pytest.raises(RuntimeError, match="not connected"):
+        twin.getDouble(f"{DEV}/pids/0/p")
+    twin.connectDevice("dev1234", "USB")
+    assert twin.getDouble(f"{DEV}/pids/0/p") == -2.0
+
+
 def test_list_set_is_validated_before_any_node_changes() -> None:
     _, twin = make_twin()
     with pytest.raises(RuntimeError):
@@ -139,6 +160,40 @@ def test_nothing_subscribed_no_data_and_world_stands_still() -> None:
     world, twin = make_twin()
     assert twin.poll(0.5, 500, 0, True) == {}
     assert world.t == 0.0
+
+
+def test_an_oscillator_no_demod_uses_keeps_turning_and_a_demod_taking_it_sees_its_phase() -> None:
+    """Oscillator 1 (fixed at 1234.5 Hz) runs on while no subscribed demod uses it (its phase advanced block by
+    block, 2 pi f n dt each, floor-modulo 2 pi); demod 2, switched to it after three blocks, reports its phase
+    continuing from there: phi_k = (phi + 2 pi (f_0 + ... + f_k) dt) mod 2 pi, computed here in numpy."""
+    _, twin = make_twin()
+    stream_demods(twin)
+    f1, n, dt = 1234.5, 700, 150_000 / 210e6
+    twin.set(f"{DEV}/oscs/1/freq", f1)
+    phase = np.float64(0.0)
+    for _ in range(3):
+        twin.poll(0.5, 500, 0, True)
+        phase = (phase + 2 * np.pi * f1 * n * dt) % (2 * np.pi)
+    twin.set([(f"{DEV}/demods/2/oscselect", 1), (f"{DEV}/demods/2/enable", 1), (f"{DEV}/demods/2/rate", 1400.0)])
+    twin.subscribe(f"{DEV}/demods/2/sample")
+    s = twin.poll(0.5, 500, 0, True)[f"{DEV}/demods/2/sample"]
+    expected = np.mod(phase + 2 * np.pi * np.cumsum(np.full(n, f1)) * dt, 2 * np.pi)
+    np.testing.assert_array_equal(s["phase"], expected)
+    np.testing.assert_array_equal(s["frequency"], np.full(n, f1))
+
+
+def test_a_polls_arrays_stay_as_they_were_while_later_polls_run() -> None:
+    """The samples a poll hands out (the gyro block's own rows for x and y, no copies) are not touched by the
+    polls after it: every field of two demods kept from the first poll equals its copy after three more."""
+    _, twin = make_twin()
+    stream_demods(twin)
+    first = twin.poll(0.5, 500, 0, True)
+    kept = {path: {k: v.copy() for k, v in sample.items()} for path, sample in first.items()}
+    for _ in range(3):
+        twin.poll(0.5, 500, 0, True)
+    for path, sample in first.items():
+        for field, values in sample.items():
+            np.testing.assert_array_equal(values, kept[path][field], err_msg=f"{path} {field}")
 
 
 def test_poll_returns_samples_at_the_rate_with_exact_timestamps() -> None:

@@ -23,7 +23,7 @@ import pytest
 
 from sims import gyro_kernel as gk
 from sims.gyro import GyroParams, GyroSim, held_inputs
-from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream, set_default_prefetch
+from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream, NormalStream, set_default_prefetch
 from tests.support.paper_loops import paper_loops
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -202,3 +202,54 @@ def test_a_process_wide_default_overrides_the_automatic_choice_and_keeps_the_val
     rows_on = np.concatenate([forced_on.steps(n) for n in pattern])
     np.testing.assert_array_equal(rows_off, rows_on)
     np.testing.assert_array_equal(rows_off, np.concatenate(_reference_steps(3, pattern)))
+
+
+NORMAL_PATTERNS = {
+    "hf2 AuxIn blocks (2 x 3600)": [7200] * 12,
+    "the block size changes": [7200, 7200, 1800, 1800, 7200, 1, 7200, 14400, 3],
+    "off-calls interleaved": [7200, 0, 7200, 7200, 0, 0, 7200],
+}
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+@pytest.mark.parametrize("pattern", list(NORMAL_PATTERNS.values()), ids=list(NORMAL_PATTERNS))
+def test_normal_stream_hands_out_the_generators_float64_draws_in_order(pattern: list[int], prefetch: bool) -> None:
+    """NormalStream (the HF2 twin's AuxIn noise) gives exactly what drawing each call's count in the caller's
+    thread gives, and the same as one draw of the whole; arrays handed out stay valid while it draws on."""
+    seed = np.random.SeedSequence(11, spawn_key=(7,))
+    stream = NormalStream(np.random.Generator(np.random.PCG64(seed)), prefetch=prefetch)
+    assert stream.prefetch is prefetch
+    got = [stream.take(n) for n in pattern]
+    ref_gen = np.random.Generator(np.random.PCG64(seed))
+    for g, n in zip(got, pattern, strict=True):
+        assert g.shape == (n,) and g.dtype == np.float64
+        np.testing.assert_array_equal(g, ref_gen.standard_normal(n))
+    whole = np.random.Generator(np.random.PCG64(seed)).standard_normal(sum(pattern))
+    np.testing.assert_array_equal(np.concatenate(got), whole)
+
+
+def test_normal_stream_switched_mid_stream_and_copied_keeps_the_order() -> None:
+    seed = np.random.SeedSequence(5)
+    stream = NormalStream(np.random.Generator(np.random.PCG64(seed)), prefetch=True)
+    pattern = [7200] * 9
+    ref = np.random.Generator(np.random.PCG64(seed)).standard_normal(sum(pattern))
+    head = [stream.take(n) for n in pattern[:3]]  # a prefetch is pending from the second call on
+    stream.prefetch = False
+    head.append(stream.take(pattern[3]))
+    stream.prefetch = True
+    head.append(stream.take(pattern[4]))
+    for other in (stream, copy.deepcopy(stream), pickle.loads(pickle.dumps(stream))):
+        tail = [other.take(n) for n in pattern[5:]]
+        np.testing.assert_array_equal(np.concatenate(head + tail), ref)
+
+
+def test_calls_of_one_size_come_from_whole_prefetched_chunks_without_a_copy() -> None:
+    """From the third call on, calls of one size (a poll's block) are views of a prefetch of whole calls: no call
+    straddles two chunks (PREFETCH_ROWS // n calls per chunk), and the values are the stream's."""
+    n = 3600
+    stream = NoiseStream(2, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
+    got = [stream.steps(n) for _ in range(9)]
+    for rows in got[2:]:
+        assert rows.base is not None and rows.base.shape[0] == n * (PREFETCH_ROWS // n)
+    for g, ref in zip(got, _reference_steps(2, [n] * 9), strict=True):
+        np.testing.assert_array_equal(g, ref)

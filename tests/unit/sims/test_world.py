@@ -105,6 +105,36 @@ def test_square_dither_runs_on_the_ds345_timebase_with_exact_step_means():
     assert period == pytest.approx(1 / 7.0 / (1 + 50e-6), abs=DT / edges.size * 2)
 
 
+def _step_means_from_the_phase(w: World, n: int) -> np.ndarray:
+    """The exact square-wave step means of the next n steps, from World._dither_phase (which reads the DS345
+    timebase at the phase origin afresh) and the waveform's antiderivative, in numpy."""
+    d = w.dither
+    u = w._dither_phase(w.t + DT * np.arange(n + 1))
+    frac = u - np.floor(u)
+    big_w = np.where(frac < 0.5, frac, 1.0 - frac)
+    return d.offset_v + 0.5 * d.amplitude_vpp * (big_w[1:] - big_w[:-1]) / (u[1:] - u[:-1])
+
+
+def test_dither_origin_follows_new_frequencies_and_timebase_parameters():
+    """Block after block the step means equal those formed from the phase afresh, through a new frequency (a new
+    phase origin), a changed timebase offset, wander and wander period, and a return to earlier values."""
+    w = World(WorldParams(ds345_timebase_wander_ppm=20.0, ds345_timebase_wander_period_s=30.0))
+    w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+    changes = [
+        lambda: None,
+        lambda: w.set_dither(frequency_hz=9.0),
+        lambda: setattr(w.params, "ds345_timebase_offset_ppm", 40.0),
+        lambda: setattr(w.params, "ds345_timebase_wander_ppm", 3.0),
+        lambda: setattr(w.params, "ds345_timebase_wander_period_s", 55.0),
+        lambda: w.set_dither(frequency_hz=7.0),
+        lambda: setattr(w.params, "ds345_timebase_offset_ppm", 3.0),
+    ]
+    for change in changes:
+        change()
+        expected = _step_means_from_the_phase(w, 700)
+        np.testing.assert_array_equal(w.advance(700, DT).dither_v, expected)
+
+
 def test_sine_dither_step_means_and_mute():
     p = WorldParams()
     w = World(p)

@@ -30,6 +30,26 @@ def test_first_order_lag_is_lfilter_step_for_step() -> None:
         assert y[0] == 25.3
 
 
+@pytest.mark.parametrize(
+    ("tau_air_s", "tau_gyro_s", "disturbance_c"), [(60.0, 600.0, 0.0), (60.0, 600.0, -1.5), (1e-4, 1e-3, 2.0)]
+)
+def test_chamber_lags_are_the_two_lags_and_the_measured_air_of_the_separate_loops(
+    tau_air_s: float, tau_gyro_s: float, disturbance_c: float
+) -> None:
+    rng = np.random.default_rng(6)
+    setpoint = 25.0 + np.minimum(np.arange(N) * DT * 0.25 / 60.0, 10.0) + rng.normal(0.0, 1e-3, N)
+    a_air, a_gyro = math.exp(-DT / tau_air_s), math.exp(-DT / tau_gyro_s)
+    air_ref, gyro_ref = np.empty(N), np.empty(N)
+    wk.first_order_lag(setpoint, 25.4, a_air, air_ref)
+    measured_ref = air_ref + disturbance_c
+    wk.first_order_lag(measured_ref, 24.9, a_gyro, gyro_ref)
+    air, measured, gyro = np.empty(N), np.empty(N), np.empty(N)
+    wk.chamber_lags(setpoint, 25.4, a_air, disturbance_c, 24.9, a_gyro, air, measured, gyro)
+    np.testing.assert_array_equal(air, air_ref)
+    np.testing.assert_array_equal(measured, measured_ref)
+    np.testing.assert_array_equal(gyro, gyro_ref)
+
+
 @pytest.mark.parametrize("ripple_ppm", [0.0, 100.0, -2500.0])
 @pytest.mark.parametrize("profile", ["hold", "ramp", "sine"])
 def test_table_block_is_the_vectorised_ripple_and_angle(profile: str, ripple_ppm: float) -> None:
