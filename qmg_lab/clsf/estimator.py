@@ -72,13 +72,10 @@ from qmg_lab.clsf.kernels import (
     mean_rates,
     median_spacing,
     period_ratios,
-    ramp_matrix,
     sosfilt_inplace,
 )
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
-EDGE_SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])  # the ramps' signs at R_(i-1), F_a, R_i, F_b, R_(i+1)
-BLAS_ROWS = 1024  # rows per matrix-vector product (_rows_times)
 BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
 
 
@@ -269,9 +266,7 @@ class ClsfEstimator:
         filtered form is the ramp response."""
         filt = self.demod_filter
         t, y, mf, _ = self._buf
-        ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
-        ramp_sum = _rows_times(ramps, EDGE_SIGNS * (hi - lo))
-        return period_ratios(t, y, mf, ramp_sum, edges, k0, k1, lo, filt.delay_s)
+        return period_ratios(t, y, mf, edges, k0, k1, lo, hi, filt.order, filt.tc_s)
 
     def _trim(self, done: int | None) -> None:
         """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
@@ -293,16 +288,6 @@ class ClsfEstimator:
         for h0, h1 in self._holds:
             held |= (h0 <= t1) & (t0 <= h1)
         return held
-
-
-def _rows_times(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """m @ v, taken BLAS_ROWS rows at a time: small enough that OpenBLAS stays on the calling thread (waking its
-    threads costs more than the product on a loaded machine), a multiple of its 4-row kernel so that each row is
-    rounded as in a single m @ v (checked bit for bit against one product on 760 000 random rows)."""
-    out = np.empty(m.shape[0])
-    for i in range(0, m.shape[0], BLAS_ROWS):
-        np.matmul(m[i : i + BLAS_ROWS], v, out=out[i : i + BLAS_ROWS])
-    return out
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

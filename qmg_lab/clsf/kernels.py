@@ -7,6 +7,9 @@ in the same order, so that the estimator's results do not depend on which form r
   use numpy's pairwise summation (`pairwise_sum`); `np.add.reduceat` adds the pairwise sum of the rest of a
   segment to its first element (`reduceat_sum`);
 * the ramp response's exponential is libm's exp, as numpy's float64 exp is on this hardware;
+* the five edges' weighted ramps are summed in the order OpenBLAS's x86-64 matrix-vector kernel gives a row of
+  five (signed_ramp_sum), where the estimator used to form them as a matrix and multiply it by the signs: the
+  kernel now computes H m_d per sample without the n x 5 matrix or the BLAS call;
 * the demodulator filter's sections run scipy.signal.sosfilt's direct form II transposed recursion.
 
 Compiled with cache=True (the first import in a fresh environment compiles them once, about a second; later
@@ -16,9 +19,12 @@ imports load them from __pycache__). Only the estimator and the edge tracker imp
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any, cast
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partial sums
 PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
@@ -171,56 +177,62 @@ def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
         zi[s, 0], zi[s, 1] = z0, z1
 
 
-@njit(cache=True)
-def ramp_matrix(
-    t: np.ndarray, k0: np.ndarray, k1: np.ndarray, edges: np.ndarray, order: int, tc_s: float
-) -> np.ndarray:
-    """R over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
-    the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
-    R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
-    beyond, 0 before; max(tau, 0) without a filter).
+def _fma_typing(typingctx: Any, a: Any, b: Any, c: Any) -> tuple[Any, Callable[..., Any]] | None:
+    """fused_multiply_add's numba typing and code generation: float64 arguments only, LLVM's llvm.fma."""
+    if not all(arg == types.float64 for arg in (a, b, c)):
+        return None
+    sig = types.float64(types.float64, types.float64, types.float64)
 
-    t is sorted, so tau = t_k - e rises with k: per period and edge, the first samples with tau > 0 and with
-    tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the exponential."""
-    total = 0
-    for p in range(k0.size):
-        total += k1[p] - k0[p]
-    ne = edges.shape[1]
-    r = np.empty((total, ne))
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+# a b + c with one rounding (the FMA instruction, or an exactly rounded software form on a processor without one),
+# callable only inside compiled kernels; the cast gives mypy the signature kernels call it with (numba's
+# intrinsic object is typed with the typing function's own parameters, the typing context first)
+fused_multiply_add = cast("Callable[[float, float, float], float]", intrinsic(_fma_typing))
+
+
+@njit(cache=True)
+def ramp_column(t: np.ndarray, a: int, n: int, e: float, order: int, tc_s: float, out: np.ndarray) -> None:
+    """out[i] = R_n(t[a + i] - e) for i < n: the filter's response to a unit ramp starting at the edge e
+    (DemodFilter.ramp_response, with its operations: R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j)
+    (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc beyond, 0 before; tau without a filter, tc = 0).
+
+    t is sorted, so tau = t_k - e rises with k: the first samples with tau > 0 and with tau >= 60 tc bound the
+    zero, transient and steady ranges; only the transient needs the exponential."""
     delay = order * tc_s
     transient_end = 60.0 * tc_s
-    start = np.empty(ne, dtype=np.int64)  # first k with tau > 0
-    steady = np.empty(ne, dtype=np.int64)  # first k with tau >= 60 tc (with tau > 0)
-    row = 0
-    for p in range(k0.size):
-        a, b = k0[p], k1[p]
-        for j in range(ne):
-            e = edges[p, j]
-            k = a
-            while k < b and not t[k] - e > 0.0:
-                k += 1
-            start[j] = k
-            if tc_s > 0.0:
-                while k < b and t[k] - e < transient_end:
-                    k += 1
-            steady[j] = k
-        for k in range(a, b):
-            for j in range(ne):
-                tau = t[k] - edges[p, j]
-                if k < start[j]:
-                    r[row, j] = 0.0
-                elif k >= steady[j]:
-                    r[row, j] = tau - delay
-                else:
-                    x = tau / tc_s
-                    acc = 0.0
-                    term = 1.0
-                    for i in range(order):
-                        acc += (order - i) * term
-                        term = term * x / (i + 1)
-                    r[row, j] = tau - delay + tc_s * math.exp(-x) * acc
-            row += 1
-    return r
+    i = 0
+    while i < n and not t[a + i] - e > 0.0:
+        out[i] = 0.0
+        i += 1
+    if tc_s > 0.0:
+        while i < n and t[a + i] - e < transient_end:
+            x = (t[a + i] - e) / tc_s
+            acc = 0.0
+            term = 1.0
+            for j in range(order):
+                acc += (order - j) * term
+                term = term * x / (j + 1)
+            out[i] = t[a + i] - e - delay + tc_s * math.exp(-x) * acc
+            i += 1
+    for k in range(i, n):
+        out[k] = t[a + k] - e - delay
+
+
+@njit(cache=True)
+def signed_ramp_sum(r0: float, r1: float, r2: float, r3: float, r4: float, step: float) -> float:
+    """sum_j s_j step r_j for the ramp responses r_j at the edges (R_(i-1), F_a, R_i, F_b, R_(i+1)), signs
+    s = (+, -, +, -, +): with p_j = r_j (s_j step), (p_0 + p_2) + (p_1 + p_3), then r_4 step added by a fused
+    multiply-add (one rounding).
+
+    That order is the one OpenBLAS's double-precision x86-64 matrix-vector kernel (dgemv_t) gives each row of an
+    n x 5 product: the earlier estimator formed this sum as such a product, and on those processors the two agree
+    bit for bit (tests/unit/test_clsf_kernels.py)."""
+    return fused_multiply_add(r4, step, (r0 * step + r2 * step) + (r1 * -step + r3 * -step))
 
 
 @njit(cache=True)
@@ -228,52 +240,62 @@ def period_ratios(
     t: np.ndarray,
     y: np.ndarray,
     mf: np.ndarray,
-    ramp_sum: np.ndarray,
     edges: np.ndarray,
     k0: np.ndarray,
     k1: np.ndarray,
     lo: float,
-    delay_s: float,
+    hi: float,
+    order: int,
+    tc_s: float,
 ) -> np.ndarray:
     """rho = sum y r / sum (H m) r per period (the estimator's docstring) over its window k0[p] <= k < k1[p] of
-    the buffer (t, y, H m_r); ramp_sum: the windows' rows of ramp_matrix weighted by the edges' signs +-(hi - lo).
+    the buffer (t, y, H m_r); edges[p]: the period's (R_(i-1), F_a, R_i, F_b, R_(i+1)); lo, hi: the dither's
+    recorded levels; the lock-in's filter 1/(1 + s tc)^order.
 
-    H m_d = lo (t - e_0 - n tc) + ramp_sum; r = H m_d minus its least-squares line a + b t over the window: with
-    means over it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0),
-    r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
-    total = ramp_sum.size
+    H m_d = lo (t - e_0 - n tc) + signed_ramp_sum of the edges' ramp_columns (each edge adds a ramp of slope
+    +-(hi - lo)); r = H m_d minus
+    its least-squares line a + b t over the window: with means over it, t' = t - mean t, v' = H m_d - mean H m_d,
+    b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0.
+    Sums and means are np.add.reduceat's over each window (reduceat_sum)."""
+    delay_s = order * tc_s
+    step = hi - lo
+    longest = 0
+    for p in range(k0.size):
+        longest = max(longest, k1[p] - k0[p])
     work = np.empty((PAIRWISE_DEPTH, 4))
     rho = np.empty(k0.size)
-    md = np.empty(total)
-    tcn = np.empty(total)
-    vcn = np.empty(total)
-    p1 = np.empty(total)
-    p2 = np.empty(total)
-    start = 0
+    ramps = np.empty((5, longest))
+    md = np.empty(longest)
+    tcn = np.empty(longest)
+    vcn = np.empty(longest)
+    p1 = np.empty(longest)
+    p2 = np.empty(longest)
     for p in range(k0.size):
         a = k0[p]
         n = k1[p] - a
+        for j in range(5):
+            ramp_column(t, a, n, edges[p, j], order, tc_s, ramps[j])
         e0 = edges[p, 0]
         for i in range(n):
-            md[start + i] = lo * (t[a + i] - e0 - delay_s) + ramp_sum[start + i]
+            edge_part = signed_ramp_sum(ramps[0, i], ramps[1, i], ramps[2, i], ramps[3, i], ramps[4, i], step)
+            md[i] = lo * (t[a + i] - e0 - delay_s) + edge_part
         mt = reduceat_sum(t, a, n, work) / n
-        mv = reduceat_sum(md, start, n, work) / n
+        mv = reduceat_sum(md, 0, n, work) / n
         for i in range(n):
-            tcn[start + i] = t[a + i] - mt
-            vcn[start + i] = md[start + i] - mv
-            p1[start + i] = tcn[start + i] * tcn[start + i]
-            p2[start + i] = tcn[start + i] * vcn[start + i]
-        stt = reduceat_sum(p1, start, n, work)
-        stv = reduceat_sum(p2, start, n, work)
+            tcn[i] = t[a + i] - mt
+            vcn[i] = md[i] - mv
+            p1[i] = tcn[i] * tcn[i]
+            p2[i] = tcn[i] * vcn[i]
+        stt = reduceat_sum(p1, 0, n, work)
+        stv = reduceat_sum(p2, 0, n, work)
         b = stv / stt if stt > 0 else 0.0
         for i in range(n):
-            r = vcn[start + i] - tcn[start + i] * b
-            p1[start + i] = (mf[a + i] + md[start + i]) * r
-            p2[start + i] = y[a + i] * r
-        den = reduceat_sum(p1, start, n, work)
-        num = reduceat_sum(p2, start, n, work)
+            r = vcn[i] - tcn[i] * b
+            p1[i] = (mf[a + i] + md[i]) * r
+            p2[i] = y[a + i] * r
+        den = reduceat_sum(p1, 0, n, work)
+        num = reduceat_sum(p2, 0, n, work)
         rho[p] = num / den if den != 0.0 else np.nan
-        start += n
     return rho
 
 

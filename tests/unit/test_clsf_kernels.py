@@ -7,6 +7,8 @@ are checked against the least-squares equations as well.
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 from scipy import signal
@@ -57,12 +59,11 @@ def test_sosfilt_inplace_is_scipys_sosfilt_bit_for_bit(order: int) -> None:
     np.testing.assert_array_equal(zi, zf)
 
 
-@pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
-def test_ramp_matrix_is_the_filters_ramp_response(order: int, tc: float) -> None:
-    t = np.arange(2000) / 1800.0
+def _window_edges(t: np.ndarray, tc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Three windows k0 <= k < k1 of t and five edges each, anywhere: before the window, inside it, on a sample,
+    after it."""
     k0 = np.array([3, 600, 1200])
     k1 = np.array([300, 900, 1999])
-    # edges anywhere: before the window, inside it, on a sample, after it
     edges = np.array(
         [
             [t[1] - 1e-5, t[100], t[150] + 1e-4, t[299] + 2e-4, t[400]],
@@ -70,10 +71,91 @@ def test_ramp_matrix_is_the_filters_ramp_response(order: int, tc: float) -> None
             [t[1100], t[1300] + 1e-7, t[1500], t[1700], t[1998] + 1e-3],
         ]
     )
-    r = kernels.ramp_matrix(t, k0, k1, edges, order, tc)
+    return k0, k1, edges
+
+
+@pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
+def test_ramp_column_is_the_filters_ramp_response(order: int, tc: float) -> None:
+    t = np.arange(2000) / 1800.0
+    k0, k1, edges = _window_edges(t, tc)
     filt = DemodFilter(order, tc)
-    rows = [filt.ramp_response(t[a:b, None] - e) for a, b, e in zip(k0, k1, edges, strict=True)]
-    np.testing.assert_array_equal(r, np.concatenate(rows))
+    for a, b, row in zip(k0, k1, edges, strict=True):
+        for e in row:
+            got = np.full(b - a + 3, np.nan)
+            kernels.ramp_column(t, a, b - a, e, order, tc, got)
+            np.testing.assert_array_equal(got[: b - a], filt.ramp_response(t[a:b] - e))
+            assert np.isnan(got[b - a :]).all()  # nothing written beyond the window
+
+
+def _exact_signed_sum(r: np.ndarray, step: float) -> float:
+    """signed_ramp_sum's definition in exact rational arithmetic: each rounding written out (round = float())."""
+    p = [float(Fraction(x) * Fraction(s * step)) for x, s in zip(r[:4], (1.0, -1.0, 1.0, -1.0), strict=True)]
+    inner = (p[0] + p[2]) + (p[1] + p[3])
+    return float(Fraction(r[4]) * Fraction(step) + Fraction(inner))  # the fused multiply-add: one rounding
+
+
+def test_signed_ramp_sum_rounds_as_defined_and_as_a_matrix_vector_product() -> None:
+    rows = _spread(5 * 4000).reshape(4000, 5)
+    rows[RNG.random(rows.shape) < 0.2] = 0.0  # ramps that have not started
+    step = 0.6123456789
+    got = np.array([kernels.signed_ramp_sum(*r, step) for r in rows])
+    np.testing.assert_array_equal(got, [_exact_signed_sum(r, step) for r in rows])
+    # any BLAS's order of the same five products is within a few roundings of their magnitude
+    product = rows @ (np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * step)
+    magnitude = np.abs(rows) @ np.full(5, step)
+    assert np.all(np.abs(got - product) <= 4 * np.finfo(float).eps * magnitude)
+
+
+def _ratios_by_equations(
+    t: np.ndarray,
+    y: np.ndarray,
+    mf: np.ndarray,
+    edges: np.ndarray,
+    k0: np.ndarray,
+    k1: np.ndarray,
+    lo: float,
+    hi: float,
+    filt: DemodFilter,
+) -> np.ndarray:
+    """period_ratios' docstring in numpy, window by window (its sums are np.add.reduceat's)."""
+    rho = []
+    for a, b, e in zip(k0, k1, edges, strict=True):
+        ramps = np.stack([filt.ramp_response(t[a:b] - ej) for ej in e], axis=1)
+        md = lo * (t[a:b] - e[0] - filt.delay_s) + np.array([_exact_signed_sum(r, hi - lo) for r in ramps])
+        tc = t[a:b] - np.add.reduceat(t[a:b], [0])[0] / (b - a)
+        vc = md - np.add.reduceat(md, [0])[0] / (b - a)
+        stt = np.add.reduceat(tc * tc, [0])[0]
+        slope = np.add.reduceat(tc * vc, [0])[0] / stt if stt > 0 else 0.0
+        r = vc - tc * slope
+        den = np.add.reduceat((mf[a:b] + md) * r, [0])[0]
+        rho.append(np.add.reduceat(y[a:b] * r, [0])[0] / den if den != 0.0 else np.nan)
+    return np.array(rho)
+
+
+@pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
+def test_period_ratios_are_their_equations(order: int, tc: float) -> None:
+    t = 12.0 + np.arange(2000) / 1800.0
+    k0, k1, edges = _window_edges(t, tc)
+    y = np.cumsum(_spread(t.size))
+    mf = np.cumsum(_spread(t.size))
+    filt = DemodFilter(order, tc)
+    got = kernels.period_ratios(t, y, mf, edges, k0, k1, -0.3, 0.29, order, tc)
+    np.testing.assert_array_equal(got, _ratios_by_equations(t, y, mf, edges, k0, k1, -0.3, 0.29, filt))
+
+
+def test_period_ratio_is_the_gain_of_a_signal_that_follows_the_forcer_input() -> None:
+    # y = beta H m + a + b t with H m_r = 0: the line is projected out and rho = beta (to rounding)
+    t = np.arange(2000) / 1800.0
+    k0, k1, edges = _window_edges(t, 1e-4)
+    lo, hi, beta = -0.3, 0.3, 0.0137
+    filt = DemodFilter(1, 1e-4)
+    hm = np.zeros(t.size)
+    for a, b, e in zip(k0, k1, edges, strict=True):
+        ramps = np.stack([filt.ramp_response(t[a:b] - ej) for ej in e], axis=1)
+        hm[a:b] = lo * (t[a:b] - e[0] - filt.delay_s) + ramps @ (np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo))
+    y = beta * hm + 0.02 - 0.5 * t
+    got = kernels.period_ratios(t, y, np.zeros(t.size), edges, k0, k1, lo, hi, 1, 1e-4)
+    np.testing.assert_allclose(got, beta, rtol=1e-12)
 
 
 def test_interp_sorted_is_numpys_interp() -> None:
