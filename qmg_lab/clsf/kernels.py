@@ -33,29 +33,27 @@ PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
 @njit(cache=True)
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """numpy's pairwise_sum for n <= 128: sequential below 8 terms, else eight interleaved partial sums."""
+    v = a[lo : lo + n]  # indexed from 0: no negative-index checks in the loops
     if n < 8:
         res = 0.0
-        for i in range(lo, lo + n):
-            res += a[i]
+        for i in range(n):
+            res += v[i]
         return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    r0, r1, r2, r3 = v[0], v[1], v[2], v[3]
+    r4, r5, r6, r7 = v[4], v[5], v[6], v[7]
     m = n - n % 8
-    i = 8
-    while i < m:
-        r0 += a[lo + i]
-        r1 += a[lo + i + 1]
-        r2 += a[lo + i + 2]
-        r3 += a[lo + i + 3]
-        r4 += a[lo + i + 4]
-        r5 += a[lo + i + 5]
-        r6 += a[lo + i + 6]
-        r7 += a[lo + i + 7]
-        i += 8
+    for i in range(8, m, 8):
+        r0 += v[i]
+        r1 += v[i + 1]
+        r2 += v[i + 2]
+        r3 += v[i + 3]
+        r4 += v[i + 4]
+        r5 += v[i + 5]
+        r6 += v[i + 6]
+        r7 += v[i + 7]
     res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
+    for i in range(m, n):
+        res += v[i]
     return res
 
 
@@ -73,6 +71,10 @@ def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     value), as numba's cache cannot reload recursive functions."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, n)
+    half = n // 2
+    half -= half % 8
+    if n - half <= PAIRWISE_BLOCK:  # one halving, two blocks (a dither period's window at 1800 Sa/s)
+        return _block_sum(a, lo, half) + _block_sum(a, lo + half, n - half)
     sp, vp = 1, 0  # stack depth, values waiting
     work[0, 0], work[0, 1], work[0, 2] = lo, n, 0.0  # state 0: split next, 1: left half done, 2: both done
     while sp > 0:
@@ -196,31 +198,40 @@ fused_multiply_add = cast("Callable[[float, float, float], float]", intrinsic(_f
 
 
 @njit(cache=True)
-def ramp_column(t: np.ndarray, a: int, n: int, e: float, order: int, tc_s: float, out: np.ndarray) -> None:
-    """out[i] = R_n(t[a + i] - e) for i < n: the filter's response to a unit ramp starting at the edge e
+def ramp_column(tw: np.ndarray, e: float, order: int, tc_s: float, out: np.ndarray) -> None:
+    """out[k] = R_n(tw[k] - e) for k < tw.size: the filter's response to a unit ramp starting at the edge e
     (DemodFilter.ramp_response, with its operations: R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j)
     (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc beyond, 0 before; tau without a filter, tc = 0).
 
-    t is sorted, so tau = t_k - e rises with k: the first samples with tau > 0 and with tau >= 60 tc bound the
-    zero, transient and steady ranges; only the transient needs the exponential."""
+    tw is sorted, so tau = tw_k - e rises with k: the first sample with tau > 0 (a bisection on that very test)
+    and the first with tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the
+    exponential. (The loops index views from 0, which lets the compiler drop negative-index checks.)"""
+    n = tw.size
     delay = order * tc_s
     transient_end = 60.0 * tc_s
-    i = 0
-    while i < n and not t[a + i] - e > 0.0:
-        out[i] = 0.0
-        i += 1
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tw[mid] - e > 0.0:
+            hi = mid
+        else:
+            lo = mid + 1
+    out[:lo] = 0.0
+    i = lo
     if tc_s > 0.0:
-        while i < n and t[a + i] - e < transient_end:
-            x = (t[a + i] - e) / tc_s
+        while i < n and tw[i] - e < transient_end:
+            x = (tw[i] - e) / tc_s
             acc = 0.0
             term = 1.0
             for j in range(order):
                 acc += (order - j) * term
                 term = term * x / (j + 1)
-            out[i] = t[a + i] - e - delay + tc_s * math.exp(-x) * acc
+            out[i] = tw[i] - e - delay + tc_s * math.exp(-x) * acc
             i += 1
-    for k in range(i, n):
-        out[k] = t[a + k] - e - delay
+    ts = tw[i:]
+    rs = out[i:n]
+    for k in range(n - i):
+        rs[k] = ts[k] - e - delay
 
 
 @njit(cache=True)
@@ -271,28 +282,29 @@ def period_ratios(
     p1 = np.empty(longest)
     p2 = np.empty(longest)
     for p in range(k0.size):
-        a = k0[p]
-        n = k1[p] - a
+        a, b = k0[p], k1[p]
+        n = b - a
+        tw, yw, mfw = t[a:b], y[a:b], mf[a:b]
         for j in range(5):
-            ramp_column(t, a, n, edges[p, j], order, tc_s, ramps[j])
+            ramp_column(tw, edges[p, j], order, tc_s, ramps[j])
         e0 = edges[p, 0]
         for i in range(n):
             edge_part = signed_ramp_sum(ramps[0, i], ramps[1, i], ramps[2, i], ramps[3, i], ramps[4, i], step)
-            md[i] = lo * (t[a + i] - e0 - delay_s) + edge_part
-        mt = reduceat_sum(t, a, n, work) / n
+            md[i] = lo * (tw[i] - e0 - delay_s) + edge_part
+        mt = reduceat_sum(tw, 0, n, work) / n
         mv = reduceat_sum(md, 0, n, work) / n
         for i in range(n):
-            tcn[i] = t[a + i] - mt
+            tcn[i] = tw[i] - mt
             vcn[i] = md[i] - mv
             p1[i] = tcn[i] * tcn[i]
             p2[i] = tcn[i] * vcn[i]
         stt = reduceat_sum(p1, 0, n, work)
         stv = reduceat_sum(p2, 0, n, work)
-        b = stv / stt if stt > 0 else 0.0
+        slope = stv / stt if stt > 0 else 0.0
         for i in range(n):
-            r = vcn[i] - tcn[i] * b
-            p1[i] = (mf[a + i] + md[i]) * r
-            p2[i] = y[a + i] * r
+            r = vcn[i] - tcn[i] * slope
+            p1[i] = (mfw[i] + md[i]) * r
+            p2[i] = yw[i] * r
         den = reduceat_sum(p1, 0, n, work)
         num = reduceat_sum(p2, 0, n, work)
         rho[p] = num / den if den != 0.0 else np.nan
