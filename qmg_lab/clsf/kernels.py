@@ -123,43 +123,86 @@ def median_spacing(t: np.ndarray, count: int) -> float:
 
 
 @njit(cache=True)
+def median_spacing_after(t_before: float, t: np.ndarray, count: int) -> float:
+    """median_spacing of the sequence t_before, t[0], t[1], ... (np.median(np.diff(np.concatenate(([t_before],
+    t))[:count])), for len(t) >= 1)."""
+    m = min(count - 1, t.size)
+    d = np.empty(m)
+    prev = t_before
+    for i in range(m):
+        d[i] = t[i] - prev
+        prev = t[i]
+    d.sort()
+    if m % 2 == 1:
+        return d[m // 2]
+    return (d[m // 2 - 1] + d[m // 2]) / 2.0
+
+
+@njit(cache=True)
 def integrate_block(
-    tt: np.ndarray,
+    t: np.ndarray,
     x: np.ndarray,
     aux: np.ndarray,
-    x_prev: float,
-    a_prev: float,
-    ix0: float,
-    mr0: float,
+    before: tuple[float, float, float, float, float],
     window_s: float,
     tau_s: float,
-) -> tuple[np.ndarray, float]:
-    """The estimator's buffer rows for a block, (t, y, m_r, m_r) (the third to be filtered in place into H m_r),
-    and int x at its end. tt: the block's times after the previous block's last time (or a copy of the first);
-    x, aux: its values; x_prev, a_prev, ix0, mr0: x, aux, int x and m_r at tt[0].
+    sos: np.ndarray,
+    zi: np.ndarray,
+    zi_per_unit: bool,
+    buf: np.ndarray,
+    offset: int,
+) -> float:
+    """A block's rows of the estimator's sample buffer, written to buf[:, offset:offset + n]: t, y, H m_r, m_r;
+    returns int x at the block's end. before: t, x, aux, int x and m_r at the sample before t[0] (for a first
+    block, t[0], x[0], aux[0], 0, 0).
 
     With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
-    is shifted by s_k = W / (2 h_k)):
+    is shifted by s_k = W / (2 h_k), 0 where h_k = 0):
         int x_k = ix0 + sum_(i<=k) h_i (x_i + x_(i-1)) / 2
         m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
-        y_k     = x_k + int x_k / tau."""
+        y_k     = x_k + int x_k / tau
+    (running sums: np.cumsum's sequential order). H m_r: m_r through the filter's second-order sections sos (no
+    rows: no filter, H m_r = m_r) from their states zi, updated in place: scipy.signal.sosfilt(sos, m_r, zi=zi)'s
+    direct form II transposed recursion, y = b0 u + z0; z0 = b1 u - a1 y + z1; z1 = b2 u - a2 y; the first
+    section runs in the integrals' loop, the others after it over the block (sosfilt_inplace), the same
+    operations either way. zi_per_unit: zi holds the states per unit input at rest (sos_steady_state) and starts
+    at those times the first m_r."""
+    t_prev, x_prev, a_prev, ix0, mr0 = before
     n = x.size
-    out = np.empty((4, n))
+    bt, by, bf, bm = buf[0, offset : offset + n], buf[1, offset : offset + n], buf[2, offset:], buf[3, offset:]
+    sections = sos.shape[0]
+    b0 = b1 = b2 = a1 = a2 = z0 = z1 = 0.0
+    if sections:
+        b0, b1, b2, a1, a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
+        z0, z1 = zi[0, 0], zi[0, 1]
     acc_x = 0.0
     acc_m = 0.0
     ix = ix0
     for k in range(n):
-        h = tt[k + 1] - tt[k]
+        h = t[k] - t_prev
         acc_x += 0.5 * h * (x[k] + x_prev)
         ix = ix0 + acc_x
         shift = 0.5 * window_s / h if h > 0 else 0.0
         acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
-        out[0, k] = tt[k + 1]
-        out[1, k] = x[k] + ix / tau_s
-        out[2, k] = mr0 + acc_m
-        out[3, k] = out[2, k]
-        x_prev, a_prev = x[k], aux[k]
-    return out, ix
+        u = mr0 + acc_m
+        bt[k] = t[k]
+        by[k] = x[k] + ix / tau_s
+        bm[k] = u
+        if sections:
+            if k == 0 and zi_per_unit:
+                z0, z1 = z0 * u, z1 * u
+            v = b0 * u + z0
+            z0 = b1 * u - a1 * v + z1
+            z1 = b2 * u - a2 * v
+            u = v
+        bf[k] = u
+        t_prev, x_prev, a_prev = t[k], x[k], aux[k]
+    if sections:
+        zi[0, 0], zi[0, 1] = z0, z1
+        if n and zi_per_unit:
+            zi[1:] *= bm[0]
+        sosfilt_inplace(sos[1:], bf[:n], zi[1:])
+    return ix
 
 
 @njit(cache=True)
@@ -579,3 +622,49 @@ def mean_rates(edges: np.ndarray, t: np.ndarray, mr: np.ndarray) -> np.ndarray:
         r0, r1 = edges[p, 2], edges[p, 4]
         out[p] = (interp_sorted(r1, t, mr) - interp_sorted(r0, t, mr)) / (r1 - r0)
     return out
+
+
+@njit(cache=True)
+def evaluate_periods(
+    rising: np.ndarray,
+    falling: np.ndarray,
+    buf: np.ndarray,
+    lo: float,
+    hi: float,
+    order: int,
+    tc_s: float,
+    min_samples: int,
+    holds: np.ndarray,
+) -> tuple[int, int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The estimator's periods on its buffer rows (t, y, H m_r, m_r): complete_periods with the filter's delay
+    D = n tc, then period_ratios and mean_rates of the usable ones.
+
+    Returns (done, the number usable, the first sample still needed, the falling edges still needed, and of the
+    periods kept: R_i, R_(i+1), rho, mean rate output). Kept: a finite rho and no overlap with any hold [h0, h1]
+    (a row of holds: h0 <= R_(i+1) and R_i <= h1). Still needed once periods up to `done` are evaluated (done
+    >= 0): the rising edges from index done on (the next period's history edge R_done), the falling edges after
+    R_done, and the samples from two before the first at or after R_(done+1) + D (R_done without a later rising
+    edge) on."""
+    t, y, mf, mr = buf[0], buf[1], buf[2], buf[3]
+    delay_s = order * tc_s
+    done, edges, k0, k1 = complete_periods(rising, falling, t, delay_s, min_samples)
+    usable = edges.shape[0]
+    first_needed = 0
+    if done >= 0:
+        start = rising[done + 1] + delay_s if rising.size - done > 1 else rising[done]
+        first_needed = max(0, _first_at_or_after(t, start, False) - 2)
+        falling = falling[falling > rising[done]]
+    rho = period_ratios(t, y, mf, edges, k0, k1, lo, hi, order, tc_s)
+    rate = mean_rates(edges, t, mr)
+    keep = np.empty(usable, dtype=np.int64)
+    m = 0
+    for p in range(usable):
+        ok = np.isfinite(rho[p])
+        for h in range(holds.shape[0]):
+            if holds[h, 0] <= edges[p, 4] and edges[p, 2] <= holds[h, 1]:
+                ok = False
+        if ok:
+            keep[m] = p
+            m += 1
+    keep = keep[:m]
+    return done, usable, first_needed, falling, edges[keep, 2], edges[keep, 4], rho[keep], rate[keep]

@@ -14,7 +14,7 @@ import pytest
 from scipy import signal
 
 from qmg_lab.clsf import kernels
-from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 
 RNG = np.random.default_rng(20131)
 
@@ -57,6 +57,43 @@ def test_sosfilt_inplace_is_scipys_sosfilt_bit_for_bit(order: int) -> None:
     kernels.sosfilt_inplace(sos, got, zi)
     np.testing.assert_array_equal(got, expected)
     np.testing.assert_array_equal(zi, zf)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 64, 65, 300])
+def test_median_spacing_after_a_time_is_the_median_of_the_first_spacings(count: int) -> None:
+    t = np.cumsum(RNG.uniform(0.5, 1.5, 301)) / 1800.0
+    expected = np.median(np.diff(t[: count + 1][:65]))
+    assert kernels.median_spacing_after(float(t[0]), t[1 : count + 1], 65) == expected
+
+
+@pytest.mark.parametrize(("order", "window"), [(0, 0.0), (1, 2.5e-6), (2, 0.0), (3, 1e-4), (4, 2.5e-6), (8, 1e-4)])
+def test_integrate_block_is_the_trapezoid_integrals_and_scipys_sosfilt(order: int, window: float) -> None:
+    n, offset, tau = 3600, 37, 173.6
+    t = 50.0 + np.cumsum(RNG.uniform(0.5, 1.5, n)) / 1800.0
+    x, aux = _spread(n), _spread(n)
+    for before in ((float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0), (49.9995, 0.3, -0.2, 1.5, 2.5)):
+        t_prev, x_prev, a_prev, ix0, mr0 = before
+        h = np.diff(np.concatenate(([t_prev], t)))  # a first block repeats its first sample: h_0 = 0
+        shift = np.divide(0.5 * window, h, out=np.zeros(n), where=h > 0)
+        ix = ix0 + np.cumsum(0.5 * h * (x + np.concatenate(([x_prev], x[:-1]))))
+        a_before = np.concatenate(([a_prev], aux[:-1]))
+        mr = mr0 + np.cumsum(h * (0.5 * (aux + a_before) + (aux - a_before) * shift))
+        sos = DemodFilter(order, 3e-4).foh_sos(1 / 1800) if order else np.empty((0, 6))
+        zi = sos_steady_state(sos)
+        mf, zf = signal.sosfilt(sos, mr, zi=zi * mr[0]) if order else (mr, zi)
+        buf = np.full((4, n + 2 * offset), np.nan)
+        ix_end = kernels.integrate_block(t, x, aux, before, window, tau, sos, zi, True, buf, offset)
+        np.testing.assert_array_equal(buf[:, offset : offset + n], [t, x + ix / tau, mf, mr])
+        np.testing.assert_array_equal(zi, zf)  # the sections' states at the block's end
+        assert ix_end == ix[-1]
+        assert np.isnan(buf[:, :offset]).all() and np.isnan(buf[:, offset + n :]).all()
+        # the next block continues the same states (zi_per_unit False)
+        more = np.full((4, n), np.nan)
+        kernels.integrate_block(
+            t + 2.0, x, aux, (t[-1], x[-1], aux[-1], ix[-1], mr[-1]), window, tau, sos, zi, False, more, 0
+        )
+        if order:
+            np.testing.assert_array_equal(more[2], signal.sosfilt(sos, more[3], zi=zf)[0])
 
 
 def _window_edges(t: np.ndarray, tc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -180,3 +217,34 @@ def test_line_fits_are_the_least_squares_lines() -> None:
         assert fit[i - 10] == pytest.approx(c + s * j[i], abs=1e-12)
     # fewer than 4 points in a window: the point itself
     np.testing.assert_array_equal(kernels.rolling_line_fit(t[:3], j[:3], 0, 8), t[:3])
+
+
+def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still_needed() -> None:
+    t = 3.0 + np.arange(2 * 1800) / 1800.0
+    period = 1.0 / 7.0003
+    rising = 3.0013 + period * np.arange(14)
+    falling = rising + 0.5 * period + 1e-4
+    buf = np.stack((t, np.cumsum(_spread(t.size)), np.cumsum(_spread(t.size)), np.cumsum(_spread(t.size))))
+    buf[1, 1000] = np.nan  # the period around sample 1000 has no finite rho
+    order, tc, lo, hi = 2, 2e-4, -0.3, 0.3
+    holds = np.array([[rising[5] + 0.01, rising[5] + 0.02], [rising[9] - 0.01, rising[9] + 0.001]])
+    done, usable, first_needed, kept_falling, r0, r1, rho, rate = kernels.evaluate_periods(
+        rising, falling, buf, lo, hi, order, tc, 8, holds
+    )
+    # the same from the parts, with the estimator's earlier numpy bookkeeping
+    done_p, edges, k0, k1 = kernels.complete_periods(rising, falling, t, order * tc, 8)
+    rho_p = kernels.period_ratios(t, buf[1], buf[2], edges, k0, k1, lo, hi, order, tc)
+    rate_p = kernels.mean_rates(edges, t, buf[3])
+    held = np.zeros(edges.shape[0], dtype=bool)
+    for h0, h1 in holds:
+        held |= (h0 <= edges[:, 4]) & (edges[:, 2] <= h1)
+    ok = np.isfinite(rho_p) & ~held
+    assert (done, usable) == (done_p, edges.shape[0])
+    assert usable > ok.sum() + 2 > 2  # some periods held, one not finite, others kept
+    np.testing.assert_array_equal(r0, edges[ok, 2])
+    np.testing.assert_array_equal(r1, edges[ok, 4])
+    np.testing.assert_array_equal(rho, rho_p[ok])
+    np.testing.assert_array_equal(rate, rate_p[ok])
+    # still needed: rising edges from `done` on, falling edges after R_done, samples from two before R_(done+1) + D
+    np.testing.assert_array_equal(kept_falling, falling[falling > rising[done]])
+    assert first_needed == np.searchsorted(t, rising[done + 1] + order * tc) - 2
