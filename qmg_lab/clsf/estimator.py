@@ -247,14 +247,16 @@ class ClsfEstimator:
             return ClsfPeriods.empty()
         filt = self.demod_filter
         holds = np.array(self._holds) if self._holds else NO_HOLDS
-        done, usable, first_needed, self._falling, t0, t1, rho, rate = evaluate_periods(
+        done, usable, first_needed, falling_needed, kept = evaluate_periods(
             rising, falling, buf, lo, hi, filt.order, filt.tc_s, MIN_PERIOD_SAMPLES, holds
         )
         if done < 0:  # no window complete in the buffer
             self._cap_samples()
             return ClsfPeriods.empty()
         self._rising = rising[done:]  # forget what the periods up to `done` no longer need
+        self._falling = falling[:falling_needed]
         self._lo += first_needed
+        t0, t1, rho, rate = kept
         if usable == 0:
             return ClsfPeriods.empty()
         t_end = buf[BUF_T, -1]

@@ -228,8 +228,9 @@ def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still
     buf[1, 1000] = np.nan  # the period around sample 1000 has no finite rho
     order, tc, lo, hi = 2, 2e-4, -0.3, 0.3
     holds = np.array([[rising[5] + 0.01, rising[5] + 0.02], [rising[9] - 0.01, rising[9] + 0.001]])
-    done, usable, first_needed, kept_falling, r0, r1, rho, rate = kernels.evaluate_periods(
-        rising, falling, buf, lo, hi, order, tc, 8, holds
+    falling_in = falling.copy()  # the kernel moves the falling edges still needed to the front
+    done, usable, first_needed, falling_needed, (r0, r1, rho, rate) = kernels.evaluate_periods(
+        rising, falling_in, buf, lo, hi, order, tc, 8, holds
     )
     # the same from the parts, with the estimator's earlier numpy bookkeeping
     done_p, edges, k0, k1 = kernels.complete_periods(rising, falling, t, order * tc, 8)
@@ -246,5 +247,5 @@ def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still
     np.testing.assert_array_equal(rho, rho_p[ok])
     np.testing.assert_array_equal(rate, rate_p[ok])
     # still needed: rising edges from `done` on, falling edges after R_done, samples from two before R_(done+1) + D
-    np.testing.assert_array_equal(kept_falling, falling[falling > rising[done]])
+    np.testing.assert_array_equal(falling_in[:falling_needed], falling[falling > rising[done]])
     assert first_needed == np.searchsorted(t, rising[done + 1] + order * tc) - 2
