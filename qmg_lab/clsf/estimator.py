@@ -240,15 +240,14 @@ class ClsfEstimator:
         history a whole period earlier has decayed out of the filter); each edge adds a ramp of slope
         +-(hi - lo), whose filtered form is the ramp response."""
         rising, falling = self._rising, self._falling
-        buf = self._buf[:, self._lo : self._n]
         lo, hi = self._edges.lo, self._edges.hi
-        if rising.size < 3 or buf.shape[1] == 0 or lo is None or hi is None:
+        if rising.size < 3 or self._n == self._lo or lo is None or hi is None:
             self._cap_samples()
             return ClsfPeriods.empty()
         filt = self.demod_filter
         holds = np.array(self._holds) if self._holds else NO_HOLDS
         done, usable, first_needed, falling_needed, kept = evaluate_periods(
-            rising, falling, buf, lo, hi, filt.order, filt.tc_s, MIN_PERIOD_SAMPLES, holds
+            rising, falling, self._buf, (self._lo, self._n), lo, hi, filt.order, filt.tc_s, MIN_PERIOD_SAMPLES, holds
         )
         if done < 0:  # no window complete in the buffer
             self._cap_samples()
@@ -259,7 +258,7 @@ class ClsfEstimator:
         t0, t1, rho, rate = kept
         if usable == 0:
             return ClsfPeriods.empty()
-        t_end = buf[BUF_T, -1]
+        t_end = self._buf[BUF_T, self._n - 1]
         self._holds = [h for h in self._holds if h[1] >= t_end - 10.0]
         if self.rho_ref is None:
             need = self.reference_periods - len(self._ref_acc)

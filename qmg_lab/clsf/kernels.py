@@ -629,6 +629,7 @@ def evaluate_periods(
     rising: np.ndarray,
     falling: np.ndarray,
     buf: np.ndarray,
+    held: tuple[int, int],
     lo: float,
     hi: float,
     order: int,
@@ -636,8 +637,9 @@ def evaluate_periods(
     min_samples: int,
     holds: np.ndarray,
 ) -> tuple[int, int, int, int, np.ndarray]:
-    """The estimator's periods on its buffer rows (t, y, H m_r, m_r): complete_periods with the filter's delay
-    D = n tc, then period_ratios and mean_rates of the usable ones.
+    """The estimator's periods on its buffer rows (t, y, H m_r, m_r), columns held[0]:held[1] (the samples
+    held; sample indices below count from held[0]): complete_periods with the filter's delay D = n tc, then
+    period_ratios and mean_rates of the usable ones.
 
     Returns (done, the number usable, the first sample still needed, the number of falling edges still needed,
     and the periods kept as rows R_i, R_(i+1), rho, mean rate output). Kept: a finite rho and no overlap with any
@@ -646,7 +648,8 @@ def evaluate_periods(
     falling edges after R_done (moved, in order, to the front of `falling`), and the samples from two before the
     first at or after R_(done+1) + D (R_done without a later rising edge) on. (One array out: numba makes a
     Python object of each array it returns, about a microsecond apiece.)"""
-    t, y, mf, mr = buf[0], buf[1], buf[2], buf[3]
+    a, b = held  # rows sliced here stay contiguous in numba's types (a 2-D column slice would not)
+    t, y, mf, mr = buf[0, a:b], buf[1, a:b], buf[2, a:b], buf[3, a:b]
     delay_s = order * tc_s
     done, edges, k0, k1 = complete_periods(rising, falling, t, delay_s, min_samples)
     usable = edges.shape[0]

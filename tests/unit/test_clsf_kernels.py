@@ -229,8 +229,10 @@ def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still
     order, tc, lo, hi = 2, 2e-4, -0.3, 0.3
     holds = np.array([[rising[5] + 0.01, rising[5] + 0.02], [rising[9] - 0.01, rising[9] + 0.001]])
     falling_in = falling.copy()  # the kernel moves the falling edges still needed to the front
+    padded = np.full((4, t.size + 50), np.nan)  # the samples held are columns 20:20 + n of the buffer
+    padded[:, 20 : 20 + t.size] = buf
     done, usable, first_needed, falling_needed, (r0, r1, rho, rate) = kernels.evaluate_periods(
-        rising, falling_in, buf, lo, hi, order, tc, 8, holds
+        rising, falling_in, padded, (20, 20 + t.size), lo, hi, order, tc, 8, holds
     )
     # the same from the parts, with the estimator's earlier numpy bookkeeping
     done_p, edges, k0, k1 = kernels.complete_periods(rising, falling, t, order * tc, 8)
