@@ -66,7 +66,13 @@ import numpy as np
 
 from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.clsf.kernels import evaluate_periods, integrate_block, median_spacing, median_spacing_after
+from qmg_lab.clsf.kernels import (
+    evaluate_periods,
+    integrate_block,
+    median_spacing,
+    median_spacing_after,
+    period_estimates,
+)
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
 MAX_HELD_SAMPLES = 100_000  # samples kept while no edge has been found
@@ -255,7 +261,7 @@ class ClsfEstimator:
         self._rising = rising[done:]  # forget what the periods up to `done` no longer need
         self._falling = falling[:falling_needed]
         self._lo += first_needed
-        t0, t1, rho, rate = kept
+        t0, t1, rho, rate = kept[0], kept[1], kept[2], kept[3]
         if usable == 0:
             return ClsfPeriods.empty()
         t_end = self._buf[BUF_T, self._n - 1]
@@ -267,13 +273,11 @@ class ClsfEstimator:
             if len(self._ref_acc) < self.reference_periods:
                 return ClsfPeriods.empty()
             self.rho_ref = float(np.mean(self._ref_acc))
-        eta = rho / self.rho_ref - 1.0
-        gain = np.full(eta.shape, self.gain_correction)
+        out = period_estimates(rho, self.rho_ref, self.gain_correction)  # rows: eta, SF change, gain
+        eta = out[0]
         if self.mode == "correct" and eta.size:
             self.gain_correction *= math.exp(-float(np.sum((t1 - t0) * eta)) / self.time_constant_s)
-        return ClsfPeriods(
-            time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
-        )
+        return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=out[1], gain_correction=out[2], rate_output_mean=rate)
 
     def _cap_samples(self) -> None:
         """While no edge is known, keep at most the last MAX_HELD_SAMPLES samples."""

@@ -676,3 +676,16 @@ def evaluate_periods(
             kept[0, m], kept[1, m], kept[2, m], kept[3, m] = edges[p, 2], edges[p, 4], rho[p], rate[p]
             m += 1
     return done, usable, first_needed, falling_needed, kept[:, :m]
+
+
+@njit(cache=True)
+def period_estimates(rho: np.ndarray, rho_ref: float, gain_correction: float) -> np.ndarray:
+    """The estimator's outputs of periods with ratios rho (rows): eta = rho / rho_0 - 1, the scale-factor change
+    1 / (1 + eta) - 1 and the gain correction in force (the numpy expressions' operations, one array out)."""
+    out = np.empty((3, rho.size))
+    for p in range(rho.size):
+        eta = rho[p] / rho_ref - 1.0
+        out[0, p] = eta
+        out[1, p] = 1.0 / (1.0 + eta) - 1.0
+        out[2, p] = gain_correction
+    return out

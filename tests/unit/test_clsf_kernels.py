@@ -251,3 +251,11 @@ def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still
     # still needed: rising edges from `done` on, falling edges after R_done, samples from two before R_(done+1) + D
     np.testing.assert_array_equal(falling_in[:falling_needed], falling[falling > rising[done]])
     assert first_needed == np.searchsorted(t, rising[done + 1] + order * tc) - 2
+
+
+def test_period_estimates_are_the_numpy_expressions() -> None:
+    rho = 0.0137 * (1.0 + 1e-3 * _spread(500))
+    eta, sf_change, gain = kernels.period_estimates(rho, 0.01371, 1.0025)
+    np.testing.assert_array_equal(eta, rho / 0.01371 - 1.0)
+    np.testing.assert_array_equal(sf_change, 1.0 / (1.0 + (rho / 0.01371 - 1.0)) - 1.0)
+    np.testing.assert_array_equal(gain, np.full(rho.size, 1.0025))
