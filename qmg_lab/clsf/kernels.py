@@ -30,7 +30,7 @@ PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partia
 PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """numpy's pairwise_sum for n <= 128: sequential below 8 terms, else eight interleaved partial sums."""
     v = a[lo : lo + n]  # indexed from 0: no negative-index checks in the loops
@@ -62,19 +62,26 @@ def pairwise_workspace() -> np.ndarray:
     return np.empty((PAIRWISE_DEPTH, 4))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
     of at most 128 terms (_block_sum), above that the sum of the two halves, the first a multiple of 8 long.
 
-    The halving is walked with an explicit stack in `work` (pairwise_workspace(); rows: start, length, state,
-    value), as numba's cache cannot reload recursive functions."""
+    Up to one halving (two blocks: a dither period's window at 1800 Sa/s) directly, inlined into the calling
+    kernel (a call passing arrays costs about as much as summing a block); deeper, _pairwise_stack."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, n)
     half = n // 2
     half -= half % 8
-    if n - half <= PAIRWISE_BLOCK:  # one halving, two blocks (a dither period's window at 1800 Sa/s)
+    if n - half <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, half) + _block_sum(a, lo + half, n - half)
+    return _pairwise_stack(a, lo, n, work)
+
+
+@njit(cache=True)
+def _pairwise_stack(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
+    """pairwise_sum for n > 128, the halving walked with an explicit stack in `work` (pairwise_workspace(); rows:
+    start, length, state, value), as numba's cache cannot reload recursive functions."""
     sp, vp = 1, 0  # stack depth, values waiting
     work[0, 0], work[0, 1], work[0, 2] = lo, n, 0.0  # state 0: split next, 1: left half done, 2: both done
     while sp > 0:
@@ -102,7 +109,7 @@ def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     return work[0, 3]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def reduceat_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
     rest."""
@@ -240,7 +247,7 @@ def _fma_typing(typingctx: Any, a: Any, b: Any, c: Any) -> tuple[Any, Callable[.
 fused_multiply_add = cast("Callable[[float, float, float], float]", intrinsic(_fma_typing))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def ramp_column(tw: np.ndarray, e: float, order: int, tc_s: float, out: np.ndarray) -> None:
     """out[k] = R_n(tw[k] - e) for k < tw.size: the filter's response to a unit ramp starting at the edge e
     (DemodFilter.ramp_response, with its operations: R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j)
@@ -277,7 +284,7 @@ def ramp_column(tw: np.ndarray, e: float, order: int, tc_s: float, out: np.ndarr
         rs[k] = ts[k] - e - delay
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def signed_ramp_sum(r0: float, r1: float, r2: float, r3: float, r4: float, step: float) -> float:
     """sum_j s_j step r_j for the ramp responses r_j at the edges (R_(i-1), F_a, R_i, F_b, R_(i+1)), signs
     s = (+, -, +, -, +): with p_j = r_j (s_j step), (p_0 + p_2) + (p_1 + p_3), then r_4 step added by a fused
@@ -541,7 +548,7 @@ def continue_fit(
     return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _first_at_or_after(a: np.ndarray, v: float, strictly: bool) -> int:
     """np.searchsorted(a, v, side="right" if strictly else "left") on a sorted array."""
     lo, hi = 0, a.size
