@@ -144,17 +144,16 @@ def test_signed_ramp_sum_rounds_as_defined_and_as_a_matrix_vector_product() -> N
 
 
 def _ratios_by_equations(
-    t: np.ndarray,
-    y: np.ndarray,
-    mf: np.ndarray,
+    rows: tuple[np.ndarray, np.ndarray, np.ndarray],
     edges: np.ndarray,
-    k0: np.ndarray,
-    k1: np.ndarray,
-    lo: float,
-    hi: float,
+    windows: tuple[np.ndarray, np.ndarray],
+    levels: tuple[float, float],
     filt: DemodFilter,
 ) -> np.ndarray:
-    """period_ratios' docstring in numpy, window by window (its sums are np.add.reduceat's)."""
+    """period_ratios' docstring in numpy, window by window (its sums are np.add.reduceat's); rows: t, y, H m_r."""
+    t, y, mf = rows
+    k0, k1 = windows
+    lo, hi = levels
     rho = []
     for a, b, e in zip(k0, k1, edges, strict=True):
         ramps = np.stack([filt.ramp_response(t[a:b] - ej) for ej in e], axis=1)
@@ -177,7 +176,7 @@ def test_period_ratios_are_their_equations(order: int, tc: float) -> None:
     mf = np.cumsum(_spread(t.size))
     filt = DemodFilter(order, tc)
     got = kernels.period_ratios(t, y, mf, edges, k0, k1, -0.3, 0.29, order, tc)
-    np.testing.assert_array_equal(got, _ratios_by_equations(t, y, mf, edges, k0, k1, -0.3, 0.29, filt))
+    np.testing.assert_array_equal(got, _ratios_by_equations((t, y, mf), edges, (k0, k1), (-0.3, 0.29), filt))
 
 
 def test_period_ratio_is_the_gain_of_a_signal_that_follows_the_forcer_input() -> None:
