@@ -83,8 +83,9 @@ class EdgeTracker:
     _prev_t: float | None = None
     _prev_s: float | None = None
     _prev_high: bool | None = None
-    _raw: dict[int, list[float]] = field(default_factory=lambda: {1: [], -1: []})
-    _idx: dict[int, list[int]] = field(default_factory=lambda: {1: [], -1: []})
+    # each kind's edge history: row 0 the times (s), row 1 the cycle indices, in the first _count columns
+    _hist: dict[int, np.ndarray] = field(default_factory=lambda: {1: np.empty((2, 0)), -1: np.empty((2, 0))})
+    _count: dict[int, int] = field(default_factory=lambda: {1: 0, -1: 0})
 
     def __post_init__(self) -> None:
         self._k = edge_kernels(self.compiled)
@@ -93,8 +94,7 @@ class EdgeTracker:
         """Forget the sample history and the fits (after a gap in the stream)."""
         self._prev_t = self._prev_s = None
         self._prev_high = None
-        self._raw = {1: [], -1: []}
-        self._idx = {1: [], -1: []}
+        self._count = {1: 0, -1: 0}
 
     def _update_levels(self, d: np.ndarray) -> None:
         if self.lo is None or self.hi is None:
@@ -123,56 +123,70 @@ class EdgeTracker:
         self._prev_t, self._prev_s, self._prev_high = float(t[-1]), float(last_s), bool(last_high)
         return self._smooth_all(1, rising), self._smooth_all(-1, falling)
 
+    def _history(self, kind: int) -> tuple[np.ndarray, np.ndarray]:
+        """(times, cycle indices) of the edges of one kind remembered (views)."""
+        n = self._count[kind]
+        return self._hist[kind][0, :n], self._hist[kind][1, :n]
+
     def _smooth_all(self, kind: int, te: np.ndarray) -> np.ndarray:
-        """Smoothed times of a block's new edges of one kind (a rolling least-squares line; kernels.continue_fit)."""
+        """Smoothed times of a block's new edges of one kind (a rolling least-squares line; kernels.continue_fit).
+
+        The history of each kind: the edges' times and their cycle indices (whole numbers, held as floats, the
+        fits' abscissae), up to 4 fit_edges of them (then cut to the last fit_edges)."""
         if te.size == 0:
             return te
-        raw, idx = self._raw[kind], self._idx[kind]
-        hist_t = np.asarray(raw[-self.fit_edges :])
-        if len(raw) >= 2 and idx[-1] > idx[-self.fit_edges :][0]:  # the period from the history's own span
-            period = (raw[-1] - raw[-self.fit_edges :][0]) / (idx[-1] - idx[-self.fit_edges :][0])
+        raw, idx = self._history(kind)
+        hist_t, hist_j = raw[-self.fit_edges :], idx[-self.fit_edges :]
+        if raw.size >= 2 and idx[-1] > hist_j[0]:  # the period from the history's own span
+            period = float((raw[-1] - hist_t[0]) / (idx[-1] - hist_j[0]))
         else:
             period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
-        if not raw or period <= 0.0:
+        if raw.size == 0 or period <= 0.0:
             return np.asarray([self._smooth(kind, float(x)) for x in te])
-        hist_j = np.asarray(idx[-self.fit_edges :], dtype=float)
         follows, j, fitted = self._k.continue_fit(hist_t, hist_j, te, period, self.fit_edges)
         if not follows:  # the generator was reprogrammed: edge by edge
             return np.asarray([self._smooth(kind, float(x)) for x in te])
-        raw.extend(te.tolist())
-        idx.extend(j.tolist())
-        if len(raw) > 4 * self.fit_edges:
-            del raw[: -self.fit_edges]
-            del idx[: -self.fit_edges]
+        self._remember(kind, te, j)
         return fitted
 
+    def _remember(self, kind: int, te: np.ndarray | float, j: np.ndarray | float) -> None:
+        """Append edges (times, cycle indices) to a history, cut to its last fit_edges entries when it grows beyond
+        4 fit_edges (the columns are reused; the array doubles when new edges do not fit)."""
+        hist, n = self._hist[kind], self._count[kind]
+        k = np.size(te)
+        if n + k > hist.shape[1]:
+            grown = np.empty((2, 2 * (n + k) + 4 * self.fit_edges))
+            grown[:, :n] = hist[:, :n]
+            self._hist[kind] = hist = grown
+        hist[0, n : n + k] = te
+        hist[1, n : n + k] = j
+        n += k
+        if n > 4 * self.fit_edges:
+            hist[:, : self.fit_edges] = hist[:, n - self.fit_edges : n]
+            n = self.fit_edges
+        self._count[kind] = n
+
     def _smooth(self, kind: int, te: float) -> float:
-        raw, idx = self._raw[kind], self._idx[kind]
-        if raw:
+        raw, idx = self._history(kind)
+        if raw.size:
             diffs = np.diff(raw[-self.fit_edges :])
             period = float(np.median(diffs)) if diffs.size else None
             if period is not None and period > 0.0:
-                j = idx[-1] + max(1, round((te - raw[-1]) / period))
-                pred = self._line(raw, idx, float(j))
+                j = float(idx[-1]) + max(1, round((te - float(raw[-1])) / period))
+                pred = self._line(raw, idx, j)
                 if abs(te - pred) > 0.25 * period:
-                    raw.clear()
-                    idx.clear()
-                    j = 0
+                    self._count[kind] = 0  # restart the fit
+                    j = 0.0
             else:
-                j = idx[-1] + 1
+                j = float(idx[-1]) + 1.0
         else:
-            j = 0
-        raw.append(te)
-        idx.append(j)
-        if len(raw) > 4 * self.fit_edges:
-            del raw[: -self.fit_edges]
-            del idx[: -self.fit_edges]
-        if len(raw) < 4:
+            j = 0.0
+        self._remember(kind, te, j)
+        raw, idx = self._history(kind)
+        if raw.size < 4:
             return te
-        return self._line(raw, idx, float(j))
+        return self._line(raw, idx, j)
 
-    def _line(self, raw: list[float], idx: list[int], j: float) -> float:
+    def _line(self, raw: np.ndarray, idx: np.ndarray, j: float) -> float:
         """The least-squares line through the last fit_edges (index, time) pairs, at index j (kernels.line_at)."""
-        tr = np.asarray(raw[-self.fit_edges :])
-        jr = np.asarray(idx[-self.fit_edges :], dtype=float)
-        return float(self._k.line_at(tr, jr, np.array([j]))[0])
+        return float(self._k.line_at(raw[-self.fit_edges :], idx[-self.fit_edges :], np.array([j]))[0])

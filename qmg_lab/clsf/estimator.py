@@ -67,19 +67,18 @@ import numpy as np
 from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
 from qmg_lab.clsf.kernels import (
-    complete_periods,
+    evaluate_periods,
     integrate_block,
-    mean_rates,
     median_spacing,
-    period_ratios,
-    ramp_matrix,
-    sosfilt_inplace,
+    median_spacing_after,
+    period_estimates,
 )
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
-EDGE_SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])  # the ramps' signs at R_(i-1), F_a, R_i, F_b, R_(i+1)
-BLAS_ROWS = 1024  # rows per matrix-vector product (_rows_times)
+MAX_HELD_SAMPLES = 100_000  # samples kept while no edge has been found
 BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
+NO_SECTIONS = np.empty((0, 6))  # the filter's sections when there is no filter (tc = 0)
+NO_HOLDS = np.empty((0, 2))
 
 
 @dataclass
@@ -144,10 +143,11 @@ class ClsfEstimator:
     def reset_buffer(self) -> None:
         """Forget the stream's history (after a gap): integrals, filter state, edges and partial periods."""
         self._buf = np.empty((4, 0))  # rows: t, y, H m_r, m_r (BUF_T, BUF_Y, BUF_MF, BUF_MR)
+        self._lo = self._n = 0  # the samples held: the columns _lo:_n of _buf
         self._last: tuple[float, float, float, float, float] | None = None  # t, x, aux, int x, m_r
         self._zi: np.ndarray | None = None
-        self._rising: list[float] = []
-        self._falling: list[float] = []
+        self._rising = np.empty(0)  # the edges' times, s
+        self._falling = np.empty(0)
         self._edges.reset()
 
     def set_stream_timing(self, demod_filter: DemodFilter, auxin_window_s: float) -> None:
@@ -181,8 +181,10 @@ class ClsfEstimator:
             self.reset_buffer()  # a gap the caller did not report
         self._append(t, np.asarray(x_sense, dtype=float), np.asarray(rate_output, dtype=float))
         rising, falling = self._edges.process(t, np.asarray(dither, dtype=float))
-        self._rising.extend(rising.tolist())
-        self._falling.extend(falling.tolist())
+        if rising.size:
+            self._rising = np.concatenate((self._rising, rising))
+        if falling.size:
+            self._falling = np.concatenate((self._falling, falling))
         return self._periods()
 
     def _sample_dt(self, t: np.ndarray) -> float:
@@ -192,59 +194,78 @@ class ClsfEstimator:
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
-        """Extend y = x + (1/tau) int x and H m_r (trapezoid rule; AuxIn values sit at t_k - W/2; kernels.py)."""
+        """Extend the buffer by y = x + (1/tau) int x, H m_r and m_r (trapezoid rule; AuxIn values sit at
+        t_k - W/2; kernels.integrate_block)."""
         last = self._last  # None before the first block (and after a gap)
-        if last is None:
-            t0, x0, a0, ix0, mr0 = float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0
-        else:
-            t0, x0, a0, ix0, mr0 = last
-        tt = np.concatenate(([t0], t))
-        block, ix_end = integrate_block(tt, x, aux, x0, a0, ix0, mr0, self.auxin_window_s, self.tau_s)
-        mr = block[BUF_MR]
-        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), ix_end, float(mr[-1]))
-        # tt repeats the first sample of a first block; a first block of 1-2 samples cannot outvote that zero
-        # spacing in the median, so its interval comes from its own samples (one sample: the last design, or 1 s;
-        # a single sample's filter output is its steady state whatever dt is, and the next block redesigns)
-        dt = self._sample_dt(t if last is None and len(t) < 3 else tt)
+        before = (float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0) if last is None else last
+        # the samples' spacings start from the previous block's last time (or, for a first block, a repeat of its
+        # first); a first block of 1-2 samples cannot outvote that zero spacing in the median, so its interval
+        # comes from its own samples (one sample: the last design, or 1 s; a single sample's filter output is its
+        # steady state whatever dt is, and the next block redesigns)
+        dt = self._sample_dt(t) if last is None and len(t) < 3 else float(median_spacing_after(before[0], t, 65))
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
             self._sos = self.demod_filter.foh_sos(dt)
             self._sos_dt = dt
             self._zi = None
-        if self._sos is not None:
-            if self._zi is None:
-                self._zi = sos_steady_state(self._sos) * mr[0]
-            sosfilt_inplace(self._sos, block[BUF_MF], self._zi)
-        self._buf = np.concatenate((self._buf, block), axis=1)
+        sos = NO_SECTIONS if self._sos is None else self._sos
+        zi_per_unit = self._zi is None
+        if self._zi is None:
+            self._zi = sos_steady_state(sos)
+        start = self._reserve(t.size)
+        ix_end = integrate_block(
+            t, x, aux, before, self.auxin_window_s, self.tau_s, sos, self._zi, zi_per_unit, self._buf, start
+        )
+        self._n = start + t.size
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), ix_end, float(self._buf[BUF_MR, self._n - 1]))
+
+    def _reserve(self, samples: int) -> int:
+        """Room for `samples` more columns after the held ones: those move to the buffer's start (into a buffer
+        twice as large when they would fill more than half of it). Returns the column where the new ones go."""
+        held = self._n - self._lo
+        if self._n + samples > self._buf.shape[1]:
+            if 2 * (held + samples) > self._buf.shape[1]:
+                grown = np.empty((4, 2 * (held + samples)))
+                grown[:, :held] = self._buf[:, self._lo : self._n]
+                self._buf = grown
+            else:
+                self._buf[:, :held] = self._buf[:, self._lo : self._n]
+            self._lo, self._n = 0, held
+        return self._n
 
     def _periods(self) -> ClsfPeriods:
-        """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too.
+        """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too
+        (kernels.evaluate_periods: rho of the periods' windows, their mean rate output, holds and failed ratios
+        left out).
 
         The sums run over the samples of [R_i + D, R_(i+1) + D), D = n tc the filter's delay: there the filtered
-        triangle is symmetric, so an error in the edges' timing enters the estimate at second order only."""
-        rising = np.asarray(self._rising)
-        falling = np.asarray(self._falling)
-        t = self._buf[BUF_T]
+        triangle is symmetric, so an error in the edges' timing enters the estimate at second order only. rho:
+        H m_d at those instants, m_d = integral of the square wave whose alternating edges (rising first) are the
+        period's (R_(i-1), F_a, R_i, F_b, R_(i+1)): m_d is taken as lo (t - R_(i-1)) before the first edge (its
+        history a whole period earlier has decayed out of the filter); each edge adds a ramp of slope
+        +-(hi - lo), whose filtered form is the ramp response."""
+        rising, falling = self._rising, self._falling
         lo, hi = self._edges.lo, self._edges.hi
-        if rising.size < 3 or t.size == 0 or lo is None or hi is None:
-            self._trim(None)
+        if rising.size < 3 or self._n == self._lo or lo is None or hi is None:
+            self._cap_samples()
             return ClsfPeriods.empty()
-        done, edges, k0, k1 = complete_periods(rising, falling, t, self.demod_filter.delay_s, MIN_PERIOD_SAMPLES)
+        filt = self.demod_filter
+        holds = np.array(self._holds) if self._holds else NO_HOLDS
+        done, usable, first_needed, falling_needed, kept = evaluate_periods(
+            rising, falling, self._buf, (self._lo, self._n), lo, hi, filt.order, filt.tc_s, MIN_PERIOD_SAMPLES, holds
+        )
         if done < 0:  # no window complete in the buffer
-            self._trim(None)
+            self._cap_samples()
             return ClsfPeriods.empty()
-        if edges.shape[0] == 0:
-            self._trim(done)
+        self._rising = rising[done:]  # forget what the periods up to `done` no longer need
+        self._falling = falling[:falling_needed]
+        self._lo += first_needed
+        t0, t1, rho, rate = kept[0], kept[1], kept[2], kept[3]
+        if usable == 0:
             return ClsfPeriods.empty()
-        rho = self._ratios(edges, k0, k1, lo, hi)
-        r0, r1 = edges[:, 2], edges[:, 4]
-        rate = mean_rates(edges, t, self._buf[BUF_MR])
-        t0, t1 = r0, r1
-        self._trim(done)
-        ok = np.isfinite(rho) & ~self._held_mask(t0, t1)
-        rho, rate, t1, t0 = rho[ok], rate[ok], t1[ok], t0[ok]
-        self._holds = [h for h in self._holds if h[1] >= t[-1] - 10.0]
+        t_end = self._buf[BUF_T, self._n - 1]
+        self._holds = [h for h in self._holds if h[1] >= t_end - 10.0]
         if self.rho_ref is None:
             need = self.reference_periods - len(self._ref_acc)
             self._ref_acc.extend(rho[:need].tolist())
@@ -252,57 +273,16 @@ class ClsfEstimator:
             if len(self._ref_acc) < self.reference_periods:
                 return ClsfPeriods.empty()
             self.rho_ref = float(np.mean(self._ref_acc))
-        eta = rho / self.rho_ref - 1.0
-        gain = np.full(eta.shape, self.gain_correction)
+        out = period_estimates(rho, self.rho_ref, self.gain_correction)  # rows: eta, SF change, gain
+        eta = out[0]
         if self.mode == "correct" and eta.size:
             self.gain_correction *= math.exp(-float(np.sum((t1 - t0) * eta)) / self.time_constant_s)
-        return ClsfPeriods(
-            time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
-        )
+        return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=out[1], gain_correction=out[2], rate_output_mean=rate)
 
-    def _ratios(self, edges: np.ndarray, k0: np.ndarray, k1: np.ndarray, lo: float, hi: float) -> np.ndarray:
-        """rho of each period, summed over the samples k0[p] <= k < k1[p] (kernels.period_ratios).
-
-        H m_d at those instants, m_d = integral of the square wave whose alternating edges (rising first) are the
-        period's row of `edges` (n x 5): m_d is taken as lo (t - edges[0]) before the first edge (its history a
-        whole period earlier has decayed out of the filter); each edge adds a ramp of slope +-(hi - lo), whose
-        filtered form is the ramp response."""
-        filt = self.demod_filter
-        t, y, mf, _ = self._buf
-        ramps = ramp_matrix(t, k0, k1, edges, filt.order, filt.tc_s)
-        ramp_sum = _rows_times(ramps, EDGE_SIGNS * (hi - lo))
-        return period_ratios(t, y, mf, ramp_sum, edges, k0, k1, lo, filt.delay_s)
-
-    def _trim(self, done: int | None) -> None:
-        """Forget what the periods up to index `done` no longer need: keep the edges from the next period's
-        history edge on and the samples from its window's start on."""
-        if done is not None:
-            rising = self._rising[done:]
-            self._rising = rising
-            self._falling = [f for f in self._falling if f > rising[0]]
-            start = rising[1] + self.demod_filter.delay_s if len(rising) > 1 else rising[0]
-            k = max(0, int(np.searchsorted(self._buf[BUF_T], start)) - 2)
-        elif len(self._rising) == 0 and self._buf.shape[1] > 100000:
-            k = self._buf.shape[1] - 100000
-        else:
-            return
-        self._buf = self._buf[:, k:]
-
-    def _held_mask(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
-        held = np.zeros(t0.shape, dtype=bool)
-        for h0, h1 in self._holds:
-            held |= (h0 <= t1) & (t0 <= h1)
-        return held
-
-
-def _rows_times(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """m @ v, taken BLAS_ROWS rows at a time: small enough that OpenBLAS stays on the calling thread (waking its
-    threads costs more than the product on a loaded machine), a multiple of its 4-row kernel so that each row is
-    rounded as in a single m @ v (checked bit for bit against one product on 760 000 random rows)."""
-    out = np.empty(m.shape[0])
-    for i in range(0, m.shape[0], BLAS_ROWS):
-        np.matmul(m[i : i + BLAS_ROWS], v, out=out[i : i + BLAS_ROWS])
-    return out
+    def _cap_samples(self) -> None:
+        """While no edge is known, keep at most the last MAX_HELD_SAMPLES samples."""
+        if self._rising.size == 0 and self._n - self._lo > MAX_HELD_SAMPLES:
+            self._lo = self._n - MAX_HELD_SAMPLES
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

@@ -7,6 +7,9 @@ in the same order, so that the estimator's results do not depend on which form r
   use numpy's pairwise summation (`pairwise_sum`); `np.add.reduceat` adds the pairwise sum of the rest of a
   segment to its first element (`reduceat_sum`);
 * the ramp response's exponential is libm's exp, as numpy's float64 exp is on this hardware;
+* the five edges' weighted ramps are summed in the order OpenBLAS's x86-64 matrix-vector kernel gives a row of
+  five (signed_ramp_sum), where the estimator used to form them as a matrix and multiply it by the signs: the
+  kernel now computes H m_d per sample without the n x 5 matrix or the BLAS call;
 * the demodulator filter's sections run scipy.signal.sosfilt's direct form II transposed recursion.
 
 Compiled with cache=True (the first import in a fresh environment compiles them once, about a second; later
@@ -16,40 +19,41 @@ imports load them from __pycache__). Only the estimator and the edge tracker imp
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any, cast
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: below it, eight interleaved partial sums
 PAIRWISE_DEPTH = 64  # rows of pairwise_sum's stack: enough for any array length
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
     """numpy's pairwise_sum for n <= 128: sequential below 8 terms, else eight interleaved partial sums."""
+    v = a[lo : lo + n]  # indexed from 0: no negative-index checks in the loops
     if n < 8:
         res = 0.0
-        for i in range(lo, lo + n):
-            res += a[i]
+        for i in range(n):
+            res += v[i]
         return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    r0, r1, r2, r3 = v[0], v[1], v[2], v[3]
+    r4, r5, r6, r7 = v[4], v[5], v[6], v[7]
     m = n - n % 8
-    i = 8
-    while i < m:
-        r0 += a[lo + i]
-        r1 += a[lo + i + 1]
-        r2 += a[lo + i + 2]
-        r3 += a[lo + i + 3]
-        r4 += a[lo + i + 4]
-        r5 += a[lo + i + 5]
-        r6 += a[lo + i + 6]
-        r7 += a[lo + i + 7]
-        i += 8
+    for i in range(8, m, 8):
+        r0 += v[i]
+        r1 += v[i + 1]
+        r2 += v[i + 2]
+        r3 += v[i + 3]
+        r4 += v[i + 4]
+        r5 += v[i + 5]
+        r6 += v[i + 6]
+        r7 += v[i + 7]
     res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
+    for i in range(m, n):
+        res += v[i]
     return res
 
 
@@ -58,15 +62,26 @@ def pairwise_workspace() -> np.ndarray:
     return np.empty((PAIRWISE_DEPTH, 4))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     """sum(a[lo:lo+n]) in numpy's pairwise order (np.sum, np.add.reduce of a contiguous float64 array): blocks
     of at most 128 terms (_block_sum), above that the sum of the two halves, the first a multiple of 8 long.
 
-    The halving is walked with an explicit stack in `work` (pairwise_workspace(); rows: start, length, state,
-    value), as numba's cache cannot reload recursive functions."""
+    Up to one halving (two blocks: a dither period's window at 1800 Sa/s) directly, inlined into the calling
+    kernel (a call passing arrays costs about as much as summing a block); deeper, _pairwise_stack."""
     if n <= PAIRWISE_BLOCK:
         return _block_sum(a, lo, n)
+    half = n // 2
+    half -= half % 8
+    if n - half <= PAIRWISE_BLOCK:
+        return _block_sum(a, lo, half) + _block_sum(a, lo + half, n - half)
+    return _pairwise_stack(a, lo, n, work)
+
+
+@njit(cache=True)
+def _pairwise_stack(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
+    """pairwise_sum for n > 128, the halving walked with an explicit stack in `work` (pairwise_workspace(); rows:
+    start, length, state, value), as numba's cache cannot reload recursive functions."""
     sp, vp = 1, 0  # stack depth, values waiting
     work[0, 0], work[0, 1], work[0, 2] = lo, n, 0.0  # state 0: split next, 1: left half done, 2: both done
     while sp > 0:
@@ -94,7 +109,7 @@ def pairwise_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     return work[0, 3]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def reduceat_sum(a: np.ndarray, lo: int, n: int, work: np.ndarray) -> float:
     """np.add.reduceat's sum of the segment a[lo:lo+n] (n >= 1): its first element plus the pairwise sum of the
     rest."""
@@ -115,43 +130,86 @@ def median_spacing(t: np.ndarray, count: int) -> float:
 
 
 @njit(cache=True)
+def median_spacing_after(t_before: float, t: np.ndarray, count: int) -> float:
+    """median_spacing of the sequence t_before, t[0], t[1], ... (np.median(np.diff(np.concatenate(([t_before],
+    t))[:count])), for len(t) >= 1)."""
+    m = min(count - 1, t.size)
+    d = np.empty(m)
+    prev = t_before
+    for i in range(m):
+        d[i] = t[i] - prev
+        prev = t[i]
+    d.sort()
+    if m % 2 == 1:
+        return d[m // 2]
+    return (d[m // 2 - 1] + d[m // 2]) / 2.0
+
+
+@njit(cache=True)
 def integrate_block(
-    tt: np.ndarray,
+    t: np.ndarray,
     x: np.ndarray,
     aux: np.ndarray,
-    x_prev: float,
-    a_prev: float,
-    ix0: float,
-    mr0: float,
+    before: tuple[float, float, float, float, float],
     window_s: float,
     tau_s: float,
-) -> tuple[np.ndarray, float]:
-    """The estimator's buffer rows for a block, (t, y, m_r, m_r) (the third to be filtered in place into H m_r),
-    and int x at its end. tt: the block's times after the previous block's last time (or a copy of the first);
-    x, aux: its values; x_prev, a_prev, ix0, mr0: x, aux, int x and m_r at tt[0].
+    sos: np.ndarray,
+    zi: np.ndarray,
+    zi_per_unit: bool,
+    buf: np.ndarray,
+    offset: int,
+) -> float:
+    """A block's rows of the estimator's sample buffer, written to buf[:, offset:offset + n]: t, y, H m_r, m_r;
+    returns int x at the block's end. before: t, x, aux, int x and m_r at the sample before t[0] (for a first
+    block, t[0], x[0], aux[0], 0, 0).
 
     With h_k = t_k - t_(k-1) (the trapezoid rule; AuxIn values sit at t_k - W/2, so the line through two readings
-    is shifted by s_k = W / (2 h_k)):
+    is shifted by s_k = W / (2 h_k), 0 where h_k = 0):
         int x_k = ix0 + sum_(i<=k) h_i (x_i + x_(i-1)) / 2
         m_r,k   = mr0 + sum_(i<=k) h_i ((a_i + a_(i-1)) / 2 + (a_i - a_(i-1)) s_i)
-        y_k     = x_k + int x_k / tau."""
+        y_k     = x_k + int x_k / tau
+    (running sums: np.cumsum's sequential order). H m_r: m_r through the filter's second-order sections sos (no
+    rows: no filter, H m_r = m_r) from their states zi, updated in place: scipy.signal.sosfilt(sos, m_r, zi=zi)'s
+    direct form II transposed recursion, y = b0 u + z0; z0 = b1 u - a1 y + z1; z1 = b2 u - a2 y; the first
+    section runs in the integrals' loop, the others after it over the block (sosfilt_inplace), the same
+    operations either way. zi_per_unit: zi holds the states per unit input at rest (sos_steady_state) and starts
+    at those times the first m_r."""
+    t_prev, x_prev, a_prev, ix0, mr0 = before
     n = x.size
-    out = np.empty((4, n))
+    bt, by, bf, bm = buf[0, offset : offset + n], buf[1, offset : offset + n], buf[2, offset:], buf[3, offset:]
+    sections = sos.shape[0]
+    b0 = b1 = b2 = a1 = a2 = z0 = z1 = 0.0
+    if sections:
+        b0, b1, b2, a1, a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
+        z0, z1 = zi[0, 0], zi[0, 1]
     acc_x = 0.0
     acc_m = 0.0
     ix = ix0
     for k in range(n):
-        h = tt[k + 1] - tt[k]
+        h = t[k] - t_prev
         acc_x += 0.5 * h * (x[k] + x_prev)
         ix = ix0 + acc_x
         shift = 0.5 * window_s / h if h > 0 else 0.0
         acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
-        out[0, k] = tt[k + 1]
-        out[1, k] = x[k] + ix / tau_s
-        out[2, k] = mr0 + acc_m
-        out[3, k] = out[2, k]
-        x_prev, a_prev = x[k], aux[k]
-    return out, ix
+        u = mr0 + acc_m
+        bt[k] = t[k]
+        by[k] = x[k] + ix / tau_s
+        bm[k] = u
+        if sections:
+            if k == 0 and zi_per_unit:
+                z0, z1 = z0 * u, z1 * u
+            v = b0 * u + z0
+            z0 = b1 * u - a1 * v + z1
+            z1 = b2 * u - a2 * v
+            u = v
+        bf[k] = u
+        t_prev, x_prev, a_prev = t[k], x[k], aux[k]
+    if sections:
+        zi[0, 0], zi[0, 1] = z0, z1
+        if n and zi_per_unit:
+            zi[1:] *= bm[0]
+        sosfilt_inplace(sos[1:], bf[:n], zi[1:])
+    return ix
 
 
 @njit(cache=True)
@@ -171,56 +229,71 @@ def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
         zi[s, 0], zi[s, 1] = z0, z1
 
 
-@njit(cache=True)
-def ramp_matrix(
-    t: np.ndarray, k0: np.ndarray, k1: np.ndarray, edges: np.ndarray, order: int, tc_s: float
-) -> np.ndarray:
-    """R over the periods' windows k0[p] <= k < k1[p], one after the other: R[k, j] = R_n(t_k - edges[p, j]),
-    the filter's response to a unit ramp starting at the j-th edge (DemodFilter.ramp_response:
-    R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc
-    beyond, 0 before; max(tau, 0) without a filter).
+def _fma_typing(typingctx: Any, a: Any, b: Any, c: Any) -> tuple[Any, Callable[..., Any]] | None:
+    """fused_multiply_add's numba typing and code generation: float64 arguments only, LLVM's llvm.fma."""
+    if not all(arg == types.float64 for arg in (a, b, c)):
+        return None
+    sig = types.float64(types.float64, types.float64, types.float64)
 
-    t is sorted, so tau = t_k - e rises with k: per period and edge, the first samples with tau > 0 and with
-    tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the exponential."""
-    total = 0
-    for p in range(k0.size):
-        total += k1[p] - k0[p]
-    ne = edges.shape[1]
-    r = np.empty((total, ne))
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+# a b + c with one rounding (the FMA instruction, or an exactly rounded software form on a processor without one),
+# callable only inside compiled kernels; the cast gives mypy the signature kernels call it with (numba's
+# intrinsic object is typed with the typing function's own parameters, the typing context first)
+fused_multiply_add = cast("Callable[[float, float, float], float]", intrinsic(_fma_typing))
+
+
+@njit(cache=True, inline="always")
+def ramp_column(tw: np.ndarray, e: float, order: int, tc_s: float, out: np.ndarray) -> None:
+    """out[k] = R_n(tw[k] - e) for k < tw.size: the filter's response to a unit ramp starting at the edge e
+    (DemodFilter.ramp_response, with its operations: R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j)
+    (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc beyond, 0 before; tau without a filter, tc = 0).
+
+    tw is sorted, so tau = tw_k - e rises with k: the first sample with tau > 0 (a bisection on that very test)
+    and the first with tau >= 60 tc bound the zero, transient and steady ranges; only the transient needs the
+    exponential. (The loops index views from 0, which lets the compiler drop negative-index checks.)"""
+    n = tw.size
     delay = order * tc_s
     transient_end = 60.0 * tc_s
-    start = np.empty(ne, dtype=np.int64)  # first k with tau > 0
-    steady = np.empty(ne, dtype=np.int64)  # first k with tau >= 60 tc (with tau > 0)
-    row = 0
-    for p in range(k0.size):
-        a, b = k0[p], k1[p]
-        for j in range(ne):
-            e = edges[p, j]
-            k = a
-            while k < b and not t[k] - e > 0.0:
-                k += 1
-            start[j] = k
-            if tc_s > 0.0:
-                while k < b and t[k] - e < transient_end:
-                    k += 1
-            steady[j] = k
-        for k in range(a, b):
-            for j in range(ne):
-                tau = t[k] - edges[p, j]
-                if k < start[j]:
-                    r[row, j] = 0.0
-                elif k >= steady[j]:
-                    r[row, j] = tau - delay
-                else:
-                    x = tau / tc_s
-                    acc = 0.0
-                    term = 1.0
-                    for i in range(order):
-                        acc += (order - i) * term
-                        term = term * x / (i + 1)
-                    r[row, j] = tau - delay + tc_s * math.exp(-x) * acc
-            row += 1
-    return r
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tw[mid] - e > 0.0:
+            hi = mid
+        else:
+            lo = mid + 1
+    out[:lo] = 0.0
+    i = lo
+    if tc_s > 0.0:
+        while i < n and tw[i] - e < transient_end:
+            x = (tw[i] - e) / tc_s
+            acc = 0.0
+            term = 1.0
+            for j in range(order):
+                acc += (order - j) * term
+                term = term * x / (j + 1)
+            out[i] = tw[i] - e - delay + tc_s * math.exp(-x) * acc
+            i += 1
+    ts = tw[i:]
+    rs = out[i:n]
+    for k in range(n - i):
+        rs[k] = ts[k] - e - delay
+
+
+@njit(cache=True, inline="always")
+def signed_ramp_sum(r0: float, r1: float, r2: float, r3: float, r4: float, step: float) -> float:
+    """sum_j s_j step r_j for the ramp responses r_j at the edges (R_(i-1), F_a, R_i, F_b, R_(i+1)), signs
+    s = (+, -, +, -, +): with p_j = r_j (s_j step), (p_0 + p_2) + (p_1 + p_3), then r_4 step added by a fused
+    multiply-add (one rounding).
+
+    That order is the one OpenBLAS's double-precision x86-64 matrix-vector kernel (dgemv_t) gives each row of an
+    n x 5 product: the earlier estimator formed this sum as such a product, and on those processors the two agree
+    bit for bit (tests/unit/test_clsf_kernels.py)."""
+    return fused_multiply_add(r4, step, (r0 * step + r2 * step) + (r1 * -step + r3 * -step))
 
 
 @njit(cache=True)
@@ -228,52 +301,63 @@ def period_ratios(
     t: np.ndarray,
     y: np.ndarray,
     mf: np.ndarray,
-    ramp_sum: np.ndarray,
     edges: np.ndarray,
     k0: np.ndarray,
     k1: np.ndarray,
     lo: float,
-    delay_s: float,
+    hi: float,
+    order: int,
+    tc_s: float,
 ) -> np.ndarray:
     """rho = sum y r / sum (H m) r per period (the estimator's docstring) over its window k0[p] <= k < k1[p] of
-    the buffer (t, y, H m_r); ramp_sum: the windows' rows of ramp_matrix weighted by the edges' signs +-(hi - lo).
+    the buffer (t, y, H m_r); edges[p]: the period's (R_(i-1), F_a, R_i, F_b, R_(i+1)); lo, hi: the dither's
+    recorded levels; the lock-in's filter 1/(1 + s tc)^order.
 
-    H m_d = lo (t - e_0 - n tc) + ramp_sum; r = H m_d minus its least-squares line a + b t over the window: with
-    means over it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0),
-    r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
-    total = ramp_sum.size
+    H m_d = lo (t - e_0 - n tc) + signed_ramp_sum of the edges' ramp_columns (each edge adds a ramp of slope
+    +-(hi - lo)); r = H m_d minus
+    its least-squares line a + b t over the window: with means over it, t' = t - mean t, v' = H m_d - mean H m_d,
+    b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0.
+    Sums and means are np.add.reduceat's over each window (reduceat_sum)."""
+    delay_s = order * tc_s
+    step = hi - lo
+    longest = 0
+    for p in range(k0.size):
+        longest = max(longest, k1[p] - k0[p])
     work = np.empty((PAIRWISE_DEPTH, 4))
     rho = np.empty(k0.size)
-    md = np.empty(total)
-    tcn = np.empty(total)
-    vcn = np.empty(total)
-    p1 = np.empty(total)
-    p2 = np.empty(total)
-    start = 0
+    ramps = np.empty((5, longest))
+    md = np.empty(longest)
+    tcn = np.empty(longest)
+    vcn = np.empty(longest)
+    p1 = np.empty(longest)
+    p2 = np.empty(longest)
     for p in range(k0.size):
-        a = k0[p]
-        n = k1[p] - a
+        a, b = k0[p], k1[p]
+        n = b - a
+        tw, yw, mfw = t[a:b], y[a:b], mf[a:b]
+        for j in range(5):
+            ramp_column(tw, edges[p, j], order, tc_s, ramps[j])
         e0 = edges[p, 0]
         for i in range(n):
-            md[start + i] = lo * (t[a + i] - e0 - delay_s) + ramp_sum[start + i]
-        mt = reduceat_sum(t, a, n, work) / n
-        mv = reduceat_sum(md, start, n, work) / n
+            edge_part = signed_ramp_sum(ramps[0, i], ramps[1, i], ramps[2, i], ramps[3, i], ramps[4, i], step)
+            md[i] = lo * (tw[i] - e0 - delay_s) + edge_part
+        mt = reduceat_sum(tw, 0, n, work) / n
+        mv = reduceat_sum(md, 0, n, work) / n
         for i in range(n):
-            tcn[start + i] = t[a + i] - mt
-            vcn[start + i] = md[start + i] - mv
-            p1[start + i] = tcn[start + i] * tcn[start + i]
-            p2[start + i] = tcn[start + i] * vcn[start + i]
-        stt = reduceat_sum(p1, start, n, work)
-        stv = reduceat_sum(p2, start, n, work)
-        b = stv / stt if stt > 0 else 0.0
+            tcn[i] = tw[i] - mt
+            vcn[i] = md[i] - mv
+            p1[i] = tcn[i] * tcn[i]
+            p2[i] = tcn[i] * vcn[i]
+        stt = reduceat_sum(p1, 0, n, work)
+        stv = reduceat_sum(p2, 0, n, work)
+        slope = stv / stt if stt > 0 else 0.0
         for i in range(n):
-            r = vcn[start + i] - tcn[start + i] * b
-            p1[start + i] = (mf[a + i] + md[start + i]) * r
-            p2[start + i] = y[a + i] * r
-        den = reduceat_sum(p1, start, n, work)
-        num = reduceat_sum(p2, start, n, work)
+            r = vcn[i] - tcn[i] * slope
+            p1[i] = (mfw[i] + md[i]) * r
+            p2[i] = yw[i] * r
+        den = reduceat_sum(p1, 0, n, work)
+        num = reduceat_sum(p2, 0, n, work)
         rho[p] = num / den if den != 0.0 else np.nan
-        start += n
     return rho
 
 
@@ -464,7 +548,7 @@ def continue_fit(
     return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _first_at_or_after(a: np.ndarray, v: float, strictly: bool) -> int:
     """np.searchsorted(a, v, side="right" if strictly else "left") on a sorted array."""
     lo, hi = 0, a.size
@@ -544,4 +628,71 @@ def mean_rates(edges: np.ndarray, t: np.ndarray, mr: np.ndarray) -> np.ndarray:
     for p in range(edges.shape[0]):
         r0, r1 = edges[p, 2], edges[p, 4]
         out[p] = (interp_sorted(r1, t, mr) - interp_sorted(r0, t, mr)) / (r1 - r0)
+    return out
+
+
+@njit(cache=True)
+def evaluate_periods(
+    rising: np.ndarray,
+    falling: np.ndarray,
+    buf: np.ndarray,
+    held: tuple[int, int],
+    lo: float,
+    hi: float,
+    order: int,
+    tc_s: float,
+    min_samples: int,
+    holds: np.ndarray,
+) -> tuple[int, int, int, int, np.ndarray]:
+    """The estimator's periods on its buffer rows (t, y, H m_r, m_r), columns held[0]:held[1] (the samples
+    held; sample indices below count from held[0]): complete_periods with the filter's delay D = n tc, then
+    period_ratios and mean_rates of the usable ones.
+
+    Returns (done, the number usable, the first sample still needed, the number of falling edges still needed,
+    and the periods kept as rows R_i, R_(i+1), rho, mean rate output). Kept: a finite rho and no overlap with any
+    hold [h0, h1] (a row of holds: h0 <= R_(i+1) and R_i <= h1). Still needed once periods up to `done` are
+    evaluated (done >= 0): the rising edges from index done on (the next period's history edge R_done), the
+    falling edges after R_done (moved, in order, to the front of `falling`), and the samples from two before the
+    first at or after R_(done+1) + D (R_done without a later rising edge) on. (One array out: numba makes a
+    Python object of each array it returns, about a microsecond apiece.)"""
+    a, b = held  # rows sliced here stay contiguous in numba's types (a 2-D column slice would not)
+    t, y, mf, mr = buf[0, a:b], buf[1, a:b], buf[2, a:b], buf[3, a:b]
+    delay_s = order * tc_s
+    done, edges, k0, k1 = complete_periods(rising, falling, t, delay_s, min_samples)
+    usable = edges.shape[0]
+    first_needed = 0
+    falling_needed = falling.size
+    if done >= 0:
+        start = rising[done + 1] + delay_s if rising.size - done > 1 else rising[done]
+        first_needed = max(0, _first_at_or_after(t, start, False) - 2)
+        falling_needed = 0
+        for f in falling:
+            if f > rising[done]:
+                falling[falling_needed] = f
+                falling_needed += 1
+    rho = period_ratios(t, y, mf, edges, k0, k1, lo, hi, order, tc_s)
+    rate = mean_rates(edges, t, mr)
+    kept = np.empty((4, usable))
+    m = 0
+    for p in range(usable):
+        ok = np.isfinite(rho[p])
+        for h in range(holds.shape[0]):
+            if holds[h, 0] <= edges[p, 4] and edges[p, 2] <= holds[h, 1]:
+                ok = False
+        if ok:
+            kept[0, m], kept[1, m], kept[2, m], kept[3, m] = edges[p, 2], edges[p, 4], rho[p], rate[p]
+            m += 1
+    return done, usable, first_needed, falling_needed, kept[:, :m]
+
+
+@njit(cache=True)
+def period_estimates(rho: np.ndarray, rho_ref: float, gain_correction: float) -> np.ndarray:
+    """The estimator's outputs of periods with ratios rho (rows): eta = rho / rho_0 - 1, the scale-factor change
+    1 / (1 + eta) - 1 and the gain correction in force (the numpy expressions' operations, one array out)."""
+    out = np.empty((3, rho.size))
+    for p in range(rho.size):
+        eta = rho[p] / rho_ref - 1.0
+        out[0, p] = eta
+        out[1, p] = 1.0 / (1.0 + eta) - 1.0
+        out[2, p] = gain_correction
     return out

@@ -20,7 +20,7 @@ import pytest
 import scipy.linalg
 
 from qmg_lab.clsf.demod_filter import DemodFilter
-from qmg_lab.clsf.estimator import ClsfEstimator, observe_sensitivity
+from qmg_lab.clsf.estimator import MAX_HELD_SAMPLES, ClsfEstimator, observe_sensitivity
 
 TAU = 2 * 1.2e6 / (2 * math.pi * 2200)
 B = 0.8 * 0.5 / (0.06 * 180 / math.pi)  # beta = k R_d / SF, Vrms/s per V
@@ -243,6 +243,31 @@ def test_a_first_block_of_one_or_two_samples_starts_cleanly(first_samples: int) 
     # sub-sample scatter (~1e-5, test_gain_step_reads_exact_sf_change_on_an_asynchronous_bench)
     np.testing.assert_allclose(tt, reference_t, atol=1e-9)
     assert abs(sf.mean()) < 2e-5 and np.max(np.abs(sf - reference_sf)) < 1e-6
+
+
+def test_the_sample_buffer_holds_about_two_periods_and_is_reused():
+    """The estimator keeps the samples from the next period's window on: at most two dither periods after a
+    block is processed, in a buffer that is allocated once (twice the samples held plus a block) and reused."""
+    t, x, r, d = Bench(1800.0, 7.0).run(1800 * 12)
+    est = estimator(reference_periods=5)
+    block, per_period = 900, 1800.0 / 7.0
+    sizes = set()
+    for i in range(0, t.size, block):
+        est.process(t[i : i + block], x[i : i + block], r[i : i + block], d[i : i + block])
+        assert est._n - est._lo <= 2 * per_period + 3
+        sizes.add(est._buf.shape[1])
+    assert len(sizes) <= 2 and max(sizes) <= 2 * (block + 2 * per_period + 3)
+
+
+def test_without_edges_the_last_samples_are_kept_up_to_a_limit():
+    rng = np.random.default_rng(1)
+    est = estimator()
+    block = 3600
+    for k in range(MAX_HELD_SAMPLES // block + 3):
+        t = (k * block + np.arange(1, block + 1)) / 1800.0
+        est.process(t, rng.standard_normal(block), rng.standard_normal(block), np.full(block, 0.3))
+    assert est._n - est._lo == MAX_HELD_SAMPLES
+    assert est._buf[0, est._n - 1] == t[-1]
 
 
 def test_plain_demodulation_sensitivity_matches_physics():
