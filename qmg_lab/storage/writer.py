@@ -761,11 +761,6 @@ def _joined(pieces: Sequence[np.ndarray]) -> np.ndarray:
     return np.ascontiguousarray(pieces[0]) if len(pieces) == 1 else np.concatenate(pieces)
 
 
-def _append_rows(ds: h5py.Dataset, data: np.ndarray, direct_chunk_rows: int = 0) -> None:
-    """Extend a 1-D dataset by `data` (float64): `_append_pieces` with one piece."""
-    _append_pieces(ds, [data], direct_chunk_rows)
-
-
 def _append_pieces(ds: h5py.Dataset, pieces: Sequence[np.ndarray], direct_chunk_rows: int = 0) -> None:
     """Extend a 1-D dataset by the rows of `pieces` (float64 arrays, taken end to end) with the HDF5 calls
     themselves: h5py's `ds.resize` + `ds[n:] = data` spend more time building the selection in Python than small

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from qmg_lab.storage.deflate import shuffled_deflate
-from qmg_lab.storage.writer import _append_rows
+from qmg_lab.storage.writer import _append_pieces
 
 CHUNK = 64
 
@@ -39,7 +39,7 @@ def test_direct_chunks_read_back_exactly_by_plain_h5py_including_the_edge_chunk(
     data = np.cumsum(np.random.default_rng(2).standard_normal(3 * CHUNK + 17))
     path = tmp_path / "b.h5"
     ds = _column(path)
-    _append_rows(ds, data, CHUNK)
+    _append_pieces(ds, [data], CHUNK)
     ds.file.close()
     with h5py.File(path, "r") as h5:
         assert h5["x"].shape == data.shape
@@ -54,8 +54,8 @@ def test_an_append_into_a_stored_partial_chunk_goes_through_hdf5_then_whole_chun
     first, second = rng.standard_normal(CHUNK + 10), rng.standard_normal(2 * CHUNK + 5)
     path = tmp_path / "c.h5"
     ds = _column(path)
-    _append_rows(ds, first, CHUNK)
-    _append_rows(ds, second, CHUNK)
+    _append_pieces(ds, [first], CHUNK)
+    _append_pieces(ds, [second], CHUNK)
     ds.file.close()
     with h5py.File(path, "r") as h5:
         np.testing.assert_array_equal(h5["x"][:], np.concatenate([first, second]))
