@@ -26,6 +26,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
+from qmg_lab.cli import heap
 from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
@@ -68,6 +69,7 @@ LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 @app.callback()
 def _options(
+    ctx: typer.Context,
     log_level: Annotated[
         str | None,
         typer.Option(
@@ -78,6 +80,8 @@ def _options(
     ] = None,
 ) -> None:
     """Options for every command."""
+    if ctx.invoked_subcommand != "run":  # `run` settles once its station is up (_execute)
+        heap.settle()
     if log_level is None:
         return
     level = log_level.upper()
@@ -315,6 +319,7 @@ def _execute(
         except OSError as exc:
             _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
         log.info("run file %s; instruments %s", writer.path, modes)
+        heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
         view = ProgressView(console, enabled=not quiet)
         try:
             with view:
@@ -626,10 +631,13 @@ def version() -> None:
 
 
 def main() -> None:  # pragma: no cover - console entry
+    heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
     try:
         app()
     except KeyboardInterrupt:
         sys.exit(EXIT_INTERRUPTED)
+    finally:
+        heap.quiet_exit()
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
