@@ -15,8 +15,9 @@ interpreter's own collection at exit walks it all once more (about 0.4 s, most o
   and HDF5's file closing, logging's flush, Dask's shutdown) and the joining of threads still run, and the
   operating system frees the memory.
 
-Only the console entry point (`qmg_lab.cli.main.main`) calls these; code that imports qmg-lab as a library, and
-the tests, keep Python's default collector.
+Only the console entry point (`qmg_lab.cli.main.main`) switches collection off; the commands call `settle`, which
+does nothing while collection is on, so code that imports qmg-lab as a library, and the tests, keep Python's
+default collector.
 """
 
 from __future__ import annotations
