@@ -35,19 +35,20 @@ D = fl(theta_k - theta_a),
 
 cos D and sin D by their Taylor series to D^6 and D^7 (`_small_angle`, |D| <= 2^-7 rad; a larger D, e.g. a fast
 table, makes theta_k a new anchor instead). No value depends on the previous step's, so no rounding accumulates.
-Error bound against libm's sin/cos of the same theta_k (eps = 2^-52, all values <= 1 in magnitude): the anchor's
-cos and sin are within 1 ulp (<= eps) each; D is exact where theta_k and theta_a are within a factor 2
-(Sterbenz), else off by <= eps |D| / 2 <= 2^-8 eps; the series' truncation (D^8/8!, D^9/9!) is < 4e-22, the
-rounding of cos D (1 - D^2 (...), the subtraction from 1 dominating) <= 0.6 eps and of sin D <= 3 eps |sin D| <=
-0.03 eps; the two products and the sum round by <= 1.5 eps. In all <= eps + 2^-8 eps + 0.6 eps + 0.03 eps +
-1.5 eps < 3.2 eps of the true sin/cos theta_k, and libm's within eps of it:
+Error bound against libm's sin/cos of the same theta_k (eps = 2^-52, all values <= 1 in magnitude): the anchor's cos
+and sin are within 1 ulp (<= eps) each, weighted by |cos D| <= 1 and |sin D| <= 2^-7; D is exact where theta_k and
+theta_a are within a factor 2 (Sterbenz), else off by <= eps |D| / 2 <= 2^-8 eps; the series' truncation (D^8/8!,
+D^9/9!) is < 4e-22, the rounding of cos D (1 - D^2 (...), the subtraction from 1 dominating) <= 0.6 eps and of sin D
+<= 3 eps |sin D| <= 0.03 eps; the two products and the sum round by <= 1.5 eps. In all <= (1 + 2^-7) eps + 2^-8 eps
++ 0.6 eps +
+0.03 eps + 1.5 eps < 3.2 eps of the true sin/cos theta_k, and libm's within eps of it:
 
     |sin_rec(theta_k) - sin_libm(theta_k)| <= 5 eps = `ROTATION_BOUND` (1.1e-15),
 
 the same for cos. Effects: the ripple's factor 1 + r sin moves by <= |r| 5 eps (r = 1e-4: 1.1e-19, below
 the factor's own rounding of eps/2, so a delivered rate moves by at most one rounding of that factor, |r_k| eps);
 the DS345 time tau moves by <= (e_w P / 2 pi) 5 eps (e_w = 0.5 ppm, P = 3600 s: 3.2e-19 s, below half an
-ulp of tau for t > 0.25 s, so tau and the phase move by at most one rounding, ulp(tau) and f ulp(tau)).
+ulp of tau for t > 0.004 s, so tau and the phase move by at most one rounding, ulp(tau) and f ulp(tau)).
 """
 
 from __future__ import annotations
