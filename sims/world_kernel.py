@@ -39,9 +39,8 @@ Error bound against libm's sin/cos of the same theta_k (eps = 2^-52, all values 
 and sin are within 1 ulp (<= eps) each, weighted by |cos D| <= 1 and |sin D| <= 2^-7; D is exact where theta_k and
 theta_a are within a factor 2 (Sterbenz), else off by <= eps |D| / 2 <= 2^-8 eps; the series' truncation (D^8/8!,
 D^9/9!) is < 4e-22, the rounding of cos D (1 - D^2 (...), the subtraction from 1 dominating) <= 0.6 eps and of sin D
-<= 3 eps |sin D| <= 0.03 eps; the two products and the sum round by <= 1.5 eps. In all <= (1 + 2^-7) eps + 2^-8 eps
-+ 0.6 eps +
-0.03 eps + 1.5 eps < 3.2 eps of the true sin/cos theta_k, and libm's within eps of it:
+<= 3 eps |sin D| <= 0.03 eps; the two products and the sum round by <= 1.5 eps. In all <= (1 + 2^-7) eps +
+2^-8 eps + 0.6 eps + 0.03 eps + 1.5 eps < 3.2 eps of the true sin/cos theta_k, and libm's within eps of it:
 
     |sin_rec(theta_k) - sin_libm(theta_k)| <= 5 eps = `ROTATION_BOUND` (1.1e-15),
 
