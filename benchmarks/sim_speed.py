@@ -28,6 +28,10 @@ temperature ramp, so every per-step term is exercised.
   Per block: wall time, the time inside the compiled gyro kernel (timed around GyroSim._kernel), and the rest,
   "outside the kernel" (wall, and the calling thread's CPU time); medians over runs of 300 blocks, with the
   noise drawn ahead (the default on 2+ CPUs) and drawn in the calling thread (`*_no_prefetch`).
+* World block (`world_advance_*`, also with `--hf2-poll-only`): `World.advance` alone (sims/world_kernel.py
+  `block_inputs`: ramps, table rate with its ripple, chamber lags, the DS345's timebase and exact dither means)
+  with the paper's settings (the 7 Hz square dither, the table ramping to 5 deg/s with its 100 ppm ripple, the
+  chamber ramping), for 2 s and 10 s blocks: the calling thread's CPU ns per step, median of 7 runs of 100 blocks.
 """
 
 from __future__ import annotations
@@ -223,6 +227,31 @@ def hf2_poll_costs(blocks: int = 300, runs: int = 5, block_s: float = 2.0) -> di
     return res
 
 
+def world_advance_costs(runs: int = 7, blocks: int = 100) -> dict[str, float]:
+    """CPU ns per step of World.advance for 2 s and 10 s blocks at DT (module docstring): medians over `runs`."""
+    import statistics
+
+    from sims.world import DITHER_SQUARE, World
+
+    res: dict[str, float] = {}
+    for block_s in (2.0, 10.0):
+        world = World()
+        world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
+        world.set_table_rate(5.0, 10.0)
+        world.set_chamber(35.0, 0.25)
+        n = int(round(block_s / DT))
+        for _ in range(5):  # compiled code loaded
+            world.advance(n, DT)
+        per_step = []
+        for _ in range(runs):
+            c0 = time.thread_time()
+            for _ in range(blocks):
+                world.advance(n, DT)
+            per_step.append((time.thread_time() - c0) / (blocks * n) * 1e9)
+        res[f"world_advance_cpu_ns_per_step_{block_s:g}s_blocks"] = statistics.median(per_step)
+    return res
+
+
 def _child_memory(hours: float) -> None:
     from sims.gyro import GyroParams, GyroSim
 
@@ -297,6 +326,7 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
     res["carrier_cpu_realtime_factor"] = cpu_car
 
     res.update(hf2_poll_costs())
+    res.update(world_advance_costs())
     short, long_ = memory_hours
     m1 = _run_child(["--child-memory", str(short)])["maxrss_kb"]
     m4 = _run_child(["--child-memory", str(long_)])["maxrss_kb"]
@@ -323,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     res: dict[str, float | int | str] = dict(hf2_poll_costs()) if a.hf2_poll_only else measure()
     if a.hf2_poll_only:
+        res.update(world_advance_costs())
         res["load_average_1min"] = os.getloadavg()[0]
     if a.json:
         print(json.dumps(res))

@@ -14,8 +14,12 @@ quadrature PID (input Y_s) -> V_q; F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc =
 
 Memory: a block allocates only its own outputs (the kernel writes into them in place) and runs the kernel in chunks
 of CHUNK_STEPS; between blocks the state vector (about 80 numbers) and the noise rows drawn ahead (at most two
-prefetches of PREFETCH_ROWS per-step rows, sims/noise.py) are kept. The kernels release the GIL, so the noise
-stream's background thread draws the next rows while they run.
+prefetches of PREFETCH_ROWS per-step rows, or of one block's rows, sims/noise.py) are kept. The kernels release
+the GIL, so the noise stream's background thread draws the next rows while they run. A block of up to
+WHOLE_NOISE_STEPS takes its per-step rows in one call and hands the chunks slices of them: the stream then sees
+calls of one size, block after block, which it draws ahead whole (chunk-sized calls of 8192, 8192, 1616 rows for a
+10 s block straddled its prefetches: copies, and rows drawn on the caller's thread). The rows are the same either
+way: the stream hands them out in order however the calls split them.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ __all__ = ["GyroBlock", "GyroParams", "GyroSim", "LoopSettings", "PidSettings", 
 
 INPUT_NAMES = ("gyro_c", "table_rate_dps", "dither_v")
 CHUNK_STEPS = 1 << 13  # 8192 steps: the chunk's noise draws (192 kB) stay in the L2 cache
+WHOLE_NOISE_STEPS = 1 << 16  # blocks up to 65536 steps (36 s at 1800 Sa/s, 1.5 MB of rows) take their noise at once
 
 
 def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
@@ -330,13 +335,16 @@ class _TwinBase:
             self._pending = "none"
         n = temp.shape[0]
         out = np.empty((gk.N_OUT, n))
+        on = self._step_noise_on
         if n <= CHUNK_STEPS:  # a poll's block: one chunk, no slicing
-            err_max = self._run_chunk(temp, rate, dither, out, lvec)
-        else:
+            err_max = self._run_chunk(temp, rate, dither, self._noise.steps(n, on), out, lvec)
+        else:  # a long block's noise in one take where it is small (module docstring), else chunk by chunk
+            whole = self._noise.steps(n, on) if n <= WHOLE_NOISE_STEPS else None
             err_max = 0.0
             for a in range(0, n, CHUNK_STEPS):
                 b = min(n, a + CHUNK_STEPS)
-                chunk_err = self._run_chunk(temp[a:b], rate[a:b], dither[a:b], out[:, a:b], lvec)
+                noise = whole[a:b] if whole is not None else self._noise.steps(b - a, on)
+                chunk_err = self._run_chunk(temp[a:b], rate[a:b], dither[a:b], noise, out[:, a:b], lvec)
                 if not chunk_err <= err_max:  # also keeps a NaN: the block then reads as unlocked
                     err_max = chunk_err
         locked = bool(loops.pll.enabled and err_max < PLL_LOCK_DEG)
@@ -357,11 +365,17 @@ class _TwinBase:
         )
 
     def _run_chunk(
-        self, temp: np.ndarray, rate: np.ndarray, dither: np.ndarray, out: np.ndarray, lvec: np.ndarray
+        self,
+        temp: np.ndarray,
+        rate: np.ndarray,
+        dither: np.ndarray,
+        noise: np.ndarray,
+        out: np.ndarray,
+        lvec: np.ndarray,
     ) -> float:
-        """Draw one chunk's noise and run the kernel on it (outputs into `out`); returns its max |PLL error|."""
+        """Run the kernel on one chunk with its per-step noise rows (outputs into `out`), drawing its bias
+        updates; returns its max |PLL error|."""
         m = temp.shape[0]
-        noise = self._noise.steps(m, self._step_noise_on)
         n_upd = (int(self._S[gk.S_GMK]) + m) // self.gm_steps
         gm = self._noise.gm(n_upd, self._bias_on)
         used, err_max = self._kernel(temp, rate, dither, noise, gm, out, lvec)

@@ -1,4 +1,5 @@
-"""The compiled World loops equal the vectorised equations they replace, bit for bit (sims/world_kernel.py).
+"""The compiled World loops equal the vectorised equations they replace, bit for bit (sims/world_kernel.py), except the
+ripple's sine and the wander's cosine, within the rotation recurrence's bound of libm.
 
 Each reference below is the equation of sims/world.py's docstring written as numpy array expressions (sequential
 cumulative sums, scipy's one-pole lfilter): the loops must give the same floating-point numbers, so a block's
@@ -14,6 +15,7 @@ from scipy.signal import lfilter
 
 from sims import world_kernel as wk
 
+EPS = 2.0**-52
 DT = 1.0 / 1799.994857157551  # the HF2's 1800 Sa/s rung on a 210 MHz clockbase
 N = 3600
 
@@ -57,14 +59,36 @@ def test_table_block_is_the_vectorised_ripple_and_angle(profile: str, ripple_ppm
     prof = {"hold": np.full(N, 5.0), "ramp": 5.0 - np.minimum(300.0 * k, 10.0), "sine": 3.0 * np.sin(2.1 * k)}[profile]
     angle0, scale, phase = 359.9, 1.0 + 60e-6, 17.0
     rate = prof * scale
-    if ripple_ppm != 0.0:
-        mid = angle0 + np.cumsum(rate) * DT - 0.5 * rate * DT
-        rate = rate * (1.0 + ripple_ppm * 1e-6 * np.sin(np.deg2rad(mid + phase)))
-    angle = angle0 + np.concatenate(([0.0], np.cumsum(rate[:-1]) * DT))
     r, a = np.empty(N), np.empty(N)
     wk.table_block(prof, scale, DT, angle0, ripple_ppm * 1e-6, phase, r, a)
-    np.testing.assert_array_equal(r, rate)
+    if ripple_ppm != 0.0:
+        mid = angle0 + np.cumsum(rate) * DT - 0.5 * rate * DT
+        ripple = ripple_ppm * 1e-6
+        bound = np.abs(rate) * (abs(ripple) * wk.ROTATION_BOUND + 2 * EPS)  # module docstring: the sine's bound,
+        rate = rate * (1.0 + ripple * np.sin(np.deg2rad(mid + phase)))  # then one rounding of 1 + r sin
+        assert np.all(np.abs(r - rate) <= bound)
+    else:
+        np.testing.assert_array_equal(r, rate)
+    angle = angle0 + np.concatenate(([0.0], np.cumsum(r[:-1]) * DT))  # the angle of the delivered rates, exactly
     np.testing.assert_array_equal(a, angle)
+
+
+@pytest.mark.parametrize("step_rad", [3e-9, 4.8e-5, 1e-4, -7e-4, 2.0**-7, 0.05])
+def test_angle_addition_is_within_its_bound_of_libm(step_rad: float) -> None:
+    """sin and cos of long sequences of arguments, through zero and far from it, with jittered steps whose
+    distance from the anchor stays below, reaches and exceeds the Taylor range: within ROTATION_BOUND of numpy's
+    sin/cos of the same arguments (the bound is against the true values plus one ulp, module docstring)."""
+    rng = np.random.default_rng(3)
+    for start in (-0.1, 1234.5):
+        steps = step_rad * (1.0 + 0.5 * rng.uniform(-1.0, 1.0, 20 * wk.ANCHOR_STEPS))
+        theta = start + np.cumsum(steps)
+        c, s = np.empty(theta.size), np.empty(theta.size)
+        wk.rotation_sequence(theta, c, s)
+        assert np.max(np.abs(c - np.cos(theta))) <= wk.ROTATION_BOUND
+        assert np.max(np.abs(s - np.sin(theta))) <= wk.ROTATION_BOUND
+        anchors = [0, wk.ANCHOR_STEPS] if 1.5 * abs(step_rad) * wk.ANCHOR_STEPS <= wk.SMALL_ANGLE_RAD else [0]
+        for k in anchors:  # libm itself at the anchors (later ones come sooner where the angle runs fast)
+            assert (c[k], s[k]) == (math.cos(theta[k]), math.sin(theta[k]))
 
 
 def _wave_integral(fn: int, u: np.ndarray) -> np.ndarray:
@@ -88,13 +112,16 @@ def test_dither_grid_and_window_means_are_the_exact_integral_means(fn: int) -> N
     f_hz, phase, offset, half = 7.0, 0.125, 0.01, 0.5 * 0.8
     tau = tb * (1.0 + e0) + amp_s * (1.0 - np.cos(2 * np.pi * tb / per))
     u_ref = f_hz * (tau - tau_origin) + phase
-    w_ref = _wave_integral(fn, u_ref)
-    means_ref = offset + half * (w_ref[1:] - w_ref[:-1]) / (u_ref[1:] - u_ref[:-1])
     u, w, means = np.empty(N + 1), np.empty(N + 1), np.empty(N)
     wk.dither_grid(tb, e0, amp_s, per, float(tau_origin), f_hz, phase, fn, offset, half, u, w, means)
-    np.testing.assert_array_equal(u, u_ref)
+    # the wander's cosine within ROTATION_BOUND of libm (module docstring): tau within amp_s ROTATION_BOUND plus a
+    # rounding of the wander term and of the sum, u within f times that plus a rounding of the product and the sum
+    tau_bound = amp_s * wk.ROTATION_BOUND + np.spacing(amp_s) + np.spacing(tau)
+    assert np.all(np.abs(u - u_ref) <= f_hz * tau_bound + 2 * np.spacing(np.abs(u_ref)))
+    w_ref = _wave_integral(fn, u)  # from here on the equations of the kernel's phases, exactly
     np.testing.assert_array_equal(w, w_ref)
-    np.testing.assert_array_equal(means, means_ref)
+    np.testing.assert_array_equal(means, offset + half * (w_ref[1:] - w_ref[:-1]) / (u[1:] - u[:-1]))
+    u_ref = u
     window = 0.3 * DT
     du = (u_ref[1:] - u_ref[:-1]) / (tb[1:] - tb[:-1]) * window
     win_ref = offset + half * (w_ref[1:] - _wave_integral(fn, u_ref[1:] - du)) / du
