@@ -439,29 +439,24 @@ def level_crossings(
     1 - intermediate (the latter wins)."""
     prev_t, prev_s, prev_side = prev
     span = hi - lo
-    off = 1 if prev_side >= 0 else 0
-    n = d.size + off
-    tt = np.empty(n)
-    ss = np.empty(n)
-    if off:
-        tt[0], ss[0] = prev_t, prev_s
-    for k in range(d.size):
-        tt[k + off] = t[k]
-        ss[k + off] = (d[k] - lo) / span
-    rising = np.empty(n)
-    falling = np.empty(n)
+    rising = np.empty(d.size)
+    falling = np.empty(d.size)
     nr = 0
     nf = 0
+    # the reading before the loop's first: the previous block's last, or this block's first (its side its own)
+    start = 0 if prev_side >= 0 else 1
+    tp, sp = (prev_t, prev_s) if prev_side >= 0 else (t[0], (d[0] - lo) / span)
     if prev_side >= 0:
         high = prev_side == 1
-    elif ss[0] > 1.0 - hysteresis:
+    elif sp > 1.0 - hysteresis:
         high = True
-    elif ss[0] < hysteresis:
+    elif sp < hysteresis:
         high = False
     else:
-        high = ss[0] > 0.5
-    for k in range(1, n):
-        s = ss[k]
+        high = sp > 0.5
+    for k in range(start, d.size):
+        tk = t[k]
+        s = (d[k] - lo) / span
         if s > 1.0 - hysteresis:
             now = True
         elif s < hysteresis:
@@ -469,15 +464,14 @@ def level_crossings(
         else:
             now = high
         if now != high:
-            sp = ss[k - 1]
             frac_new = s if now else 1.0 - s
             frac_old = sp if now else 1.0 - sp
-            e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+            e = 0.5 * (tp + tk - window_s)
             if window_s > 0.0:
                 if frac_old > intermediate:
-                    e = tt[k - 1] - window_s * frac_old
+                    e = tp - window_s * frac_old
                 if frac_new > intermediate and frac_new < 1.0 - intermediate:
-                    e = tt[k] - window_s * frac_new
+                    e = tk - window_s * frac_new
             if now:
                 rising[nr] = e
                 nr += 1
@@ -485,7 +479,8 @@ def level_crossings(
                 falling[nf] = e
                 nf += 1
             high = now
-    return rising[:nr], falling[:nf], ss[n - 1], high
+        tp, sp = tk, s
+    return rising[:nr], falling[:nf], sp, high
 
 
 @njit(cache=True)
