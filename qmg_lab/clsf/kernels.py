@@ -145,6 +145,16 @@ def median_spacing_after(t_before: float, t: np.ndarray, count: int) -> float:
     return (d[m // 2 - 1] + d[m // 2]) / 2.0
 
 
+@njit(cache=True, inline="always")
+def _trapezoid_term(
+    h: float, x: float, x_prev: float, aux: float, a_prev: float, window_s: float
+) -> tuple[float, float]:
+    """integrate_block's increments of int x and m_r over one spacing h: h (x + x_prev) / 2 and
+    h ((a + a_prev) / 2 + (a - a_prev) W / (2 h)) (the latter term 0 where h = 0)."""
+    shift = 0.5 * window_s / h if h > 0 else 0.0
+    return 0.5 * h * (x + x_prev), h * (0.5 * (aux + a_prev) + (aux - a_prev) * shift)
+
+
 @njit(cache=True)
 def integrate_block(
     t: np.ndarray,
@@ -170,45 +180,45 @@ def integrate_block(
         y_k     = x_k + int x_k / tau
     (running sums: np.cumsum's sequential order). H m_r: m_r through the filter's second-order sections sos (no
     rows: no filter, H m_r = m_r) from their states zi, updated in place: scipy.signal.sosfilt(sos, m_r, zi=zi)'s
-    direct form II transposed recursion, y = b0 u + z0; z0 = b1 u - a1 y + z1; z1 = b2 u - a2 y; the first
-    section runs in the integrals' loop, the others after it over the block (sosfilt_inplace), the same
-    operations either way. zi_per_unit: zi holds the states per unit input at rest (sos_steady_state) and starts
-    at those times the first m_r."""
+    direct form II transposed recursion, y = b0 u + z0; z0 = b1 u - a1 y + z1; z1 = b2 u - a2 y. A filter of
+    one first-order section (order 1: b2 = a2 = 0, z1 = 0) runs in the integrals' loop as _first_order_section's
+    recursion (the filter's dependency chain then overlaps the integrals' work); any other runs after the loop
+    over the block (sosfilt_inplace). zi_per_unit: zi holds the states per unit input at rest
+    (sos_steady_state) and starts at those times the first m_r."""
     t_prev, x_prev, a_prev, ix0, mr0 = before
     n = x.size
     bt, by, bf, bm = buf[0, offset : offset + n], buf[1, offset : offset + n], buf[2, offset:], buf[3, offset:]
-    sections = sos.shape[0]
-    b0 = b1 = b2 = a1 = a2 = z0 = z1 = 0.0
-    if sections:
-        b0, b1, b2, a1, a2 = sos[0, 0], sos[0, 1], sos[0, 2], sos[0, 4], sos[0, 5]
-        z0, z1 = zi[0, 0], zi[0, 1]
     acc_x = 0.0
     acc_m = 0.0
     ix = ix0
+    fused = sos.shape[0] == 1 and sos[0, 2] == 0.0 and sos[0, 5] == 0.0 and zi[0, 1] == 0.0
+    b0, b1, a1, z0 = (sos[0, 0], sos[0, 1], sos[0, 4], zi[0, 0]) if fused else (0.0, 0.0, 0.0, 0.0)
+    if fused and n and zi_per_unit:  # the state at rest for the first m_r (the loop's first step, done ahead)
+        first = 0.0
+        first += _trapezoid_term(t[0] - t_prev, x[0], x_prev, aux[0], a_prev, window_s)[1]
+        z0 *= mr0 + first
     for k in range(n):
         h = t[k] - t_prev
-        acc_x += 0.5 * h * (x[k] + x_prev)
+        dx, dm = _trapezoid_term(h, x[k], x_prev, aux[k], a_prev, window_s)
+        acc_x += dx
         ix = ix0 + acc_x
-        shift = 0.5 * window_s / h if h > 0 else 0.0
-        acc_m += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
+        acc_m += dm
         u = mr0 + acc_m
         bt[k] = t[k]
         by[k] = x[k] + ix / tau_s
         bm[k] = u
-        if sections:
-            if k == 0 and zi_per_unit:
-                z0, z1 = z0 * u, z1 * u
+        if fused:  # _first_order_section's recursion, in the integrals' loop: the two chains overlap
             v = b0 * u + z0
-            z0 = b1 * u - a1 * v + z1
-            z1 = b2 * u - a2 * v
+            z0 = b1 * u - a1 * v
             u = v
         bf[k] = u
         t_prev, x_prev, a_prev = t[k], x[k], aux[k]
-    if sections:
-        zi[0, 0], zi[0, 1] = z0, z1
+    if fused:
+        zi[0, 0], zi[0, 1] = z0, 0.0
+    elif sos.shape[0]:
         if n and zi_per_unit:
-            zi[1:] *= bm[0]
-        sosfilt_inplace(sos[1:], bf[:n], zi[1:])
+            zi *= bm[0]
+        sosfilt_inplace(sos, bf[:n], zi)
     return ix
 
 
@@ -216,10 +226,14 @@ def integrate_block(
 def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
     """scipy.signal.sosfilt(sos, x, zi=zi) in place on x and zi: each section s in turn runs over the whole
     block (the same operations as sample by sample through all sections, its state in registers):
-        y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y."""
+        y = b0 u + z0;  z0 = b1 u - a1 y + z1;  z1 = b2 u - a2 y
+    (a first-order section with z1 = 0: _first_order_section)."""
     for s in range(sos.shape[0]):
         b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
         z0, z1 = zi[s, 0], zi[s, 1]
+        if b2 == 0.0 and a2 == 0.0 and z1 == 0.0:
+            _first_order_section(b0, b1, a1, x, zi[s])
+            continue
         for k in range(x.size):
             u = x[k]
             v = b0 * u + z0
@@ -227,6 +241,21 @@ def sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
             z1 = b2 * u - a2 * v
             x[k] = v
         zi[s, 0], zi[s, 1] = z0, z1
+
+
+@njit(cache=True, inline="always")
+def _first_order_section(b0: float, b1: float, a1: float, x: np.ndarray, zi: np.ndarray) -> None:
+    """sosfilt_inplace's recursion for a first-order section (b2 = a2 = 0, z1 = 0): y = b0 u + z0;
+    z0 = b1 u - a1 y. The full recursion adds z1 = b2 u - a2 y, a signed zero, to z0, which leaves every number
+    as it is (w + 0 = w for w != 0; an exact zero may change its sign only, and -0 == 0); leaving that addition
+    out of the recursion's dependency chain makes the loop about a third faster."""
+    z0 = zi[0]
+    for k in range(x.size):
+        u = x[k]
+        v = b0 * u + z0
+        z0 = b1 * u - a1 * v
+        x[k] = v
+    zi[0], zi[1] = z0, 0.0
 
 
 def _fma_typing(typingctx: Any, a: Any, b: Any, c: Any) -> tuple[Any, Callable[..., Any]] | None:
@@ -313,11 +342,15 @@ def period_ratios(
     the buffer (t, y, H m_r); edges[p]: the period's (R_(i-1), F_a, R_i, F_b, R_(i+1)); lo, hi: the dither's
     recorded levels; the lock-in's filter 1/(1 + s tc)^order.
 
-    H m_d = lo (t - e_0 - n tc) + signed_ramp_sum of the edges' ramp_columns (each edge adds a ramp of slope
-    +-(hi - lo)); r = H m_d minus
-    its least-squares line a + b t over the window: with means over it, t' = t - mean t, v' = H m_d - mean H m_d,
-    b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'. H m = H m_r + H m_d. NaN where sum (H m) r = 0.
-    Sums and means are np.add.reduceat's over each window (reduceat_sum)."""
+    H m_d = lo (t - e_0 - n tc) + signed_ramp_sum of the edges' ramp responses (ramp_at; each edge adds a ramp of
+    slope +-(hi - lo)); r = H m_d minus its least-squares line a + b t over the window: with means over it,
+    t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'.
+    H m = H m_r + H m_d. NaN where sum (H m) r = 0. Sums and means are np.add.reduceat's over each window
+    (reduceat_sum).
+
+    Three passes per window: H m_d (stored: two sums read it); the products t'^2 and t' v'; the products
+    (H m) r and y r. t' and v' are formed again where they are needed rather than stored (the same subtraction
+    of the same operands), so each pass writes at most two arrays."""
     delay_s = order * tc_s
     step = hi - lo
     longest = 0
@@ -327,8 +360,6 @@ def period_ratios(
     rho = np.empty(k0.size)
     ramps = np.empty((5, longest))
     md = np.empty(longest)
-    tcn = np.empty(longest)
-    vcn = np.empty(longest)
     p1 = np.empty(longest)
     p2 = np.empty(longest)
     for p in range(k0.size):
@@ -344,15 +375,14 @@ def period_ratios(
         mt = reduceat_sum(tw, 0, n, work) / n
         mv = reduceat_sum(md, 0, n, work) / n
         for i in range(n):
-            tcn[i] = tw[i] - mt
-            vcn[i] = md[i] - mv
-            p1[i] = tcn[i] * tcn[i]
-            p2[i] = tcn[i] * vcn[i]
+            tcn = tw[i] - mt
+            p1[i] = tcn * tcn
+            p2[i] = tcn * (md[i] - mv)
         stt = reduceat_sum(p1, 0, n, work)
         stv = reduceat_sum(p2, 0, n, work)
         slope = stv / stt if stt > 0 else 0.0
         for i in range(n):
-            r = vcn[i] - tcn[i] * slope
+            r = (md[i] - mv) - (tw[i] - mt) * slope
             p1[i] = (mfw[i] + md[i]) * r
             p2[i] = yw[i] * r
         den = reduceat_sum(p1, 0, n, work)
@@ -409,29 +439,24 @@ def level_crossings(
     1 - intermediate (the latter wins)."""
     prev_t, prev_s, prev_side = prev
     span = hi - lo
-    off = 1 if prev_side >= 0 else 0
-    n = d.size + off
-    tt = np.empty(n)
-    ss = np.empty(n)
-    if off:
-        tt[0], ss[0] = prev_t, prev_s
-    for k in range(d.size):
-        tt[k + off] = t[k]
-        ss[k + off] = (d[k] - lo) / span
-    rising = np.empty(n)
-    falling = np.empty(n)
+    rising = np.empty(d.size)
+    falling = np.empty(d.size)
     nr = 0
     nf = 0
+    # the reading before the loop's first: the previous block's last, or this block's first (its side its own)
+    start = 0 if prev_side >= 0 else 1
+    tp, sp = (prev_t, prev_s) if prev_side >= 0 else (t[0], (d[0] - lo) / span)
     if prev_side >= 0:
         high = prev_side == 1
-    elif ss[0] > 1.0 - hysteresis:
+    elif sp > 1.0 - hysteresis:
         high = True
-    elif ss[0] < hysteresis:
+    elif sp < hysteresis:
         high = False
     else:
-        high = ss[0] > 0.5
-    for k in range(1, n):
-        s = ss[k]
+        high = sp > 0.5
+    for k in range(start, d.size):
+        tk = t[k]
+        s = (d[k] - lo) / span
         if s > 1.0 - hysteresis:
             now = True
         elif s < hysteresis:
@@ -439,15 +464,14 @@ def level_crossings(
         else:
             now = high
         if now != high:
-            sp = ss[k - 1]
             frac_new = s if now else 1.0 - s
             frac_old = sp if now else 1.0 - sp
-            e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+            e = 0.5 * (tp + tk - window_s)
             if window_s > 0.0:
                 if frac_old > intermediate:
-                    e = tt[k - 1] - window_s * frac_old
+                    e = tp - window_s * frac_old
                 if frac_new > intermediate and frac_new < 1.0 - intermediate:
-                    e = tt[k] - window_s * frac_new
+                    e = tk - window_s * frac_new
             if now:
                 rising[nr] = e
                 nr += 1
@@ -455,7 +479,8 @@ def level_crossings(
                 falling[nf] = e
                 nf += 1
             high = now
-    return rising[:nr], falling[:nf], ss[n - 1], high
+        tp, sp = tk, s
+    return rising[:nr], falling[:nf], sp, high
 
 
 @njit(cache=True)
