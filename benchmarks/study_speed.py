@@ -8,19 +8,24 @@
    run file's size at both levels. And the ceiling: the real-time factor of the gyro twin's physics alone
    (sims.gyro.GyroSim's kernel and noise draws, sim_speed.py's inputs, in the same 2 s and 10 s blocks, noise drawn
    ahead as in this process's tasks): no task can beat it, since a task runs that and the world, the HF2 twin's
-   demodulators, the drivers, CLSF, the file and the analysis besides. And the task thread's CPU s (everything
+   demodulators, the drivers, CLSF, the file and the analysis besides; a task's real-time factor as a share of
+   the ceiling in the same blocks (`realtime_factor_share_of_ceiling`) is the figure the host's speed cancels
+   from, so it tells a change of the code from a slower or faster day. And the task thread's CPU s (everything
    but the noise and writer threads) against the wall time that 3000x allows, and all its threads' CPU s
    against what the machine's cores give in that time: a share above 1 is out of reach of this code on this
    machine, however the work is spread over threads.
-2. Throughput: `--tasks` paper campaigns at the study level on a LocalCluster of 1 and of 2 single-threaded worker
-   processes (every worker warmed up by a short campaign first; the cluster's start is not counted): simulated
-   campaign-hours per wall hour, and the scaling efficiency throughput(2) / (2 x throughput(1)). Both with one
-   core per worker, as `qmg-lab study` runs a LocalCluster that fills the cores: the twins draw their noise in
-   the worker's thread (station.set_twin_noise_draw_ahead(False)), so that the one-worker figure does not borrow
-   the idle second core for its noise thread. The one worker is also run with the noise drawn ahead
-   (`one_worker_draw_ahead`: what a single worker on an otherwise idle 2-core machine does).
+2. Throughput: batches of `--tasks` paper campaigns at the study level on a LocalCluster of 1 and one of 2
+   single-threaded worker processes (every worker warmed up by a short campaign first; the clusters' start is not
+   counted), `--rounds` rounds of one batch on each, back to back in alternating order: simulated campaign-hours
+   per wall hour (medians over the rounds), and the scaling efficiency throughput(2) / (2 x throughput(1)), the
+   median of the rounds' own ratios (the host's speed drifts over minutes; within a round it compares like with
+   like). Both with one core per worker, as `qmg-lab study` runs a LocalCluster that fills the cores: the twins
+   draw their noise in the worker's thread (station.set_twin_noise_draw_ahead(False)), so that the one-worker
+   figure does not borrow the idle second core for its noise thread. The one worker also runs a batch with the
+   noise drawn ahead in every round (`one_worker_draw_ahead`: what a single worker on an otherwise idle 2-core
+   machine does).
 
-    python benchmarks/study_speed.py [--json] [--runs N] [--tasks N]
+    python benchmarks/study_speed.py [--json] [--runs N] [--tasks N] [--rounds N]
 
 Targets (issue 14): scaling efficiency >= 0.8 on a 2-core machine; per-task real-time factor >= 3000. The machine
 may be shared: quote medians and say how loaded it was (the load average is printed).
@@ -101,7 +106,7 @@ def per_task(runs: int) -> dict[str, Any]:
     simulated = study[0].simulated_s
     main_cpu = statistics.median(t.main_thread_cpu_s for t in study)
     main_cpu_10 = statistics.median(t.main_thread_cpu_s for t in blocks10)
-    return {
+    out: dict[str, Any] = {
         "simulated_s": simulated,
         "wall_s_study_level": [round(t.wall_s, 3) for t in study],
         "realtime_factor_study_level": statistics.median(t.simulated_s / t.wall_s for t in study),
@@ -122,31 +127,22 @@ def per_task(runs: int) -> dict[str, Any]:
         "file_mb_study_level": study[0].file_mb,
         "file_mb_full_level": full.file_mb,
     }
+    # how close a task runs to the gyro's physics alone in the same blocks: the host's speed cancels from it
+    out["realtime_factor_share_of_ceiling"] = out["realtime_factor_study_level"] / out["ceiling_realtime_factor"]
+    out["realtime_factor_share_of_ceiling_10s_blocks"] = (
+        out["realtime_factor_study_level_10s_blocks"] / out["ceiling_realtime_factor_10s_blocks"]
+    )
+    return out
 
 
-def throughput(n_workers: int, tasks: int, draw_ahead: bool | None = False) -> dict[str, Any]:
-    from distributed import Client, LocalCluster, wait
-
-    with (
-        LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster,
-        Client(cluster) as client,
-    ):
-        addresses = list(client.scheduler_info(n_workers=-1)["workers"])
-        warm = [
-            client.submit(timed_campaign, paper_text("study", **WARM_UP), draw_ahead, workers=[a], pure=False)
-            for a in addresses
-        ]
-        wait(warm)
-        text = paper_text("study")
-        t0 = time.perf_counter()
-        futures = [client.submit(timed_campaign, text, draw_ahead, pure=False) for _ in range(tasks)]
-        results = client.gather(futures)
-        wall = time.perf_counter() - t0
+def _batch(client: Any, text: str, tasks: int, draw_ahead: bool | None) -> dict[str, Any]:
+    """`tasks` study tasks of `text` on the client's cluster: their wall time and simulated campaign-hours."""
+    t0 = time.perf_counter()
+    futures = [client.submit(timed_campaign, text, draw_ahead, pure=False) for _ in range(tasks)]
+    results = client.gather(futures)
+    wall = time.perf_counter() - t0
     simulated_h = sum(t.simulated_s for t in results) / 3600.0
     return {
-        "workers": n_workers,
-        "twin_draw_ahead": draw_ahead,
-        "tasks": tasks,
         "wall_s": wall,
         "campaign_hours": simulated_h,
         "campaign_hours_per_wall_hour": simulated_h / (wall / 3600.0),
@@ -154,17 +150,68 @@ def throughput(n_workers: int, tasks: int, draw_ahead: bool | None = False) -> d
     }
 
 
+def _summary(n_workers: int, draw_ahead: bool | None, tasks: int, batches: list[dict[str, Any]]) -> dict[str, Any]:
+    """One configuration's batches over the rounds: the median of each figure, and the rounds' throughputs."""
+    return {
+        "workers": n_workers,
+        "twin_draw_ahead": draw_ahead,
+        "tasks": tasks,
+        "rounds": len(batches),
+        **{k: statistics.median(b[k] for b in batches) for k in batches[0]},
+        "campaign_hours_per_wall_hour_by_round": [round(b["campaign_hours_per_wall_hour"]) for b in batches],
+    }
+
+
+def throughput(tasks: int, rounds: int) -> dict[str, Any]:
+    """A LocalCluster of 1 and one of 2 single-threaded worker processes, both started and warmed up first, then
+    `rounds` rounds of a batch of `tasks` on each (the order alternating from round to round) and a batch on the
+    one worker with the noise drawn ahead. The host's speed drifts over minutes; a round's two batches run
+    back to back, so each round's efficiency throughput(2) / (2 x throughput(1)) compares like with like, and
+    the scaling efficiency is their median."""
+    from distributed import Client, LocalCluster, wait
+
+    def cluster(n: int) -> LocalCluster:
+        return LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+
+    with cluster(1) as c1, Client(c1) as one, cluster(2) as c2, Client(c2) as two:
+        for client in (one, two):
+            addresses = list(client.scheduler_info(n_workers=-1)["workers"])
+            warm = [
+                client.submit(timed_campaign, paper_text("study", **WARM_UP), False, workers=[a], pure=False)
+                for a in addresses
+            ]
+            wait(warm)
+        text = paper_text("study")
+        ones, twos, aheads, efficiencies = [], [], [], []
+        for r in range(rounds):
+            if r % 2 == 0:
+                b1, b2 = _batch(one, text, tasks, False), _batch(two, text, tasks, False)
+            else:
+                b2, b1 = _batch(two, text, tasks, False), _batch(one, text, tasks, False)
+            ones.append(b1)
+            twos.append(b2)
+            efficiencies.append(b2["campaign_hours_per_wall_hour"] / (2 * b1["campaign_hours_per_wall_hour"]))
+            aheads.append(_batch(one, text, tasks, None))
+    return {
+        "one_worker": _summary(1, False, tasks, ones),
+        "two_workers": _summary(2, False, tasks, twos),
+        "one_worker_draw_ahead": _summary(1, None, tasks, aheads),
+        "scaling_efficiency_by_round": [round(e, 3) for e in efficiencies],
+        "scaling_efficiency": statistics.median(efficiencies),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--runs", type=int, default=3, help="per-task timing repeats (median)")
-    ap.add_argument("--tasks", type=int, default=4, help="paper campaigns per throughput measurement")
+    ap.add_argument("--tasks", type=int, default=4, help="paper campaigns per throughput batch")
+    ap.add_argument("--rounds", type=int, default=3, help="throughput rounds (1 and 2 workers each; median)")
     args = ap.parse_args()
     load_before = os.getloadavg()
     task = per_task(args.runs)
-    one = throughput(1, args.tasks)
-    two = throughput(2, args.tasks)
-    one_ahead = throughput(1, args.tasks, draw_ahead=None)
+    scaling = throughput(args.tasks, args.rounds)
+    one, two, one_ahead = scaling["one_worker"], scaling["two_workers"], scaling["one_worker_draw_ahead"]
     report = {
         "cores": os.cpu_count(),
         "load_average_before": [round(x, 2) for x in load_before],
@@ -175,7 +222,8 @@ def main() -> None:
         "one_worker_draw_ahead": one_ahead,
         "campaign_hours_per_wall_hour_1": one["campaign_hours_per_wall_hour"],
         "campaign_hours_per_wall_hour_2": two["campaign_hours_per_wall_hour"],
-        "scaling_efficiency": two["campaign_hours_per_wall_hour"] / (2 * one["campaign_hours_per_wall_hour"]),
+        "scaling_efficiency": scaling["scaling_efficiency"],
+        "scaling_efficiency_by_round": scaling["scaling_efficiency_by_round"],
         "realtime_factor_per_task": task["realtime_factor_study_level"],
         "ceiling_realtime_factor_per_task": task["ceiling_realtime_factor"],
         "targets": {"scaling_efficiency": 0.8, "realtime_factor_per_task": 3000},
@@ -195,7 +243,9 @@ def main() -> None:
     )
     print(
         f"ceiling (the gyro twin's physics alone): {task['ceiling_realtime_factor']:.0f}x in 2 s blocks, "
-        f"{task['ceiling_realtime_factor_10s_blocks']:.0f}x in 10 s blocks"
+        f"{task['ceiling_realtime_factor_10s_blocks']:.0f}x in 10 s blocks; a task runs at "
+        f"{task['realtime_factor_share_of_ceiling']:.2f} and {task['realtime_factor_share_of_ceiling_10s_blocks']:.2f} "
+        "of it"
     )
     print(
         f"task thread's CPU: {task['main_thread_cpu_s_study_level']:.2f} s in 2 s blocks, "
@@ -207,9 +257,12 @@ def main() -> None:
         ahead = ", noise drawn ahead" if r["twin_draw_ahead"] is None else ""
         print(
             f"{r['workers']} worker(s){ahead}: {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
-            f"({r['tasks']} campaigns, {r['wall_s']:.1f} s)"
+            f"(median of {r['rounds']} batches of {r['tasks']} campaigns, {r['wall_s']:.1f} s a batch)"
         )
-    print(f"scaling efficiency: {report['scaling_efficiency']:.2f} (target 0.8)")
+    print(
+        f"scaling efficiency: {report['scaling_efficiency']:.2f} (target 0.8; rounds "
+        f"{', '.join(f'{e:.2f}' for e in report['scaling_efficiency_by_round'])})"
+    )
 
 
 if __name__ == "__main__":
