@@ -194,7 +194,7 @@ def integrate_block(
     fused = sos.shape[0] == 1 and sos[0, 2] == 0.0 and sos[0, 5] == 0.0 and zi[0, 1] == 0.0
     b0, b1, a1, z0 = (sos[0, 0], sos[0, 1], sos[0, 4], zi[0, 0]) if fused else (0.0, 0.0, 0.0, 0.0)
     if fused and n and zi_per_unit:  # the state at rest for the first m_r (the loop's first step, done ahead)
-        first = 0.0
+        first = 0.0  # 0.0 + the term, as acc_m forms it in the loop (a -0.0 term then sums to +0.0)
         first += _trapezoid_term(t[0] - t_prev, x[0], x_prev, aux[0], a_prev, window_s)[1]
         z0 *= mr0 + first
     for k in range(n):
