@@ -1,4 +1,4 @@
-"""The paper's figures beside what qmg-lab gets on the simulated twins: the README's comparison table.
+"""The paper's figures beside what qmg-lab gets on the simulated twins: the table of docs/paper-comparison.md.
 
 Runs, each as a user would (`python -m qmg_lab ...`):
   1. configs/paper_campaign.toml --sim      (Figs. 4-6: CLSF accuracy over the 25 -> 35 degC sweep)
