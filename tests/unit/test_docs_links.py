@@ -7,6 +7,8 @@ Checked on README.md and every docs/*.md:
 - every page path written out in the text (`docs/NAME.md`) exists;
 - docs/index.md links every page of docs/;
 - nothing cites the workspace's shared folder (the repository must stand alone);
+- no page but docs/performance.md carries a benchmark journal: the marks of one (a load average, ns per step,
+  CPU seconds, medians of so many runs) appear nowhere else;
 - README.md stays a front door: at most 6 KiB (6144 bytes).
 
 Fenced code blocks and inline code spans are masked before links are looked for, so that Python such as
@@ -31,6 +33,12 @@ CODE_SPAN = re.compile(r"`[^`\n]*`")
 LINK = re.compile(r"!?\[[^\]\n]*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 PAGE_PATH = re.compile(r"(?<![\w./-])docs/[\w.-]+\.md\b")
 SCHEME = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*:")
+PERFORMANCE = DOCS / "performance.md"
+JOURNAL_MARKS = re.compile(
+    r"load average|1-minute load|\d ?ns ?(?:/|per) ?step|\d CPU s\b"
+    r"|medians? of \d+ (?:runs|alternating|processes|rounds)",
+    re.IGNORECASE,
+)
 
 
 def _prose(text: str) -> str:
@@ -80,6 +88,17 @@ def test_no_page_cites_the_shared_workspace(page: Path) -> None:
     text = page.read_text(encoding="utf-8")
     for cited in ("../shared", "/work/shared"):
         assert cited not in text, f"{_name(page)} cites {cited}: the repository must stand alone"
+
+
+@pytest.mark.parametrize("page", [p for p in PAGES if p != PERFORMANCE], ids=_name)
+def test_measurement_journals_live_only_in_performance_md(page: Path) -> None:
+    text = page.read_text(encoding="utf-8")
+    marks = [m.group(0) for m in JOURNAL_MARKS.finditer(text)]
+    assert not marks, f"{_name(page)} carries measured speed figures ({marks}): they belong in docs/performance.md"
+
+
+def test_performance_md_carries_the_journals() -> None:
+    assert JOURNAL_MARKS.search(PERFORMANCE.read_text(encoding="utf-8")), "the journal marks no longer match anything"
 
 
 def test_the_index_links_every_page() -> None:
