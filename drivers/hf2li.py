@@ -24,6 +24,7 @@ session: a new data-server connection on hardware, a new Session over the same t
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 from typing import Any
@@ -272,10 +273,14 @@ class HF2LI(LockIn):
     def reconnect(self) -> None:
         """A new session to the same server (a new data-server connection on hardware, a new Session over the
         same connection object for the twin), re-identify (options included), re-apply the last configuration
-        and forcer gain."""
+        and forcer gain. On hardware the old connection is closed first (ziDAQServer.disconnect, best effort:
+        it is usually the one that failed)."""
         was_streaming, gain = self._streaming, self._forcer_gain
         log.info("HF2LI %s: reconnecting (streaming %s)", self.device_id, was_streaming)
         self._streaming = False
+        if self._connection is None:
+            with contextlib.suppress(Exception):
+                self._session.daq_server.disconnect()
         self._session = self._open_session()
         self._attach()
         if self._setup is not None:
