@@ -15,7 +15,9 @@ PID) has and stores a value per leaf. Where each count comes from:
   ``{'/dev1492/sigouts/0/enables/6': 0, '/dev1492/sigouts/0/enables/7': 0}``; zhinst-utils
   ``default_output_mixer_channel``: output 1 -> 6, output 2 -> 7 without MF). *Assumed*: amplitudes/waveforms list
   the same channels as enables, and the demodulator count (6) does not depend on MF.
-* *Not modelled*: the MOD option (``mods`` is listed whatever the options), ZCTRL/CPU branches as recorded.
+* the ``mods`` branch (2 modulators) only with the MOD option: *inferred* by analogy with ``pids`` (the recorded
+  list shows an option's branch absent without the option); ZCTRL and CPU branches as recorded, whatever the
+  options.
 
 The nodedoc carries no power-on values; ``POWER_ON`` holds the twin's (documented in docs/wiring.md). A real
 HF2 after power-on differs in details; the driver configures every node it relies on, so nothing depends on them.
@@ -144,6 +146,8 @@ def instances(options: tuple[str, ...]) -> dict[str, tuple[int, ...]]:
         table["plls/n"] = ()
     if "PID" not in options:
         table["pids/n"] = ()
+    if "MOD" not in options:
+        table["mods/n"] = ()
     return table
 
 

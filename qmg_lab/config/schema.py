@@ -37,7 +37,7 @@ class _Section(BaseModel):
 Terminator = Literal["CR", "LF", "CRLF"]
 ReplyTerminator = Literal["auto", "CR", "LF", "CRLF"]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-HF2Option = Literal["MF", "PLL", "PID"]
+HF2Option = Literal["MF", "PLL", "PID", "MOD"]
 DEFAULT_HF2_OPTIONS: tuple[HF2Option, ...] = ("MF", "PLL", "PID")
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
@@ -462,8 +462,9 @@ class SimSection(_Section):
     )
     hf2_options: list[HF2Option] = Field(
         default_factory=lambda: list(DEFAULT_HF2_OPTIONS),
-        description="options of the twin's HF2LI (features/options); its node tree lists what such an instrument "
-        "lists (without MF: 2 oscillators, output mixer channels 6 and 7 only)",
+        description="options of the twin's HF2LI (features/options), any of MF, PLL, PID, MOD; its node tree lists "
+        "what such an instrument lists (without MF: 2 oscillators, output mixer channels 6 and 7 only; no plls, "
+        "pids, mods branch without PLL, PID, MOD)",
     )
     hf2_rate_set: Literal["hf2", "ticks"] = Field(
         "hf2",
