@@ -6,19 +6,37 @@ Channel assignment (fixed here, documented in docs/wiring.md):
 * demod 0 = drive (input drive_sigin), demod 1 = sense (input sense_sigin), both on the PLL 0 oscillator,
   harmonic 1, phaseshift 0, same rate and filter;
 * PLL 0 on drive_sigin: frequency = freqcenter + p e + i int(e) (e = phase - setpoint, deg), range freqrange;
-* PID 0 = AGC: input R (2) of demod 0 -> output drive_sigout amplitude (0/1), mixer channel DRIVE_MIXER_CHANNEL;
+* PID 0 = AGC: input R (2) of demod 0 -> output drive_sigout amplitude (0/1), outputchannel = the drive mixer
+  channel (pids/n/outputchannel: "the channel of the selected OUTPUT", nodedoc_hf2.json);
 * PID 1 = rate: input X (0) of demod 1 -> AuxOut offset (3), channel rate_auxout (manual mode, outputselect -1);
 * PID 2 = quadrature: input Y (1) of demod 1 -> AuxOut offset (3), channel quadrature_auxout; PID 3 off;
-* forcer carrier: forcer_sigout mixer channel forcer_mixer_channel (default 1 = demod 1's oscillator, i.e. the
-  PLL frequency), amplitude = forcer_carrier_amplitude * forcer_gain (fraction of the output range).
+* forcer carrier: forcer_sigout, the forcer mixer channel, amplitude = forcer_carrier_amplitude * forcer_gain
+  (fraction of the output range).
+
+Mixer channels (``mixer_layout``), from the instrument's ``features/options``:
+* with the MF option every output lists mixer channels 0..7 (zhinst-toolkit's recorded HF2 node list
+  tests/data/list_nodes_hf2_dev.txt: sigouts/n/{enables,amplitudes,waveforms}/0..7); mixer channel m runs on the
+  oscillator of demod m. Drive = channel 0 (demod 0's oscillator = the PLL's), forcer = channel 1 (demod 1's).
+* without MF each output is driven by one mixer channel: output 1 by channel 6, output 2 by channel 7
+  (zhinst-utils ``default_output_mixer_channel``; zhinst-toolkit's HF2 PID-advisor example uses
+  ``OUT_MIXER_CHANNEL = 6``); the outputs list only channels 6 and 7 (a recorded non-MF HF2, dev1492, in the
+  public qudi-iqo-modules HF2 driver: ``{'/dev1492/sigouts/0/enables/6': 0, '/dev1492/sigouts/0/enables/7': 0}``).
+  Which oscillator channels 6 and 7 run on is not a node of a non-MF HF2; *unconfirmed*: the PLL's (check the
+  output frequency at bring-up, docs/bench-bringup.md).
+* ``[lockin] drive_mixer_channel`` / ``forcer_mixer_channel`` override the derived channel for a bench wired
+  otherwise (it must be one the instrument lists).
+* PLL and PID are required options (the PLL closes the drive loop, the PIDs the AGC, rate and quadrature loops):
+  a lock-in without one is refused (MissingOptionError, an InstrumentError: exit 3).
 """
 
 from __future__ import annotations
 
 import math
+import re
+from dataclasses import dataclass
 from typing import Any, Protocol
 
-from qmg_lab.instruments import LimitError, LockInSetup, PidGains, check_limit
+from qmg_lab.instruments import InstrumentError, LimitError, LockInSetup, PidGains, check_limit
 
 DRIVE_DEMOD, SENSE_DEMOD = 0, 1
 AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
@@ -26,8 +44,11 @@ AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
 # samples and align the result by timestamp with the demodulator sample, but the ADC rate was not found. With the
 # default averaging 0 the window is a single ADC sample and this value hardly matters (docs/wiring.md).
 AUXIN_ADC_RATE_HZ = 400e3
-DRIVE_MIXER_CHANNEL = 0  # uses demod 0's oscillator = the PLL oscillator
-DEFAULT_FORCER_MIXER_CHANNEL = 1  # uses demod 1's oscillator = the PLL oscillator
+DRIVE_MIXER_CHANNEL = 0  # with MF: uses demod 0's oscillator = the PLL oscillator
+DEFAULT_FORCER_MIXER_CHANNEL = 1  # with MF: uses demod 1's oscillator = the PLL oscillator
+NON_MF_OUTPUT_MIXER_CHANNELS = (6, 7)  # without MF: output 1 -> channel 6, output 2 -> channel 7 (module doc)
+REQUIRED_OPTIONS = ("PLL", "PID")
+N_DEMODS = 6  # demodulators of an HF2LI (recorded node list: demods/0..5), with or without MF
 SIGOUT_RANGES_V = (0.01, 0.1, 1.0, 10.0)
 FORCER_OUTPUT_RANGE_V = 1.0  # carrier into the external modulator: amplitude = fraction * 1 V
 SIGIN_RANGE_V = 1.0  # pickoff inputs: drive pickoff ~0.7 V peak at 0.5 Vrms
@@ -59,8 +80,68 @@ class LockInWiring(Protocol):
     def dither_auxin(self) -> int: ...
 
 
-def forcer_mixer_channel(wiring: LockInWiring) -> int:
-    return int(getattr(wiring, "forcer_mixer_channel", DEFAULT_FORCER_MIXER_CHANNEL))
+class MissingOptionError(InstrumentError):
+    """The lock-in lacks an option the loops need (PLL or PID)."""
+
+
+def parse_options(text: str) -> tuple[str, ...]:
+    """``features/options`` ("a newline-separated list of all installed options", nodedoc_hf2.json) as upper-case
+    option names; commas and blanks are taken as separators too."""
+    return tuple(o.upper() for o in re.split(r"[\s,]+", str(text)) if o)
+
+
+def check_options(devtype: str, options: tuple[str, ...]) -> None:
+    """MissingOptionError naming each required option (REQUIRED_OPTIONS) the instrument lacks."""
+    missing = [o for o in REQUIRED_OPTIONS if o not in options]
+    if missing:
+        names = " and ".join(missing)
+        raise MissingOptionError(
+            f"the {devtype} lacks the {names} option{'s' if len(missing) > 1 else ''} (installed options: "
+            f"{', '.join(options) or 'none'}): qmg-lab closes the drive loop with the PLL and the AGC, rate and "
+            "quadrature loops with the PIDs, and cannot run without them"
+        )
+
+
+@dataclass(frozen=True)
+class MixerLayout:
+    """Which output mixer channels the instrument has and which ones carry the drive and the forcer carrier."""
+
+    channels: tuple[int, ...]  # mixer channels every signal output lists (sigouts/n/enables/<m>)
+    drive: int  # mixer channel of drive_sigout carrying the drive
+    forcer: int  # mixer channel of forcer_sigout carrying the forcer carrier
+
+    @property
+    def multi_frequency(self) -> bool:
+        return len(self.channels) > len(NON_MF_OUTPUT_MIXER_CHANNELS)
+
+
+def mixer_layout(options: tuple[str, ...], wiring: LockInWiring) -> MixerLayout:
+    """The mixer channels from the options (module doc) and the wiring, with the [lockin] drive_mixer_channel /
+    forcer_mixer_channel overrides (None = derived). ValueError names an impossible choice."""
+    w = wiring
+    if "MF" in options:
+        channels: tuple[int, ...] = tuple(range(N_MIXER_CHANNELS))
+        drive, forcer = DRIVE_MIXER_CHANNEL, DEFAULT_FORCER_MIXER_CHANNEL
+    else:
+        channels = NON_MF_OUTPUT_MIXER_CHANNELS
+        drive, forcer = channels[w.drive_sigout], channels[w.forcer_sigout]
+    override_drive = getattr(w, "drive_mixer_channel", None)
+    override_forcer = getattr(w, "forcer_mixer_channel", None)
+    drive = drive if override_drive is None else int(override_drive)
+    forcer = forcer if override_forcer is None else int(override_forcer)
+    for name, m in (("drive_mixer_channel", drive), ("forcer_mixer_channel", forcer)):
+        if m not in channels:
+            kind = "with" if "MF" in options else "without"
+            raise ValueError(
+                f"lock-in wiring: {name} = {m} is not a mixer channel of this HF2 ({kind} the MF option it has "
+                f"channels {', '.join(map(str, channels))})"
+            )
+    if drive == forcer and w.drive_sigout == w.forcer_sigout:
+        raise ValueError(
+            f"lock-in wiring: the drive and the forcer carrier both use mixer channel {drive} of output "
+            f"{w.drive_sigout}: they need two channels (or two outputs)"
+        )
+    return MixerLayout(channels=channels, drive=drive, forcer=forcer)
 
 
 def check_wiring(wiring: LockInWiring) -> None:
@@ -78,12 +159,10 @@ def check_wiring(wiring: LockInWiring) -> None:
         v = getattr(wiring, name, None)
         if not isinstance(v, int) or not 0 <= v <= hi:
             raise ValueError(f"lock-in wiring: {name} = {v!r} must be an integer in [0, {hi}]")
-    m = forcer_mixer_channel(wiring)
-    if not 0 <= m < N_MIXER_CHANNELS or (m == DRIVE_MIXER_CHANNEL and wiring.forcer_sigout == wiring.drive_sigout):
-        raise ValueError(
-            f"lock-in wiring: forcer_mixer_channel = {m} must be in [0, 7] and differ from the "
-            "drive channel when both use the same output"
-        )
+    for name in ("drive_mixer_channel", "forcer_mixer_channel"):
+        m = getattr(wiring, name, None)
+        if m is not None and (not isinstance(m, int) or not 0 <= m < N_MIXER_CHANNELS):
+            raise ValueError(f"lock-in wiring: {name} = {m!r} must be an integer in [0, 7] (or unset)")
     if not 0.0 < float(wiring.forcer_carrier_amplitude) <= 1.0:
         raise ValueError(
             f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
@@ -170,10 +249,11 @@ def _pid_nodes(n: int, g: PidGains, inp: int, inch: int, out: int, outch: int) -
     ]
 
 
-def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[tuple[str, Any]]:
-    """The (relative path, value) pairs of a full configuration, loops enabled last. Call check_setup first."""
+def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int, layout: MixerLayout) -> list[tuple[str, Any]]:
+    """The (relative path, value) pairs of a full configuration, loops enabled last. Call check_setup first.
+    Only nodes the instrument of ``layout`` lists are named (its mixer channels)."""
     w = wiring
-    fm = forcer_mixer_channel(w)
+    dm, fm = layout.drive, layout.forcer
     drange = drive_output_range(setup.agc)
     s: list[tuple[str, Any]] = [
         ("pids/*/enable", 0),
@@ -196,8 +276,9 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
             (b + "rate", setup.demod_rate_hz),
             (b + "enable", 1),
         ]
-    if fm not in (DRIVE_DEMOD, SENSE_DEMOD):  # the forcer channel's oscillator must be the PLL's too
-        s += [(f"demods/{fm}/oscselect", pll_osc), (f"demods/{fm}/harmonic", 1), (f"demods/{fm}/phaseshift", 0.0)]
+    for m in sorted({dm, fm} - {DRIVE_DEMOD, SENSE_DEMOD}):  # an output channel's oscillator must be the PLL's
+        if m < N_DEMODS:  # channels 6 and 7 have no demodulator whose oscillator could be chosen (module doc)
+            s += [(f"demods/{m}/oscselect", pll_osc), (f"demods/{m}/harmonic", 1), (f"demods/{m}/phaseshift", 0.0)]
     s += [("auxins/0/averaging", int(setup.auxin_averaging))]
     b = "plls/0/"
     s += [
@@ -216,18 +297,18 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
         (b + "order", int(setup.demod_order)),
     ]
     # outputs: drive channel and forcer carrier; every other mixer channel of the used outputs off
-    used = {(w.drive_sigout, DRIVE_MIXER_CHANNEL), (w.forcer_sigout, fm)}
+    used = {(w.drive_sigout, dm), (w.forcer_sigout, fm)}
     for out in sorted({w.drive_sigout, w.forcer_sigout}):
-        for m in range(N_MIXER_CHANNELS):
+        for m in layout.channels:
             if (out, m) not in used:
                 s.append((f"sigouts/{out}/enables/{m}", 0))
     s += [
         (f"sigouts/{w.drive_sigout}/range", drange),
         (f"sigouts/{w.drive_sigout}/add", 0),
         (f"sigouts/{w.drive_sigout}/offset", 0.0),
-        (f"sigouts/{w.drive_sigout}/waveforms/{DRIVE_MIXER_CHANNEL}", 0),
-        (f"sigouts/{w.drive_sigout}/amplitudes/{DRIVE_MIXER_CHANNEL}", setup.agc.center / drange),
-        (f"sigouts/{w.drive_sigout}/enables/{DRIVE_MIXER_CHANNEL}", 1),
+        (f"sigouts/{w.drive_sigout}/waveforms/{dm}", 0),
+        (f"sigouts/{w.drive_sigout}/amplitudes/{dm}", setup.agc.center / drange),
+        (f"sigouts/{w.drive_sigout}/enables/{dm}", 1),
     ]
     if w.forcer_sigout != w.drive_sigout:
         s += [
@@ -242,7 +323,7 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
     ]
     for ch, g in ((w.rate_auxout, setup.rate), (w.quadrature_auxout, setup.quadrature)):
         s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/scale", 1.0), (f"auxouts/{ch}/offset", g.center)]
-    s += _pid_nodes(AGC_PID, setup.agc, 2, DRIVE_DEMOD, w.drive_sigout, DRIVE_MIXER_CHANNEL)
+    s += _pid_nodes(AGC_PID, setup.agc, 2, DRIVE_DEMOD, w.drive_sigout, dm)
     s += _pid_nodes(RATE_PID, setup.rate, 0, SENSE_DEMOD, 3, w.rate_auxout)
     s += _pid_nodes(QUAD_PID, setup.quadrature, 1, SENSE_DEMOD, 3, w.quadrature_auxout)
     # switch on: outputs, PLL, then the loops
@@ -257,13 +338,13 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int) -> list[
     return s
 
 
-def safe_nodes(wiring: LockInWiring, output_safe_v: float) -> list[tuple[str, Any]]:
+def safe_nodes(wiring: LockInWiring, output_safe_v: float, layout: MixerLayout) -> list[tuple[str, Any]]:
     """Safe state: every PID off, the loop AuxOuts in manual mode at output_safe_v, forcer carrier amplitude 0,
     both signal outputs off (the resonator then rings down freely, tau = 2Q/omega). The PLL is left running: it
     drives nothing but its oscillator."""
     check_limit("output_safe_v", output_safe_v, -AUXOUT_LIMIT_V, AUXOUT_LIMIT_V, "V")
     w = wiring
-    fm = forcer_mixer_channel(w)
+    fm = layout.forcer
     s: list[tuple[str, Any]] = [("pids/*/enable", 0)]
     for ch in (w.rate_auxout, w.quadrature_auxout):
         s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/offset", float(output_safe_v))]

@@ -10,14 +10,27 @@ equal timestamps; t = (timestamp - t0_ticks) / clockbase with t0_ticks the first
 Lost samples = sum over timestamp gaps of (gap / ticks_per_sample - 1), ticks_per_sample = clockbase / rate
 (read back), including the gap between the last sample of the previous block and the first of this one; the
 device flag ``status/flags/demodsampleloss`` counts as at least one lost sample when the gaps show none.
+
+Instrument as it is: at connect the driver reads ``features/devtype`` and ``features/options`` (kept in state(),
+hence in the run file's snapshot), refuses an instrument without the PLL or PID option (MissingOptionError) and
+derives the output mixer channels from the options (drivers/hf2_nodes.py ``mixer_layout``).
+
+Versions: zhinst-core refuses, by default, a data server of another LabOne version ("ZIAPIVersionMismatchException
+... The server is at LabOne version 'A' but the client is at LabOne version 'B'", zhinst-toolkit issues #291 and
+#294); ``allow_version_mismatch`` is passed to ``Session`` ([lockin] allow_version_mismatch) and a refusal is
+reported with both versions and the two ways out (``version_mismatch_message``). ``reconnect()`` opens a new
+session: a new data-server connection on hardware, a new Session over the same twin otherwise.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import re
 from typing import Any
 
 import numpy as np
+import zhinst.core
 from zhinst.toolkit import PollFlags, Session
 
 from drivers.hf2_nodes import (
@@ -28,10 +41,13 @@ from drivers.hf2_nodes import (
     RATE_PID,
     SENSE_DEMOD,
     LockInWiring,
+    MixerLayout,
+    check_options,
     check_setup,
     check_wiring,
     forcer_amplitude,
-    forcer_mixer_channel,
+    mixer_layout,
+    parse_options,
     safe_nodes,
     setup_nodes,
 )
@@ -49,14 +65,50 @@ log = logging.getLogger(__name__)
 
 PLL1_LOCKED_BIT = 1 << 20
 DEFAULT_HF2_PORT = 8005
+_SERVER_VERSION = re.compile(r"server is at LabOne version '([^']*)'", re.IGNORECASE)
+
+
+def version_mismatch_message(host: str, port: int, error: str) -> str | None:
+    """The explanation of a data server's refusal for a LabOne version mismatch (None for any other error):
+    both versions (the server's from zhinst-core's message, the client's = the installed zhinst-core) and the two
+    ways out: install the zhinst-core of the server's LabOne version, or allow the mismatch."""
+    if "version mismatch" not in error.lower() and "versionmismatch" not in error.lower():
+        return None
+    found = _SERVER_VERSION.search(error)
+    server = found.group(1) if found else "(see the message below)"
+    client = str(getattr(zhinst.core, "__version__", "unknown"))
+    wanted = server if found else "<LabOne version of the data server>"
+    return (
+        f"the HF2 data server at {host}:{port} runs LabOne {server}, but the installed zhinst-core is {client}: "
+        "zhinst-core refuses a data server of another LabOne version. Either install the matching client "
+        f'(pip install "zhinst-core=={wanted}"), or set allow_version_mismatch = true in [lockin] '
+        f"(the connection is then made; the two versions may not agree on every node). zhinst-core said: {error}"
+    )
+
+
+def data_server_session(host: str, port: int, allow_version_mismatch: bool) -> Session:
+    """One new connection to the HF2 data server at host:port (zhinst-toolkit 1.4's Session keyword
+    ``allow_version_mismatch``, passed on to zhinst.core.ziDAQServer)."""
+    return Session(host, port, hf2=True, allow_version_mismatch=allow_version_mismatch)
+
+
+def open_hf2_session(host: str, port: int, allow_version_mismatch: bool = False) -> Session:
+    """A zhinst-toolkit Session to the HF2 data server at host:port (API level 1); InstrumentError on refusal,
+    with both versions and the ways out when the LabOne versions differ."""
+    try:
+        return data_server_session(host, port, allow_version_mismatch)
+    except Exception as exc:  # zhinst.core raises RuntimeError (or its CoreError subclasses)
+        explained = version_mismatch_message(host, port, str(exc))
+        raise InstrumentError(explained or f"cannot reach the HF2 data server at {host}:{port}: {exc}") from exc
 
 
 class HF2LI(LockIn):
     """The HF2LI closing the PLL, AGC, rate and quadrature loops and streaming demods 0 (drive) and 1 (sense).
 
-    ``HF2LI(session_or_host, device_id, wiring, output_safe_v=0.0, port=8005)``: pass a toolkit Session
-    (already constructed; the device is connected here) or a host name (a Session is created, hf2=True).
-    ``wiring`` is qmg_lab.config.schema.LockInSection or any object with its cabling fields.
+    ``HF2LI(session_or_host, device_id, wiring, output_safe_v=0.0, port=8005, allow_version_mismatch=False)``:
+    pass a toolkit Session (already constructed; the device is connected here) or a host name (a Session is
+    created, hf2=True). ``wiring`` is qmg_lab.config.schema.LockInSection or any object with its cabling fields
+    (and optionally drive_mixer_channel / forcer_mixer_channel overrides).
     """
 
     def __init__(
@@ -66,15 +118,20 @@ class HF2LI(LockIn):
         wiring: LockInWiring,
         output_safe_v: float = 0.0,
         port: int = DEFAULT_HF2_PORT,
+        allow_version_mismatch: bool = False,
     ) -> None:
         check_wiring(wiring)
         check_limit("output_safe_v", output_safe_v, -10.0, 10.0, "V")
         self.device_id = device_id.lower()
         self.wiring = wiring
         self.output_safe_v = float(output_safe_v)
+        self.allow_version_mismatch = bool(allow_version_mismatch)
         if isinstance(session, Session):
             self._host, self._port = str(session.server_host), int(session.server_port)
-            self._connection: Any = session.daq_server
+            # a data-server connection of zhinst-core is hardware: reconnect() opens a new one; any other
+            # connection object (the twin) is reused by a new Session
+            daq = session.daq_server
+            self._connection: Any = None if isinstance(daq, zhinst.core.ziDAQServer) else daq
             self._session = session
         else:
             self._host, self._port, self._connection = str(session), int(port), None
@@ -86,21 +143,28 @@ class HF2LI(LockIn):
 
     # ------------------------------------------------------------------ connection
     def _open_session(self) -> Session:
+        if self._connection is None:
+            return open_hf2_session(self._host, self._port, self.allow_version_mismatch)
         try:
-            if self._connection is not None:
-                return Session(self._host, self._port, hf2=True, connection=self._connection)
-            return Session(self._host, self._port, hf2=True)
+            return Session(self._host, self._port, hf2=True, connection=self._connection)
         except Exception as exc:  # toolkit raises RuntimeError/ToolkitError from zhinst.core
             raise InstrumentError(f"HF2 data server at {self._host}:{self._port}: {exc}") from exc
 
     def _attach(self) -> None:
         try:
             self._device = self._session.connect_device(self.device_id)
-            devtype = self._device.features.devtype()
+            devtype = str(self._device.features.devtype())
+            options = parse_options(self._device.features.options())
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: cannot connect: {exc}") from exc
-        if "HF2" not in str(devtype).upper():
+        if "HF2" not in devtype.upper():
             raise InstrumentError(f"{self.device_id} identifies as {devtype!r}, not an HF2 instrument")
+        check_options(devtype, options)
+        try:
+            self.layout: MixerLayout = mixer_layout(options, self.wiring)
+        except ValueError as exc:
+            raise InstrumentError(f"HF2LI {self.device_id} (options {', '.join(options)}): {exc}") from exc
+        self.devtype, self.options = devtype, options
         self._clockbase = float(self._device.clockbase())
         self._pll_osc = int(self._device.plls[0].oscselect())
         dev = f"/{self.device_id}"  # the nodes every poll reads (plain getInt on the data server)
@@ -134,7 +198,7 @@ class HF2LI(LockIn):
 
     def state(self) -> dict[str, Any]:
         g = self._get
-        w, fm = self.wiring, forcer_mixer_channel(self.wiring)
+        w, fm = self.wiring, self.layout.forcer
         pids = {}
         for name, n in (("agc", AGC_PID), ("rate", RATE_PID), ("quadrature", QUAD_PID)):
             pids[name] = {
@@ -144,6 +208,9 @@ class HF2LI(LockIn):
             pids[name]["enable"] = int(g(f"pids/{n}/enable"))
         return {
             "device": self.device_id,
+            "devtype": self.devtype,
+            "options": list(self.options),
+            "mixer_channels": {"drive": self.layout.drive, "forcer": self.layout.forcer},
             "clockbase_hz": self._clockbase,
             "streaming": self._streaming,
             "pll": {
@@ -169,10 +236,32 @@ class HF2LI(LockIn):
         }
 
     def safe_state(self) -> None:
-        """PIDs off, loop AuxOuts at output_safe_v, forcer carrier 0, signal outputs off (idempotent)."""
+        """PIDs off, loop AuxOuts at output_safe_v, forcer carrier 0, signal outputs off (idempotent).
+
+        One transaction first; if it fails, every node is set on its own, so that one node the instrument
+        refuses (or does not list) never keeps the others from being made safe. Each failure is logged and the
+        InstrumentError raised at the end names every node that failed."""
+        failed: list[str] = []
         if self._streaming:
-            self.stop_stream()
-        self._send(safe_nodes(self.wiring, self.output_safe_v))
+            try:
+                self.stop_stream()
+            except InstrumentError as exc:
+                failed.append(f"stop stream ({exc})")
+        pairs = safe_nodes(self.wiring, self.output_safe_v, self.layout)
+        try:
+            self._send(pairs)
+        except InstrumentError as exc:
+            log.warning("HF2LI %s: safe state in one transaction failed (%s): node by node", self.device_id, exc)
+            for path, value in pairs:
+                try:
+                    self._device[path](value)
+                except Exception as node_exc:
+                    log.error("HF2LI %s: safe state: %s = %r failed: %s", self.device_id, path, value, node_exc)
+                    failed.append(f"{path} = {value!r} ({node_exc})")
+        if failed:
+            raise InstrumentError(
+                f"HF2LI {self.device_id}: safe state incomplete, the other nodes were set; failed: " + "; ".join(failed)
+            )
 
     def close(self) -> None:
         try:
@@ -182,11 +271,16 @@ class HF2LI(LockIn):
             self._streaming = False
 
     def reconnect(self) -> None:
-        """New session to the same server (same connection object for the twin), re-identify, re-apply the
-        last configuration and forcer gain."""
+        """A new session to the same server (a new data-server connection on hardware, a new Session over the
+        same connection object for the twin), re-identify (options included), re-apply the last configuration
+        and forcer gain. On hardware the old connection is closed first (ziDAQServer.disconnect, best effort:
+        it is usually the one that failed)."""
         was_streaming, gain = self._streaming, self._forcer_gain
         log.info("HF2LI %s: reconnecting (streaming %s)", self.device_id, was_streaming)
         self._streaming = False
+        if self._connection is None:
+            with contextlib.suppress(Exception):
+                self._session.daq_server.disconnect()
         self._session = self._open_session()
         self._attach()
         if self._setup is not None:
@@ -199,7 +293,7 @@ class HF2LI(LockIn):
     def configure(self, setup: LockInSetup) -> None:
         """Oscillator, demods 0/1, PLL 0, PIDs 0-2, outputs and AuxOuts in one transaction (limits first)."""
         check_setup(setup, self.wiring)
-        self._send(setup_nodes(setup, self.wiring, self._pll_osc))
+        self._send(setup_nodes(setup, self.wiring, self._pll_osc, self.layout))
         self._setup = setup
         self._forcer_gain = float(setup.forcer_gain)
 
@@ -299,7 +393,7 @@ class HF2LI(LockIn):
     def set_forcer_gain(self, gain: float) -> None:
         """Forcer carrier amplitude = nominal * gain; LimitError for gain outside [0.5, 2] or amplitude > 1."""
         amplitude = forcer_amplitude(self.wiring, gain)
-        fm = forcer_mixer_channel(self.wiring)
+        fm = self.layout.forcer
         self._send([(f"sigouts/{self.wiring.forcer_sigout}/amplitudes/{fm}", amplitude)])
         self._forcer_gain = float(gain)
 

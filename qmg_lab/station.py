@@ -32,7 +32,8 @@ from zhinst.toolkit import Session
 from drivers.aerosmith import Aerosmith1291BR
 from drivers.chamber import SunEC1xChamber
 from drivers.ds345 import DS345
-from drivers.hf2li import HF2LI
+from drivers.hf2_nodes import mixer_layout
+from drivers.hf2li import HF2LI, open_hf2_session
 from drivers.serial_link import Framing
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import (
@@ -120,11 +121,14 @@ def fault_plan(cfg: Config) -> FaultPlan:
 
 
 def hf2_wiring(cfg: Config) -> HF2Wiring:
-    """How the twin's bench is cabled: the [lockin] wiring fields, taken by name (the twin's own fields that the
-    configuration does not have, e.g. forcer_mixer_channel, keep their defaults)."""
+    """How the twin's bench is cabled: the [lockin] wiring fields, taken by name, and the mixer channel that
+    carries the forcer carrier as the driver derives it for the twin's options ([sim] hf2_options, the
+    [lockin] forcer_mixer_channel override: drivers/hf2_nodes.py mixer_layout)."""
     lk = cfg.lockin
     names = {f.name for f in dataclasses.fields(HF2Wiring)} & set(type(lk).model_fields)
-    return HF2Wiring(**{name: getattr(lk, name) for name in sorted(names)})
+    names.discard("forcer_mixer_channel")
+    layout = mixer_layout(tuple(cfg.sim.hf2_options), lk)
+    return HF2Wiring(**{name: getattr(lk, name) for name in sorted(names)}, forcer_mixer_channel=layout.forcer)
 
 
 def _serial_port(url: str, baudrate: int, timeout_s: float) -> Callable[[], Any]:
@@ -201,7 +205,15 @@ def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
 def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
     """The HF2LI driver on a session (to the data server or to the twin), with the [lockin] wiring and the
     AuxOut value of its safe state (lockin.output_safe_v)."""
-    return HF2LI(session, device_id, wiring=cfg.lockin, output_safe_v=cfg.lockin.output_safe_v)
+    lk = cfg.lockin
+    return HF2LI(
+        session,
+        device_id,
+        wiring=lk,
+        output_safe_v=lk.output_safe_v,
+        port=lk.port,
+        allow_version_mismatch=lk.allow_version_mismatch,
+    )
 
 
 def table_driver(cfg: Config, open_port: Callable[[], Any]) -> Aerosmith1291BR:
@@ -290,6 +302,7 @@ class _Bench:
                 host=lk.host,
                 port=lk.port,
                 rate_set=self.cfg.sim.hf2_rate_set,
+                options=tuple(self.cfg.sim.hf2_options),
             )
             if faults is not None:
                 faults.attach_hf2(twin)
@@ -380,12 +393,10 @@ class RealTimePacedConnection:
 
 
 def hf2_session(cfg: Config) -> Session:
-    """A zhinst-toolkit session to the real HF2 data server at [lockin] host:port."""
+    """A zhinst-toolkit session to the real HF2 data server at [lockin] host:port ([lockin]
+    allow_version_mismatch; a refusal names both LabOne versions and the ways out: drivers/hf2li.py)."""
     lk = cfg.lockin
-    try:
-        return Session(lk.host, lk.port, hf2=True)
-    except (RuntimeError, OSError) as exc:
-        raise InstrumentError(f"cannot reach the HF2 data server at {lk.host}:{lk.port}: {exc}") from exc
+    return open_hf2_session(lk.host, lk.port, lk.allow_version_mismatch)
 
 
 @dataclass
@@ -531,6 +542,7 @@ def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:
             host=lk.host,
             port=lk.port,
             rate_set=cfg.sim.hf2_rate_set,
+            options=tuple(cfg.sim.hf2_options),
         )
         twin.connectDevice(SIM_DEVICE_ID, "USB")
         return twin, SIM_DEVICE_ID, lambda: None

@@ -17,6 +17,10 @@ Rules (HF2 node semantics from the nodedoc and docs/wiring.md; the twin's readin
   = drive_sigout (0 = SigOut1 amplitude, 1 = SigOut2 amplitude), outputchannel = a mixer channel m that is
   enabled on that output, whose demod m uses the reference oscillator, with the output on. Open: the drive
   voltage is the sum over such channels of amplitudes/m * range (V), times sigouts/<drive>/on.
+* Mixer channels 6 and 7 have no demodulator of their own (6 demods); on an HF2 without MF they are the outputs'
+  only channels (output 1 -> 6, output 2 -> 7, zhinst-utils default_output_mixer_channel). The twin takes them
+  as running on the reference oscillator: *unconfirmed* (no node of a non-MF HF2 selects their oscillator).
+* A branch the instrument does not list (no PLL or PID option) counts as open.
 * Rate loop closed: an enabled PID with input 0 (X), inputchannel = a sense demod, setpointselect 0, output 3
   (AuxOut offset), outputchannel = rate_auxout, and that AuxOut in manual mode (outputselect = -1). Quadrature:
   the same with input 1 (Y) and quadrature_auxout. Open: the AuxOut's own offset in manual mode, else 0 V
@@ -35,13 +39,20 @@ from typing import Any, Protocol
 
 from sims.gyro import LoopSettings, PidSettings, PllSettings
 
-N_DEMODS, N_PIDS = 6, 4
+N_DEMODS, N_PIDS, N_MIXER_CHANNELS = 6, 4, 8
 PID_INPUT_X, PID_INPUT_Y, PID_INPUT_R = 0, 1, 2
 PID_OUTPUT_AUXOUT = 3
 
 
 class NodeReader(Protocol):
     def peek(self, rel_or_abs: str) -> Any: ...
+    def has(self, rel_or_abs: str) -> bool: ...
+
+
+def channel_on_reference(nodes: NodeReader, m: int, ref_osc: int) -> bool:
+    """Whether output mixer channel m runs on the reference oscillator: that of demod m, and for the channels
+    without a demodulator (6, 7) the reference itself (module doc, unconfirmed)."""
+    return m >= N_DEMODS or int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
 
 
 @dataclass
@@ -130,6 +141,8 @@ def _pid(nodes: NodeReader, n: int, *, enabled: bool | None = None, center: floa
 
 def _find_pid(nodes: NodeReader, want: dict[str, int], check_in: Any, check_out: Any) -> int | None:
     for n in range(N_PIDS):
+        if not nodes.has(f"pids/{n}/enable"):
+            continue
         if not int(nodes.peek(f"pids/{n}/enable")) or int(nodes.peek(f"pids/{n}/setpointselect")) != 0:
             continue
         if int(nodes.peek(f"pids/{n}/input")) != want["input"]:
@@ -146,7 +159,7 @@ def _find_pid(nodes: NodeReader, want: dict[str, int], check_in: Any, check_out:
 def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
     """Read the node values and return the LoopSettings the physics runs under (rules in the module doc)."""
     reasons: dict[str, str] = {}
-    pll_on = bool(int(nodes.peek("plls/0/enable")))
+    pll_on = nodes.has("plls/0/enable") and bool(int(nodes.peek("plls/0/enable")))
     pll_closed = (
         pll_on and int(nodes.peek("plls/0/adcselect")) == wiring.drive_sigin and int(nodes.peek("plls/0/harmonic")) == 1
     )
@@ -168,7 +181,7 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
         pll = PllSettings(
             enabled=False,
             center_hz=float(nodes.peek(f"oscs/{ref_osc}/freq")),
-            range_hz=float(nodes.peek("plls/0/freqrange")),
+            range_hz=float(nodes.peek("plls/0/freqrange")) if pll_on else PllSettings().range_hz,
         )
 
     def drive_ok(d: int) -> bool:
@@ -181,11 +194,10 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
 
     def drive_channel_ok(m: int) -> bool:
         return (
-            0 <= m < 8
+            nodes.has(f"sigouts/{dso}/enables/{m}")
             and int(nodes.peek(f"sigouts/{dso}/on")) == 1
             and int(nodes.peek(f"sigouts/{dso}/enables/{m}")) in (1, 3)
-            and m < N_DEMODS
-            and int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
+            and channel_on_reference(nodes, m, ref_osc)
         )
 
     # AGC
@@ -199,7 +211,7 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
         v = (
             sum(
                 float(nodes.peek(f"sigouts/{dso}/amplitudes/{m}")) * rng
-                for m in range(min(8, N_DEMODS))
+                for m in range(N_MIXER_CHANNELS)
                 if drive_channel_ok(m)
             )
             if on
@@ -242,15 +254,22 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
     )
 
     fso, m = wiring.forcer_sigout, wiring.forcer_mixer_channel
-    coherent = m >= N_DEMODS or int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
-    if not coherent:
+    listed = nodes.has(f"sigouts/{fso}/enables/{m}")
+    coherent = listed and channel_on_reference(nodes, m, ref_osc)
+    if not listed:
+        reasons["forcer"] = f"the forcer output lists no mixer channel {m}"
+    elif not coherent:
         reasons["forcer"] = f"mixer channel {m} of the forcer output does not run on the reference oscillator"
     gain = (
-        float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}"))
-        / wiring.forcer_carrier_amplitude
-        * int(nodes.peek(f"sigouts/{fso}/on"))
-        * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
-        * coherent
+        0.0
+        if not listed
+        else (
+            float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}"))
+            / wiring.forcer_carrier_amplitude
+            * int(nodes.peek(f"sigouts/{fso}/on"))
+            * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
+            * coherent
+        )
     )
 
     settings = LoopSettings(

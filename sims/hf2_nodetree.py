@@ -2,9 +2,22 @@
 
 The node *documentation* comes from zhinst-toolkit's bundled ``resources/nodedoc_hf2.json`` (one entry per
 generic path such as ``/devxxxx/demods/n/rate``, with type, properties, unit and enumerated options). This module
-expands every ``n`` into the instances an HF2LI with the MF, PLL and PID options has (table ``INSTANCE_COUNTS``,
-from the HF2 user manual and toolkit's recorded HF2 node list: 6 demodulators, 6 oscillators with MF, 2 PLLs,
-4 PIDs, 2 outputs of 8 mixer channels, 4 AuxOuts, one AuxIn block of 2 values) and stores a value per leaf.
+expands every ``n`` into the instances an HF2LI with the given options (``features/options``; default MF, PLL,
+PID) has and stores a value per leaf. Where each count comes from:
+
+* zhinst-toolkit's recorded HF2 node list (its tests/data/list_nodes_hf2_dev.txt, an HF2LI with MF and PLL and
+  without PID): 6 demodulators, 6 oscillators, 2 PLLs, 2 outputs listing mixer channels 0..7 (enables,
+  amplitudes, waveforms), 2 inputs, 4 AuxOuts, one AuxIn block of 2 values, and *no* ``pids`` branch: a branch of
+  an option the instrument lacks is not listed at all. The twin drops ``plls`` without PLL and ``pids`` without
+  PID likewise; with PID it lists 4 PIDs (HF2 user manual, HF2-PID option: 4 PID controllers).
+* without MF: 2 oscillators (the public qudi-iqo-modules HF2 driver: "index of oscillator; valid inputs: 0 or
+  1") and each output lists only mixer channels 6 and 7 (the same driver's recorded non-MF HF2 dev1492:
+  ``{'/dev1492/sigouts/0/enables/6': 0, '/dev1492/sigouts/0/enables/7': 0}``; zhinst-utils
+  ``default_output_mixer_channel``: output 1 -> 6, output 2 -> 7 without MF). *Assumed*: amplitudes/waveforms list
+  the same channels as enables, and the demodulator count (6) does not depend on MF.
+* the ``mods`` branch (2 modulators) only with the MOD option: *inferred* by analogy with ``pids`` (the recorded
+  list shows an option's branch absent without the option); ZCTRL and CPU branches as recorded, whatever the
+  options.
 
 The nodedoc carries no power-on values; ``POWER_ON`` holds the twin's (documented in docs/wiring.md). A real
 HF2 after power-on differs in details; the driver configures every node it relies on, so nothing depends on them.
@@ -25,8 +38,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+DEFAULT_OPTIONS = ("MF", "PLL", "PID")
+NON_MF_MIXER_CHANNELS = (6, 7)
+NON_MF_OSCILLATORS = 2
+OUTPUT_MIXER_BRANCHES = ("sigouts/n/enables/n", "sigouts/n/amplitudes/n", "sigouts/n/waveforms/n")
+
 # How many instances each indexed branch has on an HF2LI with MF, PLL and PID options. Key: the generic path
-# up to (and including) the ``n`` being expanded, relative to the device.
+# up to (and including) the ``n`` being expanded, relative to the device. ``instances`` adapts it to the options.
 INSTANCE_COUNTS: dict[str, int] = {
     "demods/n": 6,
     "oscs/n": 6,
@@ -117,7 +135,23 @@ def nodedoc_path() -> Path:
     return Path(next(iter(spec.submodule_search_locations))) / "resources" / "nodedoc_hf2.json"
 
 
-def _expand(generic_rel: str) -> list[str]:
+def instances(options: tuple[str, ...]) -> dict[str, tuple[int, ...]]:
+    """The indices each indexed branch lists on an HF2LI with ``options`` (module doc)."""
+    table = {k: tuple(range(v)) for k, v in INSTANCE_COUNTS.items()}
+    if "MF" not in options:
+        table["oscs/n"] = tuple(range(NON_MF_OSCILLATORS))
+        for branch in OUTPUT_MIXER_BRANCHES:
+            table[branch] = NON_MF_MIXER_CHANNELS
+    if "PLL" not in options:
+        table["plls/n"] = ()
+    if "PID" not in options:
+        table["pids/n"] = ()
+    if "MOD" not in options:
+        table["mods/n"] = ()
+    return table
+
+
+def _expand(generic_rel: str, table: dict[str, tuple[int, ...]]) -> list[str]:
     """All concrete relative paths of a generic one: demods/n/rate -> demods/0/rate ... demods/5/rate."""
     parts = generic_rel.split("/")
     out = [""]
@@ -125,10 +159,10 @@ def _expand(generic_rel: str) -> list[str]:
     for part in parts:
         prefix = f"{prefix}/{part}" if prefix else part
         if part == "n":
-            count = INSTANCE_COUNTS.get(prefix)
-            if count is None:
+            indices = table.get(prefix)
+            if indices is None:
                 raise KeyError(f"no instance count for {prefix!r} in INSTANCE_COUNTS")
-            out = [f"{o}/{i}" if o else str(i) for o in out for i in range(count)]
+            out = [f"{o}/{i}" if o else str(i) for o in out for i in indices]
         else:
             out = [f"{o}/{part}" if o else part for o in out]
     return out
@@ -158,10 +192,12 @@ def _power_on(rel: str, meta: NodeMeta) -> Any:
 class HF2NodeTree:
     """Concrete node documentation and values of one HF2LI. Paths are absolute and case-insensitive."""
 
-    def __init__(self, device_id: str, clockbase_hz: float, options: str = "MF\nPLL\nPID") -> None:
+    def __init__(self, device_id: str, clockbase_hz: float, options: tuple[str, ...] = DEFAULT_OPTIONS) -> None:
         if not re.fullmatch(r"dev\d+", device_id.lower()):
             raise ValueError(f"device_id {device_id!r} must look like 'dev1234'")
         self.device_id = device_id.lower()
+        self.options = tuple(o.upper() for o in options)
+        self.instances = instances(self.options)
         self._prefix = f"/{self.device_id}/"
         doc = json.loads(nodedoc_path().read_text(encoding="utf-8"))
         self.meta: dict[str, NodeMeta] = {}
@@ -169,7 +205,7 @@ class HF2NodeTree:
         for generic, entry in doc.items():
             rel_generic = generic.lower().split("/", 2)[2]  # drop "/devxxxx/"
             props = entry.get("Properties", "")
-            for rel in _expand(rel_generic):
+            for rel in _expand(rel_generic, self.instances):
                 path = f"/{self.device_id}/{rel}"
                 meta = NodeMeta(
                     path=path,
@@ -186,14 +222,22 @@ class HF2NodeTree:
         self.poke("clockbase", int(round(clockbase_hz)))
         self.poke("features/devtype", "HF2LI")
         self.poke("features/serial", self.device_id.upper())
-        self.poke("features/options", options)
+        self.poke("features/options", "\n".join(self.options))  # "newline-separated list" (nodedoc)
         self.poke("system/properties/timebase", 1.0 / clockbase_hz)
-        for n in range(INSTANCE_COUNTS["plls/n"]):
+        for n in self.instances["plls/n"]:
             # Each PLL writes the oscillator and uses the demodulator of its own index (twin's assumption).
             self.poke(f"plls/{n}/oscselect", n)
             self.poke(f"plls/{n}/demodselect", n)
-        for n in range(INSTANCE_COUNTS["auxouts/n"]):
+        for n in self.instances["auxouts/n"]:
             self.poke(f"auxouts/{n}/outputselect", n)  # X, Y, R, Theta of demod 0: not under PID control
+
+    @property
+    def n_oscillators(self) -> int:
+        return len(self.instances["oscs/n"])
+
+    def has(self, rel_or_abs: str) -> bool:
+        """Whether the instrument lists this node (twin-internal; lower-case path)."""
+        return (rel_or_abs if rel_or_abs[0] == "/" else self._prefix + rel_or_abs) in self.meta
 
     # ------------------------------------------------------------------ paths
     def absolute(self, path: str) -> str:

@@ -51,7 +51,7 @@ import numpy as np
 
 from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
-from sims.hf2_nodetree import HF2NodeTree, NodeError
+from sims.hf2_nodetree import DEFAULT_OPTIONS, HF2NodeTree, NodeError
 from sims.noise import NormalStream
 from sims.world import BlockInputs, TruthRecord, World
 
@@ -147,7 +147,9 @@ def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
 
 
 class HF2DataServerTwin:
-    """HF2 data server + one HF2LI (MF, PLL, PID options) whose loops drive ``sims.gyro.GyroSim``."""
+    """HF2 data server + one HF2LI whose loops drive ``sims.gyro.GyroSim``. ``options``: its installed options
+    (``features/options``; default MF, PLL, PID); the node tree lists what such an instrument lists
+    (sims/hf2_nodetree.py, with the sources of each count)."""
 
     api_level = 1
 
@@ -162,6 +164,7 @@ class HF2DataServerTwin:
         host: str = "localhost",
         port: int = 8005,
         rate_set: str = "hf2",
+        options: tuple[str, ...] = DEFAULT_OPTIONS,
     ) -> None:
         if clockbase_hz <= 0:
             raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")
@@ -178,7 +181,7 @@ class HF2DataServerTwin:
         self._no_auxin_noise = np.empty((2, 0))  # what the readings get without AuxIn noise (not read)
         self.host, self.port = host, port
         self.clockbase_hz = float(clockbase_hz)
-        self.nodes = HF2NodeTree(device_id, clockbase_hz)
+        self.nodes = HF2NodeTree(device_id, clockbase_hz, tuple(options))
         self.device_id = self.nodes.device_id
         self._zi = _zi_nodes(port, clockbase_hz)
         self.connected = False
@@ -188,7 +191,9 @@ class HF2DataServerTwin:
         self._gyro_dt: float | None = None
         self._gyro_count = 0
         self._ticks: int | None = None
-        self._osc_phase = [0.0] * 6  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
+        self._osc_phase = [
+            0.0
+        ] * self.nodes.n_oscillators  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
         self._drop_next = 0
         self._unlock_until: float | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
@@ -544,7 +549,7 @@ class HF2DataServerTwin:
                     shift_rad=math.radians(float(nd.peek(f"demods/{d}/phaseshift"))),
                 )
             )
-        fixed_hz = {o: float(nd.peek(f"oscs/{o}/freq")) for o in range(6) if o != plan.ref_osc}
+        fixed_hz = {o: float(nd.peek(f"oscs/{o}/freq")) for o in range(nd.n_oscillators) if o != plan.ref_osc}
         self._layout = _PollLayout(
             key=key,
             plan=plan,
@@ -583,7 +588,7 @@ class HF2DataServerTwin:
         freqs: dict[int, np.ndarray] = {}
         phases: dict[int, np.ndarray] = {}
         osc_streams: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        for o in range(6):
+        for o in range(len(self._osc_phase)):
             if o not in layout.used_oscs:  # keep its phase running without building arrays (float % is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue

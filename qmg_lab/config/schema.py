@@ -37,6 +37,8 @@ class _Section(BaseModel):
 Terminator = Literal["CR", "LF", "CRLF"]
 ReplyTerminator = Literal["auto", "CR", "LF", "CRLF"]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+HF2Option = Literal["MF", "PLL", "PID", "MOD"]
+DEFAULT_HF2_OPTIONS: tuple[HF2Option, ...] = ("MF", "PLL", "PID")
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 
@@ -205,6 +207,25 @@ class LockInSection(_Section):
     rate_auxin: int = Field(0, ge=0, le=1, description="AuxIn recording the rate output")
     dither_auxin: int = Field(1, ge=0, le=1, description="AuxIn recording the DS345 dither")
     output_safe_v: float = Field(0.0, ge=-10.0, le=10.0, description="AuxOut value in the safe state, V")
+    drive_mixer_channel: int | None = Field(
+        None,
+        ge=0,
+        le=7,
+        description="output mixer channel carrying the drive; unset = from the HF2's options (MF: 0; without MF: "
+        "6 on output 1, 7 on output 2)",
+    )
+    forcer_mixer_channel: int | None = Field(
+        None,
+        ge=0,
+        le=7,
+        description="output mixer channel carrying the forcer carrier; unset = from the HF2's options (MF: 1; "
+        "without MF: 6 on output 1, 7 on output 2)",
+    )
+    allow_version_mismatch: bool = Field(
+        False,
+        description="connect even if the data server's LabOne version differs from the installed zhinst-core "
+        "(zhinst-core refuses by default; better: install the matching zhinst-core)",
+    )
 
     @model_validator(mode="after")
     def _distinct_wiring(self) -> LockInSection:
@@ -438,6 +459,12 @@ class SimSection(_Section):
     ds345_timebase_wander_period_s: float = Field(3600.0, gt=0.0, le=1e7, description="period of that wander, s")
     ds345_command_latency_s: float = Field(
         0.37e-3, ge=0.0, le=1.0, description="a DS345 setting takes effect this long after the command, s (assumed)"
+    )
+    hf2_options: list[HF2Option] = Field(
+        default_factory=lambda: list(DEFAULT_HF2_OPTIONS),
+        description="options of the twin's HF2LI (features/options), any of MF, PLL, PID, MOD; its node tree lists "
+        "what such an instrument lists (without MF: 2 oscillators, output mixer channels 6 and 7 only; no plls, "
+        "pids, mods branch without PLL, PID, MOD)",
     )
     hf2_rate_set: Literal["hf2", "ticks"] = Field(
         "hf2",

@@ -138,4 +138,4 @@ def test_the_twins_cabling_is_the_configured_wiring_field_by_field() -> None:
     w = hf2_wiring(parse_config(text))
     assert (w.drive_sigin, w.sense_sigin, w.rate_auxout, w.quadrature_auxout) == (1, 0, 2, 3)
     assert (w.rate_auxin, w.dither_auxin, w.forcer_carrier_amplitude) == (1, 0, 0.25)
-    assert w.forcer_mixer_channel == 1  # the twin's own field, not in [lockin]: its default
+    assert w.forcer_mixer_channel == 1  # derived as the driver does: MF ([sim] hf2_options default) -> channel 1

@@ -289,3 +289,24 @@ def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
     stream_demods(twin)
     d = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]["auxin1"]
     assert float(np.max(np.abs(d))) == pytest.approx(0.2)
+
+
+def test_an_hf2li_without_mf_refuses_the_mf_mixer_channels_and_streams_on_two_oscillators() -> None:
+    """Without MF (zhinst-utils default_output_mixer_channel; a recorded non-MF HF2): only mixer channels 6 and
+    7, two oscillators; a write to channel 0 is refused like any node the instrument does not list."""
+    world = World()
+    twin = HF2DataServerTwin(
+        world, GyroParams(), seed=3, wiring=HF2Wiring(forcer_mixer_channel=7), options=("PLL", "PID")
+    )
+    twin.connectDevice("dev1234", "USB")
+    assert twin.getString(f"{DEV}/features/options") == "PLL\nPID"
+    with pytest.raises(RuntimeError, match="ZIAPINotFoundException"):
+        twin.set(f"{DEV}/sigouts/0/enables/0", 0)
+    with pytest.raises(RuntimeError, match="ZIAPINotFoundException"):
+        twin.getDouble(f"{DEV}/oscs/2/freq")
+    twin.set(f"{DEV}/sigouts/0/enables/6", 1)
+    assert twin.getInt(f"{DEV}/sigouts/0/enables/6") == 1
+    stream_demods(twin)
+    data = twin.poll(0.1, 500, 0, True)
+    rate = twin.getDouble(f"{DEV}/demods/1/rate")  # n = round(rec_s * rate) samples (module doc, item 1)
+    assert len(data[f"{DEV}/demods/1/sample"]["timestamp"]) == round(0.1 * rate) > 0

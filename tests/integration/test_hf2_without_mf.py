@@ -1,0 +1,114 @@
+"""A campaign on an HF2LI without the MF option (issue 24): `qmg-lab run CONFIG --sim` with `[sim] hf2_options =
+["PLL", "PID"]` completes, the driver drives mixer channels 6 and 7, and the results match the MF run within noise.
+
+The two runs share the seed, so the twin's noise is the same realisation in both and only the instrument's option
+set differs. The tolerance is nevertheless the noise the comparison would have with independent realisations, so
+that the test states what "match" means: per +-rate pair, the CLSF estimate's mean over the pair's two windows has
+the white noise q / sqrt(T) (q from the noise budget, docs/noise-budget.md; T = 2 (dwell - settle)); the difference
+of two such means is within 4 sqrt(2) q / sqrt(T) (4 sigma). A wrong mixer channel is far outside: a forcer carrier
+on a channel the output does not use opens the rate loop (no lock, or an SF off by 100 %), and a 1 % carrier
+amplitude error shifts the estimate by 1e4 ppm.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER = ROOT / "configs" / "paper_campaign.toml"
+SHORT_PLAN = {  # the paper campaign cut to a few minutes of simulated time: 25 -> 26 degC, 20 s dwells
+    "chamber_end_c": "26.0",
+    "chamber_ramp_c_per_min": "0.5",
+    "chamber_soak_s": "30.0",
+    "chamber_end_hold_s": "60.0",
+    "dwell_s": "20.0",
+}
+
+
+def short_config(tmp: Path, options: list[str] | None) -> Path:
+    text = PAPER.read_text(encoding="utf-8")
+    for key, value in SHORT_PLAN.items():
+        text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
+        assert n == 1, key
+    if options is not None:
+        text, n = re.subn(r"(?m)^(\[sim\][^\n]*)$", rf"\1\nhf2_options = {json.dumps(options)}", text)
+        assert n == 1
+    name = "short_" + ("_".join(options) if options else "mf") + ".toml"
+    (tmp / name).write_text(text, encoding="utf-8")
+    return tmp / name
+
+
+def run(cfg: Path, out: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "run", str(cfg), "--sim", "-o", str(out), "-q"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert proc.returncode == 0, (proc.stdout, proc.stderr)
+
+
+def pair_means(path: Path, settle_s: float) -> np.ndarray:
+    """Mean CLSF SF-change estimate over each +-rate pair's two windows (after settle_s in each)."""
+    with h5py.File(path, "r") as f:
+        assert f.attrs["status"] == "completed"
+        kinds = [k.decode() for k in f["steps/kind"][:]]
+        ts, te = f["steps/t_start"][:], f["steps/t_end"][:]
+        ct, cs = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
+    rows = [i for i, k in enumerate(kinds) if k == "rate"]
+    means = []
+    for a, b in zip(rows[0::2], rows[1::2], strict=False):
+        m = (ct >= ts[a] + settle_s) & (ct < te[b])
+        assert m.any()
+        means.append(float(cs[m].mean()))
+    return np.asarray(means)
+
+
+def lockin_snapshot(path: Path) -> dict:
+    with h5py.File(path, "r") as f:
+        snaps = f["snapshots"]
+        names = [n.decode() for n in snaps["instrument"][:]]
+        raw = bytes(snaps["json"][:])
+        at = names.index("lockin")
+        start, length = int(snaps["offset"][at]), int(snaps["length"][at])
+    return json.loads(raw[start : start + length].decode())
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    tmp = tmp_path_factory.mktemp("hf2_options")
+    mf, no_mf = tmp / "mf.h5", tmp / "no_mf.h5"
+    run(short_config(tmp, None), mf)
+    run(short_config(tmp, ["PLL", "PID"]), no_mf)
+    return mf, no_mf
+
+
+def test_the_run_without_mf_used_mixer_channels_6_and_7(runs: tuple[Path, Path]) -> None:
+    mf, no_mf = runs
+    state = lockin_snapshot(no_mf)["state"]
+    assert state["options"] == ["PLL", "PID"] and state["mixer_channels"] == {"drive": 6, "forcer": 7}
+    assert lockin_snapshot(mf)["state"]["mixer_channels"] == {"drive": 0, "forcer": 1}
+
+
+def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path]) -> None:
+    from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.config.schema import load_config
+
+    cfg, _ = load_config(PAPER)
+    settle = cfg.plan.settle_s
+    q = math.sqrt(sum(s.white_ppm_rt_s**2 for s in noise_budget(cfg, sim_blocks=True).sources)) * 1e-6
+    tolerance = 4.0 * math.sqrt(2.0) * q / math.sqrt(2.0 * (float(SHORT_PLAN["dwell_s"]) - settle))
+    mf, no_mf = (pair_means(p, settle) for p in runs)
+    assert len(mf) == len(no_mf) >= 3
+    assert np.max(np.abs(no_mf - mf)) <= tolerance, (no_mf - mf, tolerance)
+    assert tolerance < 1e-3  # the bound is tight enough to see a 0.1 % carrier error
