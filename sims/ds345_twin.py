@@ -49,6 +49,7 @@ from typing import ClassVar
 import pyvisa.constants
 import pyvisa.errors
 
+from sims.visa_resource import VisaLikeResource
 from sims.world import World
 
 ESR_QUERY = 1 << 2
@@ -402,7 +403,7 @@ class DS345Twin:
     }
 
 
-class VisaTwinResource:
+class VisaTwinResource(VisaLikeResource):
     """A VISA-like resource wired to a DS345Twin: what pyvisa's MessageBasedResource offers a driver.
 
     write(msg) sends msg + write_termination as ASCII. Every reply reaches the resource with `reply_end` in
@@ -418,24 +419,19 @@ class VisaTwinResource:
     def __init__(self, twin: DS345Twin, resource_name: str = "GPIB0::19::INSTR", reply_end: bytes = b"\n") -> None:
         if reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("reply_end must be CR, LF or CR LF")
+        super().__init__(resource_name)
         self.twin = twin
-        self.resource_name = resource_name
         self.reply_end = reply_end
-        self.write_termination = "\r\n"  # pyvisa's defaults; drivers set their own
-        self.read_termination = "\n"
-        self.timeout: float | None = 2000.0
-        self._rx = bytearray()
-        self._closed = False
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise pyvisa.errors.InvalidSession()
 
     def write(self, message: str) -> int:
         self._check_open()
         data = (message + (self.write_termination or "")).encode("ascii")
         self.twin.write_bytes(data)
         return len(data)
+
+    def _more(self) -> bool:
+        self._rx.extend(self._next_message())
+        return True
 
     def _next_message(self) -> bytes:
         """The twin's next reply as it goes on this wire (its LF replaced by reply_end); timeout if none."""
@@ -459,22 +455,6 @@ class VisaTwinResource:
                 return message.decode("ascii")
             self._rx.extend(message)
 
-    def read_bytes(self, count: int) -> bytes:
-        self._check_open()
-        while len(self._rx) < count:
-            self._rx.extend(self._next_message())
-        out = bytes(self._rx[:count])
-        del self._rx[:count]
-        return out
-
-    def query(self, message: str) -> str:
-        self.write(message)
-        return self.read()
-
     def clear(self) -> None:
-        self._check_open()
-        self._rx.clear()
+        super().clear()
         self.twin.clear()
-
-    def close(self) -> None:
-        self._closed = True

@@ -19,33 +19,21 @@ InvalidSession.
 
 from __future__ import annotations
 
-import pyvisa.constants
-import pyvisa.errors
-
 from sims.serial_twin import LineFramer, LineTwin, line_end
+from sims.visa_resource import VisaLikeResource
 
 
-class LineTwinVisaResource:
+class LineTwinVisaResource(VisaLikeResource):
     """A VISA-like message-based resource wired to a line twin (no thread, no OS)."""
 
     def __init__(self, twin: LineTwin, resource_name: str = "GPIB0::6::INSTR") -> None:
+        super().__init__(resource_name)
         self.twin = twin
-        self.resource_name = resource_name
-        self.write_termination = "\r\n"  # pyvisa's defaults; drivers set their own
-        self.read_termination = "\n"
-        self.timeout: float | None = 2000.0
         self._framer = LineFramer(line_end(twin))
-        self._rx = bytearray()
-        self._closed = False
         self._serial = resource_name.upper().startswith("ASRL")
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise pyvisa.errors.InvalidSession()
-
-    @staticmethod
-    def _timeout() -> pyvisa.errors.VisaIOError:
-        return pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
+    def _more(self) -> bool:
+        return False  # every reply is buffered as soon as its command is written
 
     def write(self, message: str) -> int:
         self._check_open()
@@ -66,22 +54,3 @@ class LineTwinVisaResource:
         head, _, rest = bytes(self._rx).partition(term)
         self._rx = bytearray(rest)
         return head.decode("ascii")
-
-    def read_bytes(self, count: int) -> bytes:
-        self._check_open()
-        if len(self._rx) < count:
-            raise self._timeout()
-        out = bytes(self._rx[:count])
-        del self._rx[:count]
-        return out
-
-    def query(self, message: str) -> str:
-        self.write(message)
-        return self.read()
-
-    def clear(self) -> None:
-        self._check_open()
-        self._rx.clear()
-
-    def close(self) -> None:
-        self._closed = True

@@ -26,6 +26,8 @@ from contextlib import contextmanager
 import pyvisa.constants
 import pyvisa.errors
 
+from sims.visa_resource import VisaLikeResource
+
 TIMEOUT = object()  # reply sentinel: the instrument stays silent, the read times out
 
 
@@ -33,7 +35,7 @@ class ProtocolError(AssertionError):
     """The driver did not follow the expected protocol."""
 
 
-class ProtocolResource:
+class ProtocolResource(VisaLikeResource):
     """A fake VISA resource that replays an expected list of (command, reply) pairs."""
 
     def __init__(
@@ -45,15 +47,10 @@ class ProtocolResource:
         for cmd, reply in pairs:
             if not isinstance(cmd, bytes) or not (reply is None or reply is TIMEOUT or isinstance(reply, bytes)):
                 raise TypeError(f"protocol pair ({cmd!r}, {reply!r}) must be (bytes, bytes | None | TIMEOUT)")
+        super().__init__(resource_name)  # pyvisa's default terminations; the driver must set its own
         self._pairs = deque(pairs)
         self._terminator = terminator
         self._replies: deque[bytes | object] = deque()
-        self._rx = bytearray()  # bytes of a reply being read by read_bytes
-        self.resource_name = resource_name
-        self.write_termination = "\r\n"  # pyvisa's default; the driver must set its own
-        self.read_termination = "\n"
-        self.timeout = 2000
-        self.closed = False
         self.sent: list[bytes] = []  # every message as it went on the wire
         self.violation: ProtocolError | None = None  # first violation (kept even if the driver swallows it)
 
@@ -93,30 +90,23 @@ class ProtocolResource:
             text = text[: -len(self.read_termination)]
         return text
 
-    def read_bytes(self, count: int) -> bytes:
-        if self.closed:
-            raise pyvisa.errors.InvalidSession()
-        while len(self._rx) < count:
-            if not self._replies:
-                raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
-            reply = self._replies.popleft()
-            if reply is TIMEOUT:
-                raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
-            assert isinstance(reply, bytes)
-            self._rx += reply
-        out = bytes(self._rx[:count])
-        del self._rx[:count]
-        return out
-
-    def query(self, message: str) -> str:
-        self.write(message)
-        return self.read()
+    def _more(self) -> bool:
+        """The next reply's bytes (for read_bytes); False (timeout) if none is queued or it is TIMEOUT."""
+        if not self._replies:
+            return False
+        reply = self._replies.popleft()
+        if reply is TIMEOUT:
+            return False
+        assert isinstance(reply, bytes)
+        self._rx += reply
+        return True
 
     def clear(self) -> None:
         self._replies.clear()
 
-    def close(self) -> None:
-        self.closed = True
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def check_done(self) -> None:
         """Raise ProtocolError unless the conversation had no violation, used every pair and read every reply."""

@@ -24,15 +24,12 @@ from tests.support.protocol_visa import expected_protocol
 YAML = importlib.resources.files("sims") / "ds345.yaml"
 ASRL_REPLY_LINE = '        r: "\\r"\n'  # the RS-232 reply terminator line of sims/ds345.yaml
 FRAMINGS = {"CR": "\\r", "LF": "\\n", "CRLF": "\\r\\n"}
-SQUARE = {
-    "function": "square",
-    "function_code": 1,
-    "frequency_hz": 7.0,
-    "amplitude": 0.6,
-    "amplitude_unit": "VP",
-    "amplitude_vpp": 0.6,
-    "offset_v": 0.0,
-}
+SQUARE_7HZ_0V6 = ("square", 7.0, 0.6, 0.0)  # set_square(7, 0.6): function, Hz, Vpp, V
+
+
+def square_state(generator: DS345) -> tuple[object, ...]:
+    st = generator.state()
+    return st["function"], st["frequency_hz"], st["amplitude_vpp"], st["offset_v"]
 
 
 def yaml_with_serial_replies(tmp_path: Path, framing: str) -> Path:
@@ -57,7 +54,7 @@ def test_every_serial_framing_identifies_sets_and_reads(serial_sim: pyvisa.resou
     generator = DS345(serial_sim)
     assert generator.identify() == "StanfordResearchSystems,DS345,00345,1.04"
     generator.set_square(7, 0.6)
-    assert generator.state() == SQUARE
+    assert square_state(generator) == SQUARE_7HZ_0V6
     generator.mute()
     assert generator.state()["amplitude_vpp"] == 0.0
 
@@ -89,7 +86,7 @@ def test_twin_on_an_asrl_resource_in_each_framing(reply_end: bytes) -> None:
     generator = DS345(twin.resource("ASRL1::INSTR", reply_end=reply_end))
     assert generator.identify().split(",")[1] == "DS345"
     generator.set_square(7, 0.6)
-    assert generator.state() == SQUARE
+    assert square_state(generator) == SQUARE_7HZ_0V6
     assert twin.esr & 0b0011_0100 == 0  # no query, execution or command error: every reply was read in turn
 
 
