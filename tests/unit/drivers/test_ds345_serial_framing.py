@@ -16,7 +16,9 @@ import pytest
 import pyvisa
 
 from drivers.ds345 import DS345
+from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import InstrumentError
+from qmg_lab.station import connect_instrument
 from sims.ds345_twin import DS345Twin
 from sims.world import World
 from tests.support.protocol_visa import expected_protocol
@@ -113,3 +115,16 @@ def test_serial_timeout_mid_reply_is_an_instrument_error() -> None:
         generator = DS345(res)
         with pytest.raises(InstrumentError, match="no reply to '\\*IDN\\?' within the timeout"):
             generator.identify()
+
+
+def test_station_twin_at_an_rs232_address_answers_cr_and_the_driver_reads_it() -> None:
+    cfg = parse_config('[generator]\nsim = true\nresource = "ASRL1::INSTR"\n')
+    conn = connect_instrument(cfg, "generator")
+    try:
+        generator = conn.instrument
+        assert isinstance(generator, DS345)
+        assert generator.resource.reply_end == b"\r" and generator.resource.read_termination == "\r"
+        generator.set_square(7, 0.6)
+        assert square_state(generator) == SQUARE_7HZ_0V6
+    finally:
+        conn.close()
