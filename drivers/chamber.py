@@ -35,8 +35,11 @@ Read-back confirmation: RATE=r -> RATE? equals r (to the 3 decimals sent); LTL=x
 equal x (2 decimals); ON / OFF -> STATUS? char 0 is Y / N; SET=x -> SET? equals x, or, since SET? reports
 the ramping setpoint, STATUS? says ramping (char 8 Y: the controller is on its way to a new target). A
 read-back that disagrees raises InstrumentError ("not taken"): a refused setting is still an error, even from a
-controller that never answers one. Limitation: a lost SET= while the chamber was already ramping to an earlier
-target passes the ramping test; the campaign's own settle check (chamber air against the target) catches it.
+controller that never answers one. A SET= confirmed only by the ramping flag is watched afterwards: while the
+controller ramps toward x, |SET? - x| shrinks at each read(); if it grows by more than two steps of the
+setpoint's resolution (0.01 deg C) before the ramp ends at x, the controller is ramping to some earlier target
+and read() raises InstrumentError "not taken" (the station's recovery then reconnects and sends the setpoint
+again). The watch ends when STATUS? says not ramping with SET? at x.
 
 Self-test digit (STATUS?, when present): 0 passes. 1 and 2 (battery / EE RAM error: the controller's stored
 settings may be back at their defaults) are reported, not refused: identify() logs a warning and state() and
@@ -193,6 +196,7 @@ class SunEC1xChamber(ThermalChamber):
         self._target_c: float | None = None
         self._ramp_c_per_min: float | None = None
         self._self_test: int | None = None
+        self._heading: tuple[float, float] | None = None  # (SET= target, |SET? - target| last read): being watched
         self.unacknowledged = 0  # settings confirmed by read-back because no reply came (for the snapshot)
 
     # ------------------------------------------------------------------ transactions
@@ -207,6 +211,8 @@ class SunEC1xChamber(ThermalChamber):
 
     def _command(self, text: str) -> None:
         """A setting or action: acknowledged (OK), refused (?...), or silent and then confirmed by read-back."""
+        if text.startswith("SET="):
+            self._heading = None  # a new target: the previous one is no longer watched
         self._link.send_line(text)
         if self.ack != "none":
             try:
@@ -238,7 +244,8 @@ class SunEC1xChamber(ThermalChamber):
             return
         if name == "SET":
             status = self._status()
-            if status.ramping:  # SET? reports the ramping setpoint: on its way to the new target
+            if status.ramping:  # SET? reports the ramping setpoint: on its way to the new target (watched)
+                self._heading = (float(value), abs(read_back - float(value)))
                 return
             raise InstrumentError(
                 f"{self.NAME}: {text!r} not taken: SET? = {read_back:g} and STATUS? = {status.text!r} (not ramping)"
@@ -272,7 +279,23 @@ class SunEC1xChamber(ThermalChamber):
         temperature = self._query("C1?", parse_temperature)
         setpoint = self._query("SET?", parse_temperature)
         status = self._status()
+        self._watch_heading(setpoint, status.ramping)
         return ChamberReading(temperature_c=temperature, setpoint_c=setpoint, ramping=status.ramping)
+
+    def _watch_heading(self, setpoint_c: float, ramping: bool) -> None:
+        """A SET= confirmed by the ramping flag only: the ramping setpoint must keep closing on its target."""
+        if self._heading is None:
+            return
+        target, distance = self._heading
+        now = abs(setpoint_c - target)
+        step = 2.0 * _half_step(SETPOINT_FORMAT)
+        if now > distance + step:
+            self._heading = None
+            raise InstrumentError(
+                f"{self.NAME}: {SETPOINT_FORMAT.format(target)!r} not taken: the ramping setpoint (SET? = "
+                f"{setpoint_c:g}) moves away from it (it was {distance:g} deg C from it)"
+            )
+        self._heading = None if (not ramping and now <= step / 2.0) else (target, min(distance, now))
 
     def ramp_rate(self) -> float:
         """RATE?: the controller's ramp rate, deg C/min."""

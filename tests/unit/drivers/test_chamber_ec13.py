@@ -213,3 +213,36 @@ def test_twin_refusal_without_a_reply_shows_in_the_read_back_and_the_error_flag(
         chamber.set_setpoint(30.0, 2.0)
     assert twin.last_command_error
     assert chamber._status().flags[1] == "Y"  # char 1: last command error
+
+
+def watched_safe_state() -> list[tuple[bytes, bytes | None]]:
+    """safe_state() (SET=25.00, ON) while the chamber ramps: SET? = 27.31, confirmed by the ramping flag only."""
+    return [
+        (b"SET=25.00\r\n", None),
+        (b"SET?\r\n", b"27.31\r\n"),
+        (b"STATUS?\r\n", ON_RAMPING),
+        (b"ON\r\n", None),
+        (b"STATUS?\r\n", ON_RAMPING),
+    ]
+
+
+def test_a_set_confirmed_by_the_ramping_flag_is_watched_until_the_ramp_ends_there() -> None:
+    reads = [(b"C1?\r\n", b"26.90\r\n"), (b"SET?\r\n", b"26.10\r\n"), (b"STATUS?\r\n", ON_RAMPING)]
+    reads += [(b"C1?\r\n", b"25.30\r\n"), (b"SET?\r\n", b"25.00\r\n"), (b"STATUS?\r\n", ON_IDLE)]
+    reads += [(b"C1?\r\n", b"25.10\r\n"), (b"SET?\r\n", b"25.02\r\n"), (b"STATUS?\r\n", ON_IDLE)]
+    with expected_protocol(ec13(), watched_safe_state() + reads) as chamber:
+        chamber.safe_state()
+        assert chamber.read().setpoint_c == 26.1  # 1.21 from 25: closing in
+        assert chamber.read().setpoint_c == 25.0  # there, ramp over: the watch ends
+        assert chamber.read().setpoint_c == 25.02  # a later drift is not a lost setting
+
+
+def test_a_set_lost_while_ramping_elsewhere_is_found_by_the_watch() -> None:
+    """The controller keeps ramping to an earlier target (35): the setpoint moves away from 25."""
+    reads = [(b"C1?\r\n", b"27.00\r\n"), (b"SET?\r\n", b"27.32\r\n"), (b"STATUS?\r\n", ON_RAMPING)]
+    reads += [(b"C1?\r\n", b"27.10\r\n"), (b"SET?\r\n", b"27.33\r\n"), (b"STATUS?\r\n", ON_RAMPING)]
+    with expected_protocol(ec13(), watched_safe_state() + reads) as chamber:
+        chamber.safe_state()
+        chamber.read()  # 2.32 from 25: within two resolution steps of 2.31 (the reading's own rounding)
+        with pytest.raises(InstrumentError, match=r"'SET=25\.00' not taken: the ramping setpoint \(SET\? = 27\.33\)"):
+            chamber.read()  # 2.33: it grows beyond 2.31 + 0.01
