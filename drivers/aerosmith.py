@@ -7,10 +7,16 @@ content of every transaction is checked strictly: the value line must parse, the
 else is accepted; any deviation raises InstrumentError naming the command and the bytes received. Limits are
 checked before anything is sent (LimitError).
 
+First contact: public Aerosmith code enables the servo (SRV) before it commands motion; qmg-lab's first
+driver never did. With `servo_enable_command` (the station passes `[table] servo_enable_command`, default
+"SRV"; None or "" sends nothing) the driver sends that command once per connection (again after a reconnect)
+before the first JOG or SGO, and expects the prompt (an error line is raised as for any command). The
+command's exact form (bare "SRV", or with an argument) is not confirmed: it is configuration, sent as written.
+
 Sequences:
-* set_rate(r, a): ACL a, JOG r, then STA to resynchronise (and to see an interlock at once).
+* set_rate(r, a): [servo command,] ACL a, JOG r, then STA to resynchronise (and to see an interlock at once).
 * set_sinusoid(A, f, a): requires the peak acceleration of rate(t) = A sin(2 pi f t), A 2 pi f, to be <= a
-  and a <= max_accel; then ACL a, AMP A, FRQ f, SGO, STA.
+  and a <= max_accel; then [servo command,] ACL a, AMP A, FRQ f, SGO, STA.
 * stop(): STO, STA.  safe_state(): STO only (idempotent, one transaction).
 * read(): PVE, PPO, STA -> TableReading (interlock = STA bit 2).
 """
@@ -45,7 +51,8 @@ class Aerosmith1291BR(RateTable):
     port: an open pyserial-like port (9600 8N1 on hardware). max_rate_dps, max_accel_dps2: the station's
     limits (commands beyond them are refused before sending). port_factory: a callable that opens a new port,
     used by reconnect(). framing: terminators and prompt (default proto.FRAMING: commands CR LF, replies
-    CR/LF/CR LF, prompt ">").
+    CR/LF/CR LF, prompt ">"). servo_enable_command: sent before the first motion of each connection (None:
+    nothing is sent).
     """
 
     NAME = "1291BR"
@@ -58,7 +65,16 @@ class Aerosmith1291BR(RateTable):
         max_accel_dps2: float,
         port_factory: Callable[[], SerialPort] | None = None,
         framing: Framing | None = None,
+        servo_enable_command: str | None = None,
     ) -> None:
+        if servo_enable_command is not None and not (
+            servo_enable_command.isascii() and servo_enable_command.isprintable() and " " not in servo_enable_command
+        ):
+            raise ValueError(
+                f"servo_enable_command must be printable ASCII without spaces, got {servo_enable_command!r}"
+            )
+        self.servo_enable_command = servo_enable_command or None
+        self._servo_enabled = False  # sent on this connection?
         if not (math.isfinite(max_rate_dps) and max_rate_dps > 0):
             raise ValueError(f"max_rate_dps must be a positive finite number, got {max_rate_dps!r}")
         if not (math.isfinite(max_accel_dps2) and max_accel_dps2 > 0):
@@ -104,12 +120,27 @@ class Aerosmith1291BR(RateTable):
                 raise InstrumentError(f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: {exc}") from exc
             if line.startswith("E"):
                 self._raise_if_error(raw, line)
+        self._expect_prompt(cmd.mnemonic, line)
+        return result
+
+    def _expect_prompt(self, command: str, line: str) -> None:
         if line != self.framing.prompt:
             raise InstrumentError(
-                f"{self.NAME}: missing prompt after {cmd.mnemonic!r}: received {line!r} instead of the prompt "
+                f"{self.NAME}: missing prompt after {command!r}: received {line!r} instead of the prompt "
                 f"{self.framing.prompt!r}"
             )
-        return result
+
+    def _enable_servo(self) -> None:
+        """The configured servo command, once per connection, before motion (prompt only)."""
+        if self.servo_enable_command is None or self._servo_enabled:
+            return
+        raw = self.servo_enable_command.encode("ascii") + self.framing.command_end
+        self._link.send(raw)
+        line = self._link.read_line(raw)
+        if line.startswith("E"):
+            self._raise_if_error(raw, line)
+        self._expect_prompt(self.servo_enable_command, line)
+        self._servo_enabled = True
 
     def _raise_if_error(self, raw: bytes, line: str) -> None:
         """InterlockError / InstrumentError if `line` is an error line "E<nn> <text>" (after reading its prompt)."""
@@ -135,6 +166,7 @@ class Aerosmith1291BR(RateTable):
         rate_dps, accel_dps2 = self._sent("jog", rate_dps), self._sent("accel", accel_dps2)
         check_limit("table rate", rate_dps, -self.max_rate_dps, self.max_rate_dps, "deg/s")
         self._check_accel(accel_dps2)
+        self._enable_servo()
         self._transact("accel", accel_dps2)
         self._transact("jog", rate_dps)
         self._mode, self._rate_command_dps, self._accel_dps2, self._sine = (
@@ -164,6 +196,7 @@ class Aerosmith1291BR(RateTable):
                 f"sinusoid peak acceleration amplitude*2*pi*frequency = {peak:g} deg/s^2 exceeds the "
                 f"acceleration limit {accel_dps2:g} deg/s^2"
             )
+        self._enable_servo()
         self._transact("accel", accel_dps2)
         self._transact("sine_amplitude", amplitude_dps)
         self._transact("sine_frequency", frequency_hz)
@@ -233,6 +266,7 @@ class Aerosmith1291BR(RateTable):
                     "prompt": self.framing.prompt,
                 },
                 "commands": {c.key: c.mnemonic for c in proto.COMMANDS.values()},
+                "servo_enable_command": self.servo_enable_command,
             },
             "state": self.state(),
         }
@@ -250,6 +284,7 @@ class Aerosmith1291BR(RateTable):
         controller keeps running its last command across a host link drop (assumed)."""
         log.info("%s: reconnecting", self.NAME)
         self._link.reopen(self._factory)
+        self._servo_enabled = False  # a power-cycled controller may have its servo off: sent again before motion
         self.identify()
 
     # ------------------------------------------------------------------ helpers

@@ -41,6 +41,7 @@ ERROR_CODES: dict[int, str] = {
     3: "argument outside the controller's range",
     4: "interlock tripped: motion refused until reset",
     5: "framing: command not terminated by CR LF",
+    6: "servo off: motion refused until the servo is enabled ([table] servo_enable_command)",
 }
 ERROR_INTERLOCK = 4
 

@@ -32,9 +32,17 @@ construction or reconnect, or after a failed OFFS) it first asks "OFFS?" once:
 One of the two orders always works: if both failed, A_new/2 + |o_old| + A_old/2 + |o_new| > 10 V, yet the
 old and the new state each sum to <= 5 V.
 
-Replies are parsed strictly after stripping surrounding whitespace (the RS-232 reply terminator is not
-confirmed, so a trailing CR is tolerated): FUNC? one digit 0-5; FREQ?/OFFS? a decimal number; AMPL? a number
-followed by VP, VR or DB; *ESR? an integer 0-255; *IDN? four comma-separated fields, the second "DS345".
+Reply framing. GPIB: every reply ends with LF (and END); pyvisa reads up to LF, as before. RS-232 (an ASRL
+resource): the public serial DS345 driver of the Qacam project (DS345.py on its QSerialDevice base, whose
+end-of-line is CR) reads RS-232 replies up to CR, while PLACE's serial DS345 driver (automate/SRS/DS345_driver.py)
+reads lines to LF and strips the rest; the commands end with LF in both. A driver that waited for LF alone
+timed out on every query of a CR-terminated unit, so on a serial resource the driver reads each reply byte by
+byte up to the first CR or LF (drivers/line_transport.py, `read_any_line`): replies ending CR, LF or CR LF are
+all read (the LF of a CR LF reply is skipped before the next reply). The resource's own read termination is
+set to CR there (for the raw console, `qmg-lab generator raw`).
+Replies are parsed strictly after stripping surrounding whitespace: FUNC? one digit 0-5; FREQ?/OFFS? a decimal
+number; AMPL? a number followed by VP, VR or DB; *ESR? an integer 0-255; *IDN? four comma-separated fields,
+the second "DS345".
 A reply that does not match raises `InstrumentError` with the command and the bytes received; a VISA timeout
 (or any I/O error) raises `InstrumentError` naming the command.
 
@@ -58,6 +66,7 @@ from pyvisa.constants import Parity, StatusCode, StopBits
 from pyvisa.errors import VisaIOError
 from pyvisa.resources import SerialInstrument
 
+from drivers.line_transport import is_serial_resource, read_any_line
 from qmg_lab.instruments import FunctionGenerator, InstrumentError, LimitError, check_limit
 
 log = logging.getLogger(__name__)
@@ -90,6 +99,7 @@ OFFS_DECIMALS = 4
 PHSE_DECIMALS = 3
 
 TERMINATION = "\n"
+SERIAL_REPLY_TERMINATION = "\r"  # RS-232 replies (public serial DS345 code reads to CR); any line end is read
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _NUMBER_RE = re.compile(rf"^{_NUMBER}$")
@@ -115,6 +125,8 @@ class VisaLikeResource(Protocol):
     def write(self, message: str) -> Any: ...
 
     def read(self) -> str: ...
+
+    def read_bytes(self, count: int) -> bytes: ...
 
     def query(self, message: str) -> str: ...
 
@@ -163,8 +175,8 @@ class DS345(FunctionGenerator):
     resource: anything with write/read/query/close/timeout (pyvisa MessageBasedResource or the twin's).
     max_amplitude_vpp: the bench's amplitude limit (<= 10 Vpp, the DS345's own maximum into 50 ohm).
     reopen: a callable returning a freshly opened resource, used by `reconnect` (None: cannot reconnect).
-    The constructor only sets the resource's terminations (LF both ways) and, on a serial resource, the
-    framing (8N2); it sends nothing.
+    The constructor only sets the resource's terminations (commands LF; replies LF on GPIB, CR on RS-232: see
+    the module docstring) and, on a serial resource, the framing (8N2); it sends nothing.
     """
 
     def __init__(
@@ -192,10 +204,12 @@ class DS345(FunctionGenerator):
 
     # ---------------------------------------------------------------- transport
     def _attach(self, resource: VisaLikeResource) -> None:
-        """LF terminations; on RS-232 also the DS345's framing: 8 data bits, no parity, 2 stop bits (the baud
-        rate, 300-19200, default 9600, is the resource's: it must match the front-panel setting)."""
+        """LF terminations (GPIB); on RS-232 the reply termination CR and the DS345's framing: 8 data bits, no
+        parity, 2 stop bits (the baud rate, 300-19200, default 9600, is the resource's: it must match the
+        front-panel setting)."""
         resource.write_termination = TERMINATION
-        resource.read_termination = TERMINATION
+        self._serial = is_serial_resource(resource)
+        resource.read_termination = SERIAL_REPLY_TERMINATION if self._serial else TERMINATION
         if isinstance(resource, SerialInstrument):
             resource.data_bits = 8
             resource.parity = Parity.none
@@ -218,7 +232,11 @@ class DS345(FunctionGenerator):
 
     def _query(self, command: str) -> str:
         try:
-            reply = self.resource.query(command)
+            if self._serial:  # CR, LF or CR LF: read up to the first line end, whatever it is
+                self.resource.write(command)
+                reply = read_any_line(self.resource)
+            else:
+                reply = self.resource.query(command)
         except InstrumentError:
             raise
         except UnicodeDecodeError as exc:  # pyvisa decodes replies as ASCII

@@ -31,6 +31,15 @@ from qmg_lab.instruments import InstrumentError
 
 log = logging.getLogger(__name__)
 
+
+class ReplyTimeout(InstrumentError):
+    """Nothing (or only line ends and blanks) arrived within the timeout: the instrument stayed silent.
+
+    Distinct from a garbled or truncated reply, so that a driver can treat silence after a setting as "this
+    controller does not acknowledge settings" (drivers/chamber.py) while a wrong reply stays a fault.
+    """
+
+
 TERMINATORS: dict[str, bytes] = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}
 _LINE_ENDS = b"\r\n"
 _BLANKS = b" \t"
@@ -164,7 +173,7 @@ class SerialLink:
         received = bytearray()  # what this line consumed before its content (skipped bytes), for messages
         prompt = self._prompt
         if not self._rx and not self._fill(command):  # nothing buffered: nothing to look at before reading
-            raise InstrumentError(f"{self.name}: timeout: no reply to {self._show(command)} (received b'')")
+            raise ReplyTimeout(f"{self.name}: timeout: no reply to {self._show(command)} (received b'')")
         while True:
             # leading CR/LF (and blanks) belong to no line
             if self._rx and self._rx[0] in _SKIPPED:
@@ -196,9 +205,7 @@ class SerialLink:
                 data = bytes(received + self._rx)
                 self._rx.clear()
                 if not data.strip(_LINE_ENDS + _BLANKS):
-                    raise InstrumentError(
-                        f"{self.name}: timeout: no reply to {self._show(command)} (received {data!r})"
-                    )
+                    raise ReplyTimeout(f"{self.name}: timeout: no reply to {self._show(command)} (received {data!r})")
                 raise InstrumentError(
                     f"{self.name}: truncated reply to {self._show(command)}: received {data!r} "
                     f"without a terminator ({self.framing.describe()})"

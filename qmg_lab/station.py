@@ -34,6 +34,7 @@ from drivers.chamber import SunEC1xChamber
 from drivers.ds345 import DS345
 from drivers.hf2_nodes import mixer_layout
 from drivers.hf2li import HF2LI, open_hf2_session
+from drivers.line_transport import LineTransport, SerialLineTransport, VisaLineTransport
 from drivers.serial_link import Framing
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import (
@@ -56,6 +57,7 @@ from sims.hf2_server import HF2DataServerTwin
 from sims.noise import set_default_prefetch
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket, terminator
 from sims.table_twin import RateTableTwin
+from sims.visa_line_twin import LineTwinVisaResource
 from sims.world import World, WorldParams
 
 SIM_DEVICE_ID = "dev1234"
@@ -184,22 +186,36 @@ def chamber_framing(cfg: Config) -> Framing:
 
 
 def table_twin(cfg: Config, world: World) -> RateTableTwin:
-    """The 1291BR twin, framed as [table] says (command terminator, sim_reply_terminator, sim_prompt_terminator)."""
+    """The 1291BR twin, framed as [table] says (command terminator, sim_reply_terminator, sim_prompt_terminator),
+    its servo at power-up as [sim] table_servo_on_at_start says."""
     t = cfg.table
     return RateTableTwin(
         world,
         command_end=terminator(t.command_terminator),
         reply_end=terminator(t.sim_reply_terminator),
         prompt_end=b"" if t.sim_prompt_terminator == "none" else terminator(t.sim_prompt_terminator),
+        servo_on=cfg.sim.table_servo_on_at_start,
     )
 
 
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
-    """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator)."""
-    c = cfg.chamber
+    """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator), answering as [sim]
+    says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings)."""
+    c, s = cfg.chamber, cfg.sim
     return ChamberTwin(
-        world, command_end=terminator(c.command_terminator), reply_end=terminator(c.sim_reply_terminator)
+        world,
+        command_end=terminator(c.command_terminator),
+        reply_end=terminator(c.sim_reply_terminator),
+        status_layout=s.chamber_status_layout,
+        self_test=s.chamber_self_test,
+        acknowledges_settings=s.chamber_acknowledges_settings,
     )
+
+
+def is_visa_address(address: str) -> bool:
+    """A VISA resource string (GPIB0::6::INSTR, ASRL3::INSTR, TCPIP0::host::INSTR) rather than a pyserial URL:
+    every VISA resource name has '::', no pyserial URL or device path does."""
+    return "::" in address
 
 
 def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
@@ -217,7 +233,7 @@ def lockin_driver(cfg: Config, session: Session, device_id: str) -> HF2LI:
 
 
 def table_driver(cfg: Config, open_port: Callable[[], Any]) -> Aerosmith1291BR:
-    """The 1291BR driver on a newly opened port, with the [table] limits and framing."""
+    """The 1291BR driver on a newly opened port, with the [table] limits, framing and servo command."""
     t = cfg.table
     return Aerosmith1291BR(
         open_port(),
@@ -225,22 +241,32 @@ def table_driver(cfg: Config, open_port: Callable[[], Any]) -> Aerosmith1291BR:
         max_accel_dps2=t.max_accel_dps2,
         port_factory=open_port,
         framing=table_framing(cfg),
+        servo_enable_command=t.servo_enable_command or None,
     )
 
 
-def chamber_driver(cfg: Config, open_port: Callable[[], Any]) -> SunEC1xChamber:
-    """The EC1x driver on a newly opened port: identified, then the [chamber] min_c/max_c written to the
-    controller as its own limits (LTL=, UTL=), so that the controller refuses a setpoint outside them even if
-    the host goes wrong."""
+def chamber_link(cfg: Config, open_link: Callable[[], Any]) -> LineTransport:
+    """The chamber's line transport: a VISA resource if [chamber] port is a VISA address, else a serial port;
+    `open_link` opens one (it is also the reopen factory of reconnect())."""
+    name, framing = SunEC1xChamber.NAME, chamber_framing(cfg)
+    if is_visa_address(cfg.chamber.port):
+        return VisaLineTransport(open_link(), name=name, framing=framing, reopen=open_link)
+    return SerialLineTransport(open_link(), name=name, framing=framing, port_factory=open_link)
+
+
+def chamber_driver(cfg: Config, open_link: Callable[[], Any]) -> SunEC1xChamber:
+    """The EC1x driver on a newly opened port or VISA resource: identified, then the [chamber] min_c/max_c
+    written to the controller as its own limits (LTL=, UTL=), so that the controller refuses a setpoint outside
+    them even if the host goes wrong."""
     c = cfg.chamber
     chamber = SunEC1xChamber(
-        open_port(),
+        chamber_link(cfg, open_link),
         min_c=c.min_c,
         max_c=c.max_c,
         max_ramp_c_per_min=c.max_ramp_c_per_min,
         safe_setpoint_c=c.safe_setpoint_c,
-        port_factory=open_port,
         framing=chamber_framing(cfg),
+        ack=c.setting_ack,
     )
     # a transient fault at connect (a reply lost on a noisy line) gets the same bounded reconnects as a fault
     # during a campaign ([recovery] reconnect_attempts); what still fails after them is reported
@@ -316,8 +342,11 @@ class _Bench:
             assert world is not None
             ds_twin = DS345Twin(world)
 
+            # on an RS-232 address the twin ends its replies CR, as public serial DS345 code reads a real unit
+            reply_end = b"\r" if g.resource.upper().startswith("ASRL") else b"\n"
+
             def open_gen_twin() -> Any:
-                return ds_twin.resource(g.resource)
+                return ds_twin.resource(g.resource, reply_end=reply_end)
 
             open_gen: Callable[[], Any] = open_gen_twin
             if faults is not None:
@@ -347,16 +376,18 @@ class _Bench:
         return _serial_port(t.port, t.baudrate, t.timeout_s)
 
     def chamber_port(self) -> Callable[[], Any]:
+        """The chamber's opener: a VISA resource (its twin behind a VISA-like resource) for a VISA address,
+        else a serial port (its twin in-process, over a pty or a socket)."""
         c = self.cfg.chamber
+        visa = is_visa_address(c.port)
         if c.sim:
             assert self.world is not None
-            return _twin_port(
-                _faulty(self.faults, "chamber", chamber_twin(self.cfg, self.world)),
-                c.sim_transport,
-                c.baudrate,
-                c.timeout_s,
-                self.closers,
-            )
+            twin = _faulty(self.faults, "chamber", chamber_twin(self.cfg, self.world))
+            if visa:
+                return lambda: LineTwinVisaResource(twin, c.port)
+            return _twin_port(twin, c.sim_transport, c.baudrate, c.timeout_s, self.closers)
+        if visa:
+            return _visa_opener(c.port, c.visa_backend, round(c.timeout_s * 1000))
         return _serial_port(c.port, c.baudrate, c.timeout_s)
 
     def close(self) -> None:
@@ -502,6 +533,11 @@ def open_raw_serial(cfg: Config, name: str) -> tuple[Any, Framing, Callable[[], 
     and no driver speaks on it."""
     if name not in ("table", "chamber"):
         raise ValueError(f"no serial raw console for {name!r}: table or chamber")
+    if name == "chamber" and is_visa_address(cfg.chamber.port):
+        raise InstrumentError(
+            f"the chamber is at the VISA address {cfg.chamber.port!r}, not on a serial port: the serial raw "
+            "console cannot reach it (use `qmg-lab instruments` or a VISA tool such as pyvisa-shell)"
+        )
     bench = _Bench(cfg, None, clock="wall")
     try:
         port = (bench.table_port() if name == "table" else bench.chamber_port())()

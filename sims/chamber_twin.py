@@ -12,8 +12,16 @@ It plays the instrument (no code shared with the driver) against the shared Worl
   world is driven to ambient (WorldParams.initial_temperature_c) through the same ramp and lag, and the stored
   SET= value waits for ON.
 * SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on; the
-  stored SET= value while off. STATUS? is 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping
-  (on and the setpoint has not reached the target), the rest N.
+  stored SET= value while off. STATUS? layout (`status_layout`):
+  - "flags16" (default of the class): 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping (on and
+    the setpoint has not reached the target), the rest N;
+  - "ec13": what the public Sun EC13 driver (achim1/skippylab, skippylab/instruments/climate_chambers.py)
+    decodes: 18 Y/N flags then the self-test digit (`self_test`, 0 = ok), e.g. ``YNNNYYYNNNNNNNNNNN0``:
+    0 power, 1 last command error (the previous command was refused), 4 heat enabled, 5 cool enabled, 6 valid
+    set temperature (always Y), 8 ramping, 9 air below LTL, 10 air above UTL, the rest N.
+* acknowledgements (`acknowledges_settings`): True (default) answers every setting/action OK; False plays a
+  controller that answers settings with nothing at all (as that public driver expects: it never reads one),
+  refusals included: a refused setting then only shows in the read-back and in the last-command-error flag.
 * framing options (the real framing is unconfirmed): `command_end` (CR LF by default; CR or LF) and
   `reply_end` (CR LF by default; CR or LF).
 """
@@ -28,6 +36,8 @@ from sims.world import World
 
 REPLY_END = b"\r\n"
 STATUS_FLAGS = 16
+STATUS_LAYOUTS = ("flags16", "ec13")
+EC13_FLAGS = 18
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 
 
@@ -47,9 +57,19 @@ class ChamberTwin(FaultableTwin):
         max_ramp_c_per_min: float = 60.0,
         command_end: bytes = b"\r\n",
         reply_end: bytes = REPLY_END,
+        status_layout: str = "flags16",
+        self_test: int = 0,
+        acknowledges_settings: bool = True,
     ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")
+        if status_layout not in STATUS_LAYOUTS:
+            raise ValueError(f"status_layout must be one of {', '.join(STATUS_LAYOUTS)}, got {status_layout!r}")
+        if not 0 <= self_test <= 9:
+            raise ValueError(f"self_test must be one digit 0-9, got {self_test!r}")
+        self.status_layout, self.self_test = status_layout, int(self_test)
+        self.acknowledges_settings = bool(acknowledges_settings)
+        self.last_command_error = False
         self.command_end, self.reply_end = command_end, reply_end
         self.world = world
         self.hardware_min_c = float(hardware_min_c)
@@ -73,6 +93,7 @@ class ChamberTwin(FaultableTwin):
 
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
+        query = False  # a query answers even when settings are not acknowledged
         try:
             body = self.command_body(line)
             if body is None:
@@ -81,11 +102,16 @@ class ChamberTwin(FaultableTwin):
                 text = body.decode("ascii")
             except UnicodeDecodeError:
                 raise _Refused("UNKNOWN COMMAND") from None
+            query = text.endswith("?")
             with self.world.lock:
                 self.world.now()
                 answer = self._dispatch(text)
         except _Refused as r:
             answer = f"?{r}"
+        if not query:
+            self.last_command_error = answer.startswith("?")
+            if not self.acknowledges_settings:
+                return b""
         return answer.encode("ascii") + self.reply_end
 
     def _dispatch(self, text: str) -> str:
@@ -148,9 +174,24 @@ class ChamberTwin(FaultableTwin):
         return f"{self.world.chamber.controller_setpoint_c if self._power else self._target:.2f}"
 
     def _status(self) -> str:
-        flags = ["N"] * STATUS_FLAGS
-        if self._power:
-            flags[0] = flags[1] = flags[2] = "Y"
-            if self.world.chamber.controller_setpoint_c != self.world.chamber.target_c:
-                flags[8] = "Y"
-        return "".join(flags)
+        ramping = self._power and self.world.chamber.controller_setpoint_c != self.world.chamber.target_c
+        if self.status_layout == "flags16":
+            flags = ["N"] * STATUS_FLAGS
+            if self._power:
+                flags[0] = flags[1] = flags[2] = "Y"
+            flags[8] = "Y" if ramping else "N"
+            return "".join(flags)
+        flags = ["N"] * EC13_FLAGS
+        air = self.world.chamber_air_c()
+        for i, on in (
+            (0, self._power),
+            (1, self.last_command_error),
+            (4, self._power),
+            (5, self._power),
+            (6, True),
+            (8, ramping),
+            (9, air < self.ltl_c),
+            (10, air > self.utl_c),
+        ):
+            flags[i] = "Y" if on else "N"
+        return "".join(flags) + str(self.self_test)

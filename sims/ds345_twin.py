@@ -49,6 +49,7 @@ from typing import ClassVar
 import pyvisa.constants
 import pyvisa.errors
 
+from sims.visa_resource import VisaLikeResource
 from sims.world import World
 
 ESR_QUERY = 1 << 2
@@ -159,9 +160,10 @@ class DS345Twin:
             self._input.clear()
             self._output.clear()
 
-    def resource(self, resource_name: str = "GPIB0::19::INSTR") -> VisaTwinResource:
-        """A new VISA-like resource connected to this twin (call again to 'reopen' after close)."""
-        return VisaTwinResource(self, resource_name)
+    def resource(self, resource_name: str = "GPIB0::19::INSTR", reply_end: bytes = b"\n") -> VisaTwinResource:
+        """A new VISA-like resource connected to this twin (call again to 'reopen' after close); `reply_end`
+        ends every reply on it (LF on GPIB; CR, LF or CR LF to play an RS-232 unit)."""
+        return VisaTwinResource(self, resource_name, reply_end)
 
     def _reply(self, text: str) -> None:
         framed = text.encode("ascii") + b"\n"
@@ -401,35 +403,44 @@ class DS345Twin:
     }
 
 
-class VisaTwinResource:
+class VisaTwinResource(VisaLikeResource):
     """A VISA-like resource wired to a DS345Twin: what pyvisa's MessageBasedResource offers a driver.
 
-    write(msg) sends msg + write_termination as ASCII. read() returns the next reply up to read_termination
-    (removed); with an empty read_termination, one whole reply message. No reply, or a reply that never
-    reaches the terminator, raises pyvisa's VisaIOError(VI_ERROR_TMO) at once: the clock is virtual, the
-    timeout (ms) is only recorded. A partial reply stays in the receive buffer, as on a real link, until
-    clear(). A reply that is not ASCII raises UnicodeDecodeError, as pyvisa's read does. A closed resource
-    raises pyvisa's InvalidSession.
+    write(msg) sends msg + write_termination as ASCII. Every reply reaches the resource with `reply_end` in
+    place of the twin's LF (LF by default, as on GPIB; CR or CR LF plays a unit on RS-232). read() returns the
+    next reply up to read_termination (removed); with an empty read_termination, one whole reply message.
+    read_bytes(n) returns the next n bytes of the reply stream. No reply, or a reply that never reaches the
+    terminator, raises pyvisa's VisaIOError(VI_ERROR_TMO) at once: the clock is virtual, the timeout (ms) is
+    only recorded. A partial reply stays in the receive buffer, as on a real link, until clear(). A reply that
+    is not ASCII raises UnicodeDecodeError, as pyvisa's read does. A closed resource raises pyvisa's
+    InvalidSession.
     """
 
-    def __init__(self, twin: DS345Twin, resource_name: str = "GPIB0::19::INSTR") -> None:
+    def __init__(self, twin: DS345Twin, resource_name: str = "GPIB0::19::INSTR", reply_end: bytes = b"\n") -> None:
+        if reply_end not in (b"\r", b"\n", b"\r\n"):
+            raise ValueError("reply_end must be CR, LF or CR LF")
+        super().__init__(resource_name)
         self.twin = twin
-        self.resource_name = resource_name
-        self.write_termination = "\r\n"  # pyvisa's defaults; drivers set their own
-        self.read_termination = "\n"
-        self.timeout: float | None = 2000.0
-        self._rx = bytearray()
-        self._closed = False
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise pyvisa.errors.InvalidSession()
+        self.reply_end = reply_end
 
     def write(self, message: str) -> int:
         self._check_open()
         data = (message + (self.write_termination or "")).encode("ascii")
         self.twin.write_bytes(data)
         return len(data)
+
+    def _more(self) -> bool:
+        self._rx.extend(self._next_message())
+        return True
+
+    def _next_message(self) -> bytes:
+        """The twin's next reply as it goes on this wire (its LF replaced by reply_end); timeout if none."""
+        message = self.twin.read_message()
+        if message is None:
+            raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
+        if message.endswith(b"\n"):
+            message = message[:-1] + self.reply_end
+        return message
 
     def read(self) -> str:
         self._check_open()
@@ -439,21 +450,11 @@ class VisaTwinResource:
                 head, _, rest = bytes(self._rx).partition(term)
                 self._rx = bytearray(rest)
                 return head.decode("ascii")  # like pyvisa: non-ASCII raises UnicodeDecodeError
-            message = self.twin.read_message()
-            if message is None:
-                raise pyvisa.errors.VisaIOError(pyvisa.constants.StatusCode.error_timeout)
+            message = self._next_message()
             if not term:
                 return message.decode("ascii")
             self._rx.extend(message)
 
-    def query(self, message: str) -> str:
-        self.write(message)
-        return self.read()
-
     def clear(self) -> None:
-        self._check_open()
-        self._rx.clear()
+        super().clear()
         self.twin.clear()
-
-    def close(self) -> None:
-        self._closed = True

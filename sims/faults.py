@@ -337,6 +337,10 @@ class _VisaGate:
         self._check()
         return self._gate[2].query(message)
 
+    def read_bytes(self, count: int) -> bytes:  # the DS345 driver's byte-wise reading on an ASRL resource
+        self._check()
+        return bytes(self._gate[2].read_bytes(count))
+
     def clear(self) -> None:
         self._check()
         self._gate[2].clear()

@@ -15,8 +15,11 @@ the shared `sims.world.World` under `world.lock`. Protocol implemented (document
   (world.stop_table(a)), PVE -> world.table_rate_dps() "%.6f" (the delivered rate, scale error included),
   PPO -> world.table_angle_deg() wrapped to [0, 360) "%.4f", STA -> status integer, MCO tol -> "1" if rate
   mode and |PVE - command| <= tol, AMP A, FRQ f, SGO (world.set_table_sine(A, f); E03 if A 2 pi f > ACL).
-* STA bits: 1 moving (profile rate != 0), 2 at rate (rate mode, ramp finished), 4 interlock, 8 servo on
-  (always), 16 sinusoid running.
+* STA bits: 1 moving (profile rate != 0), 2 at rate (rate mode, ramp finished), 4 interlock, 8 servo on,
+  16 sinusoid running.
+* servo (public Aerosmith code enables it with SRV before motion): SRV or SRV1 switches it on, SRV0 off
+  (prompt only). `servo_on` gives its state at power-up (True by default; the station's twin follows
+  [sim] table_servo_on_at_start). While it is off, JOG and SGO answer E06 SERVO OFF (STO is accepted).
 * while world.table.interlock is set, JOG and SGO answer E04 (STO is accepted).
 """
 
@@ -55,6 +58,7 @@ class RateTableTwin(FaultableTwin):
         command_end: bytes = b"\r\n",
         reply_end: bytes = b"\r",
         prompt_end: bytes = b"\r",
+        servo_on: bool = True,
     ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")
@@ -71,6 +75,7 @@ class RateTableTwin(FaultableTwin):
             self._accel = world.table.accel_dps2
         self._amplitude = 0.0
         self._frequency = 0.0
+        self.servo_on = bool(servo_on)
         self.commands_seen = 0
         self._handlers = {
             "ACL": self._acl,
@@ -83,6 +88,7 @@ class RateTableTwin(FaultableTwin):
             "AMP": self._amp,
             "FRQ": self._frq,
             "SGO": self._sgo,
+            "SRV": self._srv,
         }
 
     # ---------------------------------------------------------------- framing
@@ -134,12 +140,22 @@ class RateTableTwin(FaultableTwin):
             raise _Refused(3, "RANGE")
         self._accel = a
 
+    def _motion_allowed(self) -> None:
+        if self.world.table.interlock:
+            raise _Refused(4, "INTERLOCK")
+        if not self.servo_on:
+            raise _Refused(6, "SERVO OFF")
+
+    def _srv(self, arg: str) -> None:
+        if arg not in ("", "0", "1"):
+            raise _Refused(2, "BAD ARGUMENT")
+        self.servo_on = arg != "0"
+
     def _jog(self, arg: str) -> None:
         r = self._number(arg)
         if abs(r) > self.max_rate_dps:
             raise _Refused(3, "RANGE")
-        if self.world.table.interlock:
-            raise _Refused(4, "INTERLOCK")
+        self._motion_allowed()
         self.world.set_table_rate(r, self._accel)
 
     def _sto(self, arg: str) -> None:
@@ -158,7 +174,7 @@ class RateTableTwin(FaultableTwin):
     def status(self) -> int:
         """The STA integer from the world's table state (call under world.lock)."""
         tab = self.world.table
-        bits = STA_SERVO_ON
+        bits = STA_SERVO_ON if self.servo_on else 0
         if tab.rate_dps != 0.0:
             bits |= STA_MOVING
         if tab.mode == "rate" and tab.rate_dps == tab.rate_command_dps:
@@ -197,6 +213,5 @@ class RateTableTwin(FaultableTwin):
         self._no_arg(arg)
         if self._frequency <= 0.0 or self._amplitude * 2.0 * math.pi * self._frequency > self._accel:
             raise _Refused(3, "RANGE")
-        if self.world.table.interlock:
-            raise _Refused(4, "INTERLOCK")
+        self._motion_allowed()
         self.world.set_table_sine(self._amplitude, self._frequency)

@@ -273,18 +273,36 @@ class TableSection(_Section):
         description="the controller's ready prompt after every reply",
     )
     sim_reply_terminator: Terminator = Field("CR", description="twin only: how the twin ends its reply lines")
+    servo_enable_command: str = Field(
+        "SRV",
+        max_length=16,
+        pattern=r"^[!-~]*$",
+        description="sent once (prompt only) before the first motion of each connection: public Aerosmith code "
+        "enables the servo with SRV; '' sends nothing",
+    )
     sim_prompt_terminator: Literal["CR", "LF", "CRLF", "none"] = Field(
         "CR", description="twin only: what follows the twin's prompt (none = a bare prompt)"
     )
 
 
 class ChamberSection(_Section):
-    """Thermal chamber controller (Sun Electronic Systems EC1x ASCII protocol), over a pyserial URL."""
+    """Thermal chamber controller (Sun Electronic Systems EC1x ASCII protocol), over RS-232 or GPIB."""
 
     sim: bool = Field(False)
-    port: str = Field("/dev/ttyUSB1", min_length=1)
-    baudrate: int = Field(9600, ge=300, le=115200)
-    timeout_s: float = Field(1.0, gt=0.0, le=30.0)
+    port: str = Field(
+        "/dev/ttyUSB1",
+        min_length=1,
+        description="pyserial URL (/dev/ttyUSB1, COM3, socket://h:p) or, if it contains '::', a VISA resource "
+        "(GPIB0::6::INSTR) opened through pyvisa",
+    )
+    visa_backend: str = Field("", description="VISA address only: pyvisa backend: '' default, '@py', 'file.yaml@sim'")
+    baudrate: int = Field(9600, ge=300, le=115200, description="serial URL only")
+    timeout_s: float = Field(1.0, gt=0.0, le=30.0, description="reply timeout, s (also the wait for an OK)")
+    setting_ack: Literal["auto", "ok", "none"] = Field(
+        "auto",
+        description="how settings are acknowledged: auto (an OK if one comes within timeout_s, else confirmed by "
+        "reading it back), ok (every setting must answer OK), none (never wait: always read back)",
+    )
     min_c: float = Field(-40.0, ge=-100.0, le=200.0, description="lowest setpoint allowed, deg C")
     max_c: float = Field(85.0, ge=-100.0, le=200.0, description="highest setpoint allowed, deg C")
     max_ramp_c_per_min: float = Field(5.0, gt=0.0, le=50.0)
@@ -473,6 +491,17 @@ class SimSection(_Section):
     )
     drive_voltage_v: float = Field(0.05, gt=0.0, le=10.0, description="true drive voltage at nominal amplitude, V")
     sf_true_v_per_dps: float = Field(0.06, gt=0.0, le=10.0, description="true FTR SF at the reference temperature")
+    chamber_status_layout: Literal["ec13", "flags16"] = Field(
+        "ec13",
+        description="chamber twin's STATUS?: ec13 = 18 Y/N flags + self-test digit (public EC13 driver), flags16",
+    )
+    chamber_self_test: int = Field(0, ge=0, le=9, description="chamber twin's self-test digit (ec13 layout)")
+    chamber_acknowledges_settings: bool = Field(
+        True, description="chamber twin answers OK to settings (false: it answers nothing, as an EC13 on GPIB)"
+    )
+    table_servo_on_at_start: bool = Field(
+        True, description="table twin's servo at power-up (false: JOG/SGO refused, E06, until the servo command)"
+    )
     faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
 
 
