@@ -118,17 +118,15 @@ def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_campaign(config_text: str, run_file: Path, twin_draw_ahead: bool | None = None) -> tuple[dict[str, Any], float]:
-    """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s).
-    twin_draw_ahead: the twins' noise drawn on a second thread or not (station.set_twin_noise_draw_ahead)."""
+def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], float]:
+    """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s)."""
     from qmg_lab.analysis.compute import analyze
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignRunner
-    from qmg_lab.station import build_station, set_twin_noise_draw_ahead
+    from qmg_lab.station import build_station
     from qmg_lab.storage.summary import create_run_writer
     from qmg_lab.storage.writer import read_run, status_detail
 
-    set_twin_noise_draw_ahead(twin_draw_ahead)
     cfg = parse_config(config_text, "point configuration")
     plan = checked_plan(cfg)
     station = build_station(cfg)
@@ -155,11 +153,9 @@ def run_campaign(config_text: str, run_file: Path, twin_draw_ahead: bool | None 
     return result, summary.simulated_s
 
 
-def run_point(
-    point: dict[str, Any], out_dir: str, keep_run_files: bool = False, twin_draw_ahead: bool | None = None
-) -> dict[str, Any]:
-    """The Dask task of one point (the module docstring's protocol). `point`: id, index, seed, axes, config_text;
-    twin_draw_ahead as run_campaign's. Returns the point's record (also in DIR/points/<id>.json)."""
+def run_point(point: dict[str, Any], out_dir: str, keep_run_files: bool = False) -> dict[str, Any]:
+    """The Dask task of one point (the module docstring's protocol). `point`: id, index, seed, axes, config_text.
+    Returns the point's record (also in DIR/points/<id>.json)."""
     out = Path(out_dir)
     points_dir(out).mkdir(parents=True, exist_ok=True)
     pid = str(point["id"])
@@ -185,7 +181,7 @@ def run_point(
             run_file.parent.mkdir(parents=True, exist_ok=True)
             run_file.unlink(missing_ok=True)  # left by a run of this point that was killed
             try:
-                result, simulated_s = run_campaign(str(point["config_text"]), run_file, twin_draw_ahead)
+                result, simulated_s = run_campaign(str(point["config_text"]), run_file)
                 record["metrics"] = metrics_of(result)
                 record["simulated_s"] = simulated_s
                 if result.get("status") != "completed":
