@@ -2,8 +2,9 @@
 
 Exactly-once protocol (docs/studies.md), in the study directory DIR:
 
-1. The task takes an exclusive lock on DIR/points/<id>.lock (fcntl.flock; blocking). Two tasks of one point, e.g.
-   a worker orphaned by a killed driver and the task of the resumed study, never run at the same time.
+1. The task takes an exclusive lock on DIR/points/<id>.lock (the `filelock` package: flock on POSIX, a
+   msvcrt byte-range lock on Windows, both released by the OS when the process dies; blocking). Two tasks of one
+   point, e.g. a worker orphaned by a killed driver and the task of the resumed study, never run at the same time.
 2. Holding the lock it looks for DIR/points/<id>.json: if it exists the point is done and the task returns that
    record without running anything.
 3. Otherwise it logs "start" to DIR/runlog.jsonl, runs the campaign (twins only) and `analyze`, writes the record
@@ -19,7 +20,6 @@ goes on.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import socket
@@ -31,6 +31,8 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from filelock import FileLock
 
 from qmg_lab import __version__
 from qmg_lab.config.schema import config_fingerprint, parse_config
@@ -69,6 +71,8 @@ def write_atomic(path: Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    if os.name != "posix":  # Windows has no directory fsync (a directory is not opened as a file): the rename is
+        return  # as durable as the file system's metadata journal makes it
     dir_fd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(dir_fd)  # the rename itself survives a power cut
@@ -96,12 +100,8 @@ def log_event(out_dir: Path, event: str, point_id: str, **extra: Any) -> None:
 @contextmanager
 def point_lock(out_dir: Path, point_id: str) -> Iterator[None]:
     """Exclusive lock on DIR/points/<id>.lock for the whole run of one point (released if the process dies)."""
-    fd = os.open(points_dir(out_dir) / f"{point_id}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    with FileLock(points_dir(out_dir) / f"{point_id}.lock"):
         yield
-    finally:
-        os.close(fd)  # closing releases the lock
 
 
 def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
