@@ -51,6 +51,7 @@ BLOCKED = frozenset(json.loads(sys.argv[1]))
 OWN = ("qmg_lab", "drivers", "sims")
 ROOT = os.path.abspath(".")
 OWN_DIRS = tuple(os.path.join(ROOT, d) + os.sep for d in OWN)
+MACHINERY = ("<frozen importlib", "<string>", os.path.dirname(importlib.abc.__file__) + os.sep)
 
 
 def own_module(name):
@@ -75,10 +76,8 @@ class Blocker(importlib.abc.MetaPathFinder):
         if fullname.split(".")[0] not in BLOCKED:
             return None
         frame = sys._getframe(1)
-        while frame is not None and (
-            frame.f_code.co_filename.startswith("<frozen importlib") or frame.f_code.co_filename == "<string>"
-        ):  # the import machinery and this script
-            frame = frame.f_back
+        while frame is not None and frame.f_code.co_filename.startswith(MACHINERY):
+            frame = frame.f_back  # the import machinery (importlib.import_module too) and this script
         if frame is not None and frame.f_code.co_filename.startswith(OWN_DIRS):
             refuse(fullname)
         return None
@@ -98,6 +97,14 @@ for name in BLOCKED:
         pass
     else:
         raise SystemExit(f"the blocker let the project import {name}")
+for name in [m for m in BLOCKED if m not in sys.modules]:  # the meta-path layer: importlib from a project file
+    probe = compile(f"import importlib; importlib.import_module({name!r})", os.path.join(ROOT, "sims", "p.py"), "exec")
+    try:
+        exec(probe, {"__name__": "windows_probe"})
+    except ModuleNotFoundError:
+        pass
+    else:
+        raise SystemExit(f"the meta-path blocker let a project file import {name}")
 exec("import termios", {"__name__": "third_party_probe"})
 
 from qmg_lab.cli.main import main
