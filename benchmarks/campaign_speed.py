@@ -13,7 +13,7 @@ all fixed cost (interpreter, imports, numba's cached kernels, configuration, con
 Then the third-party floor of that start-up: a process that only imports the packages a run imports and builds
 numba's contexts (`third_party_floor_wall_s`). Last, the ceiling over the real-time factor: that start-up plus
 the gyro twin's physics alone (sims.gyro.GyroSim: its compiled kernel and its noise draws, sim_speed.py's inputs,
-2 s blocks, draw-ahead on as in a campaign) over the rest of the campaign's simulated time, in this process
+2 s blocks, as in a campaign) over the rest of the campaign's simulated time, in this process
 after a warm-up. No campaign process can beat
 `ceiling_realtime_factor` = simulated s / (start-up wall s + gyro-alone wall s): it leaves out the world, the HF2
 twin's demodulators and AuxIns, the drivers, CLSF, the file and the runner, which all cost more than nothing.
@@ -127,7 +127,7 @@ def slower_ramp(tmp: Path, factor: float) -> Path:
 
 def gyro_alone_wall_s(simulated_s: float, block_s: float = 2.0) -> float:
     """Wall s of the gyro twin's physics alone (GyroSim.run: kernel + noise draws) for simulated_s in block_s
-    blocks, after a warm-up block (sim_speed.py's inputs and loop settings, noise drawn ahead)."""
+    blocks, after a warm-up block (sim_speed.py's inputs and loop settings)."""
     sys.path.insert(0, str(ROOT))
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from sim_speed import DT, _rt_factor
@@ -195,8 +195,8 @@ def main() -> None:
         "cpu_s_at_1000x_all_cores": (os.cpu_count() or 1) * simulated / 1000.0,
         "cpu_share_of_1000x_all_cores": statistics.median(r[4] for r in runs)
         / ((os.cpu_count() or 1) * simulated / 1000.0),
-        # the main thread (imports, the campaign loop, the twins, CLSF: everything but the writer thread's
-        # compression and the noise draws ahead) runs on one core: its CPU s bound the wall time from below
+        # the main thread (imports, the campaign loop, the twins and their noise draws, CLSF: everything but the
+        # writer thread's compression) runs on one core: its CPU s bound the wall time from below
         "main_thread_cpu_s_median": statistics.median(r[5] for r in runs),
         "main_thread_cpu_share_of_1000x": statistics.median(r[5] for r in runs) / (simulated / 1000.0),
         "peak_rss_mb": rss,

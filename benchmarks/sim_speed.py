@@ -9,12 +9,9 @@ temperature ramp, so every per-step term is exercised.
   poll_interval_s a real HF2 is polled at), of 2 s (sim_poll_interval_s: the block the HF2 twin runs the gyro in
   during a simulated campaign) and of 60 s; real-time factor = simulated seconds per wall second, and per second
   of this process's CPU time (`*_cpu_*`, all threads: less sensitive to other processes on a shared machine;
-  without the prefetch the two agree on an idle one).
-  The per-step normal draws are prefetched on a background thread while the kernel runs (sims/noise.py): the
-  0.5 s figure is also given with the prefetch off (`*_no_prefetch`, the same values drawn in the caller's
-  thread), and the CPU time of the calling thread alone (`averaged_cpu_ns_per_step_main_thread`): on a machine
-  with a free core the wall-clock time follows it.
-* averaged, where the CPU time of a 0.5 s block goes (prefetch off): the compiled kernel alone, the per-step
+  the two agree on an idle one), and the CPU time of the calling thread alone
+  (`averaged_cpu_ns_per_step_main_thread`).
+* averaged, where the CPU time of a 0.5 s block goes: the compiled kernel alone, the per-step
   normal draws alone, and the rest of GyroSim.run (Python per block).
 * carrier: 32 samples per 2.2 kHz cycle (70.4 kS/s), blocks of 0.5 s.
 * memory: a 1-hour and a 4-hour averaged run, each in its own process (0.5 s blocks, outputs discarded as the
@@ -26,8 +23,7 @@ temperature ramp, so every per-step term is exercised.
   inputs, the gyro block, the twin's samples and read-only nodes, the driver's arrays): the paper campaign's
   configuration, the 7 Hz square dither, the chamber ramping and the table alternating +-5 deg/s every 60 s.
   Per block: wall time, the time inside the compiled gyro kernel (timed around GyroSim._kernel), and the rest,
-  "outside the kernel" (wall, and the calling thread's CPU time); medians over runs of 300 blocks, with the
-  noise drawn ahead (the default on 2+ CPUs) and drawn in the calling thread (`*_no_prefetch`).
+  "outside the kernel" (wall, and the calling thread's CPU time); medians over runs of 300 blocks.
 * World block (`world_advance_*`, also with `--hf2-poll-only`): `World.advance` alone (sims/world_kernel.py
   `block_inputs`: ramps, table rate with its ripple, chamber lags, the DS345's timebase and exact dither means)
   with the paper's settings (the 7 Hz square dither, the table ramping to 5 deg/s with its 100 ppm ripple, the
@@ -39,7 +35,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -83,8 +78,7 @@ def _rt_factors(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[flo
     blocks of block_s.
 
     The CPU-time figure counts only the time this process ran (all its threads), so it moves less than the
-    wall-clock one when other processes share the cores (both are equal on an idle machine without the prefetch
-    thread); the thread figure leaves out the prefetch thread's draws."""
+    wall-clock one when other processes share the cores (both are equal on an idle machine)."""
     loops = _loops()
     n = int(round(block_s / dt))
     blocks = max(1, int(sim_seconds / block_s))
@@ -104,7 +98,7 @@ def _rt_factor(sim, dt: float, block_s: float, sim_seconds: float) -> tuple[floa
 
 
 def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
-    """CPU ns per averaged step with the prefetch off, split: the compiled kernel alone (noise drawn once
+    """CPU ns per averaged step, split: the compiled kernel alone (noise drawn once
     beforehand), the per-step normal draws alone (NoiseStream.steps), and the rest of GyroSim.run (Python per
     block: input checks, loop vector, bias draws, output block), measured as run minus the two."""
     from sims.gyro import GyroParams, GyroSim
@@ -114,9 +108,8 @@ def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
     n = int(round(block_s / DT))
     inp = _inputs(n, DT, 0.0)
     sim = GyroSim(GyroParams(), DT, seed=1)
-    sim._noise.prefetch = False
     sim.run(inp, loops)
-    stream = NoiseStream(2, 6, 16, prefetch=False)
+    stream = NoiseStream(2, 6, 16)
     noise = stream.steps(n)
     gm = np.zeros((n // sim.gm_steps + 2, 16))
     out = np.empty((11, n))
@@ -139,25 +132,22 @@ def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
     }
 
 
-def _hf2_lockin(draw_ahead: bool | None):
+def _hf2_lockin():
     """The HF2LI driver on the HF2 twin (the paper campaign's configuration, every instrument simulated), loops
-    configured, streaming, the DS345's 7 Hz square wave on, the chamber ramping to 35 degC, the table at 5 deg/s.
-    The twins' noise is drawn ahead as `draw_ahead` says (station.set_twin_noise_draw_ahead, left set: the gyro
-    twin is built at the first poll)."""
+    configured, streaming, the DS345's 7 Hz square wave on, the chamber ramping to 35 degC, the table at 5 deg/s."""
     import tomllib
 
     import tomlkit
 
     from qmg_lab.campaign.loops import lockin_setup
     from qmg_lab.config.schema import parse_config
-    from qmg_lab.station import connect_instrument, set_twin_noise_draw_ahead
+    from qmg_lab.station import connect_instrument
     from sims.world import DITHER_SQUARE
 
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
     for name in ("lockin", "generator", "table", "chamber"):
         doc[name]["sim"] = True
     cfg = parse_config(tomlkit.dumps(doc))
-    set_twin_noise_draw_ahead(draw_ahead)  # for the twins built from now on: reset by the caller
     connected = connect_instrument(cfg, "lockin")
     lockin = connected.instrument
     world = lockin._session.daq_server.world  # the twin's world: the benchmark plays the other instruments
@@ -171,10 +161,9 @@ def _hf2_lockin(draw_ahead: bool | None):
 
 def hf2_poll_costs(blocks: int = 300, runs: int = 5, block_s: float = 2.0) -> dict[str, float]:
     """Per-block cost of the HF2 path of a simulated campaign (module docstring), us: medians over `runs` runs of
-    `blocks` polls, with the noise drawn ahead and drawn in the calling thread."""
+    `blocks` polls."""
     import statistics
 
-    from qmg_lab.station import set_twin_noise_draw_ahead
     from sims.gyro import GyroSim
 
     res: dict[str, float] = {}
@@ -190,39 +179,37 @@ def hf2_poll_costs(blocks: int = 300, runs: int = 5, block_s: float = 2.0) -> di
 
     GyroSim._kernel = timed_kernel  # the benchmark's stopwatch around the compiled kernel, removed below
     try:
-        for suffix, draw_ahead in (("", None), ("_no_prefetch", False)):
-            connected, lockin, world, cfg = _hf2_lockin(draw_ahead)
-            rate = cfg.plan.table_rate_dps
-            dwell_blocks = max(1, int(round(cfg.plan.dwell_s / block_s)))
-            for _ in range(20):  # warm up: compiled code loaded, the loops settled, the prefetch running
+        connected, lockin, world, cfg = _hf2_lockin()
+        rate = cfg.plan.table_rate_dps
+        dwell_blocks = max(1, int(round(cfg.plan.dwell_s / block_s)))
+        for _ in range(20):  # warm up: compiled code loaded, the loops settled
+            lockin.poll(block_s)
+            world.drain_truth()
+        walls, kernels, outside, outside_thread = [], [], [], []
+        count = 0
+        for _ in range(runs):
+            spent["wall"] = spent["thread"] = 0.0
+            t0, c0 = time.perf_counter(), time.thread_time()
+            for _ in range(blocks):
                 lockin.poll(block_s)
-                world.drain_truth()
-            walls, kernels, outside, outside_thread = [], [], [], []
-            count = 0
-            for _ in range(runs):
-                spent["wall"] = spent["thread"] = 0.0
-                t0, c0 = time.perf_counter(), time.thread_time()
-                for _ in range(blocks):
-                    lockin.poll(block_s)
-                    world.drain_truth()  # what the recorder does with the truth every block
-                    count += 1
-                    if count % dwell_blocks == 0:
-                        rate = -rate
-                        world.set_table_rate(rate, cfg.plan.table_accel_dps2)
-                wall = (time.perf_counter() - t0) / blocks * 1e6
-                thread = (time.thread_time() - c0) / blocks * 1e6
-                walls.append(wall)
-                kernels.append(spent["wall"] / blocks * 1e6)
-                outside.append(wall - spent["wall"] / blocks * 1e6)
-                outside_thread.append(thread - spent["thread"] / blocks * 1e6)
-            connected.close()
-            res[f"hf2_poll_us_per_block{suffix}"] = statistics.median(walls)
-            res[f"hf2_poll_kernel_us_per_block{suffix}"] = statistics.median(kernels)
-            res[f"hf2_poll_outside_kernel_us_per_block{suffix}"] = statistics.median(outside)
-            res[f"hf2_poll_outside_kernel_thread_cpu_us_per_block{suffix}"] = statistics.median(outside_thread)
+                world.drain_truth()  # what the recorder does with the truth every block
+                count += 1
+                if count % dwell_blocks == 0:
+                    rate = -rate
+                    world.set_table_rate(rate, cfg.plan.table_accel_dps2)
+            wall = (time.perf_counter() - t0) / blocks * 1e6
+            thread = (time.thread_time() - c0) / blocks * 1e6
+            walls.append(wall)
+            kernels.append(spent["wall"] / blocks * 1e6)
+            outside.append(wall - spent["wall"] / blocks * 1e6)
+            outside_thread.append(thread - spent["thread"] / blocks * 1e6)
+        connected.close()
+        res["hf2_poll_us_per_block"] = statistics.median(walls)
+        res["hf2_poll_kernel_us_per_block"] = statistics.median(kernels)
+        res["hf2_poll_outside_kernel_us_per_block"] = statistics.median(outside)
+        res["hf2_poll_outside_kernel_thread_cpu_us_per_block"] = statistics.median(outside_thread)
     finally:
         GyroSim._kernel = original
-        set_twin_noise_draw_ahead(None)
     res["hf2_poll_block_s"] = block_s
     return res
 
@@ -253,6 +240,8 @@ def world_advance_costs(runs: int = 7, blocks: int = 100) -> dict[str, float]:
 
 
 def _child_memory(hours: float) -> None:
+    import resource  # POSIX only: the memory figures are not measured on Windows
+
     from sims.gyro import GyroParams, GyroSim
 
     loops = _loops()
@@ -307,11 +296,6 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
     res["averaged_cpu_realtime_factor"] = cpu_avg
     res["averaged_cpu_ns_per_step"] = 1e9 * DT / cpu_avg
     res["averaged_cpu_ns_per_step_main_thread"] = 1e9 * DT / main_avg
-    plain = GyroSim(GyroParams(), DT, seed=1)
-    plain._noise.prefetch = False
-    rt_plain, cpu_plain = _rt_factor(plain, DT, 0.5, 600.0)
-    res["averaged_realtime_factor_no_prefetch"] = rt_plain
-    res["averaged_cpu_realtime_factor_no_prefetch"] = cpu_plain
     rt2, cpu2 = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 2.0, 600.0)
     res["averaged_realtime_factor_2s_blocks"] = rt2
     res["averaged_cpu_realtime_factor_2s_blocks"] = cpu2

@@ -6,12 +6,12 @@
    level for comparison: real-time factor = simulated s / wall s of the campaign and its analysis; also with the
    twin's blocks 10 s long instead of 2 s ([lockin] sim_poll_interval_s, as the shipped studies set it), and the
    run file's size at both levels. And the ceiling: the real-time factor of the gyro twin's physics alone
-   (sims.gyro.GyroSim's kernel and noise draws, sim_speed.py's inputs, in the same 2 s and 10 s blocks, noise drawn
-   ahead as in this process's tasks): no task can beat it, since a task runs that and the world, the HF2 twin's
-   demodulators, the drivers, CLSF, the file and the analysis besides; a task's real-time factor as a share of
-   the ceiling in the same blocks (`realtime_factor_share_of_ceiling`) is the figure the host's speed cancels
+   (sims.gyro.GyroSim's kernel and noise draws, sim_speed.py's inputs, in the same 2 s and 10 s blocks): no task can
+   beat it, since a task runs that and the world, the HF2 twin's demodulators, the drivers, CLSF, the file and the
+   analysis besides; a task's real-time factor as a share of the ceiling in the same blocks
+   (`realtime_factor_share_of_ceiling`) is the figure the host's speed cancels
    from, so it tells a change of the code from a slower or faster day. And the task thread's CPU s (everything
-   but the noise and writer threads) against the wall time that 3000x allows, and all its threads' CPU s
+   but the writer thread) against the wall time that 3000x allows, and all its threads' CPU s
    against what the machine's cores give in that time: a share above 1 is out of reach of this code on this
    machine, however the work is spread over threads.
 2. Throughput: batches of `--tasks` paper campaigns at the study level on a LocalCluster of 1 and one of 2
@@ -19,11 +19,7 @@
    counted), `--rounds` rounds of one batch on each, back to back in alternating order: simulated campaign-hours
    per wall hour (medians over the rounds), and the scaling efficiency throughput(2) / (2 x throughput(1)), the
    median of the rounds' own ratios (the host's speed drifts over minutes; within a round it compares like with
-   like). Both with one core per worker, as `qmg-lab study` runs a LocalCluster that fills the cores: the twins
-   draw their noise in the worker's thread (station.set_twin_noise_draw_ahead(False)), so that the one-worker
-   figure does not borrow the idle second core for its noise thread. The one worker also runs a batch with the
-   noise drawn ahead in every round (`one_worker_draw_ahead`: what a single worker on an otherwise idle 2-core
-   machine does).
+   like).
 
     python benchmarks/study_speed.py [--json] [--runs N] [--tasks N] [--rounds N]
 
@@ -72,17 +68,17 @@ class TaskTiming(NamedTuple):
     file_mb: float
     #: CPU s of the calling thread (time.thread_time): the campaign loop, the twins, CLSF, the analysis
     main_thread_cpu_s: float
-    #: CPU s of the whole process over the task (time.process_time): also the noise and writer threads
+    #: CPU s of the whole process over the task (time.process_time): also the writer thread
     cpu_s: float
 
 
-def timed_campaign(text: str, twin_draw_ahead: bool | None = None) -> TaskTiming:
+def timed_campaign(text: str) -> TaskTiming:
     """Times one campaign and its analysis, as a study task runs it."""
     from qmg_lab.study.task import run_campaign
 
     with tempfile.TemporaryDirectory() as tmp:
         t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
-        _, simulated = run_campaign(text, Path(tmp) / "run.h5", twin_draw_ahead)
+        _, simulated = run_campaign(text, Path(tmp) / "run.h5")
         wall, main_cpu, cpu = time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0
         return TaskTiming(simulated, wall, (Path(tmp) / "run.h5").stat().st_size / 1e6, main_cpu, cpu)
 
@@ -135,10 +131,10 @@ def per_task(runs: int) -> dict[str, Any]:
     return out
 
 
-def _batch(client: Any, text: str, tasks: int, draw_ahead: bool | None) -> dict[str, Any]:
+def _batch(client: Any, text: str, tasks: int) -> dict[str, Any]:
     """`tasks` study tasks of `text` on the client's cluster: their wall time and simulated campaign-hours."""
     t0 = time.perf_counter()
-    futures = [client.submit(timed_campaign, text, draw_ahead, pure=False) for _ in range(tasks)]
+    futures = [client.submit(timed_campaign, text, pure=False) for _ in range(tasks)]
     results = client.gather(futures)
     wall = time.perf_counter() - t0
     simulated_h = sum(t.simulated_s for t in results) / 3600.0
@@ -150,11 +146,10 @@ def _batch(client: Any, text: str, tasks: int, draw_ahead: bool | None) -> dict[
     }
 
 
-def _summary(n_workers: int, draw_ahead: bool | None, tasks: int, batches: list[dict[str, Any]]) -> dict[str, Any]:
+def _summary(n_workers: int, tasks: int, batches: list[dict[str, Any]]) -> dict[str, Any]:
     """One configuration's batches over the rounds: the median of each figure, and the rounds' throughputs."""
     return {
         "workers": n_workers,
-        "twin_draw_ahead": draw_ahead,
         "tasks": tasks,
         "rounds": len(batches),
         **{k: statistics.median(b[k] for b in batches) for k in batches[0]},
@@ -164,9 +159,9 @@ def _summary(n_workers: int, draw_ahead: bool | None, tasks: int, batches: list[
 
 def throughput(tasks: int, rounds: int) -> dict[str, Any]:
     """A LocalCluster of 1 and one of 2 single-threaded worker processes, both started and warmed up first, then
-    `rounds` rounds of a batch of `tasks` on each (the order alternating from round to round) and a batch on the
-    one worker with the noise drawn ahead. The host's speed drifts over minutes; a round's two batches run
-    back to back, so each round's efficiency throughput(2) / (2 x throughput(1)) compares like with like, and
+    `rounds` rounds of a batch of `tasks` on each (the order alternating from round to round). The host's speed drifts
+    over minutes; a round's two batches run back to back, so each round's efficiency throughput(2) / (2 x
+    throughput(1)) compares like with like, and
     the scaling efficiency is their median."""
     from distributed import Client, LocalCluster, wait
 
@@ -177,25 +172,23 @@ def throughput(tasks: int, rounds: int) -> dict[str, Any]:
         for client in (one, two):
             addresses = list(client.scheduler_info(n_workers=-1)["workers"])
             warm = [
-                client.submit(timed_campaign, paper_text("study", **WARM_UP), False, workers=[a], pure=False)
+                client.submit(timed_campaign, paper_text("study", **WARM_UP), workers=[a], pure=False)
                 for a in addresses
             ]
             wait(warm)
         text = paper_text("study")
-        ones, twos, aheads, efficiencies = [], [], [], []
+        ones, twos, efficiencies = [], [], []
         for r in range(rounds):
             if r % 2 == 0:
-                b1, b2 = _batch(one, text, tasks, False), _batch(two, text, tasks, False)
+                b1, b2 = _batch(one, text, tasks), _batch(two, text, tasks)
             else:
-                b2, b1 = _batch(two, text, tasks, False), _batch(one, text, tasks, False)
+                b2, b1 = _batch(two, text, tasks), _batch(one, text, tasks)
             ones.append(b1)
             twos.append(b2)
             efficiencies.append(b2["campaign_hours_per_wall_hour"] / (2 * b1["campaign_hours_per_wall_hour"]))
-            aheads.append(_batch(one, text, tasks, None))
     return {
-        "one_worker": _summary(1, False, tasks, ones),
-        "two_workers": _summary(2, False, tasks, twos),
-        "one_worker_draw_ahead": _summary(1, None, tasks, aheads),
+        "one_worker": _summary(1, tasks, ones),
+        "two_workers": _summary(2, tasks, twos),
         "scaling_efficiency_by_round": [round(e, 3) for e in efficiencies],
         "scaling_efficiency": statistics.median(efficiencies),
     }
@@ -211,7 +204,7 @@ def main() -> None:
     load_before = os.getloadavg()
     task = per_task(args.runs)
     scaling = throughput(args.tasks, args.rounds)
-    one, two, one_ahead = scaling["one_worker"], scaling["two_workers"], scaling["one_worker_draw_ahead"]
+    one, two = scaling["one_worker"], scaling["two_workers"]
     report = {
         "cores": os.cpu_count(),
         "load_average_before": [round(x, 2) for x in load_before],
@@ -219,7 +212,6 @@ def main() -> None:
         "per_task": task,
         "one_worker": one,
         "two_workers": two,
-        "one_worker_draw_ahead": one_ahead,
         "campaign_hours_per_wall_hour_1": one["campaign_hours_per_wall_hour"],
         "campaign_hours_per_wall_hour_2": two["campaign_hours_per_wall_hour"],
         "scaling_efficiency": scaling["scaling_efficiency"],
@@ -253,10 +245,9 @@ def main() -> None:
         f"{task['main_thread_cpu_share_of_3000x_10s_blocks']:.2f} of the wall time 3000x allows; all threads "
         f"{task['cpu_share_of_3000x_all_cores_10s_blocks']:.2f} of what the cores give in it"
     )
-    for r in (one, two, one_ahead):
-        ahead = ", noise drawn ahead" if r["twin_draw_ahead"] is None else ""
+    for r in (one, two):
         print(
-            f"{r['workers']} worker(s){ahead}: {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
+            f"{r['workers']} worker(s): {r['campaign_hours_per_wall_hour']:.0f} campaign-hours per wall hour "
             f"(median of {r['rounds']} batches of {r['tasks']} campaigns, {r['wall_s']:.1f} s a batch)"
         )
     print(

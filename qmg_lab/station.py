@@ -54,7 +54,6 @@ from sims.faults import FaultInjector, FaultPlan
 from sims.gyro_params import GyroParams
 from sims.hf2_loops import HF2Wiring
 from sims.hf2_server import HF2DataServerTwin
-from sims.noise import set_default_prefetch
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket, terminator
 from sims.table_twin import RateTableTwin
 from sims.visa_line_twin import LineTwinVisaResource
@@ -77,14 +76,6 @@ class _WorldTruth(TruthSource):
         if rec is None:
             return None
         return TruthBlock(time=rec.time, scale_factor=rec.scale_factor, temperature=rec.temperature, rate=rec.rate)
-
-
-def set_twin_noise_draw_ahead(enabled: bool | None) -> None:
-    """Whether the gyro twins built from now on in this process draw their per-step noise ahead on a second
-    thread (True), in the calling thread (False, the same values), or as the machine allows (None: ahead when
-    the process may run on more than one CPU). A study's LocalCluster that fills every core sets False: each
-    worker then has one core, and a second thread would only take turns with it (docs/simulation.md)."""
-    set_default_prefetch(enabled)
 
 
 def make_world(cfg: Config, clock: str | None = None) -> World:

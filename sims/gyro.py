@@ -13,13 +13,9 @@ quadrature PID (input Y_s) -> V_q; F_ys = -K_f G_f(T) g (V_r + V_dither), F_yc =
 + Gauss-Markov bias; ARW as white force noise on the sense axis; pickoff noise white on the demod outputs.
 
 Memory: a block allocates only its own outputs (the kernel writes into them in place) and runs the kernel in chunks
-of CHUNK_STEPS; between blocks the state vector (about 80 numbers) and the noise rows drawn ahead (at most two
-prefetches of PREFETCH_ROWS per-step rows, or of one block's rows, sims/noise.py) are kept. The kernels release
-the GIL, so the noise stream's background thread draws the next rows while they run. A block of up to
-WHOLE_NOISE_STEPS takes its per-step rows in one call and hands the chunks slices of them: the stream then sees
-calls of one size, block after block, which it draws ahead whole (chunk-sized calls of 8192, 8192, 1616 rows for a
-10 s block straddled its prefetches: copies, and rows drawn on the caller's thread). The rows are the same either
-way: the stream hands them out in order however the calls split them.
+of CHUNK_STEPS, each with its own per-step noise rows drawn just before it (sims/noise.py); between blocks only the
+state vector (about 80 numbers) and the noise generators are kept. The rows are the same however a block is split:
+the stream hands them out in order.
 """
 
 from __future__ import annotations
@@ -48,7 +44,6 @@ __all__ = ["GyroBlock", "GyroParams", "GyroSim", "LoopSettings", "PidSettings", 
 
 INPUT_NAMES = ("gyro_c", "table_rate_dps", "dither_v")
 CHUNK_STEPS = 1 << 13  # 8192 steps: the chunk's noise draws (192 kB) stay in the L2 cache
-WHOLE_NOISE_STEPS = 1 << 16  # blocks up to 65536 steps (36 s at 1800 Sa/s, 1.5 MB of rows) take their noise at once
 
 
 def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
@@ -338,12 +333,11 @@ class _TwinBase:
         on = self._step_noise_on
         if n <= CHUNK_STEPS:  # a poll's block: one chunk, no slicing
             err_max = self._run_chunk(temp, rate, dither, self._noise.steps(n, on), out, lvec)
-        else:  # a long block's noise in one take where it is small (module docstring), else chunk by chunk
-            whole = self._noise.steps(n, on) if n <= WHOLE_NOISE_STEPS else None
+        else:  # a long block chunk by chunk, each chunk's noise drawn just before it
             err_max = 0.0
             for a in range(0, n, CHUNK_STEPS):
                 b = min(n, a + CHUNK_STEPS)
-                noise = whole[a:b] if whole is not None else self._noise.steps(b - a, on)
+                noise = self._noise.steps(b - a, on)
                 chunk_err = self._run_chunk(temp[a:b], rate[a:b], dither[a:b], noise, out[:, a:b], lvec)
                 if not chunk_err <= err_max:  # also keeps a NaN: the block then reads as unlocked
                     err_max = chunk_err

@@ -22,9 +22,9 @@ the same numbers whichever evaluated them (tests/unit/sims/test_hf2_kernel.py):
 * `auxin_readings`: row 0, the rate AuxOut's mean over the AuxIn window W ending at each sample instant,
   V_i - (V_i - V_(i-1)) W / (2 dt) (V piecewise linear between instants; V_(-1) the previous block's last value);
   row 1 the dither's window means as given; then every reading + sigma n (n the given 2 x n standard normals,
-  row 0 then row 1 of one stream, which the twin's numpy generator draws ahead on the noise thread while the
-  block runs (sims/noise.py NormalStream): drawing inside the loop through numba's Generator support gives the
-  same numbers but costs ~24 us per call to unbox the generator, in the caller's thread),
+  row 0 then row 1 of one stream, which the twin's numpy generator draws before the call (sims/noise.py
+  NormalStream): drawing inside the loop through numba's Generator support gives the same numbers but costs
+  ~24 us per call to unbox the generator),
   rounded to the ADC step, floor(v / lsb + 0.5) lsb, and clipped to +-R (lsb = 0: an ideal ADC, neither rounded
   nor clipped).
 

@@ -173,8 +173,7 @@ class HF2DataServerTwin:
         self.rate_set = rate_set
         self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
-        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7), drawn
-        # ahead on the noise thread while the block runs (sims/noise.py)
+        # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
         self._auxin_noise = NormalStream(
             np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(7,))))
         )

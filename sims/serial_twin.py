@@ -9,11 +9,13 @@ connections. Three ways to reach a twin:
    available as soon as the command's LF is written; a read that finds no terminator returns what there is at
    once (the virtual-time equivalent of a pyserial timeout).
 2. `serve_pty(twin) -> (device_path, stop)`: a thread on the master side of `os.openpty()`; the driver opens
-   `serial.Serial(device_path)` and sees a real tty (raw mode: no echo, no CR/LF translation).
+   `serial.Serial(device_path)` and sees a real tty (raw mode: no echo, no CR/LF translation). POSIX only
+   (Linux, macOS): `pty_supported()` says whether this system has pseudo-terminals; `tty` is imported only here.
 3. `serve_socket(twin, host="127.0.0.1", port=0) -> ("socket://127.0.0.1:N", stop)`: a loopback TCP server
-   for `serial.serial_for_url(url)`; any number of sequential or simultaneous connections.
+   for `serial.serial_for_url(url)`; any number of sequential or simultaneous connections. Every system.
 
-Threads wait in `select` on their descriptors and a wake-up pipe, so `stop()` returns at once and never sleeps.
+Threads wait in `select` on their descriptors and a wake-up socket pair (Windows' `select` takes sockets only),
+so `stop()` returns at once and never sleeps.
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ import os
 import select
 import socket
 import threading
-import tty
 from collections.abc import Callable
 from typing import Protocol
 
@@ -162,10 +163,10 @@ class InProcessSerial:
 
 
 class _Server:
-    """A select() loop in a daemon thread; `stop()` wakes it through a pipe and joins it."""
+    """A select() loop in a daemon thread; `stop()` wakes it through a socket pair and joins it."""
 
     def __init__(self, name: str) -> None:
-        self._wake_r, self._wake_w = os.pipe()
+        self._wake_r, self._wake_w = socket.socketpair()
         self._thread = threading.Thread(target=self._run_guarded, name=name, daemon=True)
         self._stopped = False
         self.error: BaseException | None = None
@@ -177,10 +178,10 @@ class _Server:
         if self._stopped:
             return
         self._stopped = True
-        os.write(self._wake_w, b"x")
+        self._wake_w.send(b"x")
         self._thread.join(timeout=5.0)
-        for fd in (self._wake_r, self._wake_w):
-            os.close(fd)
+        for end in (self._wake_r, self._wake_w):
+            end.close()
         self._close()
 
     def _run_guarded(self) -> None:
@@ -196,8 +197,20 @@ class _Server:
         raise NotImplementedError
 
 
+def pty_supported() -> bool:
+    """Whether this system has pseudo-terminals for `serve_pty` (POSIX: Linux, macOS; not Windows)."""
+    return os.name == "posix" and hasattr(os, "openpty")
+
+
 class _PtyServer(_Server):
     def __init__(self, twin: LineTwin) -> None:
+        if not pty_supported():
+            raise OSError(
+                "the twins' pty transport needs a POSIX system (Linux, macOS): on Windows set sim_transport = "
+                '"inprocess" (or "socket") in [table] and [chamber]'
+            )
+        import tty  # POSIX only (termios): imported where it is used, so the module imports on Windows
+
         super().__init__("pty-twin")
         self.twin = twin
         self.master, self.slave = os.openpty()
@@ -206,9 +219,10 @@ class _PtyServer(_Server):
 
     def _run(self) -> None:
         framer = LineFramer(line_end(self.twin))
+        wake = self._wake_r.fileno()
         while True:
-            ready, _, _ = select.select([self.master, self._wake_r], [], [])
-            if self._wake_r in ready:
+            ready, _, _ = select.select([self.master, wake], [], [])
+            if wake in ready:
                 return
             try:
                 data = os.read(self.master, 4096)
@@ -239,7 +253,8 @@ class _SocketServer(_Server):
         self.twin = twin
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.listener = socket.socket(family, socket.SOCK_STREAM)
-        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if os.name == "posix":  # on Windows SO_REUSEADDR would let another socket take a port in use
+            self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.listener.bind((host, port))
         self.listener.listen(4)
         self.address = self.listener.getsockname()[:2]
@@ -247,7 +262,7 @@ class _SocketServer(_Server):
 
     def _run(self) -> None:
         while True:
-            watched: list[socket.socket | int] = [self.listener, self._wake_r, *self._conns]
+            watched: list[socket.socket] = [self.listener, self._wake_r, *self._conns]
             ready, _, _ = select.select(watched, [], [])
             if self._wake_r in ready:
                 return

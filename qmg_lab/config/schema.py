@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from qmg_lab.clsf.stream_plan import StreamPlan, hf2_rate
 from qmg_lab.config.errors import describe_error
@@ -40,6 +41,16 @@ PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 HF2Option = Literal["MF", "PLL", "PID", "MOD"]
 DEFAULT_HF2_OPTIONS: tuple[HF2Option, ...] = ("MF", "PLL", "PID")
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+def _transport_on_this_system(value: str) -> str:
+    """The twins' pty transport needs POSIX pseudo-terminals (sims/serial_twin.py): refuse it where there are none."""
+    if value == "pty" and os.name != "posix":
+        raise ValueError('"pty" needs a POSIX system (Linux, macOS): on Windows use "inprocess" or "socket"')
+    return value
+
+
+SimTransport = Annotated[Literal["inprocess", "pty", "socket"], AfterValidator(_transport_on_this_system)]
 
 
 class CampaignSection(_Section):
@@ -257,9 +268,7 @@ class TableSection(_Section):
     timeout_s: float = Field(1.0, gt=0.0, le=30.0)
     max_rate_dps: float = Field(100.0, gt=0.0, le=1000.0, description="refuse commands above this rate")
     max_accel_dps2: float = Field(500.0, gt=0.0, le=10000.0, description="refuse accelerations above this")
-    sim_transport: Literal["inprocess", "pty", "socket"] = Field(
-        "inprocess", description="twin only: how the driver reaches the twin"
-    )
+    sim_transport: SimTransport = Field("inprocess", description="twin only: how the driver reaches the twin")
     # framing (unconfirmed for the 1291BR: docs/bench-bringup.md says how to set it from the manual)
     command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
     reply_terminator: ReplyTerminator = Field(
@@ -307,7 +316,7 @@ class ChamberSection(_Section):
     max_c: float = Field(85.0, ge=-100.0, le=200.0, description="highest setpoint allowed, deg C")
     max_ramp_c_per_min: float = Field(5.0, gt=0.0, le=50.0)
     safe_setpoint_c: float = Field(25.0, ge=-100.0, le=200.0, description="setpoint in the safe state")
-    sim_transport: Literal["inprocess", "pty", "socket"] = Field("inprocess")
+    sim_transport: SimTransport = Field("inprocess")
     # framing (unconfirmed for the EC1x: docs/bench-bringup.md says how to set it from the manual)
     command_terminator: Terminator = Field("CRLF", description="sent after every command: CR, LF or CRLF")
     reply_terminator: ReplyTerminator = Field(

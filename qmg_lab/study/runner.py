@@ -1,9 +1,7 @@
 """Runs a design study's points as tasks on Dask distributed (docs/studies.md).
 
 * By default a `distributed.LocalCluster` with one single-threaded worker process per core (the campaign is
-  CPU-bound Python and numba: processes, not threads). When the workers fill the cores, their twins draw the
-  noise in the worker's own thread (station.set_twin_noise_draw_ahead(False)): the draw-ahead thread needs an
-  idle core, and there is none. Its worker processes exit at once if the driver dies
+  CPU-bound Python and numba: processes, not threads). Its worker processes exit at once if the driver dies
   (distributed's parent-alive pipe), so a killed `qmg-lab study` leaves no campaign running.
 * With `scheduler` an existing cluster (`dask scheduler` + `dask worker` on each machine, or dask-jobqueue):
   the workers need qmg-lab installed and DIR at the same path (a shared filesystem), since each task writes its
@@ -107,13 +105,10 @@ def run_study(
     if not pending:
         return report
     cluster = None
-    draw_ahead: bool | None = None  # an external cluster's workers: as their machines allow
     if scheduler is not None:
         client = Client(scheduler)
     else:
         n = workers or os.cpu_count() or 1
-        if n >= (os.cpu_count() or 1):
-            draw_ahead = False  # one core per worker: the twins' noise thread would only take turns with it
         cluster = LocalCluster(
             n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=40
         )
@@ -128,7 +123,6 @@ def run_study(
                 _task_args(p),
                 str(out_dir.resolve()),
                 keep,
-                draw_ahead,
                 key=f"qmg-point-{p.id}",
                 pure=False,
             ): p

@@ -2,8 +2,9 @@
 
 Exactly-once protocol (docs/studies.md), in the study directory DIR:
 
-1. The task takes an exclusive lock on DIR/points/<id>.lock (fcntl.flock; blocking). Two tasks of one point, e.g.
-   a worker orphaned by a killed driver and the task of the resumed study, never run at the same time.
+1. The task takes an exclusive lock on DIR/points/<id>.lock (the `filelock` package: flock on POSIX, a
+   msvcrt byte-range lock on Windows, both released by the OS when the process dies; blocking). Two tasks of one
+   point, e.g. a worker orphaned by a killed driver and the task of the resumed study, never run at the same time.
 2. Holding the lock it looks for DIR/points/<id>.json: if it exists the point is done and the task returns that
    record without running anything.
 3. Otherwise it logs "start" to DIR/runlog.jsonl, runs the campaign (twins only) and `analyze`, writes the record
@@ -19,7 +20,6 @@ goes on.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import socket
@@ -31,6 +31,8 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from filelock import FileLock
 
 from qmg_lab import __version__
 from qmg_lab.config.schema import config_fingerprint, parse_config
@@ -69,6 +71,8 @@ def write_atomic(path: Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    if os.name != "posix":  # Windows has no directory fsync (a directory is not opened as a file): the rename is
+        return  # as durable as the file system's metadata journal makes it
     dir_fd = os.open(path.parent, os.O_RDONLY)
     try:
         os.fsync(dir_fd)  # the rename itself survives a power cut
@@ -96,12 +100,8 @@ def log_event(out_dir: Path, event: str, point_id: str, **extra: Any) -> None:
 @contextmanager
 def point_lock(out_dir: Path, point_id: str) -> Iterator[None]:
     """Exclusive lock on DIR/points/<id>.lock for the whole run of one point (released if the process dies)."""
-    fd = os.open(points_dir(out_dir) / f"{point_id}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    with FileLock(points_dir(out_dir) / f"{point_id}.lock"):
         yield
-    finally:
-        os.close(fd)  # closing releases the lock
 
 
 def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
@@ -118,17 +118,15 @@ def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_campaign(config_text: str, run_file: Path, twin_draw_ahead: bool | None = None) -> tuple[dict[str, Any], float]:
-    """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s).
-    twin_draw_ahead: the twins' noise drawn on a second thread or not (station.set_twin_noise_draw_ahead)."""
+def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], float]:
+    """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s)."""
     from qmg_lab.analysis.compute import analyze
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignRunner
-    from qmg_lab.station import build_station, set_twin_noise_draw_ahead
+    from qmg_lab.station import build_station
     from qmg_lab.storage.summary import create_run_writer
     from qmg_lab.storage.writer import read_run, status_detail
 
-    set_twin_noise_draw_ahead(twin_draw_ahead)
     cfg = parse_config(config_text, "point configuration")
     plan = checked_plan(cfg)
     station = build_station(cfg)
@@ -155,11 +153,9 @@ def run_campaign(config_text: str, run_file: Path, twin_draw_ahead: bool | None 
     return result, summary.simulated_s
 
 
-def run_point(
-    point: dict[str, Any], out_dir: str, keep_run_files: bool = False, twin_draw_ahead: bool | None = None
-) -> dict[str, Any]:
-    """The Dask task of one point (the module docstring's protocol). `point`: id, index, seed, axes, config_text;
-    twin_draw_ahead as run_campaign's. Returns the point's record (also in DIR/points/<id>.json)."""
+def run_point(point: dict[str, Any], out_dir: str, keep_run_files: bool = False) -> dict[str, Any]:
+    """The Dask task of one point (the module docstring's protocol). `point`: id, index, seed, axes, config_text.
+    Returns the point's record (also in DIR/points/<id>.json)."""
     out = Path(out_dir)
     points_dir(out).mkdir(parents=True, exist_ok=True)
     pid = str(point["id"])
@@ -185,7 +181,7 @@ def run_point(
             run_file.parent.mkdir(parents=True, exist_ok=True)
             run_file.unlink(missing_ok=True)  # left by a run of this point that was killed
             try:
-                result, simulated_s = run_campaign(str(point["config_text"]), run_file, twin_draw_ahead)
+                result, simulated_s = run_campaign(str(point["config_text"]), run_file)
                 record["metrics"] = metrics_of(result)
                 record["simulated_s"] = simulated_s
                 if result.get("status") != "completed":

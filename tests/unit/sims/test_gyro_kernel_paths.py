@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from sims import gyro_kernel as gk
-from sims.gyro import CHUNK_STEPS, WHOLE_NOISE_STEPS, GyroParams, GyroSim, _same_loops, held_inputs
+from sims.gyro import CHUNK_STEPS, GyroParams, GyroSim, _same_loops, held_inputs
 from sims.gyro_params import LoopSettings, pack_loops
 from tests.support.paper_loops import paper_loops
 
@@ -68,9 +68,9 @@ def test_single_demod_section_follows_the_first_order_hold_formula(tc: float) ->
         assert filt[ch] == pytest.approx(expected, rel=1e-13, abs=1e-15)
 
 
-@pytest.mark.parametrize("n", [CHUNK_STEPS + 777, WHOLE_NOISE_STEPS + 777])
+@pytest.mark.parametrize("n", [CHUNK_STEPS + 777, 8 * CHUNK_STEPS + 777])
 def test_a_block_longer_than_a_chunk_equals_the_same_steps_in_short_blocks(n: int) -> None:
-    """Noise taken for the whole block (up to WHOLE_NOISE_STEPS) or chunk by chunk (beyond): the same run."""
+    """A long block runs chunk by chunk, each chunk drawing its own noise rows: the same run as short blocks."""
     loops = paper_loops(1.0)
     inputs = held_inputs(n, DT, rate_dps=5.0, temperature_c=np.linspace(25.0, 26.0, n))
     one = GyroSim(GyroParams(), DT, seed=11).run(inputs, loops)
@@ -83,21 +83,6 @@ def test_a_block_longer_than_a_chunk_equals_the_same_steps_in_short_blocks(n: in
     for name in ("rate_output_v", "x_drive", "pll_error_deg", "sf_true_v_per_dps"):
         np.testing.assert_array_equal(getattr(one, name), np.concatenate([getattr(b, name) for b in parts]))
     assert one.pll_locked and all(b.pll_locked for b in parts)
-
-
-def test_a_long_blocks_noise_is_drawn_ahead_whole() -> None:
-    """A 10 s block (18000 steps, three kernel chunks) takes its per-step rows in one call, so from the second
-    block on the stream has exactly the next block's rows drawn ahead and hands them out without drawing here."""
-    n = 18000
-    loops = paper_loops(1.0)
-    sim = GyroSim(GyroParams(), DT, seed=11)
-    sim._noise.prefetch = True
-    stream = sim._noise._ahead
-    for k in range(3):
-        sim.run(held_inputs(n, DT, rate_dps=5.0, t0_s=k * n * DT), loops)
-        assert stream._rows.shape[0] - stream._pos == 0  # nothing left over: no block straddles two draws
-        if k > 0:
-            assert stream._job is not None and stream._job.rows == n
 
 
 def test_loop_settings_changed_in_place_between_blocks_take_effect() -> None:

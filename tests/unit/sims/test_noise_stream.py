@@ -1,255 +1,153 @@
-"""NoiseStream: the prefetched per-step draws and the read-ahead bias draws are the stream's own values, in order.
+"""NoiseStream and NormalStream: the twin's random draws are standard normals, reproducible by seed, and
+independent of how a run is split into blocks.
 
-The reference is what NoiseStream did before it drew ahead: each call draws exactly the rows it returns from
-PCG64 generators seeded from SeedSequence(seed).spawn(2) (per-step stream first, bias stream second). The block
-patterns cross the prefetch size (PREFETCH_ROWS) and the bias read-ahead (GM_ROWS_AHEAD) in every way: single
-rows, a request larger than a prefetch, requests that end exactly on a boundary, off-calls that draw nothing.
+Statistical tolerances: for N independent standard normals the sample mean has standard deviation 1/sqrt(N), the
+sample variance sqrt(2/N) (normal fourth moment 3), a sample correlation of two independent columns 1/sqrt(N), and
+the sample excess kurtosis sqrt(24/N); every bound below is 5 of those standard deviations (a false alarm of
+about 6e-7 per check for a fair generator; the seeds are fixed, so a check's outcome does not change between runs).
 """
 
 from __future__ import annotations
 
 import copy
-import os
+import itertools
+import math
 import pickle
-import select
-import signal
-import subprocess
-import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sims import gyro_kernel as gk
 from sims.gyro import GyroParams, GyroSim, held_inputs
-from sims.noise import GM_ROWS_AHEAD, PREFETCH_ROWS, NoiseStream, NormalStream, set_default_prefetch
+from sims.noise import NoiseStream, NormalStream
 from tests.support.paper_loops import paper_loops
 
-ROOT = Path(__file__).resolve().parents[3]
-P = PREFETCH_ROWS
 PATTERNS = {
     "hf2 poll blocks": [900] * 30,
     "single rows and odd sizes": [1, 1, 2, 3, 899, 1, 7, 5000, 13, 1, 4096],
-    "ends on prefetch boundaries": [P, P, P // 2, P // 2, P, 1, P - 1, P],
-    "larger than a prefetch": [3, 2 * P + 5, 10, 3 * P, 1, P + 1, 900],
+    "long blocks": [3, 2 * 8192 + 5, 10, 3 * 8192, 1, 8193, 900],
 }
 
 
-def _generators(seed: int) -> tuple[np.random.Generator, np.random.Generator]:
-    s1, s2 = np.random.SeedSequence(seed).spawn(2)
-    return np.random.Generator(np.random.PCG64(s1)), np.random.Generator(np.random.PCG64(s2))
+def _z(n: int) -> float:
+    """Five standard deviations of a sample mean (or correlation) of n independent standard normals."""
+    return 5.0 / math.sqrt(n)
 
 
-def _reference_steps(seed: int, pattern: list[int]) -> list[np.ndarray]:
-    """The draws of the stream without read-ahead: exactly n float32 rows per call."""
-    gen, _ = _generators(seed)
-    return [gen.standard_normal((n, gk.NOISE_PER_STEP), dtype=np.float32) for n in pattern]
+def _check_standard_normal(x: np.ndarray) -> None:
+    """Columns of x (rows: samples) have mean 0, variance 1, excess kurtosis 0 and no correlation between
+    columns or between consecutive rows, each to 5 standard deviations of its estimator."""
+    n, width = x.shape
+    x64 = x.astype(np.float64)
+    for col in x64.T:
+        assert abs(col.mean()) < _z(n)
+        assert abs(col.var() - 1.0) < 5.0 * math.sqrt(2.0 / n)
+        excess = float(np.mean((col - col.mean()) ** 4) / col.var() ** 2 - 3.0)
+        assert abs(excess) < 5.0 * math.sqrt(24.0 / n)
+        assert abs(float(np.corrcoef(col[:-1], col[1:])[0, 1])) < _z(n - 1)  # no correlation from step to step
+    corr = np.corrcoef(x64, rowvar=False)
+    for i, j in itertools.combinations(range(width), 2):
+        assert abs(corr[i, j]) < _z(n)
+
+
+def test_per_step_and_bias_draws_are_independent_standard_normals() -> None:
+    stream = NoiseStream(5, gk.NOISE_PER_STEP, gk.N_GM)
+    steps = stream.steps(200_000)
+    gm = stream.gm(50_000)
+    assert steps.shape == (200_000, gk.NOISE_PER_STEP) and steps.dtype == np.float32
+    assert gm.shape == (50_000, gk.N_GM) and gm.dtype == np.float64
+    _check_standard_normal(steps)
+    _check_standard_normal(gm)
+    # the per-step and the bias streams are independent of each other
+    both = np.concatenate([steps[:50_000].astype(np.float64), gm], axis=1)
+    corr = np.corrcoef(both, rowvar=False)[: gk.NOISE_PER_STEP, gk.NOISE_PER_STEP :]
+    assert np.max(np.abs(corr)) < _z(50_000)
 
 
 @pytest.mark.parametrize("pattern", list(PATTERNS.values()), ids=list(PATTERNS))
-@pytest.mark.parametrize("seed", [0, 5, 2**40 + 3])
-def test_per_step_rows_are_the_stream_in_order_for_any_block_pattern(seed: int, pattern: list[int]) -> None:
-    stream = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    got = [stream.steps(n) for n in pattern]
-    for g, ref in zip(got, _reference_steps(seed, pattern), strict=True):
-        assert g.dtype == np.float32
-        np.testing.assert_array_equal(g, ref)
-    # and the same values as one draw of the whole (a float32 draw split into pieces is the same sequence)
-    whole = _generators(seed)[0].standard_normal((sum(pattern), gk.NOISE_PER_STEP), dtype=np.float32)
-    np.testing.assert_array_equal(np.concatenate(got), whole)
+def test_the_rows_do_not_depend_on_how_the_run_is_split_into_blocks(pattern: list[int]) -> None:
+    """A run cut into blocks draws the same rows as the same run in one block (the stream is read in order)."""
+    split = NoiseStream(7, gk.NOISE_PER_STEP, gk.N_GM)
+    whole = NoiseStream(7, gk.NOISE_PER_STEP, gk.N_GM)
+    got = np.concatenate([split.steps(n) for n in pattern])
+    np.testing.assert_array_equal(got, whole.steps(sum(pattern)))
+    gm_pattern = [5, 1, 127, 1, 257, 3]
+    np.testing.assert_array_equal(np.concatenate([split.gm(n) for n in gm_pattern]), whole.gm(sum(gm_pattern)))
 
 
-@pytest.mark.parametrize("pattern", list(PATTERNS.values()), ids=list(PATTERNS))
-def test_switching_prefetch_off_and_on_mid_stream_keeps_the_order(pattern: list[int]) -> None:
-    stream = NoiseStream(8, gk.NOISE_PER_STEP, gk.N_GM, prefetch=False)
-    got = []
-    for k, n in enumerate(pattern):
-        if k % 3 == 2:
-            stream.prefetch = not stream.prefetch  # a pending prefetch is still collected in order
-        got.append(stream.steps(n))
-    for g, ref in zip(got, _reference_steps(8, pattern), strict=True):
-        np.testing.assert_array_equal(g, ref)
+def test_the_same_seed_gives_the_same_draws_and_other_seeds_other_draws() -> None:
+    pattern = PATTERNS["single rows and odd sizes"]
+    runs = {}
+    for seed in (0, 1, 2**40 + 3):
+        a, b = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM), NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM)
+        rows_a = np.concatenate([a.steps(n) for n in pattern])
+        np.testing.assert_array_equal(rows_a, np.concatenate([b.steps(n) for n in pattern]))
+        np.testing.assert_array_equal(a.gm(40), b.gm(40))
+        runs[seed] = rows_a
+    for s, t in itertools.combinations(runs, 2):  # distinct seeds: independent streams, not shifted copies
+        corr = np.corrcoef(runs[s].ravel().astype(np.float64), runs[t].ravel().astype(np.float64))[0, 1]
+        assert abs(corr) < _z(runs[s].size)
 
 
-def test_rows_handed_out_stay_valid_while_the_stream_draws_on() -> None:
-    stream = NoiseStream(3, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    pattern = [900] * 40
-    kept = [stream.steps(n) for n in pattern]  # every array kept until the end: none may be overwritten
-    for g, ref in zip(kept, _reference_steps(3, pattern), strict=True):
-        np.testing.assert_array_equal(g, ref)
+def test_consecutive_blocks_are_independent_of_each_other() -> None:
+    """Block k + 1 does not repeat or correlate with block k (the stream moves on; no row handed out twice)."""
+    stream = NoiseStream(3, gk.NOISE_PER_STEP, gk.N_GM)
+    blocks = [stream.steps(3600).astype(np.float64) for _ in range(20)]
+    for a, b in itertools.pairwise(blocks):
+        assert not np.array_equal(a, b)
+        assert abs(float(np.corrcoef(a.ravel(), b.ravel())[0, 1])) < _z(a.size)
+    _check_standard_normal(np.concatenate(blocks))
 
 
-def test_off_calls_draw_nothing_and_bias_rows_are_their_own_stream_in_order() -> None:
-    stream = NoiseStream(9, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    step_pattern = [900, 900, 900, 900]
-    gm_pattern = [5, 0, 1, GM_ROWS_AHEAD - 6, 1, 2 * GM_ROWS_AHEAD + 1, 3]
-    steps, gms = [], []
-    for k, n_gm in enumerate(gm_pattern):
-        if k < len(step_pattern):
-            steps.append(stream.steps(step_pattern[k]))
-        off = stream.steps(17, enabled=False)
-        np.testing.assert_array_equal(off, np.zeros((17, gk.NOISE_PER_STEP), dtype=np.float32))
-        np.testing.assert_array_equal(stream.gm(4, enabled=False), np.zeros((4, gk.N_GM)))
-        gms.append(stream.gm(n_gm))
-    _, gm_gen = _generators(9)
-    for n_gm, got in zip(gm_pattern, gms, strict=True):
-        expected = gm_gen.standard_normal((n_gm, gk.N_GM)) if n_gm > 0 else np.zeros((1, gk.N_GM))
-        np.testing.assert_array_equal(got, expected)
-    for g, ref in zip(steps, _reference_steps(9, step_pattern), strict=True):
-        np.testing.assert_array_equal(g, ref)
+def test_off_calls_draw_nothing() -> None:
+    """Zeros when a noise is off, and the stream is not advanced: the next draws are those it would have made."""
+    stream = NoiseStream(9, gk.NOISE_PER_STEP, gk.N_GM)
+    ref = NoiseStream(9, gk.NOISE_PER_STEP, gk.N_GM)
+    np.testing.assert_array_equal(stream.steps(17, enabled=False), np.zeros((17, gk.NOISE_PER_STEP), np.float32))
+    np.testing.assert_array_equal(stream.gm(4, enabled=False), np.zeros((4, gk.N_GM)))
+    np.testing.assert_array_equal(stream.gm(0), np.zeros((1, gk.N_GM)))  # the kernel indexes one row
+    np.testing.assert_array_equal(stream.steps(900), ref.steps(900))
+    np.testing.assert_array_equal(stream.gm(3), ref.gm(3))
 
 
 def test_a_copy_continues_the_stream_like_the_original() -> None:
-    stream = NoiseStream(4, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    pattern = [900, 900, 900, P, 900, 900]
-    ref = _reference_steps(4, pattern)
-    for n in pattern[:3]:
-        stream.steps(n)  # a prefetch is outstanding from the second call on
-    twins = [stream, copy.deepcopy(stream), pickle.loads(pickle.dumps(stream))]
+    stream = NoiseStream(4, gk.NOISE_PER_STEP, gk.N_GM)
+    for n in (900, 900, 900):
+        stream.steps(n)
+    twins = [copy.deepcopy(stream), pickle.loads(pickle.dumps(stream))]
+    expected = stream.steps(5000)
     for s in twins:
-        for n, r in zip(pattern[3:], ref[3:], strict=True):
-            np.testing.assert_array_equal(s.steps(n), r)
+        np.testing.assert_array_equal(s.steps(5000), expected)
 
 
-def test_many_sims_share_one_prefetch_thread() -> None:
-    loops = paper_loops(1.0)
-    inputs = held_inputs(900, 1.0 / 1800.0)
-    sims = []
-    before = threading.active_count()
-    for seed in range(150):
-        sim = GyroSim(GyroParams(), 1.0 / 1800.0, seed=seed)
-        sim._noise.prefetch = True  # whatever the CPU count of the machine running the test
-        for _ in range(3):  # the second block starts a prefetch
-            sim.run(inputs, loops)
-        sims.append(sim)
-    prefetchers = [t for t in threading.enumerate() if t.name.startswith("sims-noise-prefetch")]
-    assert len(prefetchers) == 1
-    assert threading.active_count() <= before + 1
+@pytest.mark.parametrize("seed", [-1, 1.5, "3"])
+def test_a_seed_must_be_a_non_negative_integer(seed: object) -> None:
+    with pytest.raises(ValueError, match="seed"):
+        NoiseStream(seed, 6, 16)  # type: ignore[arg-type]
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="os.fork is POSIX only")
-def test_a_forked_child_continues_the_stream_with_its_own_prefetch_thread() -> None:
-    pattern = [900] * 12
-    ref = np.concatenate(_reference_steps(6, pattern))
-    stream = NoiseStream(6, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    head = [stream.steps(n) for n in pattern[:2]]  # the second call left a prefetch pending (or finished)
-    r, w = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the child: draw on (its prefetches need a thread of its own), send the rows, exit at once
-        try:
-            rows = np.concatenate(head + [stream.steps(n) for n in pattern[2:]])
-            alive = any(t.name.startswith("sims-noise-prefetch") for t in threading.enumerate())
-            os.write(w, rows.tobytes() + (b"T" if alive else b"F"))
-        finally:
-            os._exit(0)
-    os.close(w)
-    received = b""
-    try:
-        while len(received) < ref.nbytes + 1:
-            ready, _, _ = select.select([r], [], [], 60.0)
-            if not ready:
-                os.kill(pid, signal.SIGKILL)
-                pytest.fail("the forked child did not deliver its draws within 60 s (a deadlock)")
-            chunk = os.read(r, ref.nbytes + 1 - len(received))
-            if not chunk:
-                break
-            received += chunk
-    finally:
-        os.close(r)
-        _, status = os.waitpid(pid, 0)
-    assert os.waitstatus_to_exitcode(status) == 0
-    child = np.frombuffer(received[:-1], dtype=np.float32).reshape(ref.shape)
-    np.testing.assert_array_equal(child, ref)
-    assert received[-1:] == b"T", "the child's prefetches found no thread (the parent's executor was kept)"
-    # the parent's stream is untouched by the child
-    parent = np.concatenate(head + [stream.steps(n) for n in pattern[2:]])
-    np.testing.assert_array_equal(parent, ref)
-
-
-@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
-def test_the_default_prefetches_only_with_a_second_cpu_to_run_on() -> None:
-    code = (
-        "import os; from sims.noise import NoiseStream, usable_cpus; "
-        "print(usable_cpus(), NoiseStream(1, 6, 16).prefetch); "
-        "os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
-        "print(usable_cpus(), NoiseStream(1, 6, 16).prefetch)"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
-    first, pinned = out.stdout.split("\n")[:2]
-    n = len(os.sched_getaffinity(0))
-    assert first == f"{n} {n > 1}"
-    assert pinned == "1 False"
-
-
-def test_a_process_wide_default_overrides_the_automatic_choice_and_keeps_the_values() -> None:
-    """set_default_prefetch (what a study's full LocalCluster sets in its workers) decides for streams created
-    afterwards; None restores the automatic choice; an explicit prefetch= still wins; the values do not change."""
-    auto = len(os.sched_getaffinity(0)) > 1 if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1) > 1
-    pattern = PATTERNS["hf2 poll blocks"]
-    try:
-        set_default_prefetch(False)
-        off = NoiseStream(3, 6, 16)
-        forced_on = NoiseStream(3, 6, 16, prefetch=True)
-        assert (off.prefetch, forced_on.prefetch) == (False, True)
-        set_default_prefetch(True)
-        assert NoiseStream(3, 6, 16).prefetch is True
-        set_default_prefetch(None)
-        assert NoiseStream(3, 6, 16).prefetch is auto
-    finally:
-        set_default_prefetch(None)
-    rows_off = np.concatenate([off.steps(n) for n in pattern])
-    rows_on = np.concatenate([forced_on.steps(n) for n in pattern])
-    np.testing.assert_array_equal(rows_off, rows_on)
-    np.testing.assert_array_equal(rows_off, np.concatenate(_reference_steps(3, pattern)))
-
-
-NORMAL_PATTERNS = {
-    "hf2 AuxIn blocks (2 x 3600)": [7200] * 12,
-    "the block size changes": [7200, 7200, 1800, 1800, 7200, 1, 7200, 14400, 3],
-    "off-calls interleaved": [7200, 0, 7200, 7200, 0, 0, 7200],
-}
-
-
-@pytest.mark.parametrize("prefetch", [True, False])
-@pytest.mark.parametrize("pattern", list(NORMAL_PATTERNS.values()), ids=list(NORMAL_PATTERNS))
-def test_normal_stream_hands_out_the_generators_float64_draws_in_order(pattern: list[int], prefetch: bool) -> None:
-    """NormalStream (the HF2 twin's AuxIn noise) gives exactly what drawing each call's count in the caller's
-    thread gives, and the same as one draw of the whole; arrays handed out stay valid while it draws on."""
+def test_normal_stream_is_the_generators_normals_in_order_whatever_the_split() -> None:
+    """NormalStream (the HF2 twin's AuxIn noise): float64 standard normals, the same values however the calls
+    split them, reproducible from the generator's seed."""
     seed = np.random.SeedSequence(11, spawn_key=(7,))
-    stream = NormalStream(np.random.Generator(np.random.PCG64(seed)), prefetch=prefetch)
-    assert stream.prefetch is prefetch
+    pattern = [7200, 7200, 1800, 0, 1, 14400, 3]
+    stream = NormalStream(np.random.Generator(np.random.PCG64(seed)))
     got = [stream.take(n) for n in pattern]
-    ref_gen = np.random.Generator(np.random.PCG64(seed))
     for g, n in zip(got, pattern, strict=True):
         assert g.shape == (n,) and g.dtype == np.float64
-        np.testing.assert_array_equal(g, ref_gen.standard_normal(n))
-    whole = np.random.Generator(np.random.PCG64(seed)).standard_normal(sum(pattern))
-    np.testing.assert_array_equal(np.concatenate(got), whole)
+    again = NormalStream(np.random.Generator(np.random.PCG64(seed))).take(sum(pattern))
+    np.testing.assert_array_equal(np.concatenate(got), again)
+    _check_standard_normal(stream.take(200_000).reshape(-1, 2))
 
 
-def test_normal_stream_switched_mid_stream_and_copied_keeps_the_order() -> None:
-    seed = np.random.SeedSequence(5)
-    stream = NormalStream(np.random.Generator(np.random.PCG64(seed)), prefetch=True)
-    pattern = [7200] * 9
-    ref = np.random.Generator(np.random.PCG64(seed)).standard_normal(sum(pattern))
-    head = [stream.take(n) for n in pattern[:3]]  # a prefetch is pending from the second call on
-    stream.prefetch = False
-    head.append(stream.take(pattern[3]))
-    stream.prefetch = True
-    head.append(stream.take(pattern[4]))
-    for other in (stream, copy.deepcopy(stream), pickle.loads(pickle.dumps(stream))):
-        tail = [other.take(n) for n in pattern[5:]]
-        np.testing.assert_array_equal(np.concatenate(head + tail), ref)
-
-
-def test_calls_of_one_size_come_from_whole_prefetched_chunks_without_a_copy() -> None:
-    """From the third call on, calls of one size (a poll's block) are views of a prefetch of whole calls: no call
-    straddles two chunks (PREFETCH_ROWS // n calls per chunk), and the values are the stream's."""
-    n = 3600
-    stream = NoiseStream(2, gk.NOISE_PER_STEP, gk.N_GM, prefetch=True)
-    got = [stream.steps(n) for _ in range(9)]
-    for rows in got[2:]:
-        assert rows.base is not None and rows.base.shape[0] == n * (PREFETCH_ROWS // n)
-    for g, ref in zip(got, _reference_steps(2, [n] * 9), strict=True):
-        np.testing.assert_array_equal(g, ref)
+def test_twins_draw_in_the_callers_thread_and_start_none() -> None:
+    """Many simulators running blocks leave the process's thread count as it was: no draw-ahead thread."""
+    loops = paper_loops(1.0)
+    inputs = held_inputs(900, 1.0 / 1800.0)
+    before = {t.ident for t in threading.enumerate()}
+    sims = [GyroSim(GyroParams(), 1.0 / 1800.0, seed=seed) for seed in range(20)]
+    for sim in sims:
+        for _ in range(3):
+            sim.run(inputs, loops)
+    assert {t.ident for t in threading.enumerate()} <= before
