@@ -181,8 +181,9 @@ def twin_bench(request: pytest.FixtureRequest) -> Iterator[tuple[ChamberTwin, Su
     if request.param == "inprocess":
         port = InProcessSerial(twin)
     else:  # a real pyserial port over loopback; its timeout is how long the driver waits for an OK
+        # and for each read-back's reply: 0.05 s lost replies to the twin's server thread on a loaded machine
         url, stop = serve_socket(twin)
-        port = serial.serial_for_url(url, timeout=0.05)
+        port = serial.serial_for_url(url, timeout=0.5)
     chamber = SunEC1xChamber(port, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
     yield twin, chamber
     chamber.close()
