@@ -90,7 +90,9 @@ class LimitCheck:
         return self.low <= self.value <= self.high
 
     def describe(self) -> str:
-        return f"{self.what} = {self.value:g} {self.unit} within [{self.low:g}, {self.high:g}] {self.unit}"
+        """The check in words: "table rate = 500 deg/s outside [0, 100] deg/s" ("within" when it passes)."""
+        where = "within" if self.ok else "outside"
+        return f"{self.what} = {self.value:g} {self.unit} {where} [{self.low:g}, {self.high:g}] {self.unit}"
 
 
 def dither_amplitude_vpp(cfg: Config) -> float:
@@ -237,10 +239,7 @@ def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
     """Raise LimitError naming every limit the plan would break."""
     bad = [ch for ch in limit_checks(cfg, steps) if not ch.ok]
     if bad:
-        raise LimitError(
-            "the plan breaks instrument limits: "
-            + "; ".join(f"{ch.what} = {ch.value:g} {ch.unit} outside [{ch.low:g}, {ch.high:g}] {ch.unit}" for ch in bad)
-        )
+        raise LimitError("the plan breaks instrument limits: " + "; ".join(ch.describe() for ch in bad))
 
 
 __all__ = [

@@ -267,3 +267,45 @@ def test_real_exit_code_2_from_the_installed_command(tmp_path, text, fragment):
     assert done.returncode == 2
     assert fragment in done.stderr and "allowed:" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "r.h5").exists()
+
+
+# ====================================================================================== issue 27: finite, >= 0, TOML
+@pytest.mark.parametrize(
+    "text, fragments",
+    [
+        ("[sim]\narw_dps_per_rt_hz = inf\n", ["sim.arw_dps_per_rt_hz", "finite number"]),
+        ("[sim.faults]\ninterlock_trip_at_s = inf\n", ["sim.faults.interlock_trip_at_s", "finite number"]),
+        ("[sim.faults]\ndisconnect_at_s = [-5.0]\n", ["sim.faults.disconnect_at_s", ">= 0"]),
+        ("[sim.faults]\nchamber_dropout_at_s = inf\n", ["sim.faults.chamber_dropout_at_s", "finite number"]),
+        ("[sim.faults]\nsample_loss_at_s = [-1.0]\n", ["sim.faults.sample_loss_at_s", ">= 0"]),
+        ("[plan]\ndwell_s = 60\ndwell_s = 70\n", ["line 3: plan.dwell_s is set twice (first on line 2)"]),
+        ("\ufeff[plan]\ndwell_s = 60\n", ["byte-order mark", "without BOM"]),
+        ("[plan]\nrätsel = 1\n", ["line 2: key 'rätsel' contains 'ä'", "ASCII"]),
+        ("[plan]\nchamber_end_c = 120\n", ["plan.chamber_end_c = 120 is outside [-40, 85]", "chamber.max_c"]),
+    ],
+)
+def test_values_check_used_to_pass_are_refused_by_check(tmp_path, text, fragments):
+    _assert_bad_input(_check(tmp_path, text), *fragments)
+    assert "(at line" not in _check(tmp_path, text).output
+
+
+def test_an_infinite_noise_is_bad_input_for_run_too(tmp_path):
+    """`run` used to accept it and fail in the twin with exit 3; now it is exit 2 before anything starts."""
+    path = tmp_path / "inf.toml"
+    path.write_text("[sim]\narw_dps_per_rt_hz = inf\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "run", str(path), "--sim", "-o", str(tmp_path / "r.h5")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "sim.arw_dps_per_rt_hz" in done.stderr and "finite" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_the_limit_message_says_outside(tmp_path):
+    # a derived limit that the schema leaves to `check`: 90 deg/s of virtual rate needs 2*90*0.06 = 10.8 Vpp > 10
+    result = _check(tmp_path, "[dither]\nvirtual_rate_dps = 90\n")
+    _assert_bad_input(result, "dither amplitude = 10.8 Vpp outside [0.01, 10] Vpp")
+    assert "within" not in result.output.split("breaks instrument limits")[-1]

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 
 from qmg_lab.campaign.plan import (
+    LimitCheck,
     StepKind,
     assert_within_limits,
     build_plan,
@@ -14,7 +16,7 @@ from qmg_lab.campaign.plan import (
     limit_checks,
     plan_duration_s,
 )
-from qmg_lab.config.schema import Config, parse_config
+from qmg_lab.config.schema import Config, ConfigError, parse_config
 from qmg_lab.instruments import LimitError
 
 
@@ -62,10 +64,6 @@ def test_dither_amplitude_is_twice_virtual_rate_times_sf():
 @pytest.mark.parametrize(
     "text, what",
     [
-        ("[plan]\ntable_rate_dps = 150\n[table]\nmax_rate_dps = 100\n", "table rate"),
-        ("[plan]\ntable_accel_dps2 = 800\n[table]\nmax_accel_dps2 = 500\n", "table acceleration"),
-        ("[plan]\nchamber_end_c = 90\n[chamber]\nmax_c = 85\n", "chamber setpoint (highest)"),
-        ("[plan]\nchamber_ramp_c_per_min = 10\n[chamber]\nmax_ramp_c_per_min = 5\n", "chamber ramp"),
         ("[dither]\nvirtual_rate_dps = 90\n", "dither amplitude"),
         ("[plan]\ntable_rate_dps = 170\n[table]\nmax_rate_dps = 200\n", "peak forcer command"),
     ],
@@ -77,6 +75,43 @@ def test_limits_refused_with_the_limit_named(text, what):
     assert any(ch.what.startswith(what) for ch in bad), [ch.what for ch in bad]
     with pytest.raises(LimitError, match=what.split(" (")[0]):
         assert_within_limits(c, steps)
+
+
+# (plan text, instrument limit text, the limit_checks row, the key that sets the bound, the bound's value)
+INSTRUMENT_BOUNDS = [
+    ("table_rate_dps = {v}", "[table]\nmax_rate_dps = 100", "table rate", "table.max_rate_dps", 100.0),
+    ("table_accel_dps2 = {v}", "[table]\nmax_accel_dps2 = 500", "table acceleration", "table.max_accel_dps2", 500.0),
+    ("chamber_end_c = {v}", "[chamber]\nmax_c = 85", "chamber setpoint (highest)", "chamber.max_c", 85.0),
+    (
+        "chamber_ramp_c_per_min = {v}",
+        "[chamber]\nmax_ramp_c_per_min = 5",
+        "chamber ramp",
+        "chamber.max_ramp_c_per_min",
+        5.0,
+    ),
+]
+
+
+@pytest.mark.parametrize("plan_line, limit_text, what, key, bound", INSTRUMENT_BOUNDS)
+def test_the_schema_and_the_limit_checks_share_one_bound(plan_line, limit_text, what, key, bound):
+    """At the instrument's limit both accept; just above it the schema refuses naming the limit's key, and the
+    limit check (on the same values, unvalidated) refuses at the same bound: one source for the bound."""
+    at = cfg(f"[plan]\n{plan_line.format(v=bound)}\n{limit_text}\n")
+    assert all(ch.ok for ch in limit_checks(at, build_plan(at)) if ch.what == what)
+    above = bound * 1.01
+    with pytest.raises(ConfigError, match=rf"plan\.\w+ = {above:g} is .*{re.escape(key)}"):
+        cfg(f"[plan]\n{plan_line.format(v=above)}\n{limit_text}\n")
+    field = plan_line.split(" = ")[0]
+    unchecked = at.model_copy(update={"plan": at.plan.model_copy(update={field: above})})
+    row = next(ch for ch in limit_checks(unchecked, build_plan(unchecked)) if ch.what == what)
+    assert not row.ok and row.high == bound
+    assert row.describe().endswith(f"outside [{row.low:g}, {bound:g}] {row.unit}")
+
+
+def test_a_limit_check_says_within_only_when_it_passes():
+    ok, bad = LimitCheck("table rate", 50.0, 0.0, 100.0, "deg/s"), LimitCheck("table rate", 500.0, 0.0, 100.0, "deg/s")
+    assert ok.describe() == "table rate = 50 deg/s within [0, 100] deg/s"
+    assert bad.describe() == "table rate = 500 deg/s outside [0, 100] deg/s"
 
 
 def test_sinusoid_peak_acceleration_checked():
