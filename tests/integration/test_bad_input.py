@@ -309,3 +309,30 @@ def test_the_limit_message_says_outside(tmp_path):
     result = _check(tmp_path, "[dither]\nvirtual_rate_dps = 90\n")
     _assert_bad_input(result, "dither amplitude = 10.8 Vpp outside [0.01, 10] Vpp")
     assert "within" not in result.output.split("breaks instrument limits")[-1]
+
+
+# ====================================================================================== issue 26: negative arguments
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["table", "rate", "{cfg}", "-5", "--sim"], "table commanded to -5 deg/s"),
+        (["table", "rate", "--sim", "{cfg}", "-2.5e0", "--accel", "50"], "table commanded to -2.5 deg/s at 50 deg/s^2"),
+        (["chamber", "setpoint", "{cfg}", "-10", "--sim"], "chamber setpoint -10 degC"),
+    ],
+)
+def test_negative_numbers_are_arguments_without_a_double_dash(good_config, argv, said):
+    result = RUNNER.invoke(app, [a.format(cfg=good_config) for a in argv])
+    assert result.exit_code == 0, result.output
+    assert said in result.output
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["table", "rate", "{cfg}", "-500", "--sim"], "table rate = -500 deg/s is outside the limit [-100, 100]"),
+        (["table", "rate", "{cfg}", "5", "--acel", "3", "--sim"], "--acel"),  # a mistyped option is still refused
+        (["table", "rate", "{cfg}", "--acel", "--sim"], "rate_dps"),
+    ],
+)
+def test_negative_number_arguments_keep_the_checks(good_config, argv, fragment):
+    _assert_bad_input(RUNNER.invoke(app, [a.format(cfg=good_config) for a in argv]), fragment)
