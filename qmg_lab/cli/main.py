@@ -576,9 +576,6 @@ def study(
 
 
 # ====================================================================================== budget
-BUDGET_TABLE_TAUS = (1.0, 10.0, 60.0, 600.0, 2000.0)
-
-
 @app.command()
 def budget(
     config: ConfigArg,
@@ -590,26 +587,14 @@ def budget(
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
     the accuracy and linearity terms of a temperature sweep."""
     from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.budget.table import budget_table
 
     cfg, _ = _load(config, sim=False)
     result = noise_budget(cfg, sim_blocks=sim)
     if json_out:
         out.print_json(json.dumps(result.to_json(), default=float))
         return
-    table = Table(title=f"CLSF noise budget ({result.mode} mode): Allan deviation of the estimate, ppm")
-    for col in ("source", "value", "ppm*rt(s)", *(f"{t:g} s" for t in BUDGET_TABLE_TAUS)):
-        table.add_column(col, justify="left" if col == "source" else "right", no_wrap=col != "source")
-    for s in result.sources:
-        table.add_row(
-            s.name,
-            f"{s.value:.3g} {s.unit}",
-            f"{s.white_ppm_rt_s:.3g}",
-            *(f"{s.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS),
-        )
-    table.add_row("total (estimate)", "", "", *(f"{result.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS), style="bold")
-    if result.mode == "correct":
-        table.add_row("self-calibrated SF", "", "", *(f"{result.sf_adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS))
-    out.print(table)
+    out.print(budget_table(result, out.width))
     acc = result.accuracy
     out.print(
         f"temperature sweep (qmg_lab/budget/sweep.py): CLSF accuracy {acc.total_ppm:.0f} ppm RMS "
@@ -617,9 +602,9 @@ def budget(
         + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
         + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
     )
-    out.print(f"dominant at 60 s: {result.dominant(60.0)}. Origins of the values:")
+    out.print(f"dominant at 60 s: {result.dominant(60.0)}. The values and their origins:")
     for s in result.sources:
-        out.print(f"  {s.name}: {s.origin}")
+        out.print(f"  {s.name} = {s.value:.3g} {s.unit}: {s.origin}")
     for note in result.notes:
         out.print(f"note: {note}")
 
