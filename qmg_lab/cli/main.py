@@ -534,6 +534,15 @@ def study(
     ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="run only the points without a result in -o")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+    dashboard_address: Annotated[
+        str | None,
+        typer.Option(
+            "--dashboard-address",
+            help="local cluster: where its Dask dashboard listens (default 127.0.0.1 on a free port: this machine "
+            "only; '0.0.0.0:8787' opens it to the network on purpose)",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Run a design study: every point of the grid (axes x seeds) as a simulated campaign on Dask, then
     DIR/results.csv, DIR/figures/ and a summary table."""
@@ -559,7 +568,13 @@ def study(
     )
     try:
         report = run_study(
-            spec, out_dir, workers=workers, scheduler=scheduler, resume=resume, console=None if quiet else console
+            spec,
+            out_dir,
+            workers=workers,
+            scheduler=scheduler,
+            resume=resume,
+            console=None if quiet else console,
+            dashboard_address=dashboard_address,
         )
     except StudyDirError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
