@@ -82,6 +82,7 @@ class HF2LI(LockIn):
         self._setup: LockInSetup | None = None
         self._forcer_gain = 1.0
         self._streaming = False
+        self._stream_wanted = False  # a reconnect that failed half-way still owes the stream (reconnect)
         self._attach()
 
     # ------------------------------------------------------------------ connection
@@ -179,14 +180,15 @@ class HF2LI(LockIn):
             if self._streaming:
                 self.stop_stream()
         finally:
-            self._streaming = False
+            self._streaming = self._stream_wanted = False
 
     def reconnect(self) -> None:
         """New session to the same server (same connection object for the twin), re-identify, re-apply the
-        last configuration and forcer gain."""
-        was_streaming, gain = self._streaming, self._forcer_gain
+        last configuration and forcer gain, restart the stream if it ran: also when the stream ran before an
+        earlier reconnect that failed (the link still down), which left `_streaming` False."""
+        was_streaming, gain = self._streaming or self._stream_wanted, self._forcer_gain
         log.info("HF2LI %s: reconnecting (streaming %s)", self.device_id, was_streaming)
-        self._streaming = False
+        self._streaming, self._stream_wanted = False, was_streaming
         self._session = self._open_session()
         self._attach()
         if self._setup is not None:
@@ -217,7 +219,7 @@ class HF2LI(LockIn):
             raise InstrumentError(f"HF2LI {self.device_id}: subscribe failed: {exc}") from exc
         self._t0_ticks: int | None = None
         self._last_ts: int | None = None
-        self._streaming = True
+        self._streaming, self._stream_wanted = True, False
 
     def stop_stream(self) -> None:
         try:
@@ -226,7 +228,7 @@ class HF2LI(LockIn):
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: unsubscribe failed: {exc}") from exc
         finally:
-            self._streaming = False
+            self._streaming = self._stream_wanted = False
 
     def poll(self, duration_s: float) -> LockInBlock:
         if not self._streaming:

@@ -357,6 +357,19 @@ class SimFaultsSection(_Section):
     sample_loss_count: int = Field(100, ge=1, le=100000, description="samples lost at each sample_loss_at_s")
     pll_unlock_at_s: float | None = Field(None, ge=0.0, description="the HF2 PLL is forced open, s")
     pll_unlock_duration_s: float = Field(3.0, ge=0.0, le=3600.0)
+    hf2_disconnect_at_s: list[TimeS] = Field(
+        default_factory=list,
+        description="the HF2's link to the host drops at these times: every data-server call raises zhinst-core's "
+        "ConnectionError while the instrument runs on, s",
+    )
+    hf2_disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0, description="how long each HF2 link drop lasts, s")
+    hf2_call_timeout_s: float = Field(
+        1.0,
+        gt=0.0,
+        le=60.0,
+        description="how long a data-server call on the dropped link takes to fail, s (assumed; a poll: its "
+        "recording time)",
+    )
 
 
 class RecoverySection(_Section):
