@@ -19,11 +19,11 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from pydantic import BaseModel
 from typer.testing import CliRunner
 
 from qmg_lab.cli.main import app
 from qmg_lab.config.schema import Config
+from tests.support.schema_fields import schema_fields
 
 RUNNER = CliRunner()
 PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -32,26 +32,19 @@ PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[Healt
 def _numeric_fields() -> list[tuple[str, str, type, dict[str, float]]]:
     """(section, key, int|float, bounds) of every bounded numeric field of the schema ([sim.faults] as sim.faults)."""
     out = []
-
-    def walk(prefix: str, model: type[BaseModel]) -> None:
-        for key, info in model.model_fields.items():
-            ann = info.annotation
-            if isinstance(ann, type) and issubclass(ann, BaseModel):
-                walk(f"{prefix}.{key}" if prefix else key, ann)
-                continue
-            base = [a for a in getattr(ann, "__args__", (ann,)) if a is not type(None)]
-            if len(base) != 1 or base[0] not in (int, float) or not prefix:
-                continue
-            bounds = {
-                attr: getattr(m, attr)
-                for m in info.metadata
-                for attr in ("ge", "gt", "le", "lt")
-                if getattr(m, attr, None) is not None
-            }
-            if bounds:
-                out.append((prefix, key, base[0], bounds))
-
-    walk("", Config)
+    for prefix, key, info in schema_fields():
+        ann = info.annotation
+        base = [a for a in getattr(ann, "__args__", (ann,)) if a is not type(None)]
+        if len(base) != 1 or base[0] not in (int, float) or not prefix:
+            continue
+        bounds = {
+            attr: getattr(m, attr)
+            for m in info.metadata
+            for attr in ("ge", "gt", "le", "lt")
+            if getattr(m, attr, None) is not None
+        }
+        if bounds:
+            out.append((prefix, key, base[0], bounds))
     return out
 
 

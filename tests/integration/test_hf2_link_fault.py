@@ -20,16 +20,14 @@ import pytest
 from typer.testing import CliRunner
 from zhinst.core.errors import ConnectionError as ZIConnectionError
 
-from qmg_lab.campaign.errors import CampaignAborted
 from qmg_lab.campaign.loops import lockin_setup
-from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.cli.main import app
-from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import InstrumentError
-from qmg_lab.station import build_station, connect_instrument, make_world
+from qmg_lab.station import connect_instrument, make_world
 from qmg_lab.storage.records import read_events
-from qmg_lab.storage.writer import RunWriter, read_run
-from tests.support.campaigns import SAFE_SETPOINT_C, SHORT_STEPS, config_text
+from qmg_lab.storage.writer import read_run
+from tests.support.campaigns import SHORT_STEPS, config_text, run_inprocess
 
 CALL_TIMEOUT_S = 1.0  # [sim.faults] hf2_call_timeout_s, the default
 
@@ -103,39 +101,9 @@ def test_each_refused_call_lets_the_configured_time_pass(lockin_with_drop):
 
 
 # ====================================================================================== the campaign
-def _run(tmp_path: Path, text: str):
-    """The short twin campaign in this process; returns (error, summary, run file data, world)."""
-    cfg = parse_config(text)
-    world = make_world(cfg)
-    station = build_station(cfg, world)
-    path = tmp_path / "run.h5"
-    writer = RunWriter.create(
-        path,
-        config_text=text,
-        config_sha256=config_fingerprint(text),
-        mode="sim",
-        software_version="test",
-        t0_unix=0.0,
-        flush_interval_s=cfg.storage.flush_interval_s,
-        compression="none",
-        truth=True,
-    )
-    runner = CampaignRunner(cfg, station, writer)
-    error = None
-    try:
-        summary = runner.run()
-    except Exception as exc:
-        error = exc
-        summary = runner.summary("aborted", str(exc))
-    finally:
-        station.close()
-        writer.close()
-    return error, summary, read_run(path), world
-
-
-def _events(run) -> list[tuple[str, str]]:
+def _events(path: Path) -> list[tuple[str, str]]:
     """(instrument, kind) of every /events row of the run file."""
-    with h5py.File(run.path, "r") as h5:
+    with h5py.File(path, "r") as h5:
         return [(e["instrument"], e["kind"]) for e in read_events(h5)]
 
 
@@ -143,46 +111,38 @@ def test_a_short_hf2_link_drop_is_reconnected_and_the_campaign_completes(tmp_pat
     """Link down [40, 43): the block [39, 41) is polled before the drop, its status reads at t = 41 are refused
     (+1 s -> 42); the first reconnect is refused (42 -> 43); the second finds the link back and the block is polled
     again: 2 reconnects, 1 recovery, every step completed."""
-    error, summary, run, world = _run(
-        tmp_path, config_text("hf2_disconnect_at_s = [40.0]\nhf2_disconnect_duration_s = 3.0")
-    )
-    assert error is None, error
+    out = run_inprocess(tmp_path, config_text("hf2_disconnect_at_s = [40.0]\nhf2_disconnect_duration_s = 3.0"))
+    assert out.error is None, out.error
+    summary = out.summary
     assert summary.status == "completed" and summary.steps_completed == SHORT_STEPS
     assert (summary.reconnects, summary.recoveries) == (2, 1)
-    lockin_events = [k for i, k in _events(run) if i == "lockin"]
+    lockin_events = [k for i, k in _events(out.path) if i == "lockin"]
     assert lockin_events == ["fault", "reconnect", "fault", "reconnect", "recovered"]
     injected = [(f["kind"], f["instrument"], round(f["time_s"], 3)) for f in summary.faults_injected]
     assert injected == [("disconnect", "lockin", 41.0), ("link_restored", "lockin", 43.0)]
-    assert world.table.rate_command_dps == 0.0 and world.dither.amplitude_vpp == 0.0
-    assert world.chamber.target_c == SAFE_SETPOINT_C
+    assert out.world_is_safe()
 
 
-def test_a_long_hf2_link_drop_aborts_to_the_safe_state_and_says_the_lockin_was_not_reached(tmp_path):
-    """Link down [40, 70): the reconnects are refused at 42, 43, 44; the campaign aborts. The table, the DS345
-    and the chamber reach their safe state (their links are up); the lock-in cannot be told, and the file says so."""
-    error, summary, run, world = _run(
-        tmp_path, config_text("hf2_disconnect_at_s = [40.0]\nhf2_disconnect_duration_s = 30.0")
-    )
-    assert isinstance(error, (CampaignAborted, InstrumentError)), error
-    assert summary.status == "aborted" and summary.reconnects == 3
-    reason = run.attrs["abort_reason"]
-    assert "lockin" in reason and "Connection to the data server at localhost:8005 lost" in reason
-    assert "gave up after 3 reconnections" in reason
-    assert "safe state not confirmed: lockin" in reason
-    assert ("", "safe_state") in _events(run)
-    assert world.table.rate_command_dps == 0.0 and world.dither.amplitude_vpp == 0.0
-    assert world.chamber.target_c == SAFE_SETPOINT_C
-    assert sorted(run.steps["index"].tolist()) == [0, 1, 2, 3]  # the steps before 39 s, kept
-
-
-def test_the_cli_exits_3_naming_the_hf2_link(tmp_path):
+def test_a_long_hf2_link_drop_aborts_with_exit_3_and_names_the_lockin_not_confirmed(tmp_path):
+    """Link down [40, 70): the reconnects are refused at 42, 43, 44; the campaign aborts. The table, the DS345 and
+    the chamber reach their safe state (their links are up); the lock-in cannot be told, and the file says so:
+    the lock-in is the only instrument whose safe state is not confirmed."""
     config = tmp_path / "drop.toml"
     config.write_text(config_text("hf2_disconnect_at_s = [40.0]\nhf2_disconnect_duration_s = 30.0"))
-    result = CliRunner().invoke(app, ["run", str(config), "--sim", "-o", str(tmp_path / "r.h5"), "-q"])
+    path = tmp_path / "r.h5"
+    result = CliRunner().invoke(app, ["run", str(config), "--sim", "-o", str(path), "-q"])
     assert result.exit_code == 3, result.output
     said = " ".join(result.output.split())
     assert "instrument fault: lockin: HF2 data server at localhost:8005" in said and "Traceback" not in said
-    assert read_run(tmp_path / "r.h5").status == "aborted"
+    run = read_run(path)
+    reason = run.attrs["abort_reason"]
+    assert run.status == "aborted" and "gave up after 3 reconnections" in reason
+    assert "Connection to the data server at localhost:8005 lost" in reason
+    not_confirmed = reason.split("safe state not confirmed: ")[1]
+    assert not_confirmed.startswith("lockin:")
+    assert not any(f"{name}:" in not_confirmed for name in ("table", "chamber", "generator"))
+    assert [k for i, k in _events(path) if i == "lockin"] == ["fault"] + ["reconnect", "fault"] * 3
+    assert sorted(run.steps["index"].tolist()) == [0, 1, 2, 3]  # the steps done before 39 s, kept
 
 
 def test_hf2_link_settings_are_validated():

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from qmg_lab.config.schema import ConfigError, config_fingerprint, load_config, parse_config
+from tests.support.schema_fields import schema_fields
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -77,25 +78,14 @@ def test_line_endings_follow_toml(tmp_path):
 # ====================================================================================== finite floats, times >= 0
 def _float_fields() -> list[tuple[str, str, bool]]:
     """(TOML section, key, is a list) of every float-valued field of the schema."""
-    from pydantic import BaseModel
-
-    from qmg_lab.config.schema import Config
-
     out = []
-
-    def walk(prefix: str, model: type[BaseModel]) -> None:
-        for key, info in model.model_fields.items():
-            ann = info.annotation
-            if isinstance(ann, type) and issubclass(ann, BaseModel):
-                walk(f"{prefix}.{key}" if prefix else key, ann)
-                continue
-            args = getattr(ann, "__args__", ())
-            is_list = getattr(ann, "__origin__", None) is list
-            item = getattr(args[0], "__origin__", args[0]) if is_list else None
-            if ann is float or float in args or item is float:
-                out.append((prefix, key, is_list))
-
-    walk("", Config)
+    for section, key, info in schema_fields():
+        ann = info.annotation
+        args = getattr(ann, "__args__", ())
+        is_list = getattr(ann, "__origin__", None) is list
+        item = getattr(args[0], "__origin__", args[0]) if is_list else None
+        if ann is float or float in args or item is float:
+            out.append((section, key, is_list))
     return out
 
 
