@@ -329,3 +329,19 @@ def test_negative_numbers_are_arguments_without_a_double_dash(good_config, argv,
 )
 def test_negative_number_arguments_keep_the_checks(good_config, argv, fragment):
     _assert_bad_input(RUNNER.invoke(app, [a.format(cfg=good_config) for a in argv]), fragment)
+
+
+def test_a_study_file_syntax_error_is_worded_like_a_configuration(tmp_path):
+    (tmp_path / "base.toml").write_bytes(b"\xef\xbb\xbf[plan]\ndwell_s = 60\n")
+    dup = tmp_path / "dup.toml"
+    dup.write_text('[study]\nname = "x"\nbase = "base.toml"\nbase = "other.toml"\n')
+    _assert_bad_input(
+        RUNNER.invoke(app, ["study", str(dup), "-o", str(tmp_path / "out")]),
+        "not valid TOML: line 4: study.base is set twice (first on line 3)",
+    )
+    bom = tmp_path / "bom.toml"
+    bom.write_text('[study]\nname = "x"\nbase = "base.toml"\n')
+    _assert_bad_input(
+        RUNNER.invoke(app, ["study", str(bom), "-o", str(tmp_path / "out")]), "base configuration", "without BOM"
+    )
+    assert not (tmp_path / "out").exists()
