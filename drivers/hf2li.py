@@ -83,6 +83,8 @@ class HF2LI(LockIn):
         self._forcer_gain = 1.0
         self._streaming = False
         self._stream_wanted = False  # a reconnect that failed half-way still owes the stream (reconnect)
+        self._t0_ticks: int | None = None  # the stream's time origin and last sample, device clock ticks
+        self._last_ts: int | None = None
         self._attach()
 
     # ------------------------------------------------------------------ connection
@@ -195,7 +197,12 @@ class HF2LI(LockIn):
             self.configure(self._setup)
             self.set_forcer_gain(gain)
         if was_streaming:
+            # the device's clock ran on while the host was away: the same stream time origin and last sample, so
+            # the samples it missed are a timestamp gap counted as lost (a device that restarted its clock goes
+            # back in time instead, which the campaign takes as a new stream)
+            t0_ticks, last_ts = self._t0_ticks, self._last_ts
             self.start_stream()
+            self._t0_ticks, self._last_ts = t0_ticks, last_ts
 
     # ------------------------------------------------------------------ LockIn
     def configure(self, setup: LockInSetup) -> None:
@@ -217,8 +224,8 @@ class HF2LI(LockIn):
             self._device.demods[SENSE_DEMOD].sample.subscribe()
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: subscribe failed: {exc}") from exc
-        self._t0_ticks: int | None = None
-        self._last_ts: int | None = None
+        self._t0_ticks = None
+        self._last_ts = None
         self._streaming, self._stream_wanted = True, False
 
     def stop_stream(self) -> None:

@@ -16,6 +16,7 @@ import contextlib
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 from zhinst.core.errors import ConnectionError as ZIConnectionError
@@ -27,9 +28,10 @@ from qmg_lab.instruments import InstrumentError
 from qmg_lab.station import connect_instrument, make_world
 from qmg_lab.storage.records import read_events
 from qmg_lab.storage.writer import read_run
-from tests.support.campaigns import SHORT_STEPS, config_text, run_inprocess
+from tests.support.campaigns import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
 
 CALL_TIMEOUT_S = 1.0  # [sim.faults] hf2_call_timeout_s, the default
+DT_S = round(210e6 / 1800.0) / 210e6  # demod sample period at 1800 Sa/s, in whole 210 MHz ticks (the HF2 twin)
 
 
 # ====================================================================================== twin and driver
@@ -121,6 +123,16 @@ def test_a_short_hf2_link_drop_is_reconnected_and_the_campaign_completes(tmp_pat
     injected = [(f["kind"], f["instrument"], round(f["time_s"], 3)) for f in summary.faults_injected]
     assert injected == [("disconnect", "lockin", 41.0), ("link_restored", "lockin", 43.0)]
     assert out.world_is_safe()
+    # the host missed [39, 43): the block whose status reads failed and the two refused calls. The device's clock
+    # ran on, so the restarted stream continues its timestamps: one gap of 4 s + one sample period in /lockin/time,
+    # its samples counted as lost (CLSF restarts its periods after it), and the run 4 s longer than without the drop
+    t = out.run().groups["lockin"]["time"]
+    steps = np.diff(t)
+    gaps = steps[steps > 1.5 * DT_S]
+    assert gaps == pytest.approx([4.0 + DT_S], abs=DT_S / 2)
+    assert summary.samples_lost == round(4.0 / DT_S)
+    assert t[:-1][steps > 1.5 * DT_S] == pytest.approx([39.0], abs=DT_S)
+    assert summary.simulated_s == pytest.approx(SHORT_DURATION_S + 4.0, abs=2 * DT_S)
 
 
 def test_a_long_hf2_link_drop_aborts_with_exit_3_and_names_the_lockin_not_confirmed(tmp_path):
