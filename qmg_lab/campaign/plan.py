@@ -19,10 +19,11 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
-from qmg_lab.config.schema import Config
+from qmg_lab.config.schema import ALLAN_SEGMENT_S, Config
 from qmg_lab.instruments import LimitError
 
-ALLAN_SEGMENT_S = 600.0  # checkpoint granularity of a long constant-temperature hold
+# ALLAN_SEGMENT_S: checkpoint granularity of a long constant-temperature hold (defined beside the schema's bound
+# of the plan's size, qmg_lab.config.schema.plan_step_bound)
 
 
 class StepKind(StrEnum):

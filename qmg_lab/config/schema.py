@@ -500,6 +500,9 @@ class Config(_Section):
         problems = plan_limit_problems(self)
         if problems:
             raise ValueError("\n  ".join(problems))
+        too_long = plan_size_problem(self)
+        if too_long:
+            raise ValueError(too_long)
         if self.dither.frequency_hz > self.lockin.demod_rate_hz / 20:
             raise ValueError(
                 f"dither.frequency_hz ({self.dither.frequency_hz}) needs at least 20 demod samples per period: "
@@ -557,6 +560,43 @@ def plan_limit_problems(cfg: Config) -> list[str]:
             "(qmg-lab check shows every limit)"
         )
     return problems
+
+
+MAX_PLAN_STEPS = 100_000  # a 30-day Allan campaign in 600 s segments has 4320 steps; the paper's sweep 50
+ALLAN_SEGMENT_S = 600.0  # checkpoint granularity of a long constant-temperature hold (qmg_lab/campaign/plan.py)
+
+
+def plan_step_bound(cfg: Config) -> float:
+    """An upper bound of the number of steps qmg_lab/campaign/plan.py's build_plan makes, formed without building
+    them (a float: inf for absurd values): lock, dither, soak and return, plus per kind
+    temperature_sweep 2 ceil((ramp time + end hold) / (2 dwell)); allan, per hold segment or step interval (each
+    at least max(interval, 2 dwell) long), a hold, two rate steps and a return; bandwidth 2 + one per frequency;
+    linearity one per rate."""
+    p, kind = cfg.plan, cfg.campaign.kind
+    fixed = 4.0
+    if kind == "temperature_sweep":
+        ramp_s = abs(p.chamber_end_c - p.chamber_start_c) / p.chamber_ramp_c_per_min * 60.0
+        return fixed + 2.0 * ((ramp_s + p.chamber_end_hold_s) / (2.0 * p.dwell_s) + 1.0)
+    if kind == "allan":
+        if p.table_step_interval_s > 0:
+            return fixed + 4.0 * (p.duration_s / max(p.table_step_interval_s, 2.0 * p.dwell_s) + 1.0)
+        return fixed + p.duration_s / ALLAN_SEGMENT_S + 1.0
+    if kind == "bandwidth":
+        return fixed + 2.0 + len(p.bandwidth_frequencies_hz)
+    return fixed + len(p.linearity_rates_dps)
+
+
+def plan_size_problem(cfg: Config) -> str:
+    """Why the plan would have more than MAX_PLAN_STEPS steps ("" if it would not): a ramp of 1e-9 degC/min or a
+    dwell of a microsecond would otherwise make `check` and `run` build billions of steps, silently."""
+    steps = plan_step_bound(cfg)
+    if steps <= MAX_PLAN_STEPS:
+        return ""
+    keys = {
+        "temperature_sweep": "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)",
+        "allan": "plan.table_step_interval_s (s), plan.dwell_s (s)",
+    }.get(cfg.campaign.kind, "the plan's lists")
+    return f"the plan would have up to {steps:.3g} steps, more than {MAX_PLAN_STEPS}: check {keys}"
 
 
 def _value_at(cfg: Config, dotted: str) -> float:

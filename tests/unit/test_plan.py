@@ -6,6 +6,8 @@ import math
 import re
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from qmg_lab.campaign.plan import (
     LimitCheck,
@@ -16,7 +18,7 @@ from qmg_lab.campaign.plan import (
     limit_checks,
     plan_duration_s,
 )
-from qmg_lab.config.schema import Config, ConfigError, parse_config
+from qmg_lab.config.schema import MAX_PLAN_STEPS, Config, ConfigError, parse_config, plan_step_bound
 from qmg_lab.instruments import LimitError
 
 
@@ -124,3 +126,39 @@ def test_sinusoid_peak_acceleration_checked():
 def test_duration_is_sum_of_steps():
     steps = build_plan(cfg())
     assert plan_duration_s(steps) == pytest.approx(sum(s.duration_s for s in steps))
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    kind=st.sampled_from(["temperature_sweep", "allan", "bandwidth", "linearity"]),
+    dwell=st.floats(1.0, 600.0),
+    ramp=st.floats(0.05, 5.0),
+    end_c=st.floats(20.0, 45.0),
+    hold=st.floats(0.0, 3600.0),
+    duration=st.floats(60.0, 86400.0),
+    interval=st.sampled_from([0.0, 10.0, 300.0, 1000.0, 5000.0]),
+)
+def test_the_schema_bounds_the_plan_s_length_from_above(kind, dwell, ramp, end_c, hold, duration, interval):
+    """plan_step_bound (what the schema refuses plans above MAX_PLAN_STEPS by) is never below the plan built."""
+    c = cfg(
+        f"[campaign]\nkind = '{kind}'\n[plan]\ndwell_s = {dwell!r}\nsettle_s = 0.0\nchamber_ramp_c_per_min = {ramp!r}\n"
+        f"chamber_end_c = {end_c!r}\nchamber_end_hold_s = {hold!r}\nduration_s = {duration!r}\n"
+        f"table_step_interval_s = {interval!r}\n[chamber]\nmax_ramp_c_per_min = 5.0\n"
+    )
+    assert len(build_plan(c)) <= plan_step_bound(c)
+
+
+@pytest.mark.parametrize(
+    "text, keys",
+    [
+        ("[plan]\nchamber_ramp_c_per_min = 1e-9\n", "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)"),
+        ("[plan]\ndwell_s = 1e-6\nsettle_s = 0.0\n", "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)"),
+        (
+            "[campaign]\nkind = 'allan'\n[plan]\ntable_step_interval_s = 1e-3\ndwell_s = 1e-3\nsettle_s = 0.0\n",
+            "plan.table_step_interval_s (s), plan.dwell_s (s)",
+        ),
+    ],
+)
+def test_a_plan_of_billions_of_steps_is_refused_at_once(text, keys):
+    with pytest.raises(ConfigError, match=re.escape(f"more than {MAX_PLAN_STEPS}: check {keys}")):
+        cfg(text)
