@@ -139,6 +139,9 @@ class HF2LI(LockIn):
         self._setup: LockInSetup | None = None
         self._forcer_gain = 1.0
         self._streaming = False
+        self._stream_wanted = False  # a reconnect that failed half-way still owes the stream (reconnect)
+        self._t0_ticks: int | None = None  # the stream's time origin and last sample, device clock ticks
+        self._last_ts: int | None = None
         self._attach()
 
     # ------------------------------------------------------------------ connection
@@ -268,16 +271,17 @@ class HF2LI(LockIn):
             if self._streaming:
                 self.stop_stream()
         finally:
-            self._streaming = False
+            self._streaming = self._stream_wanted = False
 
     def reconnect(self) -> None:
         """A new session to the same server (a new data-server connection on hardware, a new Session over the
         same connection object for the twin), re-identify (options included), re-apply the last configuration
-        and forcer gain. On hardware the old connection is closed first (ziDAQServer.disconnect, best effort:
-        it is usually the one that failed)."""
-        was_streaming, gain = self._streaming, self._forcer_gain
+        and forcer gain, restart the stream if it ran: also when the stream ran before an earlier reconnect that
+        failed (the link still down), which left `_streaming` False. On hardware the old connection is closed
+        first (ziDAQServer.disconnect, best effort: it is usually the one that failed)."""
+        was_streaming, gain = self._streaming or self._stream_wanted, self._forcer_gain
         log.info("HF2LI %s: reconnecting (streaming %s)", self.device_id, was_streaming)
-        self._streaming = False
+        self._streaming, self._stream_wanted = False, was_streaming
         if self._connection is None:
             with contextlib.suppress(Exception):
                 self._session.daq_server.disconnect()
@@ -287,7 +291,12 @@ class HF2LI(LockIn):
             self.configure(self._setup)
             self.set_forcer_gain(gain)
         if was_streaming:
+            # the device's clock ran on while the host was away: the same stream time origin and last sample, so
+            # the samples it missed are a timestamp gap counted as lost (a device that restarted its clock goes
+            # back in time instead, which the campaign takes as a new stream)
+            t0_ticks, last_ts = self._t0_ticks, self._last_ts
             self.start_stream()
+            self._t0_ticks, self._last_ts = t0_ticks, last_ts
 
     # ------------------------------------------------------------------ LockIn
     def configure(self, setup: LockInSetup) -> None:
@@ -309,9 +318,9 @@ class HF2LI(LockIn):
             self._device.demods[SENSE_DEMOD].sample.subscribe()
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: subscribe failed: {exc}") from exc
-        self._t0_ticks: int | None = None
-        self._last_ts: int | None = None
-        self._streaming = True
+        self._t0_ticks = None
+        self._last_ts = None
+        self._streaming, self._stream_wanted = True, False
 
     def stop_stream(self) -> None:
         try:
@@ -320,7 +329,7 @@ class HF2LI(LockIn):
         except Exception as exc:
             raise InstrumentError(f"HF2LI {self.device_id}: unsubscribe failed: {exc}") from exc
         finally:
-            self._streaming = False
+            self._streaming = self._stream_wanted = False
 
     def poll(self, duration_s: float) -> LockInBlock:
         if not self._streaming:

@@ -14,6 +14,15 @@ configuration's [sim.faults] into a FaultPlan) and plugs into the twins' existin
   and the twin. While world time t lies in [at, at + duration) for one of `disconnect_at_s`, nothing reaches the
   instrument and nothing comes back (serial: b""; VISA: VisaIOError connection lost, and reopening fails with
   resource not found). After the interval the same port works again: a disconnect followed by a reconnect.
+* the HF2 link: `attach_hf2(server)` gates the data-server twin's connection API (poll, get*, set*, subscribe,
+  sync, connectDevice, ...: HF2_LINK_CALLS) when `hf2_disconnect_at_s` is set. While world time lies in
+  [at, at + hf2_disconnect_duration_s), every call raises zhinst-core's ConnectionError (a RuntimeError and an
+  OSError, zhinst.core.errors; RuntimeError itself before zhinst-core had that module), as a client of a data
+  server whose link broke gets it; the toolkit session and the driver see exactly that. The instrument runs on
+  meanwhile (`server.run_unobserved`): each failed call lets world time pass by what the host waited for it, a
+  poll's recording time or `hf2_call_timeout_s` for any other call (*assumed*: how long a zhinst-core call to
+  a dead link takes to fail is not documented; a configuration key). So a drop ends after a bounded number of
+  calls, and the first block after it shows the samples the host missed as a timestamp gap.
 * timed events, fired from `World.on_advance(t0, t1)` at the start of the block [t0, t1) that contains the
   event time (block resolution: the same block for the same seed and poll length). Blocks tile world time, so
   each event fires once; an event before the world's time when the injector starts (a resumed run's restored
@@ -43,10 +52,40 @@ import pyvisa.errors
 
 from sims.world import World
 
+try:  # what zhinst-core raises when the data server cannot be reached
+    from zhinst.core.errors import ConnectionError as HF2LinkError
+except ImportError:  # pragma: no cover - zhinst-core before its errors module raised RuntimeError
+    HF2LinkError = RuntimeError  # type: ignore[assignment,misc]
+
 GARBLE_BYTE = 0xFF
 SENSOR_FAULT_REPLY = b"?SENSOR\r\n"
 OVERSHOOT_FLOOR_C = 1e-3
 _CHANNELS = {"table": 1, "chamber": 2, "generator": 3}
+# the HF2 data-server connection's calls (zhinst.core.ziDAQServer, API level 1) that fail while its link is down
+HF2_LINK_CALLS = (
+    "poll",
+    "get",
+    "getInt",
+    "getDouble",
+    "getString",
+    "getSample",
+    "set",
+    "setInt",
+    "setDouble",
+    "setString",
+    "syncSetInt",
+    "syncSetDouble",
+    "syncSetString",
+    "sync",
+    "subscribe",
+    "unsubscribe",
+    "connectDevice",
+    "disconnectDevice",
+    "listNodes",
+    "listNodesJSON",
+    "echoDevice",
+    "update",
+)
 
 
 @dataclass(frozen=True)
@@ -71,8 +110,14 @@ class FaultPlan:
     sample_loss_count: int = 100
     pll_unlock_at_s: float | None = None
     pll_unlock_duration_s: float = 3.0
+    hf2_disconnect_at_s: tuple[float, ...] = ()
+    hf2_disconnect_duration_s: float = 2.0
+    hf2_call_timeout_s: float = 1.0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "hf2_disconnect_at_s", tuple(float(t) for t in self.hf2_disconnect_at_s))
+        if self.hf2_call_timeout_s <= 0:
+            raise ValueError("FaultPlan.hf2_call_timeout_s must be > 0 (each failed call lets world time pass)")
         for name in ("serial_timeout_prob", "serial_garble_prob", "visa_timeout_prob", "visa_garble_prob"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
@@ -103,6 +148,7 @@ class FaultPlan:
             or self.chamber_dropout_at_s is not None
             or self.sample_loss_at_s
             or self.pll_unlock_at_s is not None
+            or self.hf2_disconnect_at_s
         )
 
 
@@ -165,8 +211,29 @@ class FaultInjector:
         twin.reply_hook = self._visa_reply
 
     def attach_hf2(self, server: Any) -> None:
-        """The HF2 data-server twin receiving sample loss and PLL unlock."""
+        """The HF2 data-server twin receiving sample loss and PLL unlock, and whose link drops (its connection
+        calls gated on this instance, when the plan drops the HF2 link)."""
         self._hf2 = server
+        if self.plan.hf2_disconnect_at_s:
+            for name in HF2_LINK_CALLS:
+                if hasattr(server, name):
+                    setattr(server, name, self._hf2_gated(name, getattr(server, name)))
+
+    def _hf2_gated(self, name: str, call: Callable[..., Any]) -> Callable[..., Any]:
+        """`call` as it behaves across the HF2 link: ConnectionError while the link is down, the instrument
+        running on for as long as the host waited (module docstring)."""
+
+        def gated(*args: Any, **kwargs: Any) -> Any:
+            if not self.link_down("lockin"):
+                return call(*args, **kwargs)
+            waited = self.plan.hf2_call_timeout_s
+            if name == "poll":
+                waited = float(kwargs.get("recording_time_s", args[0] if args else waited))
+            self._hf2.run_unobserved(waited)
+            host, port = getattr(self._hf2, "host", "localhost"), getattr(self._hf2, "port", 8005)
+            raise HF2LinkError(f"Connection to the data server at {host}:{port} lost ({name}; HF2 link down)")
+
+        return gated
 
     def serial_link(self, name: str, twin: Any) -> _SerialGate:
         """A LineTwin to hand to the port in place of `twin`: it drops the link during disconnects."""
@@ -184,16 +251,22 @@ class FaultInjector:
 
     # ================================================================== state queries
     def link_down(self, name: str) -> bool:
-        """True while `name`'s link is in one of its disconnect intervals (world time)."""
+        """True while `name`'s link is in one of its disconnect intervals (world time); "lockin": the HF2's."""
         p = self.plan
-        if name != p.disconnect_instrument or not p.disconnect_at_s:
+        if name == "lockin":
+            starts, duration = p.hf2_disconnect_at_s, p.hf2_disconnect_duration_s
+        elif name == p.disconnect_instrument:
+            starts, duration = p.disconnect_at_s, p.disconnect_duration_s
+        else:
+            return False
+        if not starts:
             return False
         with self.world.lock:
             t = self.world.now()
-        down = any(at <= t < at + p.disconnect_duration_s for at in p.disconnect_at_s)
+        down = any(at <= t < at + duration for at in starts)
         if down and name not in self._down:
             self._down.add(name)
-            self._log(t, "disconnect", name, f"link down for {p.disconnect_duration_s:g} s")
+            self._log(t, "disconnect", name, f"link down for {duration:g} s")
         elif not down and name in self._down:
             self._down.discard(name)
             self._log(t, "link_restored", name)

@@ -37,7 +37,7 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
 
 Fault hooks: ``drop_samples(n)`` removes n samples from the middle of the next poll (timestamp gap + sample-loss
 flag); ``force_pll_unlock(duration_s)`` opens the PLL (frequency held at its centre) and reports unlock for that
-much world time from now.
+much world time from now; ``run_unobserved(seconds)`` runs the instrument on while its host link is down.
 """
 
 from __future__ import annotations
@@ -418,6 +418,13 @@ class HF2DataServerTwin:
         if int(n) < 0:
             raise ValueError(f"drop_samples: n = {n!r} must be >= 0")
         self._drop_next += int(n)
+
+    def run_unobserved(self, seconds: float) -> None:
+        """The instrument runs on for `seconds` of world time while no client sees it (a dropped host link,
+        sims/faults.py): the world and the loops advance, the samples are not delivered (the next delivered
+        block's timestamps show the gap, as a real HF2's do after a reconnect)."""
+        if seconds > 0:
+            self._advance(seconds, [])
 
     def force_pll_unlock(self, duration_s: float) -> None:
         """The PLL runs open (frequency at its centre) and reports unlock for duration_s of world time from now."""

@@ -19,10 +19,11 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
-from qmg_lab.config.schema import Config
+from qmg_lab.config.schema import ALLAN_SEGMENT_S, Config
 from qmg_lab.instruments import LimitError
 
-ALLAN_SEGMENT_S = 600.0  # checkpoint granularity of a long constant-temperature hold
+# ALLAN_SEGMENT_S: checkpoint granularity of a long constant-temperature hold (defined beside the schema's bound
+# of the plan's size, qmg_lab.config.schema.plan_step_bound)
 
 
 class StepKind(StrEnum):
@@ -90,7 +91,9 @@ class LimitCheck:
         return self.low <= self.value <= self.high
 
     def describe(self) -> str:
-        return f"{self.what} = {self.value:g} {self.unit} within [{self.low:g}, {self.high:g}] {self.unit}"
+        """The check in words: "table rate = 500 deg/s outside [0, 100] deg/s" ("within" when it passes)."""
+        where = "within" if self.ok else "outside"
+        return f"{self.what} = {self.value:g} {self.unit} {where} [{self.low:g}, {self.high:g}] {self.unit}"
 
 
 def dither_amplitude_vpp(cfg: Config) -> float:
@@ -237,10 +240,7 @@ def assert_within_limits(cfg: Config, steps: list[Step]) -> None:
     """Raise LimitError naming every limit the plan would break."""
     bad = [ch for ch in limit_checks(cfg, steps) if not ch.ok]
     if bad:
-        raise LimitError(
-            "the plan breaks instrument limits: "
-            + "; ".join(f"{ch.what} = {ch.value:g} {ch.unit} outside [{ch.low:g}, {ch.high:g}] {ch.unit}" for ch in bad)
-        )
+        raise LimitError("the plan breaks instrument limits: " + "; ".join(ch.describe() for ch in bad))
 
 
 __all__ = [

@@ -56,12 +56,18 @@ def _bring_up(config: Path, sim: bool, name: str) -> Iterator[Any]:
 
 
 # ====================================================================================== bring-up
+# click reads every token that starts with "-" as an option, so `table rate CONFIG -5` needed `--`. The commands whose
+# arguments after CONFIG are all numbers take an unknown "option" as an argument instead: "-5" and "-1e-3" are
+# numbers, and anything else ("--acel") still fails as a number with exit 2 and the argument named.
+NEGATIVE_NUMBERS = {"ignore_unknown_options": True}
+
+
 def _manual(config: Path, sim: bool, name: str, action: Callable[[Any], str]) -> None:
     with _bring_up(config, sim, name) as inst:
         out.print(action(inst))
 
 
-@table_app.command("rate")
+@table_app.command("rate", context_settings=NEGATIVE_NUMBERS)
 def table_rate(
     config: ConfigArg,
     rate_dps: Annotated[float, typer.Argument(help="deg/s")],
@@ -90,7 +96,7 @@ def table_stop(config: ConfigArg, sim: SimOpt = False) -> None:
     _manual(config, sim, "table", act)
 
 
-@chamber_app.command("setpoint")
+@chamber_app.command("setpoint", context_settings=NEGATIVE_NUMBERS)
 def chamber_setpoint(
     config: ConfigArg,
     setpoint_c: Annotated[float, typer.Argument(help="deg C")],
@@ -107,7 +113,7 @@ def chamber_setpoint(
     _manual(config, sim, "chamber", act)
 
 
-@generator_app.command("square")
+@generator_app.command("square", context_settings=NEGATIVE_NUMBERS)
 def generator_square(
     config: ConfigArg,
     frequency_hz: Annotated[float, typer.Argument(help="Hz")],

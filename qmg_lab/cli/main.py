@@ -534,6 +534,15 @@ def study(
     ] = None,
     resume: Annotated[bool, typer.Option("--resume", help="run only the points without a result in -o")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+    dashboard_address: Annotated[
+        str | None,
+        typer.Option(
+            "--dashboard-address",
+            help="local cluster: where its Dask dashboard listens (default 127.0.0.1 on a free port: this machine "
+            "only; '0.0.0.0:8787' opens it to the network on purpose)",
+            show_default=False,
+        ),
+    ] = None,
 ) -> None:
     """Run a design study: every point of the grid (axes x seeds) as a simulated campaign on Dask, then
     DIR/results.csv, DIR/figures/ and a summary table."""
@@ -559,7 +568,13 @@ def study(
     )
     try:
         report = run_study(
-            spec, out_dir, workers=workers, scheduler=scheduler, resume=resume, console=None if quiet else console
+            spec,
+            out_dir,
+            workers=workers,
+            scheduler=scheduler,
+            resume=resume,
+            console=None if quiet else console,
+            dashboard_address=dashboard_address,
         )
     except StudyDirError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
@@ -576,9 +591,6 @@ def study(
 
 
 # ====================================================================================== budget
-BUDGET_TABLE_TAUS = (1.0, 10.0, 60.0, 600.0, 2000.0)
-
-
 @app.command()
 def budget(
     config: ConfigArg,
@@ -590,26 +602,14 @@ def budget(
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
     the accuracy and linearity terms of a temperature sweep."""
     from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.budget.table import budget_table
 
     cfg, _ = _load(config, sim=False)
     result = noise_budget(cfg, sim_blocks=sim)
     if json_out:
         out.print_json(json.dumps(result.to_json(), default=float))
         return
-    table = Table(title=f"CLSF noise budget ({result.mode} mode): Allan deviation of the estimate, ppm")
-    for col in ("source", "value", "ppm*rt(s)", *(f"{t:g} s" for t in BUDGET_TABLE_TAUS)):
-        table.add_column(col, justify="left" if col == "source" else "right", no_wrap=col != "source")
-    for s in result.sources:
-        table.add_row(
-            s.name,
-            f"{s.value:.3g} {s.unit}",
-            f"{s.white_ppm_rt_s:.3g}",
-            *(f"{s.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS),
-        )
-    table.add_row("total (estimate)", "", "", *(f"{result.adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS), style="bold")
-    if result.mode == "correct":
-        table.add_row("self-calibrated SF", "", "", *(f"{result.sf_adev_ppm[t]:.3g}" for t in BUDGET_TABLE_TAUS))
-    out.print(table)
+    out.print(budget_table(result, out.width))
     acc = result.accuracy
     out.print(
         f"temperature sweep (qmg_lab/budget/sweep.py): CLSF accuracy {acc.total_ppm:.0f} ppm RMS "
@@ -617,9 +617,9 @@ def budget(
         + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
         + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
     )
-    out.print(f"dominant at 60 s: {result.dominant(60.0)}. Origins of the values:")
+    out.print(f"dominant at 60 s: {result.dominant(60.0)}. The values and their origins:")
     for s in result.sources:
-        out.print(f"  {s.name}: {s.origin}")
+        out.print(f"  {s.name} = {s.value:.3g} {s.unit}: {s.origin}")
     for note in result.notes:
         out.print(f"note: {note}")
 

@@ -19,10 +19,10 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
 
 from qmg_lab.clsf.stream_plan import StreamPlan, hf2_rate
-from qmg_lab.config.errors import describe_error
+from qmg_lab.config.errors import describe_error, toml_syntax_message
 
 
 class ConfigError(ValueError):
@@ -31,8 +31,10 @@ class ConfigError(ValueError):
 
 class _Section(BaseModel):
     # strict: a TOML string or boolean is not silently taken for a number ("10", true), nor a number or a string
-    # for a boolean (1, "yes"); integers are accepted where a float is expected
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True)
+    # for a boolean (1, "yes"); integers are accepted where a float is expected.
+    # allow_inf_nan=False: every float of every section is finite (TOML's inf and nan are refused), one policy for
+    # all sections and the keys added later; a key that needs inf would have to say so in its own Field.
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True, allow_inf_nan=False)
 
 
 Terminator = Literal["CR", "LF", "CRLF"]
@@ -41,6 +43,14 @@ PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 HF2Option = Literal["MF", "PLL", "PID", "MOD"]
 DEFAULT_HF2_OPTIONS: tuple[HF2Option, ...] = ("MF", "PLL", "PID")
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+TimeS = Annotated[float, Field(ge=0.0)]  # an instant of the run, s: never negative (finite by the section policy)
+
+
+def _limited_by(*keys: str) -> dict[str, JsonValue]:
+    """A plan key's bounds are instrument limits set elsewhere in the configuration (one source for each bound):
+    two keys, the value lies in [low, high]; one key, |value| <= it (for a list, every item). `Config` checks
+    them when it is validated, and the error and docs/configuration.md name the keys (`plan_limit_problems`)."""
+    return {"limited_by": list(keys)}
 
 
 def _transport_on_this_system(value: str) -> str:
@@ -135,9 +145,9 @@ class ClsfSection(_Section):
 class PlanSection(_Section):
     """The steps: chamber program and table rates. Times in s, temperatures in deg C, rates in deg/s."""
 
-    chamber_start_c: float = Field(25.0, ge=-60.0, le=150.0)
-    chamber_end_c: float = Field(35.0, ge=-60.0, le=150.0)
-    chamber_ramp_c_per_min: float = Field(0.25, gt=0.0, le=20.0)
+    chamber_start_c: float = Field(25.0, json_schema_extra=_limited_by("chamber.min_c", "chamber.max_c"))
+    chamber_end_c: float = Field(35.0, json_schema_extra=_limited_by("chamber.min_c", "chamber.max_c"))
+    chamber_ramp_c_per_min: float = Field(0.25, gt=0.0, json_schema_extra=_limited_by("chamber.max_ramp_c_per_min"))
     chamber_soak_s: float = Field(300.0, ge=0.0, le=86400.0, description="hold at the start temperature first")
     chamber_end_hold_s: float = Field(
         600.0, ge=0.0, le=86400.0, description="keep stepping this long after the ramp ends (the gyro lags the air)"
@@ -145,8 +155,13 @@ class PlanSection(_Section):
     chamber_band_c: float = Field(
         2.0, gt=0.0, le=50.0, description="suspend the campaign while |T - setpoint| exceeds this, deg C"
     )
-    table_rate_dps: float = Field(5.0, ge=0.0, le=1000.0, description="magnitude of the alternating table rates")
-    table_accel_dps2: float = Field(300.0, gt=0.0, le=10000.0)
+    table_rate_dps: float = Field(
+        5.0,
+        ge=0.0,
+        json_schema_extra=_limited_by("table.max_rate_dps"),
+        description="magnitude of the alternating table rates",
+    )
+    table_accel_dps2: float = Field(300.0, gt=0.0, json_schema_extra=_limited_by("table.max_accel_dps2"))
     dwell_s: float = Field(60.0, gt=0.0, le=86400.0, description="time at each table rate, settle included")
     settle_s: float = Field(5.0, ge=0.0, le=3600.0, description="start of each dwell excluded from analysis")
     duration_s: float = Field(
@@ -160,10 +175,11 @@ class PlanSection(_Section):
         default_factory=lambda: [0.2, 0.5, 1.0, 1.5, 2.0, 3.0, 5.0],
         description="bandwidth: sinusoidal table-rate frequencies, Hz",
     )
-    bandwidth_amplitude_dps: float = Field(5.0, gt=0.0, le=1000.0)
+    bandwidth_amplitude_dps: float = Field(5.0, gt=0.0, json_schema_extra=_limited_by("table.max_rate_dps"))
     bandwidth_cycles: int = Field(10, ge=2, le=10000)
     linearity_rates_dps: list[FiniteFloat] = Field(
-        default_factory=lambda: [-5.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+        default_factory=lambda: [-5.0, -4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+        json_schema_extra=_limited_by("table.max_rate_dps"),
     )
 
     @model_validator(mode="after")
@@ -368,7 +384,7 @@ class SimFaultsSection(_Section):
     )
     visa_timeout_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply lost (VISA timeout)")
     visa_garble_prob: float = Field(0.0, ge=0.0, le=1.0, description="DS345: reply garbled or truncated")
-    disconnect_at_s: list[FiniteFloat] = Field(
+    disconnect_at_s: list[TimeS] = Field(
         default_factory=list, description="the disconnect_instrument's link drops at these times, s"
     )
     disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0, description="how long each drop lasts, s")
@@ -383,12 +399,25 @@ class SimFaultsSection(_Section):
         None, ge=0.0, description="the chamber's air sensor drops out (C1? answers ?SENSOR), s"
     )
     chamber_dropout_duration_s: float = Field(5.0, ge=0.0, le=3600.0)
-    sample_loss_at_s: list[FiniteFloat] = Field(
+    sample_loss_at_s: list[TimeS] = Field(
         default_factory=list, description="the HF2 stream loses samples in the block at these times, s"
     )
     sample_loss_count: int = Field(100, ge=1, le=100000, description="samples lost at each sample_loss_at_s")
     pll_unlock_at_s: float | None = Field(None, ge=0.0, description="the HF2 PLL is forced open, s")
     pll_unlock_duration_s: float = Field(3.0, ge=0.0, le=3600.0)
+    hf2_disconnect_at_s: list[TimeS] = Field(
+        default_factory=list,
+        description="the HF2's link to the host drops at these times: every data-server call raises zhinst-core's "
+        "ConnectionError while the instrument runs on, s",
+    )
+    hf2_disconnect_duration_s: float = Field(2.0, ge=0.0, le=3600.0, description="how long each HF2 link drop lasts, s")
+    hf2_call_timeout_s: float = Field(
+        1.0,
+        gt=0.0,
+        le=60.0,
+        description="how long a data-server call on the dropped link takes to fail, s (assumed; a poll: its "
+        "recording time)",
+    )
 
 
 class RecoverySection(_Section):
@@ -533,6 +562,12 @@ class Config(_Section):
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Config:
+        problems = plan_limit_problems(self)
+        if problems:
+            raise ValueError("\n  ".join(problems))
+        too_long = plan_size_problem(self)
+        if too_long:
+            raise ValueError(too_long)
         if self.dither.frequency_hz > self.lockin.demod_rate_hz / 20:
             raise ValueError(
                 f"dither.frequency_hz ({self.dither.frequency_hz}) needs at least 20 demod samples per period: "
@@ -567,12 +602,79 @@ class Config(_Section):
         return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
 
 
+def plan_limit_problems(cfg: Config) -> list[str]:
+    """Every [plan] value outside the instrument limit its field names (`_limited_by`), in words."""
+    problems = []
+    for key, info in PlanSection.model_fields.items():
+        extra = info.json_schema_extra
+        keys = extra.get("limited_by") if isinstance(extra, dict) else None
+        if not isinstance(keys, list):
+            continue
+        limits = [_value_at(cfg, str(k)) for k in keys]
+        low, high = (limits[0], limits[1]) if len(limits) == 2 else (-limits[0], limits[0])
+        value = getattr(cfg.plan, key)
+        bad = [v for v in (value if isinstance(value, list) else [value]) if not low <= v <= high]
+        if not bad:
+            continue
+        if len(keys) == 2:
+            limit = f"outside [{low:g}, {high:g}] ({keys[0]}, {keys[1]})"
+        else:
+            limit = f"above {keys[0]} = {high:g} in magnitude"
+        problems.append(
+            f"plan.{key} = {bad[0]:g} is {limit}: change it, or the limit if the instrument allows more "
+            "(qmg-lab check shows every limit)"
+        )
+    return problems
+
+
+MAX_PLAN_STEPS = 100_000  # a 30-day Allan campaign in 600 s segments has 4320 steps; the paper's sweep 50
+ALLAN_SEGMENT_S = 600.0  # checkpoint granularity of a long constant-temperature hold (qmg_lab/campaign/plan.py)
+
+
+def plan_step_bound(cfg: Config) -> float:
+    """An upper bound of the number of steps qmg_lab/campaign/plan.py's build_plan makes, formed without building
+    them (a float: inf for absurd values): lock, dither, soak and return, plus per kind
+    temperature_sweep 2 ceil((ramp time + end hold) / (2 dwell)); allan, per hold segment or step interval (each
+    at least max(interval, 2 dwell) long), a hold, two rate steps and a return; bandwidth 2 + one per frequency;
+    linearity one per rate."""
+    p, kind = cfg.plan, cfg.campaign.kind
+    fixed = 4.0
+    if kind == "temperature_sweep":
+        ramp_s = abs(p.chamber_end_c - p.chamber_start_c) / p.chamber_ramp_c_per_min * 60.0
+        return fixed + 2.0 * ((ramp_s + p.chamber_end_hold_s) / (2.0 * p.dwell_s) + 1.0)
+    if kind == "allan":
+        if p.table_step_interval_s > 0:
+            return fixed + 4.0 * (p.duration_s / max(p.table_step_interval_s, 2.0 * p.dwell_s) + 1.0)
+        return fixed + p.duration_s / ALLAN_SEGMENT_S + 1.0
+    if kind == "bandwidth":
+        return fixed + 2.0 + len(p.bandwidth_frequencies_hz)
+    return fixed + len(p.linearity_rates_dps)
+
+
+def plan_size_problem(cfg: Config) -> str:
+    """Why the plan would have more than MAX_PLAN_STEPS steps ("" if it would not): a ramp of 1e-9 degC/min or a
+    dwell of a microsecond would otherwise make `check` and `run` build billions of steps, silently."""
+    steps = plan_step_bound(cfg)
+    if steps <= MAX_PLAN_STEPS:
+        return ""
+    keys = {
+        "temperature_sweep": "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)",
+        "allan": "plan.table_step_interval_s (s), plan.dwell_s (s)",
+    }.get(cfg.campaign.kind, "the plan's lists")
+    return f"the plan would have up to {steps:.3g} steps, more than {MAX_PLAN_STEPS}: check {keys}"
+
+
+def _value_at(cfg: Config, dotted: str) -> float:
+    section, key = dotted.split(".")
+    return float(getattr(getattr(cfg, section), key))
+
+
 def parse_config(text: str, source: str = "<string>") -> Config:
     """Validate TOML text into a Config; raise ConfigError naming every bad field and its allowed range."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+        raise ConfigError(f"{source}: not valid TOML: {toml_syntax_message(text, exc)}") from None
     try:
         return Config.model_validate(data)
     except ValidationError as exc:

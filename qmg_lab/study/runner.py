@@ -2,7 +2,12 @@
 
 * By default a `distributed.LocalCluster` with one single-threaded worker process per core (the campaign is
   CPU-bound Python and numba: processes, not threads). Its worker processes exit at once if the driver dies
-  (distributed's parent-alive pipe), so a killed `qmg-lab study` leaves no campaign running.
+  (distributed's parent-alive pipe), so a killed `qmg-lab study` leaves no campaign running. The cluster's
+  scheduler and its dashboard listen on this machine only (127.0.0.1; the dashboard on a free port, printed),
+  unless `dashboard_address` says otherwise (`--dashboard-address 0.0.0.0:8787` opens it to the network on
+  purpose). Its scratch space (the workers' local_directory and dask's temporary-directory: spilled data,
+  worker files) is DIR/dask-scratch/, removed at the end: never the system's temporary folder, which may be small
+  or shared.
 * With `scheduler` an existing cluster (`dask scheduler` + `dask worker` on each machine, or dask-jobqueue):
   the workers need qmg-lab installed and DIR at the same path (a shared filesystem), since each task writes its
   point's record there; the driver also writes a record a task returned if it is missing (no shared filesystem).
@@ -16,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +34,8 @@ from qmg_lab.study.spec import Point, Study
 from qmg_lab.study.task import point_complete, points_dir, read_record, record_path, run_point, write_atomic
 
 STUDY_JSON = "study.json"
+DEFAULT_DASHBOARD = "127.0.0.1:0"  # the local cluster's dashboard: this machine only, on a free port
+SCRATCH_DIR = "dask-scratch"  # under the study directory
 
 
 class StudyDirError(ValueError):
@@ -41,6 +49,7 @@ class StudyRunReport:
     ran: int
     failed: int
     workers: int
+    dashboard: str = ""  # the local cluster's dashboard (http://...), "" on an external scheduler
 
 
 def prepare_dir(study: Study, out_dir: Path, resume: bool, write: bool = True) -> list[Point]:
@@ -95,9 +104,10 @@ def run_study(
     resume: bool = False,
     console: Console | None = None,
     on_done: Callable[[dict[str, Any]], None] | None = None,
+    dashboard_address: str | None = None,
 ) -> StudyRunReport:
     """Run every point of `study` that has no record in out_dir yet, on Dask; see the module docstring."""
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, as_completed
 
     pending = prepare_dir(study, out_dir, resume, write=False)  # refuse a wrong DIR before starting a cluster
     done_before = len(study.points) - len(pending)
@@ -109,12 +119,13 @@ def run_study(
         client = Client(scheduler)
     else:
         n = workers or os.cpu_count() or 1
-        cluster = LocalCluster(
-            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=40
-        )
+        cluster = local_cluster(n, out_dir, DEFAULT_DASHBOARD if dashboard_address is None else dashboard_address)
         client = Client(cluster)
     try:
         prepare_dir(study, out_dir, resume)  # the cluster answered: only now does DIR change
+        report.dashboard = client.dashboard_link if cluster is not None else ""
+        if console is not None and report.dashboard:
+            console.print(f"Dask dashboard: {report.dashboard}", highlight=False)
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"]) or (workers or 0)
         keep = study.spec.study.keep_run_files
         futures = {
@@ -167,4 +178,26 @@ def run_study(
         client.close()
         if cluster is not None:
             cluster.close()
+            shutil.rmtree(out_dir / SCRATCH_DIR, ignore_errors=True)
     return report
+
+
+def local_cluster(n_workers: int, out_dir: Path, dashboard_address: str = DEFAULT_DASHBOARD) -> Any:
+    """A distributed.LocalCluster of `n_workers` single-threaded processes: scheduler on 127.0.0.1, the dashboard
+    at `dashboard_address` (host:port), scratch space under out_dir/dask-scratch (module docstring)."""
+    import dask
+    from distributed import LocalCluster
+
+    scratch = (out_dir / SCRATCH_DIR).resolve()
+    scratch.mkdir(parents=True, exist_ok=True)
+    # the workers are spawned with the driver's dask configuration: their temporary-directory is the scratch too
+    with dask.config.set({"temporary-directory": str(scratch)}):
+        return LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=dashboard_address,
+            local_directory=str(scratch),
+            silence_logs=40,
+        )

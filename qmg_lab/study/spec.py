@@ -33,6 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from tomlkit.exceptions import ParseError
 
 from qmg_lab.campaign.plan import assert_within_limits, build_plan
+from qmg_lab.config.errors import toml_syntax_message
 from qmg_lab.config.schema import ConfigError, parse_config, stream_timing_problem
 from qmg_lab.instruments import LimitError
 
@@ -125,11 +126,12 @@ def load_study(path: str | Path) -> Study:
     the first)."""
     p = Path(path)
     try:
-        raw = tomllib.loads(p.read_bytes().decode("utf-8"))
+        text = p.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise StudyError(f"{p}: study file not found") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise StudyError(f"{p}: cannot read the study file: {exc}") from None
+    raw = _toml(text, str(p))
     try:
         spec = StudyFile.model_validate(raw)
     except ValidationError as exc:
@@ -149,7 +151,9 @@ def load_study(path: str | Path) -> Study:
             raise StudyError(f"{p}: {key!r} is set by the study ([study] seeds, storage_level), not an axis")
     base_path = (p.parent / spec.study.base).resolve()
     try:
-        base: dict[str, Any] = tomlkit.parse(base_path.read_bytes().decode("utf-8"))  # keeps the base's comments
+        base_text = base_path.read_bytes().decode("utf-8")
+        _toml(base_text, f"{p}: base configuration {base_path}")  # a syntax error in words, as `check` gives it
+        base: dict[str, Any] = tomlkit.parse(base_text)  # keeps the base's comments
     except FileNotFoundError:
         raise StudyError(
             f"{p}: base configuration {base_path} not found ([study] base is relative to the study file)"
@@ -178,6 +182,14 @@ def load_study(path: str | Path) -> Study:
     if problems:
         raise StudyError(f"{p}: {len(problems)} of {len(points)} points cannot run:\n  " + "\n  ".join(problems))
     return Study(path=p, spec=spec, points=points)
+
+
+def _toml(text: str, where: str) -> dict[str, Any]:
+    """tomllib.loads; a syntax error is a StudyError in words (qmg_lab/config/errors.py: the line, the key)."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise StudyError(f"{where}: not valid TOML: {toml_syntax_message(text, exc)}") from None
 
 
 def point_problem(point: Point) -> str | None:

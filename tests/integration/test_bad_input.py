@@ -19,11 +19,11 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
-from pydantic import BaseModel
 from typer.testing import CliRunner
 
 from qmg_lab.cli.main import app
 from qmg_lab.config.schema import Config
+from tests.support.schema_fields import schema_fields
 
 RUNNER = CliRunner()
 PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -32,26 +32,19 @@ PROPERTY = settings(max_examples=60, deadline=None, suppress_health_check=[Healt
 def _numeric_fields() -> list[tuple[str, str, type, dict[str, float]]]:
     """(section, key, int|float, bounds) of every bounded numeric field of the schema ([sim.faults] as sim.faults)."""
     out = []
-
-    def walk(prefix: str, model: type[BaseModel]) -> None:
-        for key, info in model.model_fields.items():
-            ann = info.annotation
-            if isinstance(ann, type) and issubclass(ann, BaseModel):
-                walk(f"{prefix}.{key}" if prefix else key, ann)
-                continue
-            base = [a for a in getattr(ann, "__args__", (ann,)) if a is not type(None)]
-            if len(base) != 1 or base[0] not in (int, float) or not prefix:
-                continue
-            bounds = {
-                attr: getattr(m, attr)
-                for m in info.metadata
-                for attr in ("ge", "gt", "le", "lt")
-                if getattr(m, attr, None) is not None
-            }
-            if bounds:
-                out.append((prefix, key, base[0], bounds))
-
-    walk("", Config)
+    for prefix, key, info in schema_fields():
+        ann = info.annotation
+        base = [a for a in getattr(ann, "__args__", (ann,)) if a is not type(None)]
+        if len(base) != 1 or base[0] not in (int, float) or not prefix:
+            continue
+        bounds = {
+            attr: getattr(m, attr)
+            for m in info.metadata
+            for attr in ("ge", "gt", "le", "lt")
+            if getattr(m, attr, None) is not None
+        }
+        if bounds:
+            out.append((prefix, key, base[0], bounds))
     return out
 
 
@@ -267,3 +260,88 @@ def test_real_exit_code_2_from_the_installed_command(tmp_path, text, fragment):
     assert done.returncode == 2
     assert fragment in done.stderr and "allowed:" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "r.h5").exists()
+
+
+# ====================================================================================== issue 27: finite, >= 0, TOML
+@pytest.mark.parametrize(
+    "text, fragments",
+    [
+        ("[sim]\narw_dps_per_rt_hz = inf\n", ["sim.arw_dps_per_rt_hz", "finite number"]),
+        ("[sim.faults]\ninterlock_trip_at_s = inf\n", ["sim.faults.interlock_trip_at_s", "finite number"]),
+        ("[sim.faults]\ndisconnect_at_s = [-5.0]\n", ["sim.faults.disconnect_at_s", ">= 0"]),
+        ("[sim.faults]\nchamber_dropout_at_s = inf\n", ["sim.faults.chamber_dropout_at_s", "finite number"]),
+        ("[sim.faults]\nsample_loss_at_s = [-1.0]\n", ["sim.faults.sample_loss_at_s", ">= 0"]),
+        ("[plan]\ndwell_s = 60\ndwell_s = 70\n", ["line 3: plan.dwell_s is set twice (first on line 2)"]),
+        ("\ufeff[plan]\ndwell_s = 60\n", ["byte-order mark", "without BOM"]),
+        ("[plan]\nrätsel = 1\n", ["line 2: key 'rätsel' contains 'ä'", "ASCII"]),
+        ("[plan]\nchamber_end_c = 120\n", ["plan.chamber_end_c = 120 is outside [-40, 85]", "chamber.max_c"]),
+    ],
+)
+def test_values_check_used_to_pass_are_refused_by_check(tmp_path, text, fragments):
+    _assert_bad_input(_check(tmp_path, text), *fragments)
+    assert "(at line" not in _check(tmp_path, text).output
+
+
+def test_an_infinite_noise_is_bad_input_for_run_too(tmp_path):
+    """`run` used to accept it and fail in the twin with exit 3; now it is exit 2 before anything starts."""
+    path = tmp_path / "inf.toml"
+    path.write_text("[sim]\narw_dps_per_rt_hz = inf\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "run", str(path), "--sim", "-o", str(tmp_path / "r.h5")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "sim.arw_dps_per_rt_hz" in done.stderr and "finite" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_the_limit_message_says_outside(tmp_path):
+    # a derived limit that the schema leaves to `check`: 90 deg/s of virtual rate needs 2*90*0.06 = 10.8 Vpp > 10
+    result = _check(tmp_path, "[dither]\nvirtual_rate_dps = 90\n")
+    _assert_bad_input(result, "dither amplitude = 10.8 Vpp outside [0.01, 10] Vpp")
+    assert "within" not in result.output.split("breaks instrument limits")[-1]
+
+
+# ====================================================================================== issue 26: negative arguments
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["table", "rate", "{cfg}", "-5", "--sim"], "table commanded to -5 deg/s"),
+        (["table", "rate", "--sim", "{cfg}", "-2.5e0", "--accel", "50"], "table commanded to -2.5 deg/s at 50 deg/s^2"),
+        (["chamber", "setpoint", "{cfg}", "-10", "--sim"], "chamber setpoint -10 degC"),
+    ],
+)
+def test_negative_numbers_are_arguments_without_a_double_dash(good_config, argv, said):
+    result = RUNNER.invoke(app, [a.format(cfg=good_config) for a in argv])
+    assert result.exit_code == 0, result.output
+    assert said in result.output
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["table", "rate", "{cfg}", "-500", "--sim"], "table rate = -500 deg/s is outside the limit [-100, 100]"),
+        (["table", "rate", "{cfg}", "5", "--acel", "3", "--sim"], "--acel"),  # a mistyped option is still refused
+        (["table", "rate", "{cfg}", "--acel", "--sim"], "rate_dps"),
+    ],
+)
+def test_negative_number_arguments_keep_the_checks(good_config, argv, fragment):
+    _assert_bad_input(RUNNER.invoke(app, [a.format(cfg=good_config) for a in argv]), fragment)
+
+
+def test_a_study_file_syntax_error_is_worded_like_a_configuration(tmp_path):
+    (tmp_path / "base.toml").write_bytes(b"\xef\xbb\xbf[plan]\ndwell_s = 60\n")
+    dup = tmp_path / "dup.toml"
+    dup.write_text('[study]\nname = "x"\nbase = "base.toml"\nbase = "other.toml"\n')
+    _assert_bad_input(
+        RUNNER.invoke(app, ["study", str(dup), "-o", str(tmp_path / "out")]),
+        "not valid TOML: line 4: study.base is set twice (first on line 3)",
+    )
+    bom = tmp_path / "bom.toml"
+    bom.write_text('[study]\nname = "x"\nbase = "base.toml"\n')
+    _assert_bad_input(
+        RUNNER.invoke(app, ["study", str(bom), "-o", str(tmp_path / "out")]), "base configuration", "without BOM"
+    )
+    assert not (tmp_path / "out").exists()

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from qmg_lab.campaign.plan import (
+    LimitCheck,
     StepKind,
     assert_within_limits,
     build_plan,
@@ -14,7 +18,7 @@ from qmg_lab.campaign.plan import (
     limit_checks,
     plan_duration_s,
 )
-from qmg_lab.config.schema import Config, parse_config
+from qmg_lab.config.schema import MAX_PLAN_STEPS, Config, ConfigError, parse_config, plan_step_bound
 from qmg_lab.instruments import LimitError
 
 
@@ -62,10 +66,6 @@ def test_dither_amplitude_is_twice_virtual_rate_times_sf():
 @pytest.mark.parametrize(
     "text, what",
     [
-        ("[plan]\ntable_rate_dps = 150\n[table]\nmax_rate_dps = 100\n", "table rate"),
-        ("[plan]\ntable_accel_dps2 = 800\n[table]\nmax_accel_dps2 = 500\n", "table acceleration"),
-        ("[plan]\nchamber_end_c = 90\n[chamber]\nmax_c = 85\n", "chamber setpoint (highest)"),
-        ("[plan]\nchamber_ramp_c_per_min = 10\n[chamber]\nmax_ramp_c_per_min = 5\n", "chamber ramp"),
         ("[dither]\nvirtual_rate_dps = 90\n", "dither amplitude"),
         ("[plan]\ntable_rate_dps = 170\n[table]\nmax_rate_dps = 200\n", "peak forcer command"),
     ],
@@ -79,6 +79,43 @@ def test_limits_refused_with_the_limit_named(text, what):
         assert_within_limits(c, steps)
 
 
+# (plan text, instrument limit text, the limit_checks row, the key that sets the bound, the bound's value)
+INSTRUMENT_BOUNDS = [
+    ("table_rate_dps = {v}", "[table]\nmax_rate_dps = 100", "table rate", "table.max_rate_dps", 100.0),
+    ("table_accel_dps2 = {v}", "[table]\nmax_accel_dps2 = 500", "table acceleration", "table.max_accel_dps2", 500.0),
+    ("chamber_end_c = {v}", "[chamber]\nmax_c = 85", "chamber setpoint (highest)", "chamber.max_c", 85.0),
+    (
+        "chamber_ramp_c_per_min = {v}",
+        "[chamber]\nmax_ramp_c_per_min = 5",
+        "chamber ramp",
+        "chamber.max_ramp_c_per_min",
+        5.0,
+    ),
+]
+
+
+@pytest.mark.parametrize("plan_line, limit_text, what, key, bound", INSTRUMENT_BOUNDS)
+def test_the_schema_and_the_limit_checks_share_one_bound(plan_line, limit_text, what, key, bound):
+    """At the instrument's limit both accept; just above it the schema refuses naming the limit's key, and the
+    limit check (on the same values, unvalidated) refuses at the same bound: one source for the bound."""
+    at = cfg(f"[plan]\n{plan_line.format(v=bound)}\n{limit_text}\n")
+    assert all(ch.ok for ch in limit_checks(at, build_plan(at)) if ch.what == what)
+    above = bound * 1.01
+    with pytest.raises(ConfigError, match=rf"plan\.\w+ = {above:g} is .*{re.escape(key)}"):
+        cfg(f"[plan]\n{plan_line.format(v=above)}\n{limit_text}\n")
+    field = plan_line.split(" = ")[0]
+    unchecked = at.model_copy(update={"plan": at.plan.model_copy(update={field: above})})
+    row = next(ch for ch in limit_checks(unchecked, build_plan(unchecked)) if ch.what == what)
+    assert not row.ok and row.high == bound
+    assert row.describe().endswith(f"outside [{row.low:g}, {bound:g}] {row.unit}")
+
+
+def test_a_limit_check_says_within_only_when_it_passes():
+    ok, bad = LimitCheck("table rate", 50.0, 0.0, 100.0, "deg/s"), LimitCheck("table rate", 500.0, 0.0, 100.0, "deg/s")
+    assert ok.describe() == "table rate = 50 deg/s within [0, 100] deg/s"
+    assert bad.describe() == "table rate = 500 deg/s outside [0, 100] deg/s"
+
+
 def test_sinusoid_peak_acceleration_checked():
     # 5 deg/s at 20 Hz needs 2 pi 20 5 = 628 deg/s^2 > 300
     c = cfg("[campaign]\nkind = 'bandwidth'\n[plan]\nbandwidth_frequencies_hz = [20.0]\n")
@@ -89,3 +126,39 @@ def test_sinusoid_peak_acceleration_checked():
 def test_duration_is_sum_of_steps():
     steps = build_plan(cfg())
     assert plan_duration_s(steps) == pytest.approx(sum(s.duration_s for s in steps))
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    kind=st.sampled_from(["temperature_sweep", "allan", "bandwidth", "linearity"]),
+    dwell=st.floats(1.0, 600.0),
+    ramp=st.floats(0.05, 5.0),
+    end_c=st.floats(20.0, 45.0),
+    hold=st.floats(0.0, 3600.0),
+    duration=st.floats(60.0, 86400.0),
+    interval=st.sampled_from([0.0, 10.0, 300.0, 1000.0, 5000.0]),
+)
+def test_the_schema_bounds_the_plan_s_length_from_above(kind, dwell, ramp, end_c, hold, duration, interval):
+    """plan_step_bound (what the schema refuses plans above MAX_PLAN_STEPS by) is never below the plan built."""
+    c = cfg(
+        f"[campaign]\nkind = '{kind}'\n[plan]\ndwell_s = {dwell!r}\nsettle_s = 0.0\nchamber_ramp_c_per_min = {ramp!r}\n"
+        f"chamber_end_c = {end_c!r}\nchamber_end_hold_s = {hold!r}\nduration_s = {duration!r}\n"
+        f"table_step_interval_s = {interval!r}\n[chamber]\nmax_ramp_c_per_min = 5.0\n"
+    )
+    assert len(build_plan(c)) <= plan_step_bound(c)
+
+
+@pytest.mark.parametrize(
+    "text, keys",
+    [
+        ("[plan]\nchamber_ramp_c_per_min = 1e-9\n", "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)"),
+        ("[plan]\ndwell_s = 1e-6\nsettle_s = 0.0\n", "plan.chamber_ramp_c_per_min (degC/min), plan.dwell_s (s)"),
+        (
+            "[campaign]\nkind = 'allan'\n[plan]\ntable_step_interval_s = 1e-3\ndwell_s = 1e-3\nsettle_s = 0.0\n",
+            "plan.table_step_interval_s (s), plan.dwell_s (s)",
+        ),
+    ],
+)
+def test_a_plan_of_billions_of_steps_is_refused_at_once(text, keys):
+    with pytest.raises(ConfigError, match=re.escape(f"more than {MAX_PLAN_STEPS}: check {keys}")):
+        cfg(text)
