@@ -641,4 +641,4 @@ def main() -> None:  # pragma: no cover - console entry
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device  # noqa: E402,F401 - imported for their side effect, after `app` exists
+from qmg_lab.cli import bench, device, runs  # noqa: E402,F401 - imported for their side effect, after `app` exists
