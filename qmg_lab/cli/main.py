@@ -464,7 +464,10 @@ def analyze(
         Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
     ],
     json_out: JsonOpt = False,
-    figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
+    figures: Annotated[Path | None, typer.Option("--figures", help="write the figures to this folder")] = None,
+    fmt: Annotated[
+        str, typer.Option("--format", help="figure file format: png, svg or pdf", show_default=True)
+    ] = "png",
 ) -> None:
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
@@ -473,6 +476,8 @@ def analyze(
     from qmg_lab.analysis.render import render_table
     from qmg_lab.storage.writer import StorageError, read_run, status_detail
 
+    if fmt not in ("png", "svg", "pdf"):
+        _fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
     if not run_file.exists():
         _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     if run_file.is_dir():
@@ -485,7 +490,7 @@ def analyze(
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
 
-            written = write_figures(run_file, figures)
+            written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
