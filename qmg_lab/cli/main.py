@@ -244,10 +244,18 @@ def run(
     resume: Annotated[Path | None, typer.Option("--resume", help="continue this run file")] = None,
     quiet: QuietOpt = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
+    watch_page: Annotated[
+        bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
+    ] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
+    from qmg_lab.cli.watch import watch_beside
+
     cfg, text = _load(config, sim, campaign=True)
-    summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+    if watch_page and resume is None and output is None:
+        output = _default_output(cfg)  # the page needs the file's name before the run makes it
+    with watch_beside((resume or output) if watch_page else None):
+        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
     _print_summary(summary)
 
 
@@ -646,4 +654,4 @@ def main() -> None:  # pragma: no cover - console entry
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device, runs  # noqa: E402,F401 - imported for their side effect, after `app` exists
+from qmg_lab.cli import bench, device, runs, watch  # noqa: E402,F401 - imported for their side effect, after `app` exists

@@ -244,16 +244,16 @@ def interpolate(t: np.ndarray, t_src: np.ndarray, y_src: np.ndarray) -> np.ndarr
 def trailing_mean(t: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
     """Moving mean of y over the trailing window (t_i - window_s, t_i] of each sample (t increasing): what a
     live display can show, at the price of a lag of about window_s / 2 on a trend."""
-    return _window_mean(t, y, t - window_s, t)
+    return window_mean(t, y, t - window_s, t)
 
 
 def centred_mean(t: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
     """Moving mean of y over the centred window (t_i - window_s / 2, t_i + window_s / 2]: no lag on a trend,
     for a finished record (figures)."""
-    return _window_mean(t, y, t - 0.5 * window_s, t + 0.5 * window_s)
+    return window_mean(t, y, t - 0.5 * window_s, t + 0.5 * window_s)
 
 
-def _window_mean(t: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def window_mean(t: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Mean of the rows with lo_i < t <= hi_i (each window holds row i): sums from one cumulative sum, O(n)."""
     if t.shape[0] == 0:
         return np.zeros(0)

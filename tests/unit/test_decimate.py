@@ -15,7 +15,8 @@ def test_bounded_and_keeps_each_spans_extremes() -> None:
     y[777] = np.nan
     bins = 500
     td, yd = minmax(t, y, bins)
-    assert td.shape[0] <= 2 * bins and np.all(np.diff(td) > 0)
+    assert td.shape[0] <= 2 * bins + 2 and np.all(np.diff(td) > 0)
+    assert td[0] == t[0] and td[-1] == t[-1]
     assert 50.0 in yd
     edges = np.linspace(t[0], t[-1], bins + 1)
     span = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, bins - 1)
