@@ -24,6 +24,7 @@ from __future__ import annotations
 import html
 import math
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -248,7 +249,7 @@ class WatchPage:
         left = [float(x) for x in s["t_start"][done]] if s else []
         right = [float(x) for x in s["t_end"][done]] if s else []
         kinds = [str(k) for k in s["kind"][done]] if s else []
-        colors = ["#1f77b4"] * len(kinds)
+        colors = ["#1f77b4" if k % 2 else "#6baed6" for k in range(len(kinds))]  # neighbours told apart
         labels = ["completed"] * len(kinds)
         planned = planned_kinds(up.attrs)
         done_idx = {int(i) for i in s["index"][done]} if s else set()
@@ -317,4 +318,5 @@ class WatchPage:
             f" (data to t = <span class='last-t'>{self.last_t:.1f}</span> s)"
             f" &middot; remaining {_clock(remaining) if math.isfinite(remaining) else '?'}"
             f" &middot; started {html.escape(str(a.get('created', '')))}"
+            f" &middot; page updated <span class='updated'>{time.strftime('%H:%M:%S')}</span>"
         )

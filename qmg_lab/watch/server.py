@@ -48,6 +48,9 @@ def make_server(path: Path, host: str = LOOPBACK, port: int = DEFAULT_PORT) -> S
         port=port,
         allow_websocket_origin=origins,
         num_procs=1,
+        # a closed tab's session (and its once-a-second poll of the file) ends within seconds
+        check_unused_sessions_milliseconds=2000,
+        unused_session_lifetime_milliseconds=2000,
     )
     server.start()
     return server
