@@ -1,6 +1,9 @@
 """The watch page's Bokeh document: a header and eight plots against run time, fed by a RunFollower.
 
 Plots (x: run time in s since the file's t0_unix, shared by all but the events' categories):
+Traces from the lock-in stream (drive amplitude, PLL frequency, gyro temperature) are read in sampled chunks
+(follow.py) and drawn as points, so that no line is drawn across a stretch that was not read.
+
     sf        CLSF SF-change estimate per dither period (ppm, faint) with its trailing 60 s moving mean, and the
               true SF change from each completed +-rate step pair (follow.py), placed on the CLSF mean at the
               first pair so both read as changes from there
@@ -24,7 +27,6 @@ from __future__ import annotations
 import html
 import math
 import os
-import time
 from pathlib import Path
 from typing import Any
 
@@ -40,8 +42,8 @@ from qmg_lab.data.decimate import minmax
 from qmg_lab.storage.records import EVENT_KINDS
 from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 
-MAX_POINTS = 2000
-CHUNK_BINS = MAX_POINTS // 4
+MAX_POINTS = 1000  # about a plot's width in pixels
+CHUNK_BINS = MAX_POINTS // 5
 POLL_MS = 1000
 STEP_FAMILIES = ("lock", "dither", "soak", "rate", "hold", "sine", "level", "return")
 PLOTS = ("sf", "gain", "temp", "table", "drive", "pll", "steps", "events")  # model names: plot_<name>
@@ -128,7 +130,11 @@ class WatchPage:
             {"left": [], "right": [], "family": [], "label": [], "color": []}, name="steps_timeline"
         )
         self.events = ColumnDataSource({"t": [], "kind": [], "instrument": [], "message": []}, name="events")
-        self.header = Div(text=f"<b>{html.escape(path.name)}</b>: opening ...", name="header")
+        # a fixed height: a new header text then needs no new layout of the plots below it
+        self.header = Div(
+            text=f"<b>{html.escape(path.name)}</b>: opening ...", name="header", height=44, sizing_mode="stretch_width"
+        )
+        self.polls = ColumnDataSource({"n": [0]}, name="polls")  # how many times the page has read the file
         self.layout = self._layout()
 
     # ---- layout ------------------------------------------------------------------------------------------
@@ -152,9 +158,13 @@ class WatchPage:
     def _line(self, fig: Any, trace: str, label: str, color: str, **kw: Any) -> None:
         fig.line("t", "y", source=self.traces[trace].source, legend_label=label, color=color, **kw)
 
+    def _dots(self, fig: Any, trace: str, label: str, color: str) -> None:
+        """A lock-in-rate trace: read in sampled chunks (follow.py), so drawn as points: no line across a gap."""
+        fig.scatter("t", "y", source=self.traces[trace].source, legend_label=label, color=color, size=2)
+
     def _layout(self) -> Any:
         sf = self._figure("sf", "scale factor", "SF change [ppm]", None)
-        x = sf.x_range
+        x = self.x_range = sf.x_range
         self._line(sf, "sf_period", "CLSF, each period", "#bbbbbb", line_width=1)
         self._line(sf, "sf_mean", "CLSF, 60 s mean", "#1f77b4", line_width=2)
         sf.scatter("t", "y", source=self.pairs, size=8, color="#d62728", legend_label="true SF, step pairs")
@@ -163,14 +173,14 @@ class WatchPage:
         temp = self._figure("temp", "temperatures", "degC", x)
         self._line(temp, "chamber_air", "chamber air", "#2ca02c", line_width=2)
         self._line(temp, "chamber_setpoint", "setpoint", "#000000", line_dash="dashed")
-        self._line(temp, "gyro_temperature", "gyro (twin)", "#9467bd")
+        self._dots(temp, "gyro_temperature", "gyro (twin)", "#9467bd")
         table = self._figure("table", "table rate", "deg/s", x)
         self._line(table, "table_command", "commanded", "#000000", line_dash="dashed")
         self._line(table, "table_measured", "measured", "#1f77b4")
         drive = self._figure("drive", "drive amplitude", "R [V]", x)
-        self._line(drive, "drive_amplitude", "drive R", "#8c564b")
+        self._dots(drive, "drive_amplitude", "drive R", "#8c564b")
         pll = self._figure("pll", "PLL frequency (steady while locked)", "Hz", x)
-        self._line(pll, "pll_frequency", "PLL oscillator", "#17becf")
+        self._dots(pll, "pll_frequency", "PLL oscillator", "#17becf")
         steps = self._figure("steps", "plan", "", x, y_range=FactorRange(factors=list(STEP_FAMILIES)), height=220)
         steps.hbar(
             y="family",
@@ -192,11 +202,13 @@ class WatchPage:
     def attach(self, doc: Document) -> None:
         doc.title = f"qmg-lab watch: {self.path.name}"
         doc.add_root(self.layout)
+        doc.add_root(self.polls)
         self.update()
         doc.add_periodic_callback(self.update, POLL_MS)
 
     def update(self) -> None:
         up = self.follower.poll()
+        self.polls.data = {"n": [self.polls.data["n"][0] + 1]}
         if not up.ready:
             self.header.text = f"<b>{html.escape(self.path.name)}</b>: {html.escape(up.problem)}"
             return
@@ -207,9 +219,12 @@ class WatchPage:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
         self.file_steps = up.steps
         self._feed(up)
+        self._time_axis()
         self._steps(up)
         self._events(up)
-        self.header.text = self._header(up)
+        text = self._header(up)
+        if text != self.header.text:
+            self.header.text = text
 
     def _feed(self, up: Update) -> None:
         g = up.groups
@@ -243,6 +258,14 @@ class WatchPage:
                 offset = float(self.follower.moving_mean_of_new(t.shape[0])[at]) * PPM
             self.pairs.data = {"t": mids, "y": change + offset}
 
+    def _time_axis(self) -> None:
+        """The shared time axis spans the whole plan (0 to its planned duration, or past the data if a run runs
+        longer): it does not move with every new block, so the browser redraws the traces, not the axes."""
+        total = sum(self.durations) if self.durations else math.nan
+        end = max(total, 1.02 * self.last_t) if math.isfinite(self.last_t) else total
+        if math.isfinite(end) and end > 0 and (self.x_range.end is None or end > self.x_range.end):
+            self.x_range.start, self.x_range.end = -0.01 * end, end
+
     def _steps(self, up: Update) -> None:
         s = up.steps
         done = s["status"] == "completed" if s else np.zeros(0, dtype=bool)
@@ -270,13 +293,9 @@ class WatchPage:
             labels.append("current" if running else "planned")
             start += d
             first = False
-        self.steps.data = {
-            "left": left,
-            "right": right,
-            "family": [_family(k) for k in kinds],
-            "label": labels,
-            "color": colors,
-        }
+        data = {"left": left, "right": right, "family": [_family(k) for k in kinds], "label": labels, "color": colors}
+        if data != dict(self.steps.data):  # an unchanged timeline is not sent (nor drawn) again
+            self.steps.data = data
 
     def _events(self, up: Update) -> None:
         e = up.events
@@ -290,13 +309,14 @@ class WatchPage:
         }
 
     def _header(self, up: Update) -> str:
-        from qmg_lab.storage.reader import read_run
+        from qmg_lab.storage.h5clear import writer_flags_set
+        from qmg_lab.storage.layout import StorageError
+        from qmg_lab.storage.reader import RunData
         from qmg_lab.storage.resume import status_detail
-        from qmg_lab.storage.writer import StorageError
 
         a = up.attrs
         try:
-            status = status_detail(read_run(self.path, select=()))
+            status = status_detail(RunData(self.path, a, {}, {}, writer_open=writer_flags_set(self.path)))
         except StorageError:
             status = str(a.get("status", "?"))
         if a.get("status") == "running" and int(a.get("writer_pid", -1)) == os.getpid():
@@ -318,5 +338,4 @@ class WatchPage:
             f" (data to t = <span class='last-t'>{self.last_t:.1f}</span> s)"
             f" &middot; remaining {_clock(remaining) if math.isfinite(remaining) else '?'}"
             f" &middot; started {html.escape(str(a.get('created', '')))}"
-            f" &middot; page updated <span class='updated'>{time.strftime('%H:%M:%S')}</span>"
         )

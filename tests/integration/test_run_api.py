@@ -25,9 +25,8 @@ import numpy as np
 import pytest
 
 import qmg_lab
-from qmg_lab.storage.writer import RunWriter
 from tests.support import synthetic_runs as syn
-from tests.support.campaigns import config_text, run_inprocess
+from tests.support.live_runs import append_block, interrupted_then_resumed, live_writer
 
 
 def test_import_qmg_lab_stays_light() -> None:
@@ -76,40 +75,10 @@ def test_a_finished_file(tmp_path: Path) -> None:
 def test_a_running_file(tmp_path: Path) -> None:
     """A writer open in this process (SWMR): the API sees what was flushed, and more after the next flush."""
     path = tmp_path / "running.h5"
-    w = RunWriter.create(
-        path,
-        config_text='[campaign]\nname = "live"\n',
-        config_sha256="0" * 64,
-        mode="sim",
-        software_version="test",
-        t0_unix=1.7e9,
-        truth=False,
-        planned_steps=3,
-        planned_step_kinds=["lock", "soak", "return"],
-    )
+    w = live_writer(path, "live", ["lock", "soak", "return"])
     try:
         for k in range(2):
-            tc = np.arange(k * 70, (k + 1) * 70) / 7.0  # 10 s of dither periods at 7 Hz
-            w.append(
-                "clsf",
-                time=tc,
-                eta=0 * tc,
-                sf_change_estimate=1e-6 * tc,
-                gain_correction=1 + 0 * tc,
-                rate_output_mean=0 * tc,
-            )
-            tt = np.arange(k * 10.0, (k + 1) * 10.0, 0.5)
-            w.append("chamber", time=tt, setpoint=30 + 0 * tt, temperature=25 + 0.1 * tt)
-            w.append_step(
-                index=k,
-                kind=("lock", "soak")[k],
-                t_start=10.0 * k,
-                t_end=10.0 * (k + 1),
-                table_rate=0.0,
-                chamber_setpoint=30.0,
-                status="completed",
-            )
-            w.flush()
+            append_block(w, k, ("lock", "soak")[k])
             run = qmg_lab.open_run(path)
             assert run.status == "running" and run.name == "live"
             assert run.steps.shape[0] == k + 1
@@ -127,18 +96,7 @@ def test_a_running_file(tmp_path: Path) -> None:
 
 
 def test_a_resumed_twin_campaign(tmp_path: Path) -> None:
-    text = config_text()
-
-    def stop_at_30_s(p) -> None:
-        if p.run_time_s >= 30.0:
-            raise KeyboardInterrupt
-
-    first = run_inprocess(tmp_path, text, progress=stop_at_30_s)
-    assert first.error is not None
-    stopped = qmg_lab.open_run(first.path)
-    assert stopped.status == "aborted"
-    second = run_inprocess(tmp_path, text, resume=True)
-    assert second.error is None
+    second = interrupted_then_resumed(tmp_path)
     run = qmg_lab.open_run(second.path)
     assert run.status == "completed" and run.attrs["resume_count"] == 1
     assert [s["occasion"] for s in run.snapshots].count("resume") == 4

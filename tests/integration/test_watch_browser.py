@@ -16,28 +16,16 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 
 import h5py
 import pytest
 
 from qmg_lab.watch.page import PLOTS
+from tests.support.browser import HEADER_JS, headless_chromium, missing
 from tests.support.campaigns import qmg
 
-CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 REPO = Path(__file__).resolve().parents[2]
-FLAGS = (
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--window-size=1400,2000",
-)
 # each plot and a data source that must have points once the run has data
 SOURCES = {
     "sf": "sf_mean",
@@ -58,25 +46,13 @@ for (const [plot, source] of Object.entries(arguments[0])) {
 }
 return out;
 """
-HEADER_JS = """
-if (!window.Bokeh || !Bokeh.documents || !Bokeh.documents.length) return '';
-const h = Bokeh.documents[0].get_model_by_name('header'); return h ? h.text : '';
-"""
 
 
 def _browser(tmp_path: Path):  # -> selenium WebDriver
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed")
-    from selenium.webdriver.chrome.service import Service
-
-    for exe in (CHROMIUM, CHROMEDRIVER):
-        if not os.access(exe, os.X_OK):
-            pytest.skip(f"{exe} is not installed (apt-get install chromium chromium-driver; .ci/run does)")
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for flag in (*FLAGS, f"--user-data-dir={tempfile.mkdtemp(dir=tmp_path)}"):
-        options.add_argument(flag)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    why = missing()
+    if why:
+        pytest.skip(why)
+    return headless_chromium(tmp_path)
 
 
 def _last_t(header: str) -> float:
@@ -87,8 +63,7 @@ def _last_t(header: str) -> float:
         return float("nan")
 
 
-def _updated(header: str) -> str:
-    return header.split("class='updated'>", 1)[1].split("<", 1)[0] if "class='updated'>" in header else ""
+POLLS_JS = "return Bokeh.documents[0].get_model_by_name('polls').data.n[0];"
 
 
 def _file_end(path: Path) -> float:
@@ -143,8 +118,8 @@ def test_the_page_of_a_running_campaign_in_chromium(tmp_path: Path) -> None:
         wait.until(lambda _: "completed" in header() and _last_t(header()) == pytest.approx(end, abs=0.05))
         # ... and stays at the end over two more page updates
         for _ in range(2):
-            before = _updated(header())
-            wait.until(lambda _, before=before: _updated(header()) != before)
+            before = driver.execute_script(POLLS_JS)
+            wait.until(lambda _, before=before: driver.execute_script(POLLS_JS) > before)
             assert _last_t(header()) == pytest.approx(end, abs=0.05)
 
         drawn = driver.execute_script(DRAWN_JS, SOURCES)

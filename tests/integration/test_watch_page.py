@@ -12,44 +12,13 @@ import numpy as np
 from bokeh.document import Document
 
 from qmg_lab.analysis.compute import analyze
-from qmg_lab.storage.writer import RunWriter
 from qmg_lab.watch.page import CHUNK_BINS, MAX_POINTS, PLOTS, Trace, WatchPage
-from tests.support.campaigns import config_text, run_inprocess
-
-
-def _append_block(w: RunWriter, k: int) -> None:
-    tc = np.arange(k * 70, (k + 1) * 70) / 7.0 + 1 / 7.0
-    w.append(
-        "clsf", time=tc, eta=0 * tc, sf_change_estimate=1e-6 * tc, gain_correction=1 + 0 * tc, rate_output_mean=0 * tc
-    )
-    tt = np.arange(k * 10.0, (k + 1) * 10.0, 0.5)
-    w.append("chamber", time=tt, setpoint=30 + 0 * tt, temperature=25 + 0.1 * tt)
-    w.append("table", time=tt, rate_command=0 * tt, rate_measured=0 * tt, position=0 * tt)
-    w.append_step(
-        index=k,
-        kind="soak",
-        t_start=10.0 * k,
-        t_end=10.0 * (k + 1),
-        table_rate=0.0,
-        chamber_setpoint=30.0,
-        status="completed",
-    )
-    w.flush()
+from tests.support.live_runs import append_block, interrupted_then_resumed, live_writer
 
 
 def test_the_page_follows_a_running_file(tmp_path: Path) -> None:
     path = tmp_path / "live.h5"
-    w = RunWriter.create(
-        path,
-        config_text='[campaign]\nname = "live one"\n',
-        config_sha256="0" * 64,
-        mode="sim",
-        software_version="test",
-        t0_unix=1.7e9,
-        truth=False,
-        planned_steps=3,
-        planned_step_kinds=["soak", "soak", "soak"],
-    )
+    w = live_writer(path, "live one", ["soak", "soak", "soak"])
     try:
         page = WatchPage(path)
         doc = Document()
@@ -58,7 +27,7 @@ def test_the_page_follows_a_running_file(tmp_path: Path) -> None:
         assert "live one" in page.header.text and "running" in page.header.text
         seen = []
         for k in range(2):
-            _append_block(w, k)
+            append_block(w, k, "soak")
             page.update()
             seen.append(page.last_t)
             assert len(page.traces["sf_period"].source.data["t"]) == 70 * (k + 1)  # < 2 CHUNK_BINS: all rows
@@ -87,15 +56,7 @@ def test_a_trace_stays_bounded() -> None:
 
 
 def test_replay_of_a_resumed_twin_campaign_and_its_pair_sf(tmp_path: Path) -> None:
-    text = config_text()
-
-    def stop_at_30_s(p) -> None:
-        if p.run_time_s >= 30.0:
-            raise KeyboardInterrupt
-
-    assert run_inprocess(tmp_path, text, progress=stop_at_30_s).error is not None
-    done = run_inprocess(tmp_path, text, resume=True)
-    assert done.error is None
+    done = interrupted_then_resumed(tmp_path)
     page = WatchPage(done.path)
     page.attach(Document())
     for _ in range(3):
