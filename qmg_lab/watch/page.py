@@ -212,9 +212,10 @@ class WatchPage:
         if not up.ready:
             self.header.text = f"<b>{html.escape(self.path.name)}</b>: {html.escape(up.problem)}"
             return
-        if up.reset:
+        if up.reset:  # a resume cut the file back: show it again from its start
             for tr in self.traces.values():
                 tr.clear()
+            self.last_t = math.nan
         if self.durations is None:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
         self.file_steps = up.steps

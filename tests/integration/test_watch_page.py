@@ -4,6 +4,7 @@ against `qmg-lab analyze`'s. The page in a real browser: test_watch_browser.py."
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -93,3 +94,22 @@ def test_watch_refuses_what_is_not_a_run_file(tmp_path: Path) -> None:
     for target in (bad, tmp_path / "missing.h5"):
         done = subprocess.run([sys.executable, "-m", "qmg_lab", "watch", str(target)], capture_output=True, text=True)
         assert done.returncode == 2 and "Traceback" not in done.stderr
+
+
+def test_host_opens_the_page_on_purpose_with_a_warning(tmp_path: Path) -> None:
+    path = tmp_path / "live.h5"
+    live_writer(path, "w", ["soak"]).close()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "qmg_lab", "watch", str(path), "--host", "0.0.0.0", "--port", "5256"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "COLUMNS": "300"},
+    )
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        assert line.startswith("watching") and ":525" in line
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    assert "open to every machine" in err and "without a password" in err
