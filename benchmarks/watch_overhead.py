@@ -13,8 +13,11 @@ A first unwatched run warms numba's cache and is not counted.
 
 `--ramp-divisor K` divides the chamber ramp rate by K: the paper campaign (55 simulated minutes) becomes about
 K times longer (K = 3.3: about 3 hours). Reported: the medians, `slowdown` = median(watched) / median(unwatched)
-- 1, and each pair's ratio. These machines are shared and noisy (2 cores for everything, the browser included):
-quote the median and the pairs.
+- 1, each pair's ratio, and the CPU seconds the page server and the browser (all its processes, from Linux's
+/proc) used during each watched run. These machines are shared and noisy (2 cores for everything, the browser
+included): quote the median and the pairs. Headless Chromium started with --disable-gpu draws every canvas in
+software, so its share here is an upper bound for a desktop browser; `--no-browser` isolates the page's own cost
+(reading the file, decimating, building the models).
 """
 
 from __future__ import annotations
