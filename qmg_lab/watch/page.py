@@ -110,6 +110,7 @@ class WatchPage:
         self.identity = ""
         self.last_t = math.nan
         self.file_steps: dict[str, np.ndarray] = {}  # /steps as last read
+        self.doc: Document | None = None
         self.traces = {
             n: Trace(n)
             for n in (
@@ -203,10 +204,23 @@ class WatchPage:
         doc.title = f"qmg-lab watch: {self.path.name}"
         doc.add_root(self.layout)
         doc.add_root(self.polls)
+        self.doc = doc
         self.update()
         doc.add_periodic_callback(self.update, POLL_MS)
 
     def update(self) -> None:
+        """One poll of the file; every change to the page's models goes to the browser as one message (held
+        and combined), so the browser draws the page once per poll, not once per trace."""
+        if self.doc is None:
+            self._update()
+            return
+        self.doc.hold("combine")
+        try:
+            self._update()
+        finally:
+            self.doc.unhold()
+
+    def _update(self) -> None:
         up = self.follower.poll()
         self.polls.data = {"n": [self.polls.data["n"][0] + 1]}
         if not up.ready:
