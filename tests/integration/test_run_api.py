@@ -96,7 +96,12 @@ def test_a_running_file(tmp_path: Path) -> None:
 
 
 def test_a_resumed_twin_campaign(tmp_path: Path) -> None:
-    second = interrupted_then_resumed(tmp_path)
+    def aborted(path: Path) -> None:
+        run = qmg_lab.open_run(path)
+        assert run.status == "aborted" and run.events["kind"].iloc[-1] in ("interrupted", "safe_state")
+        assert run.to_xarray(["clsf"])["clsf"]["time"].to_numpy()[-1] >= 30.0
+
+    second = interrupted_then_resumed(tmp_path, aborted)
     run = qmg_lab.open_run(second.path)
     assert run.status == "completed" and run.attrs["resume_count"] == 1
     assert [s["occasion"] for s in run.snapshots].count("resume") == 4

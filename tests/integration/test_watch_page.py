@@ -57,7 +57,13 @@ def test_a_trace_stays_bounded() -> None:
 
 
 def test_replay_of_a_resumed_twin_campaign_and_its_pair_sf(tmp_path: Path) -> None:
-    done = interrupted_then_resumed(tmp_path)
+    def replay_aborted(path: Path) -> None:
+        page = WatchPage(path)
+        page.attach(Document())
+        assert "aborted" in page.header.text and "interrupted" in page.events.data["kind"]
+        assert page.last_t >= 30.0 and page.steps.data["label"][-1] == "planned"  # no current step: it stopped
+
+    done = interrupted_then_resumed(tmp_path, replay_aborted)
     page = WatchPage(done.path)
     page.attach(Document())
     for _ in range(3):

@@ -3,6 +3,7 @@ and a twin campaign interrupted at 30 s of run time and resumed (as `qmg-lab run
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -47,8 +48,9 @@ def append_block(w: RunWriter, k: int, kind: str) -> None:
     w.flush()
 
 
-def interrupted_then_resumed(tmp_path: Path) -> Outcome:
-    """The short twin campaign stopped by Ctrl-C at 30 s of run time, then resumed to its end."""
+def interrupted_then_resumed(tmp_path: Path, between: Callable[[Path], None] | None = None) -> Outcome:
+    """The short twin campaign stopped by Ctrl-C at 30 s of run time (`between` gets the aborted file), then
+    resumed to its end."""
     text = config_text()
 
     def stop_at_30_s(p) -> None:  # type: ignore[no-untyped-def]
@@ -57,6 +59,8 @@ def interrupted_then_resumed(tmp_path: Path) -> Outcome:
 
     first = run_inprocess(tmp_path, text, progress=stop_at_30_s)
     assert first.error is not None
+    if between is not None:
+        between(first.path)
     second = run_inprocess(tmp_path, text, resume=True)
     assert second.error is None
     return second
