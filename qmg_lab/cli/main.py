@@ -244,10 +244,18 @@ def run(
     resume: Annotated[Path | None, typer.Option("--resume", help="continue this run file")] = None,
     quiet: QuietOpt = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing -o file")] = False,
+    watch_page: Annotated[
+        bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
+    ] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
+    from qmg_lab.cli.watch import watch_beside
+
     cfg, text = _load(config, sim, campaign=True)
-    summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+    if watch_page and resume is None and output is None:
+        output = _default_output(cfg)  # the page needs the file's name before the run makes it
+    with watch_beside((resume or output) if watch_page else None):
+        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
     _print_summary(summary)
 
 
@@ -464,7 +472,10 @@ def analyze(
         Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
     ],
     json_out: JsonOpt = False,
-    figures: Annotated[Path | None, typer.Option("--figures", help="write PNG figures to this folder")] = None,
+    figures: Annotated[Path | None, typer.Option("--figures", help="write the figures to this folder")] = None,
+    fmt: Annotated[
+        str, typer.Option("--format", help="figure file format: png, svg or pdf", show_default=True)
+    ] = "png",
 ) -> None:
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
@@ -473,6 +484,8 @@ def analyze(
     from qmg_lab.analysis.render import render_table
     from qmg_lab.storage.writer import StorageError, read_run, status_detail
 
+    if fmt not in ("png", "svg", "pdf"):
+        _fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
     if not run_file.exists():
         _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     if run_file.is_dir():
@@ -485,7 +498,7 @@ def analyze(
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
 
-            written = write_figures(run_file, figures)
+            written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
@@ -641,4 +654,4 @@ def main() -> None:  # pragma: no cover - console entry
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device  # noqa: E402,F401 - imported for their side effect, after `app` exists
+from qmg_lab.cli import bench, device, runs, watch  # noqa: E402,F401 - imported for their side effect, after `app` exists

@@ -32,6 +32,7 @@ from tests.support.synthetic_runs import (
     _writer,
     square,
     temperature,
+    write_linearity,
     write_sweep,
 )
 
@@ -252,32 +253,8 @@ def test_bandwidth_phase_and_settling_of_a_first_order_loop(tmp_path: Path, trut
 def test_linearity_of_a_quadratic_response(tmp_path: Path) -> None:
     """O = SF r + B + k r^2 on r = -5..5 deg/s: residual max 15 k (at +-5, mean r^2 = 10), asymmetry 10 k / SF."""
     k = 2e-5  # V/(deg/s)^2
-    rates = [float(r) for r in range(-5, 6)]
     p = tmp_path / "lin.h5"
-    dwell, settle = 4.0, 1.0
-    w = _writer(
-        p,
-        _config("linearity", dwell, settle, extra=f"linearity_rates_dps = {rates}"),
-        ["level"] * len(rates),
-        truth=False,
-        mode="hardware",
-    )
-    for i, r in enumerate(rates):
-        t = np.arange(round(i * dwell * FS), round((i + 1) * dwell * FS)) / FS
-        _lockin(w, t, SF0 * r + 1e-3 + k * r * r + DITHER_LEAK_V * square(t))
-        w.append(
-            "table", time=t[::700], rate_command=r + 0 * t[::700], rate_measured=r + 0 * t[::700], position=0 * t[::700]
-        )
-        w.append_step(
-            index=i,
-            kind="level",
-            t_start=i * dwell,
-            t_end=(i + 1) * dwell,
-            table_rate=r,
-            chamber_setpoint=25.0,
-            status="completed",
-        )
-    w.close()
+    write_linearity(p, k)
     lin = analyze(p).linearity
     assert lin["sf_v_per_dps"] == pytest.approx(SF0, rel=1e-9)
     assert lin["bias_v"] == pytest.approx(1e-3 + 10 * k, rel=1e-6)

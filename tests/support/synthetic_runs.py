@@ -138,3 +138,36 @@ def write_sweep(path: Path, pairs_written: int = N_PAIRS, truth: bool = True, ki
         os.kill(os.getpid(), signal.SIGKILL)
     w.set_status("completed")
     w.close()
+
+
+# ---- a linearity characterization ---------------------------------------------------------------------------
+
+LIN_RATES = [float(r) for r in range(-5, 6)]
+LIN_DWELL, LIN_SETTLE = 4.0, 1.0
+
+
+def write_linearity(path: Path, k: float) -> None:
+    """Level steps at LIN_RATES (deg/s), LIN_DWELL s each, output O = SF0 r + 1e-3 V + k r^2 (no noise)."""
+    w = _writer(
+        path,
+        _config("linearity", LIN_DWELL, LIN_SETTLE, extra=f"linearity_rates_dps = {LIN_RATES}"),
+        ["level"] * len(LIN_RATES),
+        truth=False,
+        mode="hardware",
+    )
+    for i, r in enumerate(LIN_RATES):
+        t = np.arange(round(i * LIN_DWELL * FS), round((i + 1) * LIN_DWELL * FS)) / FS
+        _lockin(w, t, SF0 * r + 1e-3 + k * r * r + DITHER_LEAK_V * square(t))
+        w.append(
+            "table", time=t[::700], rate_command=r + 0 * t[::700], rate_measured=r + 0 * t[::700], position=0 * t[::700]
+        )
+        w.append_step(
+            index=i,
+            kind="level",
+            t_start=i * LIN_DWELL,
+            t_end=(i + 1) * LIN_DWELL,
+            table_rate=r,
+            chamber_setpoint=25.0,
+            status="completed",
+        )
+    w.close()
