@@ -122,6 +122,7 @@ class CampaignRunner:
     progress: Callable[[Progress], None] | None = None
     resume: bool = False
     plan: CheckedPlan | None = None  # None: made (and checked) here from cfg
+    guard: InterruptGuard | None = None  # the caller's, already installed (the CLI's); None: run() installs one
 
     def __post_init__(self) -> None:
         self.steps: list[Step] = list((self.plan or checked_plan(self.cfg)).steps)
@@ -151,6 +152,10 @@ class CampaignRunner:
             event=self._event,
         )
         self._safe_confirmed = True
+        #: the safe_state event's message, word for word ("confirmed" or "not confirmed: ..."): what the CLI's last
+        #: words about the safe state say, so the terminal never contradicts the file
+        self.safe_state_note = ""
+        self._interrupted = False  # stopped by a stop signal (event "interrupted", not "abort")
         self._step = Step(-1, StepKind.LOCK, 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
         self._records = self.writer.records()
@@ -189,7 +194,7 @@ class CampaignRunner:
     def run(self) -> RunSummary:
         """Execute every step not yet completed; always leave the station safe and the file's status set."""
         status, reason = "aborted", ""
-        with InterruptGuard() as guard:
+        with contextlib.nullcontext(self.guard) if self.guard is not None else InterruptGuard() as guard:
             self._guard = guard
             try:
                 self._prepare()
@@ -201,9 +206,11 @@ class CampaignRunner:
                     self._run_step(step)
                 status = "completed"
             except KeyboardInterrupt:
-                reason = "interrupted by the operator (Ctrl-C)"
-                raise CampaignInterrupted(reason) from None
+                self._interrupted = True
+                reason = guard.reason()
+                raise CampaignInterrupted(reason, guard.exit_code() - 128) from None
             except CampaignInterrupted as exc:
+                self._interrupted = True
                 reason = str(exc)
                 raise
             except InstrumentError as exc:
@@ -298,10 +305,11 @@ class CampaignRunner:
         except Exception as exc:
             failures.append(f"lockin stream: {exc}")
         self._safe_confirmed = not failures
+        self.safe_state_note = "confirmed" if not failures else "not confirmed: " + "; ".join(failures)
         self._event(
             "safe_state",
             "",
-            "confirmed" if not failures else "not confirmed: " + "; ".join(failures),
+            self.safe_state_note,
             logging.INFO if not failures else logging.ERROR,
         )
         if failures and not reason:
@@ -312,7 +320,7 @@ class CampaignRunner:
         if status == "completed":
             self._event("completed", "", "every step completed", logging.INFO)
         else:
-            self._event("interrupted" if "Ctrl-C" in reason else "abort", "", reason, logging.ERROR)
+            self._event("interrupted" if self._interrupted else "abort", "", reason, logging.ERROR)
         self.writer.set_status(status, reason)
         self.writer.flush()
         return failures
@@ -397,7 +405,7 @@ class CampaignRunner:
     def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
         """Poll one block, log it, run CLSF and the suspenders. Returns the block's duration (s)."""
         if self._guard is not None and self._guard.requested and not self._recovery.finishing:
-            raise CampaignInterrupted("interrupted by the operator (Ctrl-C)")
+            raise CampaignInterrupted(self._guard.reason(), self._guard.exit_code() - 128)
         block = self._recovery.call("lockin", lambda: self.station.lockin.poll(want_s))
         n = len(block)
         if n == 0:

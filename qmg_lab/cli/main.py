@@ -27,6 +27,7 @@ from rich.table import Table
 
 from qmg_lab import __version__
 from qmg_lab.cli import heap
+from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
@@ -97,7 +98,7 @@ def _options(
 
 def _fail(code: int, message: str) -> NoReturn:
     # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
-    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
+    say(console.print, f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
     raise typer.Exit(code)
 
 
@@ -263,7 +264,7 @@ def _execute(
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
     configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
     or change the file. The file's final close is protected from a second Ctrl-C."""
-    from qmg_lab.campaign.interrupts import InterruptGuard
+    from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.cli.progress import ProgressView
@@ -294,7 +295,9 @@ def _execute(
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-    with _station(cfg) as station:
+    with stop_exits(console.print), InterruptGuard() as guard, _station(cfg) as station:
+        # one guard from here to the file's last close: a stop signal while the station connects or the file is
+        # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
         try:
             if resume is not None:
                 writer = RunWriter.reopen(
@@ -321,24 +324,26 @@ def _execute(
         log.info("run file %s; instruments %s", writer.path, modes)
         heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
         view = ProgressView(console, enabled=not quiet)
+        runner: CampaignRunner | None = None
         try:
             with view:
                 runner = CampaignRunner(
-                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan
+                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan, guard=guard
                 )
                 return runner.run()
         except CampaignInterrupted as exc:
             _fail(
-                EXIT_INTERRUPTED,
-                f"{exc}; instruments in their safe state; file {writer.path} (status "
+                exit_code(exc.signum),
+                f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
                 f"aborted; continue with --resume {writer.path})",
             )
         except (CampaignAborted, InstrumentError) as exc:
-            _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
+            words = safe_state_words(runner.safe_state_note if runner else "")
+            _fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
         except LimitError as exc:
             _fail(EXIT_BAD_INPUT, str(exc))
         finally:
-            with InterruptGuard() as guard, guard.protect():  # a second Ctrl-C waits for the file's last write
+            with guard.protect():  # a second stop signal waits for the file's last write
                 writer.close()
 
 
@@ -358,7 +363,7 @@ def _print_summary(summary: Any) -> None:
     ]
     for r in rows:
         tbl.add_row(*r)
-    out.print(tbl)
+    say(out.print, tbl)
 
 
 # ====================================================================================== instruments
@@ -632,11 +637,16 @@ def version() -> None:
 
 def main() -> None:  # pragma: no cover - console entry
     heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
+    from qmg_lab.campaign.interrupts import StopRequested, exit_code
+
     try:
         app()
+    except StopRequested as exc:  # a second stop signal outside the campaign (e.g. after the file was closed)
+        sys.exit(exit_code(exc.signum))
     except KeyboardInterrupt:
         sys.exit(EXIT_INTERRUPTED)
     finally:
+        settle_streams()  # a dead terminal or a full stdout must not change the exit code
         heap.quiet_exit()
 
 

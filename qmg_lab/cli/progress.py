@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 from rich.console import Console
@@ -38,12 +39,21 @@ class ProgressView:
 
     def __exit__(self, *exc: object) -> None:
         if self.live is not None:
-            self.live.__exit__(None, None, None)
-            self.live = None
+            live, self.live = self.live, None
+            with contextlib.suppress(OSError, ValueError):  # a dead terminal: not the run's outcome's business
+                live.__exit__(None, None, None)
 
     def update(self, p: Progress) -> None:
+        """Show the progress; a console write that fails (a dead terminal after SIGHUP, a full or closed stdout
+        or stderr) turns the view off, and the campaign goes on."""
         if not self.enabled:
             return
+        try:
+            self._show(p)
+        except (OSError, ValueError):
+            self.enabled = False
+
+    def _show(self, p: Progress) -> None:
         now = time.monotonic()
         if now - self._last < (REFRESH_S if self.live is not None else LINE_EVERY_S):
             return
