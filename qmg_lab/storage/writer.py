@@ -85,7 +85,14 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
 )
 from qmg_lab.storage.reader import RunData, read_run, read_window
 from qmg_lab.storage.records import RunRecords, create_groups
-from qmg_lab.storage.resume import check_resumable, file_instrument_modes, repair_end, status_detail
+from qmg_lab.storage.resume import (
+    check_resumable,
+    file_instrument_modes,
+    plan_repair,
+    refuse_discarding_repair,
+    repair_end,
+    status_detail,
+)
 
 #: the writer's chunk cache per dataset. HDF5 2.0 defaults to 8 MiB per open dataset, and the writer keeps ~30
 #: datasets open: 1 MiB (8 fast-group chunks) holds every partial chunk until its flush; w0 = 1 evicts fully
@@ -295,13 +302,15 @@ class RunWriter:
                         maxshape=(None,),
                         dtype=np.float64,
                         chunks=(rows[g],),
+                        fillvalue=np.nan,  # rows allocated but never written are never data (resume.valid_rows)
                         **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
                     )
                     ds.attrs["units"] = unit
                     ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
             grp = h5.create_group("steps")
             for col, dtype in STEPS_DTYPES.items():
-                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],))
+                fill = {"fillvalue": np.nan} if np.dtype(dtype).kind == "f" else {}
+                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],), **fill)
                 ds.attrs["units"] = STEPS_UNITS[col]
                 ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
             create_groups(h5)  # /snapshots, /events (qmg_lab/storage/records.py): laid out before SWMR
@@ -358,9 +367,11 @@ class RunWriter:
         except OSError as exc:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
+            plan = plan_repair(h5)  # where the file can end; refused before anything changes if it discards data
+            refuse_discarding_repair(p, plan)
             create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
             h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
-            repair_end(h5)
+            repair_end(h5, plan)
             steps = h5["steps"]
             h5.attrs["status"] = "running"
             h5.attrs["abort_reason"] = ""
