@@ -474,15 +474,26 @@ def analyze(
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
 
-    from qmg_lab.analysis.compute import analyze as run_analysis
-    from qmg_lab.analysis.render import render_table
-    from qmg_lab.storage.writer import StorageError, read_run, status_detail
+    from qmg_lab.cli.files import damaged_file_report
+    from qmg_lab.storage.layout import DamagedFileError, StorageError
+    from qmg_lab.storage.superblock import check_file_end
 
     if not run_file.exists():
         _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     if run_file.is_dir():
         _analyze_study(run_file, json_out, figures)
         return
+    try:
+        check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
+    except DamagedFileError as exc:
+        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+
+    from qmg_lab.analysis.compute import analyze as run_analysis
+    from qmg_lab.analysis.render import render_table
+    from qmg_lab.storage.writer import read_run, status_detail
+
     try:
         result = run_analysis(run_file)
         detail = status_detail(read_run(run_file, select=()))
@@ -491,6 +502,8 @@ def analyze(
             from qmg_lab.analysis.report import write_figures
 
             written = write_figures(run_file, figures)
+    except DamagedFileError as exc:  # what still reads, and what does not
+        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
@@ -651,4 +664,4 @@ def main() -> None:  # pragma: no cover - console entry
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device  # noqa: E402,F401 - imported for their side effect, after `app` exists
+from qmg_lab.cli import bench, device, files  # noqa: E402,F401 - imported for their side effect, after `app` exists
