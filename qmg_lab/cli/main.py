@@ -15,7 +15,7 @@ import logging
 import sys
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -278,73 +278,89 @@ def _execute(
     sha = config_fingerprint(text)
     modes = _instrument_modes(cfg)
     mode = "sim" if cfg.all_sim else "hardware"
-    if resume is not None:
-        if output is not None and output.resolve() != resume.resolve():
-            _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
-        try:
-            refuse_study_resume(resume)
-            RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
-        except StorageError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        path = resume
-    else:
-        path = output or _default_output(cfg)
-        if path.exists() and not (overwrite and path.is_file()):
-            _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-    with stop_exits(console.print), InterruptGuard() as guard, _station(cfg) as station:
-        # one guard from here to the file's last close: a stop signal while the station connects or the file is
-        # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
-        try:
-            if resume is not None:
-                writer = RunWriter.reopen(
-                    resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+    with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
+        if resume is not None:
+            if output is not None and output.resolve() != resume.resolve():
+                _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+            if resume.is_file():
+                _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
+            try:
+                refuse_study_resume(resume)
+                RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
+            except StorageError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            path = resume
+        else:
+            path = output or _default_output(cfg)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+            _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
+            if path.exists() and not (overwrite and path.is_file()):
+                _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        with stop_exits(console.print), InterruptGuard() as guard, _station(cfg) as station:
+            # one guard from here to the file's last close: a stop signal while the station connects or the file is
+            # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
+            try:
+                if resume is not None:
+                    writer = RunWriter.reopen(
+                        resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+                    )
+                else:
+                    if path.exists():
+                        path.unlink()  # --overwrite, now that the station answered
+                    writer = create_run_writer(
+                        path,
+                        cfg,
+                        plan.steps,
+                        config_text=text,
+                        config_sha256=sha,
+                        mode=mode,
+                        software_version=__version__,
+                        t0_unix=datetime.now(UTC).timestamp(),
+                        instrument_modes=modes,
+                    )
+            except StorageError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            except OSError as exc:
+                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+            log.info("run file %s; instruments %s", writer.path, modes)
+            heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
+            view = ProgressView(console, enabled=not quiet)
+            runner: CampaignRunner | None = None
+            try:
+                with view:
+                    runner = CampaignRunner(
+                        cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan, guard=guard
+                    )
+                    return runner.run()
+            except CampaignInterrupted as exc:
+                _fail(
+                    exit_code(exc.signum),
+                    f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
+                    f"aborted; continue with --resume {writer.path})",
                 )
-            else:
-                if path.exists():
-                    path.unlink()  # --overwrite, now that the station answered
-                writer = create_run_writer(
-                    path,
-                    cfg,
-                    plan.steps,
-                    config_text=text,
-                    config_sha256=sha,
-                    mode=mode,
-                    software_version=__version__,
-                    t0_unix=datetime.now(UTC).timestamp(),
-                    instrument_modes=modes,
-                )
-        except StorageError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        except OSError as exc:
-            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-        log.info("run file %s; instruments %s", writer.path, modes)
-        heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
-        view = ProgressView(console, enabled=not quiet)
-        runner: CampaignRunner | None = None
-        try:
-            with view:
-                runner = CampaignRunner(
-                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan, guard=guard
-                )
-                return runner.run()
-        except CampaignInterrupted as exc:
-            _fail(
-                exit_code(exc.signum),
-                f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
-                f"aborted; continue with --resume {writer.path})",
-            )
-        except (CampaignAborted, InstrumentError) as exc:
-            words = safe_state_words(runner.safe_state_note if runner else "")
-            _fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
-        except LimitError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        finally:
-            with guard.protect():  # a second stop signal waits for the file's last write
-                writer.close()
+            except (CampaignAborted, InstrumentError) as exc:
+                words = safe_state_words(runner.safe_state_note if runner else "")
+                _fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
+            except LimitError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            finally:
+                with guard.protect():  # a second stop signal waits for the file's last write
+                    writer.close()
+
+
+def _hold(stack: ExitStack, path: Path) -> None:
+    """Take the run file's one-writer lock (qmg_lab/storage/lock.py) for the rest of the command; exit 2 if
+    another process writes the file."""
+    from qmg_lab.storage.lock import RunFileLock
+    from qmg_lab.storage.writer import StorageError
+
+    try:
+        stack.enter_context(RunFileLock(path))
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
 
 
 def _print_summary(summary: Any) -> None:

@@ -18,6 +18,8 @@ import numpy as np
 
 from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, StorageError, whole_chunk_layout
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
+from qmg_lab.storage.salvage import padded_copy, readable_rows
+from qmg_lab.storage.superblock import read_superblock
 
 
 def check_resumable(
@@ -34,7 +36,30 @@ def check_resumable(
     p = Path(path)
     if not p.is_file():
         raise StorageError(f"{p}: no such run file to resume")
-    run = read_run(p, select=("steps",))
+    if not ends_short(p):
+        return _check_resumable(p, p, config_sha256, instrument_modes, thorough=False)
+    # shorter than its superblock's end of file: a write that failed (a full disk) or an incomplete copy. Checked
+    # on a copy padded with zeros to that end (nothing here changes the file); the repair plan then reads every
+    # column, and refuses if what does not read is more than a kill loses
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.check")
+    try:
+        padded_copy(p, tmp)
+        return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def ends_short(path: Path) -> bool:
+    """The file ends before the end-of-file address its superblock records (superblock.py)."""
+    sb = read_superblock(path)
+    return sb.eof_address is not None and os.path.getsize(path) < sb.eof_address
+
+
+def _check_resumable(
+    p: Path, readable: Path, config_sha256: str, instrument_modes: Mapping[str, str] | None, *, thorough: bool
+) -> RunData:
+    """check_resumable's checks of the run file `p`, read from `readable` (p itself or its padded copy)."""
+    run = read_run(readable, select=("steps",))
     if run.status == "completed":
         done, planned = run.attrs.get("completed_steps", "?"), run.attrs.get("planned_steps", "?")
         raise StorageError(
@@ -54,8 +79,8 @@ def check_resumable(
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
     try:
-        with h5py.File(p, "r", swmr=True, libver="latest") as h5:
-            plan = plan_repair(h5)
+        with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
+            plan = plan_repair(h5, thorough=thorough)
     except (OSError, RuntimeError) as exc:
         raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
     refuse_discarding_repair(p, plan)
@@ -152,7 +177,7 @@ class RepairPlan:
         return self.t_recorded - (self.t_end if np.isfinite(self.t_end) else 0.0)
 
 
-def plan_repair(h5: h5py.File) -> RepairPlan:
+def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
     """Read-only: where a killed file can end on one consistent instant (RunWriter.reopen steps 1-3).
 
     1. every group keeps its whole rows that are data: its shortest column, and of its time column only the rows
@@ -161,11 +186,16 @@ def plan_repair(h5: h5py.File) -> RepairPlan:
     2. the end instant is the last /lockin time, or the last /truth time if earlier (unless /truth has no rows);
        in the twins' whole-chunk layout it moves back to the last /table or /chamber reading at or before it;
     3. /steps keeps its leading rows that are "completed" and end at or before that instant.
+
+    thorough (a file that ended short and was padded with zeros: a write failed, e.g. on a full disk): every
+    column is read, and each group keeps only the rows every one of its columns can read.
     """
     rows: dict[str, int] = {}
     times: dict[str, np.ndarray] = {}
     for g in [g for g in GROUP_UNITS if g in h5]:
         n = min(h5[g][c].shape[0] for c in h5[g])
+        if thorough:
+            n = min(readable_rows(h5[g][c], n) for c in h5[g])
         t = h5[g]["time"][:n]
         n = valid_rows(t)
         rows[g], times[g] = n, t[:n]

@@ -36,6 +36,9 @@ from qmg_lab.storage.layout import StorageError
 from qmg_lab.storage.reader import valid_rows
 from qmg_lab.storage.superblock import read_superblock
 
+#: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
+H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
+
 
 @dataclass(frozen=True)
 class DatasetScan:
@@ -49,6 +52,17 @@ class DatasetScan:
     @property
     def complete(self) -> bool:
         return not self.error and self.rows_read == self.rows
+
+
+def readable_rows(ds: h5py.Dataset, n: int) -> int:
+    """How many of the first n rows of a dataset read (chunk by chunk, up to the first that does not)."""
+    step = int(ds.chunks[0]) if ds.chunks else max(n, 1)
+    for start in range(0, n, step):
+        try:
+            ds[start : min(start + step, n)]
+        except H5_ERRORS:
+            return start
+    return n
 
 
 def _read_prefix(ds: h5py.Dataset) -> tuple[np.ndarray, str]:
@@ -67,9 +81,6 @@ def _read_prefix(ds: h5py.Dataset) -> tuple[np.ndarray, str]:
     return (np.concatenate(parts) if parts else np.empty(0, dtype=ds.dtype)), ""
 
 
-H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
-
-
 def _datasets(h5: h5py.File, unreadable: list[DatasetScan] | None = None) -> list[h5py.Dataset]:
     """The 1-D datasets of the file's top-level groups (and the root) that HDF5 can open; a group or dataset
     whose metadata does not decode is added to `unreadable`."""
@@ -83,25 +94,19 @@ def _datasets(h5: h5py.File, unreadable: list[DatasetScan] | None = None) -> lis
             skipped.append(DatasetScan(group.name, 0, 0, f"its member list does not read: {exc}"))
             return []
 
-    for name in members(h5):
+    def member(group: h5py.Group, name: str) -> Any:
         try:
-            obj = h5[name]
+            return group[name]
         except H5_ERRORS as exc:
-            skipped.append(DatasetScan(f"/{name}", 0, 0, f"does not open: {exc}"))
-            continue
-        if isinstance(obj, h5py.Dataset):
-            if obj.ndim == 1:
-                found.append(obj)
-            continue
-        for col in members(obj):
-            try:
-                ds = obj[col]
-            except H5_ERRORS as exc:
-                skipped.append(DatasetScan(f"/{name}/{col}", 0, 0, f"does not open: {exc}"))
-                continue
-            if isinstance(ds, h5py.Dataset) and ds.ndim == 1:
-                found.append(ds)
-    return found
+            skipped.append(DatasetScan(f"{group.name.rstrip('/')}/{name}", 0, 0, f"does not open: {exc}"))
+            return None
+
+    for obj in (member(h5, name) for name in members(h5)):
+        if isinstance(obj, h5py.Group):
+            found += [ds for ds in (member(obj, col) for col in members(obj)) if isinstance(ds, h5py.Dataset)]
+        elif isinstance(obj, h5py.Dataset):
+            found.append(obj)
+    return [ds for ds in found if ds.ndim == 1]
 
 
 def scan(path: str | Path) -> list[DatasetScan]:
@@ -119,6 +124,17 @@ def _scan_one(ds: h5py.Dataset) -> tuple[np.ndarray, DatasetScan]:
     return data, DatasetScan(ds.name, int(data.shape[0]), int(ds.shape[0]), error)
 
 
+def padded_copy(path: Path, tmp: Path) -> None:
+    """Copy `path` to `tmp`, extended with zero bytes to the end-of-file address its superblock records if it is
+    shorter, with its superblock's writer flags cleared: a file HDF5 opens at once, with or without SWMR."""
+    sb = read_superblock(path)
+    shutil.copyfile(path, tmp)
+    if sb.eof_address is not None and os.path.getsize(tmp) < sb.eof_address:
+        os.truncate(tmp, sb.eof_address)
+    if sb.version in (2, 3):
+        clear_superblock_flags(tmp)
+
+
 class _OpenableCopy:
     """The file opened read-only without SWMR; a damaged one (cut short, or its writer flags set) through a
     temporary copy, padded to its recorded end and its flags cleared, deleted on exit."""
@@ -133,12 +149,7 @@ class _OpenableCopy:
         short = sb.eof_address is not None and size < sb.eof_address
         try:
             if short or _flags_set(self.path, sb.version):
-                shutil.copyfile(self.path, self.tmp)
-                if short:
-                    with open(self.tmp, "r+b") as fh:
-                        fh.truncate(sb.eof_address)
-                if sb.version in (2, 3):
-                    clear_superblock_flags(self.tmp)
+                padded_copy(self.path, self.tmp)
                 source = self.tmp
             self.h5 = h5py.File(source, "r")
         except (*H5_ERRORS, StorageError) as exc:
