@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ from qmg_lab.instruments import (
     InstrumentError,
     Station,
 )
-from qmg_lab.storage.writer import RunWriter
+from qmg_lab.storage.writer import RunFileWriteError, RunWriter
 
 T = TypeVar("T")
 
@@ -219,6 +220,9 @@ class CampaignRunner:
             except CampaignAborted as exc:
                 reason = str(exc)
                 raise
+            except RunFileWriteError as exc:  # a full disk: abort to the safe state, say how much space it needs
+                reason = self._write_failure_reason(exc)
+                raise CampaignAborted(reason) from exc
             except Exception as exc:
                 reason = f"internal error: {type(exc).__name__}: {exc}"
                 raise
@@ -321,9 +325,33 @@ class CampaignRunner:
             self._event("completed", "", "every step completed", logging.INFO)
         else:
             self._event("interrupted" if self._interrupted else "abort", "", reason, logging.ERROR)
-        self.writer.set_status(status, reason)
-        self.writer.flush()
+        try:
+            self.writer.set_status(status, reason)
+            self.writer.flush()
+        except RunFileWriteError as exc:  # the file cannot take its status (a full disk): it keeps its last flush
+            log.error("could not write the run's status: %s", exc)
         return failures
+
+    def _write_failure_reason(self, exc: RunFileWriteError) -> str:
+        """The abort reason of a failed write; out of space: how much more the run needs, from the bytes per
+        second of run time written so far and the plan's time left, and what is free on the file's disk."""
+        if not exc.out_of_space:
+            return f"the run file could not be written: {exc}"
+        path = self.writer.path
+        try:
+            size = path.stat().st_size
+            free = shutil.disk_usage(path.resolve().parent).free
+        except OSError:
+            size, free = 0, 0
+        left_s = max(self._planned_s - self._done_s, 0.0)
+        per_s = size / self._t if self._t > 0 else 0.0
+        what = "the process's file size limit (ulimit -f) was reached" if exc.size_limit else "the disk is full"
+        return (
+            f"the run file could not be written: {what} ({path}: {size / 1e6:.1f} MB written for {self._t:.0f} s "
+            f"of run time). The run needs about {per_s * left_s / 1e6:.0f} MB more for its remaining "
+            f"{left_s:.0f} s (at {per_s * 3600 / 1e6:.0f} MB per hour of run time); {free / 1e6:.0f} MB are free "
+            f"on its disk. Free the space, then continue with --resume {path}"
+        )
 
     # ================================================================== steps
     def _run_step(self, step: Step) -> None:
