@@ -50,7 +50,8 @@ kills, kills_by_phase, resumed (resumed_completed + already_completed: must equa
 with mismatch_details), unflushed_at_kill_s_max (wall time between the file's last write and an external
 kill: at most about storage.flush_interval_s), resume_kills (cases, kills_inside_resume, by kind), and
 disk_full (runs, exit_3, resumed_completed): each with mismatches, restarts, hangs and crashes (all must be 0),
-wall_s.
+damaged_files (part 5: `analyze` and `run --resume` of copies cut at 100 B, 4 KiB, 1 %, 50 %, size - 4 KiB: exit
+code, expected 2, and wall time of each), wall_s.
 """
 
 from __future__ import annotations
@@ -678,6 +679,34 @@ def disk_full(n: int, seed: int, tmp: Path) -> dict[str, object]:
     return fig
 
 
+CUTS = {"100 B": lambda n: 100, "4 KiB": lambda n: 4096, "1 %": lambda n: n // 100, "50 %": lambda n: n // 2}
+CUTS["size - 4 KiB"] = lambda n: n - 4096
+
+
+def damaged_files(seed: int, tmp: Path) -> dict[str, object]:
+    """Part 5: `qmg-lab analyze` and `qmg-lab run --resume` on copies of an uninterrupted run's file cut at 100 B,
+    4 KiB, 1 %, 50 % and size - 4 KiB: exit code and wall time of each (exit 2 expected, within 5 s, no
+    traceback, no hang)."""
+    configs, refs, _, _ = references([seed * 100], tmp)
+    cfg, ref = configs[seed * 100], refs[seed * 100]
+    size = ref.stat().st_size
+    fig: dict[str, object] = {"file_bytes": size, "cuts": {}, "hangs": 0, "crashes": 0, "details": []}
+    for label, cut in CUTS.items():
+        copy = tmp / "cut.h5"
+        with open(ref, "rb") as fh:
+            copy.write_bytes(fh.read(cut(size)))
+        row = {}
+        for what, argv in (
+            ("analyze", ["analyze", str(copy)]),
+            ("resume", ["run", str(cfg), "--resume", str(copy), "-q"]),
+        ):
+            t0 = time.monotonic()
+            done = _run([sys.executable, "-m", "qmg_lab", *argv], fig)
+            row[what] = {"exit": None if done is None else done.returncode, "wall_s": round(time.monotonic() - t0, 2)}
+        fig["cuts"][label] = row  # type: ignore[index]
+    return fig
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":  # faults.py --child PHASE NTH DELAY -- qmg-lab args
         child(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[6:])
@@ -697,6 +726,7 @@ def main() -> None:
         k = kills(args.kills, args.seed, tmp)
         rk = resume_kills(args.resume_kills, args.seed, tmp)
         full = disk_full(args.disk_full, args.seed, tmp) if sys.platform != "win32" else {}
+        damaged = damaged_files(args.seed, tmp)
     result = {
         **s,
         "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),
@@ -704,6 +734,7 @@ def main() -> None:
         **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
         "resume_kills": rk,
         "disk_full": full,
+        "damaged_files": damaged,
         "campaigns": args.campaigns,
         "seed": args.seed,
         "wall_s": round(time.monotonic() - t0, 1),

@@ -285,8 +285,9 @@ def _execute(
             if resume.is_file():
                 _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
             try:
-                refuse_study_resume(resume)
+                # first: a damaged file is answered before any SWMR open (which would retry for minutes)
                 RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
+                refuse_study_resume(resume)
             except StorageError as exc:
                 _fail(EXIT_BAD_INPUT, str(exc))
             path = resume

@@ -16,9 +16,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, StorageError, whole_chunk_layout
+from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, DamagedFileError, StorageError, whole_chunk_layout
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
-from qmg_lab.storage.salvage import padded_copy, readable_rows
+from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
 
 
@@ -44,6 +44,14 @@ def check_resumable(
     tmp = p.with_name(f".{p.name}.{os.getpid()}.check")
     try:
         padded_copy(p, tmp)
+        try:  # first without SWMR: metadata lost with the missing bytes fails at once instead of being retried
+            with h5py.File(tmp, "r") as h5:
+                plan_repair(h5, thorough=True)
+        except H5_ERRORS as exc:
+            raise DamagedFileError(
+                f"{p}: ends before the end of file its superblock records, and what is left cannot be resumed "
+                f"({exc}); nothing was changed: copy what still reads with `qmg-lab salvage {p} -o NEW.h5`"
+            ) from None
         return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
     finally:
         tmp.unlink(missing_ok=True)

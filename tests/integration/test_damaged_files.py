@@ -1,7 +1,8 @@
 """Damaged run files are answered, not hung on: `qmg-lab analyze` on copies of a real run file cut at 100 B,
 4 KiB, 1 %, 50 % and size - 4 KiB exits 2 with a message saying the file is cut short (and what still reads), no
-traceback. Before this, the SWMR open of such a file retried for minutes; the subprocess timeout here only
-guards the suite against that hang (the time each takes is measured by benchmarks/faults.py, not asserted).
+traceback, and `qmg-lab run --resume` of them exits 2 without changing them. Before this, the SWMR open of such
+a file retried for minutes; the subprocess timeout here only guards the suite against that hang (the time each
+takes is measured by `python benchmarks/faults.py`, part 5, not asserted here).
 
 A file whose bytes do not decode (a deflate chunk of /lockin/rate_output overwritten) is named: exit 2, the
 dataset's name, what still reads; `qmg-lab salvage` copies the rows that read into a new file that `analyze`
@@ -67,6 +68,15 @@ def test_analyze_of_a_file_cut_short_exits_2_without_a_traceback(run_file: Path,
     said = " ".join(done.stderr.split())
     assert "cut short" in said
     assert str(size) not in said or "bytes" in said  # the sizes are named in bytes
+    # nor does a --resume of it hang: answered before any SWMR open, the copy unchanged
+    cfg = run_file.with_name("short.toml")
+    before = copy.read_bytes()
+    done = subprocess.run(
+        qmg("run", str(cfg), "--resume", str(copy), "-q"), capture_output=True, text=True, timeout=HANG_GUARD_S
+    )
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    assert copy.read_bytes() == before
 
 
 def _damage_a_chunk(src: Path, dst: Path, dataset: str, chunk: int) -> None:
