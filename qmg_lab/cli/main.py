@@ -268,6 +268,7 @@ def _execute(
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.cli.progress import ProgressView
+    from qmg_lab.storage.resume import ends_short
     from qmg_lab.storage.summary import create_run_writer, refuse_study_resume
     from qmg_lab.storage.writer import RunWriter, StorageError
 
@@ -285,9 +286,14 @@ def _execute(
             if resume.is_file():
                 _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
             try:
-                # first: a damaged file is answered before any SWMR open (which would retry for minutes)
+                # a file cut short is checked first, on a padded copy opened without SWMR: a SWMR open of it
+                # could retry for minutes
+                short = ends_short(resume)
+                if not short:
+                    refuse_study_resume(resume)
                 RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
-                refuse_study_resume(resume)
+                if short:
+                    refuse_study_resume(resume)
             except StorageError as exc:
                 _fail(EXIT_BAD_INPUT, str(exc))
             path = resume
