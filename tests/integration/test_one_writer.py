@@ -58,6 +58,7 @@ def _stop(proc: subprocess.Popen) -> None:
     assert proc.returncode == 128 + signal.SIGTERM
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="stopped with SIGTERM (Windows terminates the process)")
 def test_a_live_runs_file_is_neither_overwritten_nor_resumed(tmp_path: Path, endless_cfg: Path) -> None:
     path = tmp_path / "F.h5"
     a = subprocess.Popen(
