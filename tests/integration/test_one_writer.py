@@ -52,6 +52,15 @@ def endless_cfg(tmp_path: Path) -> Path:
     return cfg
 
 
+def _started(cfg: Path, path: Path, steps: int) -> subprocess.Popen:
+    """`qmg-lab run CFG -o PATH` started, once its file records `steps` completed steps."""
+    proc = subprocess.Popen(
+        qmg("run", str(cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    wait_for_steps(proc, path, steps)
+    return proc
+
+
 def _stop(proc: subprocess.Popen) -> None:
     proc.send_signal(signal.SIGTERM)  # the safe way to stop a run (test_signals.py)
     proc.communicate(timeout=300)
@@ -61,10 +70,7 @@ def _stop(proc: subprocess.Popen) -> None:
 @pytest.mark.skipif(sys.platform == "win32", reason="stopped with SIGTERM (Windows terminates the process)")
 def test_a_live_runs_file_is_neither_overwritten_nor_resumed(tmp_path: Path, endless_cfg: Path) -> None:
     path = tmp_path / "F.h5"
-    a = subprocess.Popen(
-        qmg("run", str(endless_cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    wait_for_steps(a, path, 2)
+    a = _started(endless_cfg, path, 2)
     for args in (("-o", str(path), "--overwrite"), ("--resume", str(path))):
         b = subprocess.run(qmg("run", str(endless_cfg), *args, "-q"), capture_output=True, text=True, timeout=300)
         assert b.returncode == 2, b.stderr
@@ -104,10 +110,7 @@ def test_two_runs_started_together_on_one_path(tmp_path: Path, short_cfg: Path) 
 @pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
 def test_the_lock_dies_with_its_holder(tmp_path: Path, endless_cfg: Path) -> None:
     path = tmp_path / "F.h5"
-    a = subprocess.Popen(
-        qmg("run", str(endless_cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    wait_for_steps(a, path, 3)
+    a = _started(endless_cfg, path, 3)
     with pytest.raises(StorageError, match="being written by another"):
         RunFileLock(path).acquire()
     os.kill(a.pid, signal.SIGKILL)
