@@ -1,7 +1,7 @@
 """Soak run: many short simulated campaigns under randomly injected faults, plus kill -9 / --resume runs compared
 with uninterrupted runs of the same seed.
 
-    python benchmarks/faults.py --json [--campaigns 60] [--kills 56] [--seed 1]
+    python benchmarks/faults.py --json [--campaigns 60] [--kills 56] [--resume-kills 24] [--disk-full 8] [--seed 1]
 
 Part 1 (in-process, qmg_lab.campaign.runner on the twins): each campaign gets a random [sim.faults] drawn from --seed
 (per-reply serial/VISA timeouts and garbles, a link drop of the table, chamber or generator lasting 1-45 s,
@@ -29,12 +29,29 @@ by group, with an uninterrupted run of the same configuration and seed:
 A kill that lands after the run wrote status "completed" (the end of close) leaves nothing to resume: --resume
 must refuse it with exit 2 "already completed"; it counts as resumed ("already_completed").
 
+Part 3 (subprocesses): kills inside `--resume`. A run is killed with SIGKILL in a random step (as in part 2);
+then its `--resume` is killed 1-3 times in a row, each at a random instant of its first seconds: half of them
+by an external SIGKILL 0-2.5 s after the process starts (start-up, station connect, the file's repair on reopen,
+the first blocks), half inside the repair itself, right after its k-th dataset resize (k random: fill values
+written, the new extent not yet flushed). A plain `--resume` then finishes the file, which is compared with
+the uninterrupted run exactly as in part 2. Also counted: restarts (a checkpoint that a plain resume of the
+killed file keeps, lost or rerun: the resume started over instead of continuing), hangs (a process that did not
+end within 600 s) and crashes (a traceback, or an end by a signal other than the SIGKILL sent).
+
+Part 4 (subprocesses): disk full. A run gets a file size limit (RLIMIT_FSIZE, what `ulimit -f` sets: the kernel
+refuses HDF5's write past it as it refuses one on a full disk, errno EFBIG) at a random fraction of its file's
+size; it must end with exit 3, its message saying how much space it needs, no traceback, no crash; then a
+`--resume` without the limit (the space freed) must complete it, compared with the uninterrupted run.
+
 Figures (JSON): faults_injected, campaigns_completed, campaigns_aborted, safe_state_reached (of the aborted),
 faults_unresolved (neither recovered nor safe: must be 0), files_unreadable (must be 0), samples_lost (samples
 missing from /lockin/time of the final files that no injected HF2 sample loss explains: must be 0),
 kills, kills_by_phase, resumed (resumed_completed + already_completed: must equal kills), mismatches (must be 0,
 with mismatch_details), unflushed_at_kill_s_max (wall time between the file's last write and an external
-kill: at most about storage.flush_interval_s), wall_s.
+kill: at most about storage.flush_interval_s), resume_kills (cases, kills_inside_resume, by kind), and
+disk_full (runs, exit_3, resumed_completed): each with mismatches, restarts, hangs and crashes (all must be 0),
+damaged_files (part 5: `analyze` and `run --resume` of copies cut at 100 B, 4 KiB, 1 %, 50 %, size - 4 KiB: exit
+code, expected 2, and wall time of each), wall_s.
 """
 
 from __future__ import annotations
@@ -284,6 +301,16 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
             arm()
         return close(self)
 
+    if phase == "repair":  # killed right after the nth dataset resize of the repair on reopen
+        import h5py as _h5py
+
+        resize = _h5py.Dataset.resize
+
+        def killing_resize(self, size, axis=None):
+            resize(self, size) if axis is None else resize(self, size, axis)
+            count()
+
+        _h5py.Dataset.resize = killing_resize
     cmp.CampaignRunner._block = hooked_block
     cmp.CampaignRunner._apply = hooked_apply
     cmp.CampaignRunner._start_dither = hooked_dither
@@ -350,14 +377,15 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
     return bad
 
 
-def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
-    rng = random.Random(seed + 7)
-    seeds = [seed * 100 + k for k in range(max(1, min(8, n // 7)))]
+def references(seeds: list[int], tmp: Path) -> tuple[dict[int, Path], dict[int, Path], float, float]:
+    """The kill configuration of each seed and its uninterrupted run; the lock-in's sample period and block."""
     configs, refs = {}, {}
-    for sd in seeds:  # the uninterrupted run of each seed
+    for sd in seeds:
         configs[sd] = tmp / f"kill{sd}.toml"
-        configs[sd].write_text(kill_config(sd))
         refs[sd] = tmp / f"ref{sd}.h5"
+        if refs[sd].exists():
+            continue
+        configs[sd].write_text(kill_config(sd))
         subprocess.run(
             [sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(refs[sd]), "-q"],
             check=True,
@@ -367,7 +395,13 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
     cfg0 = parse_config(configs[seeds[0]].read_text())
     with h5py.File(refs[seeds[0]], "r") as f:  # the sample period the lock-in applied (its rate, read back)
         dt = float(np.median(np.diff(f["lockin/time"][:2000])))
-    poll_s = cfg0.lockin.sim_poll_interval_s
+    return configs, refs, dt, cfg0.lockin.sim_poll_interval_s
+
+
+def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
+    rng = random.Random(seed + 7)
+    seeds = [seed * 100 + k for k in range(max(1, min(8, n // 7)))]
+    configs, refs, dt, poll_s = references(seeds, tmp)
     fig: dict[str, object] = dict(
         kills=0,
         kills_by_phase={p: 0 for p in PHASES},
@@ -471,6 +505,207 @@ def kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
     return fig
 
 
+HANG_S = 600.0
+
+
+def _child_argv(phase: str, nth: int, delay: float, run_args: list[str]) -> list[str]:
+    return [sys.executable, str(Path(__file__).resolve()), "--child", phase, str(nth), repr(delay), "--", *run_args]
+
+
+def _run(argv: list[str], fig: dict[str, object], **kw: object) -> subprocess.CompletedProcess[str] | None:
+    """Run a process to its end; None (a hang counted) if it did not end within HANG_S. A traceback or an end
+    by a signal other than SIGKILL counts as a crash."""
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=HANG_S, cwd=ROOT, **kw)  # type: ignore[call-overload]
+    except subprocess.TimeoutExpired:
+        fig["hangs"] = int(fig["hangs"]) + 1
+        return None
+    if "Traceback" in done.stderr or (done.returncode < 0 and done.returncode != -signal.SIGKILL):
+        fig["crashes"] = int(fig["crashes"]) + 1
+        fig["details"].append(f"crash: exit {done.returncode}: {' '.join(done.stderr.split())[-300:]}")
+    return done
+
+
+def _kill_after(argv: list[str], seconds: float, fig: dict[str, object]) -> tuple[int | None, str]:
+    """Start a process and SIGKILL it `seconds` after its start (if still running); its exit code and stderr."""
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        proc.wait(timeout=seconds)
+    except subprocess.TimeoutExpired:
+        os.kill(proc.pid, signal.SIGKILL)
+    try:
+        _, err = proc.communicate(timeout=HANG_S)
+    except subprocess.TimeoutExpired:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        fig["hangs"] = int(fig["hangs"]) + 1
+        return None, ""
+    if "Traceback" in err or (proc.returncode < 0 and proc.returncode != -signal.SIGKILL):
+        fig["crashes"] = int(fig["crashes"]) + 1
+        fig["details"].append(f"crash: exit {proc.returncode}: {' '.join(err.split())[-300:]}")
+    return proc.returncode, err
+
+
+def _checkpoints(path: Path) -> dict[int, tuple[float, float]]:
+    """The checkpoints a plain resume of the file keeps (its repair plan, read-only: the leading "completed"
+    /steps rows whose data are in): index -> (t_start, t_end). A file a full disk left short is read from a
+    copy padded to its recorded end, as its resume reads it."""
+    from qmg_lab.storage.resume import ends_short, plan_repair
+    from qmg_lab.storage.salvage import padded_copy
+
+    short = ends_short(path)
+    source = path.with_name(path.name + ".padded") if short else path
+    if short:
+        padded_copy(path, source)
+    try:
+        with h5py.File(source, "r", swmr=True, libver="latest") as h5:
+            n = plan_repair(h5, thorough=short).steps_rows
+            cols = [h5["steps"][c][:n] for c in ("index", "t_start", "t_end")]
+    finally:
+        if short:
+            source.unlink()
+    return {int(i): (float(a), float(b)) for i, a, b in zip(*cols, strict=True)}
+
+
+def _finish_and_compare(
+    path: Path,
+    cfg: Path,
+    ref: Path,
+    dt: float,
+    poll_s: float,
+    before: dict[int, tuple[float, float]],
+    fig: dict[str, object],
+    label: str,
+) -> None:
+    """A plain --resume to the end, then the comparison with the uninterrupted run and the restart check: every
+    checkpoint that a plain resume of the killed file keeps (`before`) is in the final file, unchanged (a
+    restart reruns them)."""
+    done = _run([sys.executable, "-m", "qmg_lab", "run", str(cfg), "--resume", str(path), "-q"], fig)
+    if done is None:
+        return
+    if done.returncode != 0:
+        fig["resume_failed"] = int(fig["resume_failed"]) + 1
+        fig["details"].append(f"{label}: final resume exit {done.returncode}: {' '.join(done.stderr.split())[-300:]}")
+        return
+    fig["resumed_completed"] = int(fig["resumed_completed"]) + 1
+    after = _checkpoints(path)
+    # kills inside the resumes must not lose or rerun a checkpoint that a plain resume of the killed file keeps
+    moved = [i for i, v in before.items() if i in after and after[i] != v]
+    lost = [i for i in before if i not in after]
+    if moved or lost:
+        fig["restarts"] = int(fig["restarts"]) + 1
+        fig["details"].append(f"{label}: checkpoints rerun {moved}, lost {lost}")
+    bad = check_against(path, ref, dt, poll_s)
+    if bad:
+        fig["mismatches"] = int(fig["mismatches"]) + 1
+        fig["details"].append(f"{label}: " + "; ".join(bad))
+
+
+def _outcome_figures(**counts: object) -> dict[str, object]:
+    """The figures of parts 3 and 4: their own counts, then the outcomes every part must keep at 0."""
+    zero = ("resumed_completed", "resume_failed", "mismatches", "restarts", "hangs", "crashes")
+    return {**counts, **dict.fromkeys(zero, 0), "details": []}
+
+
+def resume_kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
+    """Part 3 (module docstring): kills inside --resume, 1-3 in a row, then a plain --resume."""
+    rng = random.Random(seed + 11)
+    seeds = [seed * 100 + k for k in range(max(1, min(4, n // 6)))]
+    configs, refs, dt, poll_s = references(seeds, tmp)
+    fig = _outcome_figures(cases=0, kills_inside_resume=0, by_kind={"external": 0, "repair": 0})
+    for i in range(n):
+        sd = seeds[i % len(seeds)]
+        path = tmp / f"rkill{i}.h5"
+        run_args = ["run", str(configs[sd]), "-o", str(path), "-q"]
+        code, _ = _kill_after(_child_argv("step", rng.randint(1, 3), rng.uniform(0.0, 0.003), run_args), HANG_S, fig)
+        if code != -signal.SIGKILL or not path.exists():
+            continue
+        fig["cases"] = int(fig["cases"]) + 1
+        before = _checkpoints(path)
+        resume_args = ["run", str(configs[sd]), "--resume", str(path), "-q"]
+        for _ in range(rng.randint(1, 3)):
+            if rng.random() < 0.5:
+                code, err = _kill_after([sys.executable, "-m", "qmg_lab", *resume_args], rng.uniform(0.0, 2.5), fig)
+                kind = "external"
+            else:
+                code, err = _kill_after(_child_argv("repair", rng.randint(1, 40), 0.0, resume_args), HANG_S, fig)
+                kind = "repair"
+            if code == -signal.SIGKILL:
+                fig["kills_inside_resume"] = int(fig["kills_inside_resume"]) + 1
+                fig["by_kind"][kind] += 1  # type: ignore[index]
+            elif code == 0:
+                break  # the resume ran to its end before the kill came: the run is completed
+            else:
+                fig["resume_failed"] = int(fig["resume_failed"]) + 1
+                fig["details"].append(f"rkill{i}: resume ({kind}) exit {code}: {' '.join(err.split())[-300:]}")
+        if read_run(path, select=()).status == "completed":
+            continue  # the last resume ran to its end before its kill: nothing left to finish
+        _finish_and_compare(path, configs[sd], refs[sd], dt, poll_s, before, fig, f"rkill{i} (seed {sd})")
+    return fig
+
+
+def disk_full(n: int, seed: int, tmp: Path) -> dict[str, object]:
+    """Part 4 (module docstring): runs under a file size limit, then resumed without it."""
+    import resource
+
+    rng = random.Random(seed + 13)
+    seeds = [seed * 100 + k for k in range(max(1, min(4, n // 2)))]
+    configs, refs, dt, poll_s = references(seeds, tmp)
+    fig = _outcome_figures(runs=0, exit_3=0, space_named=0)
+    for i in range(n):
+        sd = seeds[i % len(seeds)]
+        path = tmp / f"full{i}.h5"
+        limit = int(refs[sd].stat().st_size * rng.uniform(0.1, 0.9))
+
+        def limited(limit: int = limit) -> None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+        argv = [sys.executable, "-m", "qmg_lab", "run", str(configs[sd]), "-o", str(path), "-q"]
+        done = _run(argv, fig, preexec_fn=limited)
+        if done is None:
+            continue
+        fig["runs"] = int(fig["runs"]) + 1
+        said = " ".join(done.stderr.split())
+        if done.returncode == 3:
+            fig["exit_3"] = int(fig["exit_3"]) + 1
+        else:
+            fig["details"].append(f"full{i}: exit {done.returncode}: {said[-300:]}")
+        if "The run needs about" in said:
+            fig["space_named"] = int(fig["space_named"]) + 1
+        if not path.exists():
+            continue
+        _finish_and_compare(path, configs[sd], refs[sd], dt, poll_s, _checkpoints(path), fig, f"full{i} (seed {sd})")
+    return fig
+
+
+CUTS = {"100 B": lambda n: 100, "4 KiB": lambda n: 4096, "1 %": lambda n: n // 100, "50 %": lambda n: n // 2}
+CUTS["size - 4 KiB"] = lambda n: n - 4096
+
+
+def damaged_files(seed: int, tmp: Path) -> dict[str, object]:
+    """Part 5: `qmg-lab analyze` and `qmg-lab run --resume` on copies of an uninterrupted run's file cut at 100 B,
+    4 KiB, 1 %, 50 % and size - 4 KiB: exit code and wall time of each (exit 2 expected, within 5 s, no
+    traceback, no hang)."""
+    configs, refs, _, _ = references([seed * 100], tmp)
+    cfg, ref = configs[seed * 100], refs[seed * 100]
+    size = ref.stat().st_size
+    fig: dict[str, object] = {"file_bytes": size, "cuts": {}, "hangs": 0, "crashes": 0, "details": []}
+    for label, cut in CUTS.items():
+        copy = tmp / "cut.h5"
+        with open(ref, "rb") as fh:
+            copy.write_bytes(fh.read(cut(size)))
+        row = {}
+        for what, argv in (
+            ("analyze", ["analyze", str(copy)]),
+            ("resume", ["run", str(cfg), "--resume", str(copy), "-q"]),
+        ):
+            t0 = time.monotonic()
+            done = _run([sys.executable, "-m", "qmg_lab", *argv], fig)
+            row[what] = {"exit": None if done is None else done.returncode, "wall_s": round(time.monotonic() - t0, 2)}
+        fig["cuts"][label] = row  # type: ignore[index]
+    return fig
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":  # faults.py --child PHASE NTH DELAY -- qmg-lab args
         child(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[6:])
@@ -479,6 +714,8 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--campaigns", type=int, default=60, help="soak campaigns under random faults (part 1)")
     ap.add_argument("--kills", type=int, default=56, help="kill -9 + --resume runs (part 2)")
+    ap.add_argument("--resume-kills", type=int, default=24, help="runs whose --resume is killed (part 3)")
+    ap.add_argument("--disk-full", type=int, default=8, help="runs that hit a full disk, then resumed (part 4)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
     t0 = time.monotonic()
@@ -486,11 +723,17 @@ def main() -> None:
         tmp = Path(d)
         s = soak(args.campaigns, args.seed, tmp)
         k = kills(args.kills, args.seed, tmp)
+        rk = resume_kills(args.resume_kills, args.seed, tmp)
+        full = disk_full(args.disk_full, args.seed, tmp) if sys.platform != "win32" else {}
+        damaged = damaged_files(args.seed, tmp)
     result = {
         **s,
         "files_unreadable": s["files_unreadable"] + int(k["files_unreadable"]),
         "samples_lost": s["samples_lost"] + int(k["samples_lost"]),
         **{key: v for key, v in k.items() if key not in ("files_unreadable", "samples_lost")},
+        "resume_kills": rk,
+        "disk_full": full,
+        "damaged_files": damaged,
         "campaigns": args.campaigns,
         "seed": args.seed,
         "wall_s": round(time.monotonic() - t0, 1),

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ from qmg_lab.instruments import (
     InstrumentError,
     Station,
 )
-from qmg_lab.storage.writer import RunWriter
+from qmg_lab.storage.writer import RunFileWriteError, RunWriter
 
 T = TypeVar("T")
 
@@ -122,6 +123,7 @@ class CampaignRunner:
     progress: Callable[[Progress], None] | None = None
     resume: bool = False
     plan: CheckedPlan | None = None  # None: made (and checked) here from cfg
+    guard: InterruptGuard | None = None  # the caller's, already installed (the CLI's); None: run() installs one
 
     def __post_init__(self) -> None:
         self.steps: list[Step] = list((self.plan or checked_plan(self.cfg)).steps)
@@ -151,6 +153,10 @@ class CampaignRunner:
             event=self._event,
         )
         self._safe_confirmed = True
+        #: the safe_state event's message, word for word ("confirmed" or "not confirmed: ..."): what the CLI's last
+        #: words about the safe state say, so the terminal never contradicts the file
+        self.safe_state_note = ""
+        self._interrupted = False  # stopped by a stop signal (event "interrupted", not "abort")
         self._step = Step(-1, StepKind.LOCK, 0.0, self.cfg.plan.chamber_start_c, self.cfg.plan.chamber_ramp_c_per_min)
         self._step_elapsed = 0.0
         self._records = self.writer.records()
@@ -189,7 +195,7 @@ class CampaignRunner:
     def run(self) -> RunSummary:
         """Execute every step not yet completed; always leave the station safe and the file's status set."""
         status, reason = "aborted", ""
-        with InterruptGuard() as guard:
+        with contextlib.nullcontext(self.guard) if self.guard is not None else InterruptGuard() as guard:
             self._guard = guard
             try:
                 self._prepare()
@@ -201,9 +207,11 @@ class CampaignRunner:
                     self._run_step(step)
                 status = "completed"
             except KeyboardInterrupt:
-                reason = "interrupted by the operator (Ctrl-C)"
-                raise CampaignInterrupted(reason) from None
+                self._interrupted = True
+                reason = guard.reason()
+                raise CampaignInterrupted(reason, guard.exit_code() - 128) from None
             except CampaignInterrupted as exc:
+                self._interrupted = True
                 reason = str(exc)
                 raise
             except InstrumentError as exc:
@@ -212,6 +220,9 @@ class CampaignRunner:
             except CampaignAborted as exc:
                 reason = str(exc)
                 raise
+            except RunFileWriteError as exc:  # a full disk: abort to the safe state, say how much space it needs
+                reason = self._write_failure_reason(exc)
+                raise CampaignAborted(reason) from exc
             except Exception as exc:
                 reason = f"internal error: {type(exc).__name__}: {exc}"
                 raise
@@ -298,10 +309,11 @@ class CampaignRunner:
         except Exception as exc:
             failures.append(f"lockin stream: {exc}")
         self._safe_confirmed = not failures
+        self.safe_state_note = "confirmed" if not failures else "not confirmed: " + "; ".join(failures)
         self._event(
             "safe_state",
             "",
-            "confirmed" if not failures else "not confirmed: " + "; ".join(failures),
+            self.safe_state_note,
             logging.INFO if not failures else logging.ERROR,
         )
         if failures and not reason:
@@ -312,10 +324,34 @@ class CampaignRunner:
         if status == "completed":
             self._event("completed", "", "every step completed", logging.INFO)
         else:
-            self._event("interrupted" if "Ctrl-C" in reason else "abort", "", reason, logging.ERROR)
-        self.writer.set_status(status, reason)
-        self.writer.flush()
+            self._event("interrupted" if self._interrupted else "abort", "", reason, logging.ERROR)
+        try:
+            self.writer.set_status(status, reason)
+            self.writer.flush()
+        except RunFileWriteError as exc:  # the file cannot take its status (a full disk): it keeps its last flush
+            log.error("could not write the run's status: %s", exc)
         return failures
+
+    def _write_failure_reason(self, exc: RunFileWriteError) -> str:
+        """The abort reason of a failed write; out of space: how much more the run needs, from the bytes per
+        second of run time written so far and the plan's time left, and what is free on the file's disk."""
+        if not exc.out_of_space:
+            return f"the run file could not be written: {exc}"
+        path = self.writer.path
+        try:
+            size = path.stat().st_size
+            free = shutil.disk_usage(path.resolve().parent).free
+        except OSError:
+            size, free = 0, 0
+        left_s = max(self._planned_s - self._done_s, 0.0)
+        per_s = size / self._t if self._t > 0 else 0.0
+        what = "the process's file size limit (ulimit -f) was reached" if exc.size_limit else "the disk is full"
+        return (
+            f"the run file could not be written: {what} ({path}: {size / 1e6:.1f} MB written for {self._t:.0f} s "
+            f"of run time). The run needs about {per_s * left_s / 1e6:.0f} MB more for its remaining "
+            f"{left_s:.0f} s (at {per_s * 3600 / 1e6:.0f} MB per hour of run time); {free / 1e6:.0f} MB are free "
+            f"on its disk. Free the space, then continue with --resume {path}"
+        )
 
     # ================================================================== steps
     def _run_step(self, step: Step) -> None:
@@ -397,7 +433,7 @@ class CampaignRunner:
     def _block(self, step: Step, step_elapsed: float, want_s: float) -> float:
         """Poll one block, log it, run CLSF and the suspenders. Returns the block's duration (s)."""
         if self._guard is not None and self._guard.requested and not self._recovery.finishing:
-            raise CampaignInterrupted("interrupted by the operator (Ctrl-C)")
+            raise CampaignInterrupted(self._guard.reason(), self._guard.exit_code() - 128)
         block = self._recovery.call("lockin", lambda: self.station.lockin.poll(want_s))
         n = len(block)
         if n == 0:

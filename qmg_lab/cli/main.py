@@ -15,7 +15,7 @@ import logging
 import sys
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -27,6 +27,7 @@ from rich.table import Table
 
 from qmg_lab import __version__
 from qmg_lab.cli import heap
+from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 
@@ -97,7 +98,7 @@ def _options(
 
 def _fail(code: int, message: str) -> NoReturn:
     # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
-    console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
+    say(console.print, f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
     raise typer.Exit(code)
 
 
@@ -271,10 +272,11 @@ def _execute(
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
     configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
     or change the file. The file's final close is protected from a second Ctrl-C."""
-    from qmg_lab.campaign.interrupts import InterruptGuard
+    from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.cli.progress import ProgressView
+    from qmg_lab.storage.resume import ends_short
     from qmg_lab.storage.summary import create_run_writer, refuse_study_resume
     from qmg_lab.storage.writer import RunWriter, StorageError
 
@@ -285,69 +287,95 @@ def _execute(
     sha = config_fingerprint(text)
     modes = _instrument_modes(cfg)
     mode = "sim" if cfg.all_sim else "hardware"
-    if resume is not None:
-        if output is not None and output.resolve() != resume.resolve():
-            _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
-        try:
-            refuse_study_resume(resume)
-            RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
-        except StorageError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        path = resume
-    else:
-        path = output or _default_output(cfg)
-        if path.exists() and not (overwrite and path.is_file()):
-            _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-    with _station(cfg) as station:
-        try:
-            if resume is not None:
-                writer = RunWriter.reopen(
-                    resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+    with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
+        if resume is not None:
+            if output is not None and output.resolve() != resume.resolve():
+                _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+            if resume.is_file():
+                _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
+            try:
+                # a file cut short is checked first, on a padded copy opened without SWMR: a SWMR open of it
+                # could retry for minutes
+                short = ends_short(resume)
+                if not short:
+                    refuse_study_resume(resume)
+                RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
+                if short:
+                    refuse_study_resume(resume)
+            except StorageError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            path = resume
+        else:
+            path = output or _default_output(cfg)
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+            _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
+            if path.exists() and not (overwrite and path.is_file()):
+                _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        with stop_exits(console.print), InterruptGuard() as guard, _station(cfg) as station:
+            # one guard from here to the file's last close: a stop signal while the station connects or the file is
+            # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
+            try:
+                if resume is not None:
+                    writer = RunWriter.reopen(
+                        resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
+                    )
+                else:
+                    if path.exists():
+                        path.unlink()  # --overwrite, now that the station answered
+                    writer = create_run_writer(
+                        path,
+                        cfg,
+                        plan.steps,
+                        config_text=text,
+                        config_sha256=sha,
+                        mode=mode,
+                        software_version=__version__,
+                        t0_unix=datetime.now(UTC).timestamp(),
+                        instrument_modes=modes,
+                    )
+            except StorageError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            except OSError as exc:
+                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+            log.info("run file %s; instruments %s", writer.path, modes)
+            heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
+            view = ProgressView(console, enabled=not quiet)
+            runner: CampaignRunner | None = None
+            try:
+                with view:
+                    runner = CampaignRunner(
+                        cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan, guard=guard
+                    )
+                    return runner.run()
+            except CampaignInterrupted as exc:
+                _fail(
+                    exit_code(exc.signum),
+                    f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
+                    f"aborted; continue with --resume {writer.path})",
                 )
-            else:
-                if path.exists():
-                    path.unlink()  # --overwrite, now that the station answered
-                writer = create_run_writer(
-                    path,
-                    cfg,
-                    plan.steps,
-                    config_text=text,
-                    config_sha256=sha,
-                    mode=mode,
-                    software_version=__version__,
-                    t0_unix=datetime.now(UTC).timestamp(),
-                    instrument_modes=modes,
-                )
-        except StorageError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        except OSError as exc:
-            _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-        log.info("run file %s; instruments %s", writer.path, modes)
-        heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
-        view = ProgressView(console, enabled=not quiet)
-        try:
-            with view:
-                runner = CampaignRunner(
-                    cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan
-                )
-                return runner.run()
-        except CampaignInterrupted as exc:
-            _fail(
-                EXIT_INTERRUPTED,
-                f"{exc}; instruments in their safe state; file {writer.path} (status "
-                f"aborted; continue with --resume {writer.path})",
-            )
-        except (CampaignAborted, InstrumentError) as exc:
-            _fail(EXIT_FAULT, f"{exc}; instruments in their safe state; file {writer.path} (status aborted)")
-        except LimitError as exc:
-            _fail(EXIT_BAD_INPUT, str(exc))
-        finally:
-            with InterruptGuard() as guard, guard.protect():  # a second Ctrl-C waits for the file's last write
-                writer.close()
+            except (CampaignAborted, InstrumentError) as exc:
+                words = safe_state_words(runner.safe_state_note if runner else "")
+                _fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
+            except LimitError as exc:
+                _fail(EXIT_BAD_INPUT, str(exc))
+            finally:
+                with guard.protect():  # a second stop signal waits for the file's last write
+                    writer.close()
+
+
+def _hold(stack: ExitStack, path: Path) -> None:
+    """Take the run file's one-writer lock (qmg_lab/storage/lock.py) for the rest of the command; exit 2 if
+    another process writes the file."""
+    from qmg_lab.storage.lock import RunFileLock
+    from qmg_lab.storage.writer import StorageError
+
+    try:
+        stack.enter_context(RunFileLock(path))
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
 
 
 def _print_summary(summary: Any) -> None:
@@ -366,7 +394,7 @@ def _print_summary(summary: Any) -> None:
     ]
     for r in rows:
         tbl.add_row(*r)
-    out.print(tbl)
+    say(out.print, tbl)
 
 
 # ====================================================================================== instruments
@@ -480,9 +508,9 @@ def analyze(
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
 
-    from qmg_lab.analysis.compute import analyze as run_analysis
-    from qmg_lab.analysis.render import render_table
-    from qmg_lab.storage.writer import StorageError, read_run, status_detail
+    from qmg_lab.cli.files import damaged_file_report
+    from qmg_lab.storage.layout import DamagedFileError, StorageError
+    from qmg_lab.storage.superblock import check_file_end
 
     if fmt not in ("png", "svg", "pdf"):
         _fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
@@ -492,6 +520,17 @@ def analyze(
         _analyze_study(run_file, json_out, figures)
         return
     try:
+        check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
+    except DamagedFileError as exc:
+        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
+    except StorageError as exc:
+        _fail(EXIT_BAD_INPUT, str(exc))
+
+    from qmg_lab.analysis.compute import analyze as run_analysis
+    from qmg_lab.analysis.render import render_table
+    from qmg_lab.storage.writer import read_run, status_detail
+
+    try:
         result = run_analysis(run_file)
         detail = status_detail(read_run(run_file, select=()))
         written = []
@@ -499,6 +538,8 @@ def analyze(
             from qmg_lab.analysis.report import write_figures
 
             written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
+    except DamagedFileError as exc:  # what still reads, and what does not
+        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
         _fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
@@ -645,13 +686,18 @@ def version() -> None:
 
 def main() -> None:  # pragma: no cover - console entry
     heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
+    from qmg_lab.campaign.interrupts import StopRequested, exit_code
+
     try:
         app()
+    except StopRequested as exc:  # a second stop signal outside the campaign (e.g. after the file was closed)
+        sys.exit(exit_code(exc.signum))
     except KeyboardInterrupt:
         sys.exit(EXIT_INTERRUPTED)
     finally:
+        settle_streams()  # a dead terminal or a full stdout must not change the exit code
         heap.quiet_exit()
 
 
 # the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device, runs, watch  # noqa: E402,F401 - imported for their side effect, after `app` exists
+from qmg_lab.cli import bench, device, files, runs, watch  # noqa: E402,F401 - imported for their side effect

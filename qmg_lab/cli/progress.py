@@ -12,6 +12,7 @@ the expected duration, instead of showing "0x real time" in silence.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -116,8 +117,9 @@ class ProgressView:
             self._timer.cancel()
             self._timer = None
         if self.live is not None:
-            self.live.__exit__(None, None, None)
-            self.live = None
+            live, self.live = self.live, None
+            with contextlib.suppress(OSError, ValueError):  # a dead terminal: not the run's outcome's business
+                live.__exit__(None, None, None)
 
     def __rich__(self) -> RenderableType:
         """What the live panel shows (rendered by its refresh thread): the last panel and the compile notice."""
@@ -136,11 +138,20 @@ class ProgressView:
     def _print_notice(self) -> None:
         notice = self.waiting_text()
         if notice:
-            self.console.print(notice, highlight=False)
+            with contextlib.suppress(OSError, ValueError):  # a dead terminal: the campaign goes on
+                self.console.print(notice, highlight=False)
 
     def update(self, p: Progress) -> None:
+        """Show the progress; a console write that fails (a dead terminal after SIGHUP, a full or closed stdout
+        or stderr) turns the view off, and the campaign goes on."""
         if not self.enabled:
             return
+        try:
+            self._show(p)
+        except (OSError, ValueError):
+            self.enabled = False
+
+    def _show(self, p: Progress) -> None:
         self._blocks += 1
         self._last_block = self._clock()
         if self.live is None:

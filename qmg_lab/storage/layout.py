@@ -138,5 +138,10 @@ class StorageError(Exception):
     """A run file that cannot be created, read or resumed; the message names the file and what is wrong."""
 
 
+class DamagedFileError(StorageError):
+    """A run file whose bytes are damaged (cut short, a chunk or metadata that does not decode): what still reads
+    can be listed and copied (qmg_lab/storage/salvage.py)."""
+
+
 def _text(value: Any) -> str:
     return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)

@@ -13,7 +13,8 @@ import numpy as np
 
 from qmg_lab.config.schema import Config, ConfigError, parse_config
 from qmg_lab.storage.h5clear import writer_flags_set
-from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, STEPS_UNITS, StorageError
+from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, STEPS_UNITS, DamagedFileError, StorageError
+from qmg_lab.storage.superblock import check_file_end
 
 
 @dataclass
@@ -67,6 +68,26 @@ def _py(value: Any) -> Any:
     return value
 
 
+def valid_rows(t: np.ndarray) -> int:
+    """How many leading rows of a time column are data: the longest prefix that is finite and does not decrease,
+    less a trailing run of exact 0.0 after the first row.
+
+    Rows a killed writer (or a killed repair: shrinking a dataset writes fill values at once, its new extent only
+    at the next flush) left allocated but unwritten hold the dataset's fill value: NaN in files from issue 27 on
+    (not finite), 0.0 in older ones (a step back to 0.0, or 0.0 repeated after a first row at 0.0). A time of
+    exactly 0.0 can only be a run's first row, so neither is ever taken as data.
+    """
+    n = int(t.shape[0])
+    if n == 0:
+        return 0
+    bad = ~np.isfinite(t)
+    bad[1:] |= t[1:] < t[:-1]
+    k = int(np.argmax(bad)) if bad.any() else n
+    while k > 1 and t[k - 1] == 0.0:
+        k -= 1
+    return k
+
+
 def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
     """Read a qmg-lab/1 run file — complete, still being written, or left by a killed process.
 
@@ -76,11 +97,12 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
     p = Path(path)
     if not p.is_file():
         raise StorageError(f"{p}: no such run file")
+    check_file_end(p)  # a file cut short is answered now, not after minutes of SWMR retries
     writer_open = writer_flags_set(p)
     try:
         h5 = h5py.File(p, "r", swmr=True, libver="latest")
     except OSError as exc:
-        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
+        raise DamagedFileError(f"{p}: HDF5 cannot open it: {exc}") from None
     wanted: dict[str, set[str] | None] | None = None
     if select is not None:
         wanted = {}
@@ -125,13 +147,27 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
                     if unknown:
                         raise StorageError(f"{p}: /{g} has no columns {unknown}")
                     cols = [c for c in cols if c in sel or c == "time"]
-            groups[g] = {c: grp[c][:n] for c in cols}
+            data: dict[str, np.ndarray] = {}
+            if "time" in cols:  # fill values a kill left at the end are not rows (valid_rows)
+                t = _read(p, grp["time"], n)
+                rows_cut[g] += n - valid_rows(t)
+                n = valid_rows(t)
+                data["time"] = t[:n]
+            groups[g] = {c: data[c] if c in data else _read(p, grp[c], n) for c in cols}
     steps = groups.pop("steps")
     for c in ("kind", "status"):
         steps[c] = np.array([s.decode("utf-8", "replace") for s in steps[c]], dtype=str)
     return RunData(
         path=p, attrs=attrs, groups=groups, steps=steps, units=units, writer_open=writer_open, rows_cut=rows_cut
     )
+
+
+def _read(path: Path, ds: h5py.Dataset, n: int) -> np.ndarray:
+    """The first n rows of a dataset; a dataset that cannot be read (a damaged chunk) is named (StorageError)."""
+    try:
+        return np.asarray(ds[:n])
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise DamagedFileError(f"{path}: the dataset {ds.name} cannot be read (the file is damaged): {exc}") from None
 
 
 def read_window(
@@ -144,10 +180,11 @@ def read_window(
     p = Path(path)
     if not p.is_file():
         raise StorageError(f"{p}: no such run file")
+    check_file_end(p)
     try:
         h5 = h5py.File(p, "r", swmr=True, libver="latest")
     except OSError as exc:
-        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
+        raise DamagedFileError(f"{p}: HDF5 cannot open it: {exc}") from None
     with h5:
         if group not in h5 or "time" not in h5[group]:
             raise StorageError(f"{p}: has no /{group}/time")
@@ -170,7 +207,10 @@ def read_window(
                     hi = mid
             return lo
 
-        i0, i1 = bisect(t_start, False), bisect(t_end, True)
-        out = {c: grp[c][i0:i1] for c in cols}
-        out.setdefault("time", t[i0:i1])
+        try:
+            i0, i1 = bisect(t_start, False), bisect(t_end, True)
+            out = {c: grp[c][i0:i1] for c in cols}
+            out.setdefault("time", t[i0:i1])
+        except (OSError, RuntimeError, ValueError) as exc:
+            raise DamagedFileError(f"{p}: /{group} cannot be read between {t_start:g} and {t_end:g} s: {exc}") from None
         return out

@@ -9,14 +9,17 @@ import json
 import os
 import socket
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, StorageError, whole_chunk_layout
-from qmg_lab.storage.reader import RunData, read_run
+from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, DamagedFileError, StorageError, whole_chunk_layout
+from qmg_lab.storage.reader import RunData, read_run, valid_rows
+from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
+from qmg_lab.storage.superblock import read_superblock
 
 
 def check_resumable(
@@ -33,7 +36,38 @@ def check_resumable(
     p = Path(path)
     if not p.is_file():
         raise StorageError(f"{p}: no such run file to resume")
-    run = read_run(p, select=("steps",))
+    if not ends_short(p):
+        return _check_resumable(p, p, config_sha256, instrument_modes, thorough=False)
+    # shorter than its superblock's end of file: a write that failed (a full disk) or an incomplete copy. Checked
+    # on a copy padded with zeros to that end (nothing here changes the file); the repair plan then reads every
+    # column, and refuses if what does not read is more than a kill loses
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.check")
+    try:
+        padded_copy(p, tmp)
+        try:  # first without SWMR: metadata lost with the missing bytes fails at once instead of being retried
+            with h5py.File(tmp, "r") as h5:
+                plan_repair(h5, thorough=True)
+        except H5_ERRORS as exc:
+            raise DamagedFileError(
+                f"{p}: ends before the end of file its superblock records, and what is left cannot be resumed "
+                f"({exc}); nothing was changed: copy what still reads with `qmg-lab salvage {p} -o NEW.h5`"
+            ) from None
+        return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def ends_short(path: Path) -> bool:
+    """The file ends before the end-of-file address its superblock records (superblock.py)."""
+    sb = read_superblock(path)
+    return sb.eof_address is not None and os.path.getsize(path) < sb.eof_address
+
+
+def _check_resumable(
+    p: Path, readable: Path, config_sha256: str, instrument_modes: Mapping[str, str] | None, *, thorough: bool
+) -> RunData:
+    """check_resumable's checks of the run file `p`, read from `readable` (p itself or its padded copy)."""
+    run = read_run(readable, select=("steps",))
     if run.status == "completed":
         done, planned = run.attrs.get("completed_steps", "?"), run.attrs.get("planned_steps", "?")
         raise StorageError(
@@ -52,6 +86,12 @@ def check_resumable(
             raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
+    try:
+        with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
+            plan = plan_repair(h5, thorough=thorough)
+    except (OSError, RuntimeError) as exc:
+        raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
+    refuse_discarding_repair(p, plan)
     return run
 
 
@@ -115,43 +155,154 @@ def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> N
     )
 
 
-def _last(ds: h5py.Dataset) -> float:
-    return float(ds[ds.shape[0] - 1]) if ds.shape[0] else -np.inf
+#: a repair may cut at most what a kill loses: the data of the last flush (on the twins /truth is handed over in
+#: whole chunks behind /lockin, 16384 samples = 9.1 s at 1800 Sa/s; on the bench a flush carries about a second)
+#: plus the last lock-in block whose /table and /chamber readings were not in. The bound is two /lockin chunks of
+#: time, two /table reading intervals and this margin (s); a repair that would cut more is not repairing a kill:
+#: the file's end is damaged, and the resume refuses instead of discarding what the file holds
+REPAIR_CUT_MARGIN_S = 5.0
 
 
-def _cut(grp: h5py.Group, n: int) -> None:
-    for c in grp:
-        if grp[c].shape[0] > n:
-            grp[c].resize((n,))
+@dataclass(frozen=True)
+class RepairPlan:
+    """Where a reopened file will end (`plan_repair`): rows kept per group, /steps rows kept (a prefix), the end
+    instant, and what the cut drops."""
+
+    rows: dict[str, int]
+    steps_rows: int
+    t_end: float
+    #: the latest time the file shows as recorded: its last valid /lockin time, or the end of its latest
+    #: "completed" step if later (a step's row is written only after its data), s (-inf: none)
+    t_recorded: float
+    dropped_steps: list[int]
+    max_cut_s: float  # what a kill can lose in this file's layout (REPAIR_CUT_MARGIN_S)
+
+    @property
+    def cut_s(self) -> float:
+        """Recorded time the repair cuts, s."""
+        if not np.isfinite(self.t_recorded):
+            return 0.0
+        return self.t_recorded - (self.t_end if np.isfinite(self.t_end) else 0.0)
 
 
-def repair_end(h5: h5py.File) -> None:
-    """Make a reopened file end on one consistent instant (RunWriter.reopen steps 1-3)."""
-    for g in [g for g in (*GROUP_UNITS, "steps") if g in h5]:
-        _cut(h5[g], min(h5[g][c].shape[0] for c in h5[g]))
-    t_end = _last(h5["lockin"]["time"])
-    if "truth" in h5 and h5["truth"]["time"].shape[0]:  # a writer that never logs truth keeps its lock-in
-        t_end = min(t_end, _last(h5["truth"]["time"]))
+def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
+    """Read-only: where a killed file can end on one consistent instant (RunWriter.reopen steps 1-3).
+
+    1. every group keeps its whole rows that are data: its shortest column, and of its time column only the rows
+       `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
+       issue 27 on, 0.0 before: never data);
+    2. the end instant is the last /lockin time, or the last /truth time if earlier (unless /truth has no rows);
+       in the twins' whole-chunk layout it moves back to the last /table or /chamber reading at or before it;
+    3. /steps keeps its leading rows that are "completed" and end at or before that instant.
+
+    thorough (a file that ended short and was padded with zeros: a write failed, e.g. on a full disk): every
+    column is read, and each group keeps only the rows every one of its columns can read.
+    """
+    rows: dict[str, int] = {}
+    times: dict[str, np.ndarray] = {}
+    for g in [g for g in GROUP_UNITS if g in h5]:
+        n = min(h5[g][c].shape[0] for c in h5[g])
+        if thorough:
+            n = min(readable_rows(h5[g][c], n) for c in h5[g])
+        t = h5[g]["time"][:n]
+        n = valid_rows(t)
+        rows[g], times[g] = n, t[:n]
+    t_data_end = float(times["lockin"][-1]) if rows.get("lockin") else -np.inf
+    t_end = t_data_end
+    if rows.get("truth"):  # a writer that never logs truth keeps its lock-in
+        t_end = min(t_end, float(times["truth"][-1]))
     if whole_chunk_layout(h5):
         # written in whole chunks: the file may end inside a lock-in block whose /table and /chamber readings
         # (stamped with the block's last sample) were cut. End on the last block that has its readings, so the
         # resumed file keeps one reading per block across the resume point
         ends = []
         for g in ("table", "chamber"):
-            t = h5[g]["time"][:] if g in h5 else np.empty(0)
+            t = times.get(g, np.empty(0))
             k = int(np.searchsorted(t, t_end, side="right"))
             if k:
                 ends.append(float(t[k - 1]))
         if ends:
             t_end = max(ends)
-    for g in [g for g in GROUP_UNITS if g in h5]:
-        t = h5[g]["time"][:]
-        _cut(h5[g], int(np.searchsorted(t, t_end, side="right")))
+    for g, t in times.items():
+        rows[g] = int(np.searchsorted(t, t_end, side="right"))
     steps = h5["steps"]
-    keep = (steps["status"][:] == b"completed") & (steps["t_end"][:] <= t_end)
-    if not keep.all():
-        for c in steps:
-            kept = steps[c][:][keep]
-            steps[c].resize((kept.shape[0],))
-            if kept.shape[0]:
-                steps[c][:] = kept
+    n = min(steps[c].shape[0] for c in steps)
+    status, t_ends, index = steps["status"][:n], steps["t_end"][:n], steps["index"][:n]
+    ok = (status == b"completed") & (t_ends <= t_end)
+    keep = int(np.argmin(ok)) if not ok.all() else n
+    dropped = [int(i) for i, s in zip(index[keep:], status[keep:], strict=True) if s == b"completed"]
+    done = t_ends[(status == b"completed") & np.isfinite(t_ends)]
+    t_recorded = max(t_data_end, float(done.max())) if done.shape[0] else t_data_end
+    return RepairPlan(
+        rows=rows,
+        steps_rows=keep,
+        t_end=t_end,
+        t_recorded=t_recorded,
+        dropped_steps=dropped,
+        max_cut_s=_max_cut_s(h5, times),
+    )
+
+
+def _max_cut_s(h5: h5py.File, times: dict[str, np.ndarray]) -> float:
+    """What a kill can lose at the end of this file, s: two /lockin chunks of samples, two /table intervals and
+    REPAIR_CUT_MARGIN_S (the spacings from the file's own last rows)."""
+
+    def spacing(t: np.ndarray) -> float:
+        return float(t[-1] - t[-2]) if t.shape[0] >= 2 else 0.0
+
+    lockin = times.get("lockin", np.empty(0))
+    chunk = h5["lockin"]["time"].chunks
+    chunk_s = spacing(lockin) * (chunk[0] if chunk else 1)
+    return 2.0 * chunk_s + 2.0 * spacing(times.get("table", np.empty(0))) + REPAIR_CUT_MARGIN_S
+
+
+def refuse_discarding_repair(path: Path, plan: RepairPlan) -> None:
+    """A resume never discards recorded data beyond what a kill loses: refuse (StorageError, nothing changed) a
+    repair that would cut more recorded time (the later of the last valid /lockin time and the end of the last
+    completed step) than a kill loses (`max_cut_s`)."""
+    cut = plan.cut_s
+    kept_end = plan.t_end if np.isfinite(plan.t_end) else 0.0
+    if cut > plan.max_cut_s:
+        raise StorageError(
+            f"{path}: resuming would discard {cut:.1f} s of recorded data (the file records data up to "
+            f"{plan.t_recorded:.1f} s, its groups only agree up to {kept_end:.1f} s) and the completed "
+            f"steps {plan.dropped_steps}: the file's end is damaged beyond what a killed process leaves "
+            f"(at most {plan.max_cut_s:.1f} s here). Nothing was changed; analyse it as it is "
+            f"(qmg-lab analyze {path}), or copy what reads into a new file with qmg-lab salvage"
+        )
+
+
+def _cut(ds: h5py.Dataset, n: int) -> None:
+    if ds.shape[0] > n:
+        ds.resize((n,))
+
+
+def repair_end(h5: h5py.File, plan: RepairPlan | None = None) -> RepairPlan:
+    """Make a reopened (SWMR-writing) file end on one consistent instant, in an order that a kill at any point
+    of it leaves a file the next repair finishes correctly.
+
+    Shrinking a chunked dataset makes HDF5 write fill values into the part of its last partial chunk beyond the
+    new end at once, while the new extent reaches the file only at the next flush: a kill in between leaves the
+    old row count with fill values at the end. So every time column is cut first, each followed by a flush (its
+    new extent is on disk before any other column of its group changes); then the other columns. Fill values a
+    kill leaves in a time column are not data to `valid_rows`, and those in the other columns lie beyond their
+    group's time, so the next `plan_repair` never takes them as data. /steps likewise: its status column first
+    (a fill value is not "completed"), flushed, then the others.
+    """
+    plan = plan or plan_repair(h5)
+    groups = [g for g in GROUP_UNITS if g in h5]
+    for g in groups:
+        if h5[g]["time"].shape[0] > plan.rows[g]:
+            _cut(h5[g]["time"], plan.rows[g])
+            h5.flush()
+    for g in groups:
+        for c in h5[g]:
+            _cut(h5[g][c], plan.rows[g])
+    steps = h5["steps"]
+    if steps["status"].shape[0] > plan.steps_rows:
+        _cut(steps["status"], plan.steps_rows)
+        h5.flush()
+    for c in steps:
+        _cut(steps[c], plan.steps_rows)
+    h5.flush()
+    return plan

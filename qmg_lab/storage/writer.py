@@ -36,9 +36,12 @@ are in their own modules of this package.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import math
 import os
+import re
+import secrets
 import socket
 import time as _time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -83,9 +86,19 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
     _text,
     whole_chunk_layout,
 )
+from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.reader import RunData, read_run, read_window
 from qmg_lab.storage.records import RunRecords, create_groups
-from qmg_lab.storage.resume import check_resumable, file_instrument_modes, repair_end, status_detail
+from qmg_lab.storage.resume import (
+    check_resumable,
+    ends_short,
+    file_instrument_modes,
+    plan_repair,
+    refuse_discarding_repair,
+    repair_end,
+    status_detail,
+)
+from qmg_lab.storage.superblock import read_superblock
 
 #: the writer's chunk cache per dataset. HDF5 2.0 defaults to 8 MiB per open dataset, and the writer keeps ~30
 #: datasets open: 1 MiB (8 fast-group chunks) holds every partial chunk until its flush; w0 = 1 evicts fully
@@ -107,6 +120,7 @@ __all__ = [
     "TRUTH_UNITS",
     "ResumeState",
     "RunData",
+    "RunFileWriteError",
     "RunWriter",
     "StorageError",
     "file_instrument_modes",
@@ -140,10 +154,18 @@ class RunWriter:
     """
 
     def __init__(
-        self, path: Path, h5: h5py.File, *, flush_interval_s: float, clock: Callable[[], float] = _time.monotonic
+        self,
+        path: Path,
+        h5: h5py.File,
+        *,
+        flush_interval_s: float,
+        clock: Callable[[], float] = _time.monotonic,
+        lock: RunFileLock | None = None,
     ) -> None:
         if not flush_interval_s > 0:
             raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
+        self._lock = lock  # the file's one-writer lock, released by close()
+        self._failed = False  # a write failed (RunFileWriteError): nothing more is written
         self.path = path
         self._h5 = h5
         self.flush_interval_s = float(flush_interval_s)
@@ -240,81 +262,144 @@ class RunWriter:
             )
         if not np.isfinite(t0_unix):
             raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
-        if p.exists():
-            raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume")
         if not p.parent.is_dir():
             raise StorageError(f"{p}: directory {p.parent} does not exist")
-        # the file is laid out under a hidden name and renamed into place once SWMR is on: a process killed while
-        # laying it out leaves no half-made file at `path` that a reader or --resume could not open
-        tmp = p.with_name(f".{p.name}.creating")
-        tmp.unlink(missing_ok=True)  # left by a process killed in this very window: never a run's data
+        lock = RunFileLock(p).acquire()  # one writer per file (qmg_lab/storage/lock.py); released by close()
+        try:
+            if p.exists():
+                raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume")
+            h5 = cls._lay_out(
+                p,
+                lambda h5: cls._write_layout(
+                    h5,
+                    p,
+                    config_text=config_text,
+                    config_sha256=config_sha256,
+                    mode=mode,
+                    software_version=software_version,
+                    t0_unix=t0_unix,
+                    flush_interval_s=flush_interval_s,
+                    compression=compression,
+                    truth=truth,
+                    planned_steps=planned_steps,
+                    planned_step_kinds=planned_step_kinds,
+                    modes=modes,
+                    realtime=realtime,
+                    extra_attrs=extra_attrs,
+                    extra_layout=extra_layout,
+                ),
+            )
+        except BaseException:
+            lock.release()
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock, lock=lock)
+
+    @staticmethod
+    def _lay_out(p: Path, write_layout: Callable[[h5py.File], None]) -> h5py.File:
+        """Lay the file out under a hidden name unique to this process, close it, move it into place without
+        replacing anything, then open it again and start SWMR. A process killed while laying it out leaves no
+        half-made file at `p` (its hidden file is removed by the next writer of `p`, who holds the lock); and
+        no file is renamed while open (Windows cannot)."""
+        for stale in p.parent.glob(f".{p.name}.*.creating"):  # left by killed writers: never a run's data
+            stale.unlink(missing_ok=True)
+        tmp = p.with_name(f".{p.name}.{os.getpid()}-{secrets.token_hex(4)}.creating")
         try:
             h5 = h5py.File(tmp, "w-", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot create the run file: {exc}") from None
         try:
-            a = h5.attrs
-            a["format"] = FORMAT
-            a["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
-            a["t0_unix"] = float(t0_unix)
-            a["software_version"] = software_version
-            a["mode"] = mode
-            a["config_toml"] = config_text
-            a["config_sha256"] = config_sha256
-            a["status"] = "running"
-            a["abort_reason"] = ""
-            a["completed_steps"] = 0
-            a["resume_count"] = 0
-            a["planned_steps"] = int(planned_steps)
-            a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
-            a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
-            a["compression"] = compression
-            a["flush_interval_s"] = float(flush_interval_s)
-            a["writer_pid"] = os.getpid()
-            a["writer_host"] = socket.gethostname()
-            a["clsf_reference"] = np.nan  # set by set_clsf_reference; created now: SWMR cannot add attributes safely
-            for k, v in (extra_attrs or {}).items():
-                if k in a:
-                    raise StorageError(f"{p}: extra attribute {k!r} clashes with a contract attribute")
-                a[k] = v
-            filt: dict[str, Any] = {}
-            if compression == "gzip":
-                filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
-            elif compression == "lzf":
-                filt = {"compression": "lzf", "shuffle": True}
-            rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
-            compressed = COMPRESSED_COLUMNS_REALTIME if realtime else COMPRESSED_COLUMNS
-            for g, units in GROUP_UNITS.items():
-                if g == "truth" and not truth:
-                    continue
-                grp = h5.create_group(g)
-                for col, unit in units.items():
-                    ds = grp.create_dataset(
-                        col,
-                        shape=(0,),
-                        maxshape=(None,),
-                        dtype=np.float64,
-                        chunks=(rows[g],),
-                        **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
-                    )
-                    ds.attrs["units"] = unit
-                    ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
-            grp = h5.create_group("steps")
-            for col, dtype in STEPS_DTYPES.items():
-                ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],))
-                ds.attrs["units"] = STEPS_UNITS[col]
-                ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
-            create_groups(h5)  # /snapshots, /events (qmg_lab/storage/records.py): laid out before SWMR
-            if extra_layout is not None:
-                extra_layout(h5)
-            h5.flush()
-            h5.swmr_mode = True
-            os.replace(tmp, p)  # the open file keeps its descriptor; readers find it complete, in SWMR
+            try:
+                write_layout(h5)
+            finally:
+                h5.close()
+            _move_into_place(tmp, p)
         except BaseException:
-            h5.close()
             tmp.unlink(missing_ok=True)
             raise
-        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+        try:
+            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
+            h5.swmr_mode = True
+        except OSError as exc:
+            raise StorageError(f"{p}: cannot open the new run file for writing: {exc}") from None
+        return h5
+
+    @staticmethod
+    def _write_layout(
+        h5: h5py.File,
+        p: Path,
+        *,
+        config_text: str,
+        config_sha256: str,
+        mode: str,
+        software_version: str,
+        t0_unix: float,
+        flush_interval_s: float,
+        compression: str,
+        truth: bool,
+        planned_steps: int,
+        planned_step_kinds: Iterable[str],
+        modes: Mapping[str, str],
+        realtime: bool,
+        extra_attrs: Mapping[str, Any] | None,
+        extra_layout: Callable[[h5py.File], None] | None,
+    ) -> None:
+        """The root attributes, every group and dataset (`create`), written before SWMR starts."""
+        a = h5.attrs
+        a["format"] = FORMAT
+        a["created"] = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
+        a["t0_unix"] = float(t0_unix)
+        a["software_version"] = software_version
+        a["mode"] = mode
+        a["config_toml"] = config_text
+        a["config_sha256"] = config_sha256
+        a["status"] = "running"
+        a["abort_reason"] = ""
+        a["completed_steps"] = 0
+        a["resume_count"] = 0
+        a["planned_steps"] = int(planned_steps)
+        a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
+        a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
+        a["compression"] = compression
+        a["flush_interval_s"] = float(flush_interval_s)
+        a["writer_pid"] = os.getpid()
+        a["writer_host"] = socket.gethostname()
+        a["clsf_reference"] = np.nan  # set by set_clsf_reference; created now: SWMR cannot add attributes safely
+        for k, v in (extra_attrs or {}).items():
+            if k in a:
+                raise StorageError(f"{p}: extra attribute {k!r} clashes with a contract attribute")
+            a[k] = v
+        filt: dict[str, Any] = {}
+        if compression == "gzip":
+            filt = {"compression": "gzip", "compression_opts": GZIP_LEVEL, "shuffle": True}
+        elif compression == "lzf":
+            filt = {"compression": "lzf", "shuffle": True}
+        rows = CHUNK_ROWS_REALTIME if realtime else CHUNK_ROWS
+        compressed = COMPRESSED_COLUMNS_REALTIME if realtime else COMPRESSED_COLUMNS
+        for g, units in GROUP_UNITS.items():
+            if g == "truth" and not truth:
+                continue
+            grp = h5.create_group(g)
+            for col, unit in units.items():
+                ds = grp.create_dataset(
+                    col,
+                    shape=(0,),
+                    maxshape=(None,),
+                    dtype=np.float64,
+                    chunks=(rows[g],),
+                    fillvalue=np.nan,  # rows allocated but never written are never data (resume.valid_rows)
+                    **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
+                )
+                ds.attrs["units"] = unit
+                ds.attrs["description"] = DESCRIPTIONS[f"{g}/{col}"]
+        grp = h5.create_group("steps")
+        for col, dtype in STEPS_DTYPES.items():
+            fill = {"fillvalue": np.nan} if np.dtype(dtype).kind == "f" else {}
+            ds = grp.create_dataset(col, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(rows["steps"],), **fill)
+            ds.attrs["units"] = STEPS_UNITS[col]
+            ds.attrs["description"] = DESCRIPTIONS[f"steps/{col}"]
+        create_groups(h5)  # /snapshots, /events (qmg_lab/storage/records.py): laid out before SWMR
+        if extra_layout is not None:
+            extra_layout(h5)
 
     @staticmethod
     def check_resumable(
@@ -350,17 +435,33 @@ class RunWriter:
         Then status "running" (abort_reason ""), completed_steps recounted, resume_count incremented.
         """
         p = Path(path)
+        lock = RunFileLock(p).acquire()  # one writer per file (qmg_lab/storage/lock.py); released by close()
+        try:
+            h5 = cls._reopen_repaired(p, config_sha256, instrument_modes)
+        except BaseException:
+            lock.release()
+            raise
+        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock, lock=lock)
+
+    @classmethod
+    def _reopen_repaired(cls, p: Path, config_sha256: str, instrument_modes: Mapping[str, str] | None) -> h5py.File:
+        """`reopen`'s checks and repair, under the file's lock: the open, repaired file in SWMR mode."""
+        short = ends_short(p)
         run = cls.check_resumable(p, config_sha256=config_sha256, instrument_modes=instrument_modes)
-        if run.writer_open:
+        if short:  # a write failed (a full disk, since freed): the space HDF5 had allocated, as zeros
+            os.truncate(p, read_superblock(p).eof_address or 0)
+        if run.writer_open or short:
             clear_superblock_flags(p)
         try:
             h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
         except OSError as exc:
             raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
         try:
+            plan = plan_repair(h5, thorough=short)  # where it can end; refused if that discards data
+            refuse_discarding_repair(p, plan)
             create_groups(h5)  # files from before /snapshots and /events get them here, before SWMR
             h5.swmr_mode = True  # from here on a kill (even inside this repair) leaves a consistent file
-            repair_end(h5)
+            repair_end(h5, plan)
             steps = h5["steps"]
             h5.attrs["status"] = "running"
             h5.attrs["abort_reason"] = ""
@@ -372,7 +473,7 @@ class RunWriter:
         except BaseException:
             h5.close()
             raise
-        return cls(p, h5, flush_interval_s=flush_interval_s, clock=clock)
+        return h5
 
     # ---- appending ------------------------------------------------------------------------------------------
 
@@ -600,8 +701,11 @@ class RunWriter:
         if status not in STATUSES:
             raise StorageError(f"{self.path}: status must be one of {STATUSES}, got {status!r}")
         self._flush_buffers()
-        self._h5.attrs["status"] = status
-        self._h5.attrs["abort_reason"] = abort_reason
+        try:
+            self._h5.attrs["status"] = status
+            self._h5.attrs["abort_reason"] = abort_reason
+        except (OSError, RuntimeError) as exc:
+            raise self._write_failed(exc) from exc
         self._flush_file()
 
     def set_plan(self, planned_steps: int, planned_step_kinds: Iterable[str]) -> None:
@@ -622,11 +726,26 @@ class RunWriter:
         if self._closed:
             return
         try:
-            self._flush_buffers()
+            if not self._failed:
+                self._flush_buffers()
         finally:
             self._closed = True
-            self._bg.close()
+            try:
+                self._bg.close()
+                self._close_file()
+            finally:
+                if self._lock is not None:
+                    self._lock.release()
+
+    def _close_file(self) -> None:
+        """Close the HDF5 file. After a failed write (a full disk) HDF5's close fails too (it cannot extend the
+        file to its allocated end): that is not raised again, the file keeps what its last successful flush wrote
+        (docs/reliability.md: it resumes once space is freed)."""
+        try:
             self._h5.close()
+        except (OSError, RuntimeError):
+            if not self._failed:
+                raise
 
     @property
     def closed(self) -> bool:
@@ -664,7 +783,12 @@ class RunWriter:
         try:
             self._bg.drain()
         except Exception as exc:
-            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
+            raise self._write_failed(exc) from exc
+
+    def _write_failed(self, exc: BaseException) -> RunFileWriteError:
+        """The StorageError of a failed write; the writer writes nothing more (`close` then only closes)."""
+        self._failed = True
+        return RunFileWriteError(self.path, exc)
 
     def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
         """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
@@ -714,11 +838,45 @@ class RunWriter:
         try:
             self._bg.submit(write)
         except Exception as exc:
-            raise StorageError(f"{self.path}: writing the run file failed: {type(exc).__name__}: {exc}") from exc
+            raise self._write_failed(exc) from exc
 
     def _flush_file(self) -> None:
-        self._h5.flush()
+        try:
+            self._h5.flush()
+        except (OSError, RuntimeError) as exc:
+            raise self._write_failed(exc) from exc
         self._last_flush = self._clock()
+
+
+class RunFileWriteError(StorageError):
+    """Writing the run file failed (the campaign aborts to its safe state). `out_of_space`: the disk is full, the
+    user's quota or the process's file size limit is reached (ENOSPC, EDQUOT, EFBIG: HDF5 reports the errno in
+    its message, h5py as OSError.errno)."""
+
+    def __init__(self, path: Path, cause: BaseException) -> None:
+        super().__init__(f"{path}: writing the run file failed: {type(cause).__name__}: {cause}")
+        numbers = {getattr(cause, "errno", None)} | {int(n) for n in re.findall(r"errno = (\d+)", str(cause))}
+        self.out_of_space = bool(numbers & OUT_OF_SPACE_ERRNOS)
+        self.size_limit = errno.EFBIG in numbers
+
+
+OUT_OF_SPACE_ERRNOS = frozenset({errno.ENOSPC, errno.EFBIG} | ({errno.EDQUOT} if hasattr(errno, "EDQUOT") else set()))
+
+
+def _move_into_place(tmp: Path, p: Path) -> None:
+    """Give the closed file `tmp` the name `p`, never replacing a file at `p` (StorageError if one appeared): a hard
+    link then the hidden name's removal, or where the file system has no hard links a rename (which on Windows
+    refuses an existing target; on POSIX the caller's lock keeps other qmg-lab writers away)."""
+    try:
+        os.link(tmp, p)
+    except FileExistsError:
+        raise StorageError(f"{p}: already exists; choose another output file or resume it with --resume") from None
+    except OSError:
+        if p.exists():
+            raise StorageError(f"{p}: already exists; choose another output file") from None
+        os.rename(tmp, p)
+        return
+    tmp.unlink()
 
 
 def _split_blocks(blocks: list[tuple[np.ndarray, ...]], rows: int) -> list[tuple[np.ndarray, ...]]:

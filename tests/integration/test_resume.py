@@ -24,6 +24,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import typer
 
 from qmg_lab.campaign.plan import build_plan
 from qmg_lab.config.schema import config_fingerprint, parse_config
@@ -232,7 +233,8 @@ def test_truth_is_aligned_with_the_lockin_when_samples_are_lost(tmp_path):
 
 def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeypatch):
     """Two Ctrl-C arrive while the CLI closes the run file: the close completes (the file is clean, its superblock
-    flags cleared) and the interrupt is raised after it. Unprotected, the second Ctrl-C would cut the close."""
+    flags cleared) and the interrupt is raised after it (the command exits 130). Unprotected, the second Ctrl-C
+    would cut the close."""
     import signal as sig
 
     from qmg_lab.cli import main as cli
@@ -253,8 +255,9 @@ def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeyp
     monkeypatch.setattr(RunWriter, "close", close_with_two_ctrl_c)
     text = config_text()
     path = tmp_path / "run.h5"
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(typer.Exit) as stopped:  # the second signal, raised after the close: exit 128 + SIGINT
         cli._execute(parse_config(text), text, output=path, resume=None, quiet=True)
+    assert stopped.value.exit_code == 130
     assert closes_completed == [True]  # the interrupt came after the close, not in the middle of it
     run = read_run(path)
     assert run.status == "completed" and not run.writer_open

@@ -1,0 +1,62 @@
+"""A full disk is an instrument-safe abort: the write that fails ends the campaign in its safe state with exit 3
+and a message saying how much more space the run needs; no traceback, no crash; once space is free the file
+resumes and completes the plan.
+
+The full disk is real and portable on POSIX: the run's subprocess gets a file size limit (RLIMIT_FSIZE, what
+`ulimit -f` sets), so the kernel refuses HDF5's write past it exactly as it refuses a write on a full disk (errno
+EFBIG instead of ENOSPC; Python ignores the SIGXFSZ that comes with it). The resume runs without the limit: the
+space was freed.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from qmg_lab.campaign.plan import build_plan
+from qmg_lab.config.schema import parse_config
+from qmg_lab.storage.records import read_events
+from tests.support.campaigns import config_text, qmg
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE is POSIX")
+
+LIMIT_BYTES = 3_000_000  # the short campaign writes about 5 MB: the limit falls in its table steps
+
+
+def _limited() -> None:
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_FSIZE, (LIMIT_BYTES, LIMIT_BYTES))
+
+
+def test_a_full_disk_aborts_safe_with_exit_3_and_the_run_resumes(tmp_path: Path) -> None:
+    import subprocess
+
+    text = config_text()
+    cfg = tmp_path / "short.toml"
+    cfg.write_text(text)
+    path = tmp_path / "run.h5"
+    full = subprocess.run(
+        qmg("run", str(cfg), "-o", str(path), "-q"), capture_output=True, text=True, preexec_fn=_limited, timeout=600
+    )
+    said = " ".join(full.stderr.split())
+    assert full.returncode == 3, full.stderr  # not 1 (a traceback) nor -11 (a segmentation fault)
+    assert "Traceback" not in said
+    assert "file size limit" in said and "The run needs about" in said and "MB more" in said
+    assert "(safe_state: confirmed)" in said and f"--resume {path}" in said
+
+    done = subprocess.run(qmg("run", str(cfg), "--resume", str(path), "-q"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    plan = build_plan(parse_config(text))
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["status"] == "completed"
+        assert sorted(h5["steps/index"][:].tolist()) == [s.index for s in plan]
+        t = h5["lockin/time"][:]
+        assert t[0] == 0.0 and np.all(np.diff(t) > 0)  # continued, not restarted at 0
+        events = read_events(h5)
+    first_abort = next(e for e in events if e["kind"] == "abort")
+    assert "file size limit" in first_abort["message"] or "could not be written" in first_abort["message"]

@@ -1,0 +1,188 @@
+"""A resume never discards recorded data, however often it is killed inside the file's repair on reopen.
+
+A campaign killed with SIGKILL leaves a file whose end `RunWriter.reopen` repairs (cuts every group to one
+consistent instant). Shrinking an HDF5 dataset writes fill values into its last partial chunk before the new
+extent is flushed, so a kill inside the repair used to leave 0.0 rows that the next repair took as data (and a
+resume then restarted at t = 0). Here the repair is killed (SIGKILL, in a subprocess) right after its k-th
+dataset resize, for every k, and once more inside the next repair; after each kill, the read-only repair plan
+of the file (`plan_repair`: what the next resume keeps) must be exactly the plan of the untouched killed file
+(same end instant, same rows, same checkpoints), and every kept row must hold the killed file's values (the
+same stored numbers, compared exactly: they are copies of bytes, not computed). Finally `--resume` on a file
+killed twice inside its repair completes the plan's steps, each once.
+
+A resume whose repair would drop completed steps refuses (exit 2) and changes nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from qmg_lab.campaign.plan import build_plan
+from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.storage.h5clear import clear_superblock_flags
+from qmg_lab.storage.layout import GROUP_UNITS
+from qmg_lab.storage.resume import plan_repair, refuse_discarding_repair
+from tests.integration.test_resume import wait_for_steps
+from tests.support.campaigns import config_text, qmg
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL of a subprocess")
+
+KILL_INSIDE_REPAIR = """
+import os, signal, sys
+import h5py
+from qmg_lab.storage.writer import RunWriter
+
+path, sha, k = sys.argv[1], sys.argv[2], int(sys.argv[3])
+count = 0
+resize = h5py.Dataset.resize
+
+def killing_resize(self, size, axis=None):
+    global count
+    resize(self, size) if axis is None else resize(self, size, axis)
+    count += 1
+    if count == k:  # the fill values are written, the new extent not yet flushed
+        os.kill(os.getpid(), signal.SIGKILL)
+
+h5py.Dataset.resize = killing_resize
+RunWriter.reopen(path, config_sha256=sha)
+print(count, flush=True)  # the repair finished before the k-th resize
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.fixture(scope="module")
+def killed_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """A short campaign killed with SIGKILL after 5 completed steps: (file, configuration, fingerprint)."""
+    tmp = tmp_path_factory.mktemp("killed")
+    text = config_text()
+    cfg = tmp / "short.toml"
+    cfg.write_text(text)
+    path = tmp / "killed.h5"
+    proc = subprocess.Popen(
+        qmg("run", str(cfg), "-o", str(path), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
+    wait_for_steps(proc, path, 5)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return path, cfg, config_fingerprint(text)
+
+
+def _kill_inside_repair(path: Path, sha: str, k: int) -> bool:
+    """Reopen `path` for a resume, SIGKILLed after the k-th resize of its repair; False if the repair had fewer."""
+    done = subprocess.run(
+        [sys.executable, "-c", KILL_INSIDE_REPAIR, str(path), sha, str(k)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    return not done.stdout.strip()
+
+
+def _plan_and_rows(path: Path) -> tuple[object, dict[str, dict[str, np.ndarray]]]:
+    with h5py.File(path, "r", swmr=True, libver="latest") as h5:
+        plan = plan_repair(h5)
+        rows = {g: {c: h5[g][c][: plan.rows[g]] for c in h5[g]} for g in GROUP_UNITS if g in h5}
+        rows["steps"] = {c: h5["steps"][c][: plan.steps_rows] for c in h5["steps"]}
+    return plan, rows
+
+
+def _assert_same(plan, rows, ref_plan, ref_rows, where: str) -> None:
+    # what the next resume keeps: the same end instant, rows and checkpoints, and no refusal
+    assert (plan.t_end, plan.rows, plan.steps_rows) == (ref_plan.t_end, ref_plan.rows, ref_plan.steps_rows), where
+    refuse_discarding_repair(Path(where), plan)
+    for g, cols in ref_rows.items():
+        for c, ref in cols.items():
+            assert np.array_equal(rows[g][c], ref), f"{where}: /{g}/{c}"
+
+
+def test_a_repair_killed_at_every_resize_keeps_every_recorded_row(killed_run, tmp_path: Path) -> None:
+    path, _, sha = killed_run
+    ref_plan, ref_rows = _plan_and_rows(path)
+    assert ref_plan.steps_rows >= 5 and not ref_plan.dropped_steps
+    assert ref_plan.t_end > 0.0
+    k = 1
+    while True:
+        copy = tmp_path / f"k{k}.h5"
+        shutil.copyfile(path, copy)
+        killed_inside = _kill_inside_repair(copy, sha, k)
+        _assert_same(*_plan_and_rows(copy), ref_plan, ref_rows, f"killed after resize {k}")
+        # and killed once more inside the next repair, at its first and at a later resize
+        for k2 in (1, k):
+            again = tmp_path / f"k{k}-{k2}.h5"
+            shutil.copyfile(copy, again)
+            _kill_inside_repair(again, sha, k2)
+            _assert_same(*_plan_and_rows(again), ref_plan, ref_rows, f"killed after resize {k}, then {k2}")
+        if not killed_inside:
+            break
+        k += 1
+    assert k > 3  # the repair had resizes to be killed at
+
+
+def test_resume_after_two_kills_inside_the_repair_completes_the_plan(killed_run, tmp_path: Path) -> None:
+    path, cfg, sha = killed_run
+    copy = tmp_path / "twice.h5"
+    shutil.copyfile(path, copy)
+    _kill_inside_repair(copy, sha, 2)
+    _kill_inside_repair(copy, sha, 1)
+    ref_plan, _ = _plan_and_rows(path)
+    done = subprocess.run(qmg("run", str(cfg), "--resume", str(copy), "-q"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    plan = build_plan(parse_config(cfg.read_text()))
+    with h5py.File(copy, "r") as h5:
+        assert h5.attrs["status"] == "completed"
+        assert sorted(h5["steps/index"][:].tolist()) == [s.index for s in plan]
+        t = h5["lockin/time"][:]
+        assert np.all(np.diff(t) > 0)
+        assert t[-1] > ref_plan.t_end  # continued after the kept data, not restarted at 0
+        steps_t = h5["steps/t_start"][:]
+        # the checkpoints kept from before the kill start where they started (nothing was rerun from 0)
+        kept = h5["steps/index"][:] < ref_plan.steps_rows
+        assert np.all(steps_t[~kept] >= ref_plan.t_end - 1e-9)
+
+
+def test_a_resume_that_would_drop_completed_steps_refuses(killed_run, tmp_path: Path) -> None:
+    path, cfg, _ = killed_run
+    copy = tmp_path / "damaged.h5"
+    shutil.copyfile(path, copy)
+    # a damaged end: /lockin's time holds 0.0 after its first row (as a repair killed before this fix left
+    # it), while the completed steps say their data were recorded (47 s of them, more than a kill loses)
+    clear_superblock_flags(copy)
+    with h5py.File(copy, "r+") as h5:
+        t = h5["lockin/time"]
+        t[1:] = 0.0
+    before = hashlib.sha256(copy.read_bytes()).hexdigest()
+    done = subprocess.run(qmg("run", str(cfg), "--resume", str(copy), "-q"), capture_output=True, text=True)
+    assert done.returncode == 2, done.stderr
+    assert "would discard" in done.stderr and "Nothing was changed" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert hashlib.sha256(copy.read_bytes()).hexdigest() == before
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan], ids=["fill 0.0 (files before issue 27)", "fill NaN"])
+def test_fill_values_a_killed_shrink_leaves_are_never_data(killed_run, tmp_path: Path, fill: float) -> None:
+    """The state the issue saw, made exactly: every row a repair cuts holds the fill value while the row counts
+    are unchanged (the shrink's fill writes reached the file, its new extents did not). The next plan keeps
+    exactly the rows the first one kept, with their values."""
+    path, _, _ = killed_run
+    ref_plan, ref_rows = _plan_and_rows(path)
+    copy = tmp_path / "filled.h5"
+    shutil.copyfile(path, copy)
+    clear_superblock_flags(copy)
+    with h5py.File(copy, "r+") as h5:
+        filled = 0
+        for g in [g for g in GROUP_UNITS if g in h5]:
+            for c in h5[g]:
+                ds = h5[g][c]
+                if ds.shape[0] > ref_plan.rows[g]:
+                    ds[ref_plan.rows[g] :] = fill
+                    filled += 1
+    assert filled >= 8  # /lockin and /truth at least: the repair cuts there
+    _assert_same(*_plan_and_rows(copy), ref_plan, ref_rows, f"fill {fill}")
