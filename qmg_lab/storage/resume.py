@@ -58,7 +58,10 @@ def check_resumable(
 
 
 def ends_short(path: Path) -> bool:
-    """The file ends before the end-of-file address its superblock records (superblock.py)."""
+    """The file ends before the end-of-file address its superblock records (superblock.py); StorageError if
+    there is no such file or it is no HDF5 file."""
+    if not Path(path).is_file():
+        raise StorageError(f"{path}: no such run file to resume")
     sb = read_superblock(path)
     return sb.eof_address is not None and os.path.getsize(path) < sb.eof_address
 
