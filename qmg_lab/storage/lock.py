@@ -2,8 +2,9 @@
 
 The lock is a small file next to the run file, `.NAME.lock`, held open and locked for as long as a writer may
 change `NAME`: from the CLI's first check (before `--overwrite` may delete anything) to the run file's close.
-`fcntl.flock(LOCK_EX | LOCK_NB)` on POSIX, `msvcrt.locking(LK_NBLCK)` on one byte far past the end on Windows
-(so the holder's pid, written at the start, stays readable), each module imported only on its platform. Both
+`fcntl.flock(LOCK_EX | LOCK_NB)` where the system has fcntl (POSIX), else `msvcrt.locking(LK_NBLCK)` on one byte
+far past the end (Windows; so the holder's pid, written at the start, stays readable); each module is imported
+only where it exists. Both
 locks belong to the open file and end with the process, however it dies (kill -9 included): a stale lock file
 is harmless, the next writer locks it again.
 
@@ -18,36 +19,48 @@ not delete a file another process holds open: the delete is tried and skipped if
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import socket
 import sys
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 from qmg_lab.storage.layout import StorageError
 
-if sys.platform == "win32":
-    import msvcrt
 
-    _WIN_LOCK_OFFSET = 1 << 30  # the locked byte: past any pid text, so readers can read the holder
+def _posix_flock() -> Any:
+    """fcntl where the system has it (POSIX), else None (Windows)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    return fcntl
 
-    def _try_lock(fd: int) -> None:
-        os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
-        msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)  # OSError if another process holds it
-        os.lseek(fd, 0, os.SEEK_SET)
 
-    def _unlock(fd: int) -> None:
-        os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
-        msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
+_FCNTL = _posix_flock()
+_WIN_LOCK_OFFSET = 1 << 30  # msvcrt's locked byte: past any pid text, so readers can read the holder
 
-else:
-    import fcntl
 
-    def _try_lock(fd: int) -> None:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError if another holder
+def _try_lock(fd: int) -> None:
+    """Lock `fd` without waiting; OSError (BlockingIOError on POSIX) if another process holds it."""
+    if _FCNTL is not None:
+        _FCNTL.flock(fd, _FCNTL.LOCK_EX | _FCNTL.LOCK_NB)
+        return
+    msvcrt: Any = importlib.import_module("msvcrt")  # Windows: a byte-range lock on one byte far past the end
+    os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
+    msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+    os.lseek(fd, 0, os.SEEK_SET)
 
-    def _unlock(fd: int) -> None:
-        fcntl.flock(fd, fcntl.LOCK_UN)
+
+def _unlock(fd: int) -> None:
+    if _FCNTL is not None:
+        _FCNTL.flock(fd, _FCNTL.LOCK_UN)
+        return
+    msvcrt: Any = importlib.import_module("msvcrt")
+    os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
+    msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
 
 
 #: locks this process holds: lock file path -> [file descriptor, count]

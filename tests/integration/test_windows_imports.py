@@ -19,9 +19,11 @@ redirected to a file or a pipe is. `study` starts Dask worker processes, which a
 interpreter does not reach: it is not run here (its POSIX-only lock is replaced by `filelock`,
 tests/unit/test_study_point_lock.py).
 
-What this stand-in cannot show, because Linux allows it: the HDF5 writer renaming its file while the file is open
-(qmg_lab/storage/writer.py, RunWriter.create; Windows refuses to rename an open file), and Windows' console events
-(Ctrl-Break, closing the window). Both belong to the run's reliability work, not to this test.
+The run file's lock then takes Windows' branch (msvcrt's byte-range lock), which the child supplies as a stand-in
+module built on POSIX record locks, with msvcrt's semantics. What this stand-in cannot show: Windows' own
+refusal to rename an open file (the writer no longer does: RunWriter.create builds a new file under a unique
+temporary name and renames it only once it is closed) and Windows' console events (Ctrl-Break is handled as a stop
+signal; closing the window is not visible to Python's signal module: docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ CHILD = r"""
 import builtins, importlib.abc, json, os, sys
 
 BLOCKED = frozenset(json.loads(sys.argv[1]))
+
 OWN = ("qmg_lab", "drivers", "sims")
 ROOT = os.path.abspath(".")
 OWN_DIRS = tuple(os.path.join(ROOT, d) + os.sep for d in OWN)
@@ -108,6 +111,20 @@ for name in [m for m in BLOCKED if m not in sys.modules]:  # the meta-path layer
 exec("import termios", {"__name__": "third_party_probe"})
 
 from qmg_lab.cli.main import main
+# Windows' msvcrt for the run file's lock (qmg_lab/storage/lock.py takes it where fcntl is missing): a stand-in
+# module with its byte-range lock semantics (LK_NBLCK: lock n bytes at the file position or raise OSError at once;
+# LK_UNLCK: unlock them), made here from POSIX record locks, which are byte ranges too. It is installed once the
+# CLI and the standard library it loads are imported: modules such as subprocess take an importable msvcrt for
+# Windows at their own import
+import types, fcntl as _posix_fcntl
+msvcrt = types.ModuleType("msvcrt")
+msvcrt.LK_NBLCK, msvcrt.LK_UNLCK = 2, 0
+def _locking(fd, mode, nbytes):
+    start = os.lseek(fd, 0, os.SEEK_CUR)
+    op = _posix_fcntl.LOCK_EX | _posix_fcntl.LOCK_NB if mode == msvcrt.LK_NBLCK else _posix_fcntl.LOCK_UN
+    _posix_fcntl.lockf(fd, op, nbytes, start, os.SEEK_SET)
+msvcrt.locking = _locking
+sys.modules["msvcrt"] = msvcrt
 
 commands, codes_file, codes = json.load(open(sys.argv[2], encoding="utf-8")), sys.argv[3], []
 for argv in commands:
@@ -120,7 +137,11 @@ for argv in commands:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     print(f"=== exit {code}", flush=True)
     codes.append(code)
-json.dump({"codes": codes, "has_fork": hasattr(os, "fork")}, open(codes_file, "w", encoding="utf-8"))
+lock = sys.modules.get("qmg_lab.storage.lock")
+lock_branch = None if lock is None else ("fcntl" if lock._FCNTL is not None else "msvcrt")
+json.dump(
+    {"codes": codes, "has_fork": hasattr(os, "fork"), "lock_branch": lock_branch}, open(codes_file, "w", encoding="utf-8")
+)
 """
 
 
@@ -160,6 +181,7 @@ def test_the_cli_runs_without_posix_only_modules(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr, proc.stderr[-5000:]
     result = json.loads(codes_file.read_text(encoding="utf-8"))
     assert result["has_fork"] is False
+    assert result["lock_branch"] == "msvcrt"  # the run file's lock took Windows' branch
     expected = [0, 0, 3, 0, 0, 0, 0, 0]
     assert result["codes"] == expected, (proc.stdout[-3000:], proc.stderr[-3000:])
     out = _sections(proc.stdout)
