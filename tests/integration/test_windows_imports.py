@@ -139,9 +139,8 @@ for argv in commands:
     codes.append(code)
 lock = sys.modules.get("qmg_lab.storage.lock")
 lock_branch = None if lock is None else ("fcntl" if lock._FCNTL is not None else "msvcrt")
-json.dump(
-    {"codes": codes, "has_fork": hasattr(os, "fork"), "lock_branch": lock_branch}, open(codes_file, "w", encoding="utf-8")
-)
+result = {"codes": codes, "has_fork": hasattr(os, "fork"), "lock_branch": lock_branch}
+json.dump(result, open(codes_file, "w", encoding="utf-8"))
 """
 
 
