@@ -19,10 +19,11 @@ import serial
 
 from drivers.aerosmith import Aerosmith1291BR
 from drivers.chamber import SunEC1xChamber
+from qmg_lab.config.schema import Config
+from qmg_lab.station import make_world
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, LineTwin, serve_pty, serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World
 
 
 def open_port(twin: LineTwin, transport: str) -> tuple[Any, Callable[[], None]]:
@@ -50,7 +51,7 @@ def main() -> None:
     n = ap.parse_args().reads
     out: dict[str, Any] = {"reads": n, "transactions_per_read": 3}
     for transport in ("inprocess", "pty", "socket"):
-        world = World()
+        world = make_world(Config(), clock="virtual")  # the default configuration's stand
         tport, tstop = open_port(RateTableTwin(world), transport)
         cport, cstop = open_port(ChamberTwin(world), transport)
         table = Aerosmith1291BR(tport, max_rate_dps=100.0, max_accel_dps2=500.0)

@@ -19,7 +19,8 @@ from drivers.chamber import SunEC1xChamber
 from qmg_lab.instruments import LimitError
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import paper_world_params
 
 TAU = 60.0
 DT = 0.1
@@ -38,7 +39,7 @@ class Bench:
 
 @pytest.fixture(params=["inprocess", "pty", "socket"])
 def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
-    world = World(WorldParams(chamber_time_constant_s=TAU, initial_temperature_c=25.0))
+    world = World(paper_world_params(chamber_time_constant_s=TAU, initial_temperature_c=25.0))
     twin = ChamberTwin(world)
     stop = None
     if request.param == "inprocess":
