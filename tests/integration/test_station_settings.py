@@ -30,7 +30,15 @@ def cfg_from(text: str):
 def test_output_safe_v_reaches_the_lockin_safe_state() -> None:
     cfg = cfg_from("[lockin]\nsim = true\noutput_safe_v = 1.25\nrate_auxout = 2\nquadrature_auxout = 3\n")
     world = World(paper_world_params(), clock="virtual")
-    twin = HF2DataServerTwin(world, gyro_params(cfg), 1, hf2_wiring(cfg), device_id=SIM_DEVICE_ID)
+    twin = HF2DataServerTwin(
+        world,
+        gyro_params(cfg),
+        1,
+        hf2_wiring(cfg),
+        rate_set=cfg.sim.hf2_rate_set,
+        options=tuple(cfg.sim.hf2_options),
+        device_id=SIM_DEVICE_ID,
+    )
     li = lockin_driver(cfg, Session("localhost", 8005, hf2=True, connection=twin), SIM_DEVICE_ID)
     li.safe_state()
     for ch in (2, 3):

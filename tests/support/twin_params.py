@@ -41,6 +41,13 @@ def paper_world(clock: str = "virtual", **overrides: Any) -> World:
     return World(paper_world_params(**overrides), clock=clock)
 
 
+def hf2_twin_settings(**overrides: Any) -> dict[str, Any]:
+    """The HF2 twin's `options` and `rate_set` keywords of the default configuration ([sim] hf2_options,
+    hf2_rate_set), with `overrides` changed."""
+    sim = Config().sim
+    return {"options": tuple(sim.hf2_options), "rate_set": sim.hf2_rate_set, **overrides}
+
+
 def fault_plan_with(**injected: Any) -> FaultPlan:
     """The default configuration's fault plan (nothing injected, seeded by its sim.seed) with `injected` changed
     (FaultPlan field names)."""

@@ -36,7 +36,7 @@ from qmg_lab.station import hf2_wiring
 from sims.hf2_loops import identify_loops
 from sims.hf2_nodetree import NodeError, nodedoc_path
 from sims.hf2_server import HF2DataServerTwin
-from tests.support.twin_params import paper_gyro_params, paper_world
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 MF = ("MF", "PLL", "PID")
 NON_MF = ("PLL", "PID")
@@ -100,7 +100,9 @@ class RecordingTwin(HF2DataServerTwin):
 
 def make_twin(options: tuple[str, ...], cfg: Config | None = None) -> tuple[Config, RecordingTwin]:
     cfg = (cfg or Config()).model_copy(update={"sim": Config().sim.model_copy(update={"hf2_options": list(options)})})
-    return cfg, RecordingTwin(paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(cfg), options=options)
+    return cfg, RecordingTwin(
+        paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(cfg), **hf2_twin_settings(options=options)
+    )
 
 
 def driver_on(twin: HF2DataServerTwin, cfg: Config) -> HF2LI:
@@ -205,7 +207,9 @@ def test_a_configured_mixer_channel_overrides_the_derived_one_and_an_absent_one_
 )
 def test_a_lockin_without_pll_or_pid_is_refused_naming_the_option(options: tuple[str, ...], missing: str) -> None:
     cfg = Config()
-    twin = HF2DataServerTwin(paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(cfg), options=options)
+    twin = HF2DataServerTwin(
+        paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(cfg), **hf2_twin_settings(options=options)
+    )
     with pytest.raises(MissingOptionError, match=missing):
         driver_on(twin, cfg)
 
@@ -295,7 +299,11 @@ def test_reconnect_on_hardware_opens_a_new_data_server_session(monkeypatch: pyte
 def test_twin_lists_exactly_the_option_dependent_branches() -> None:
     for options, expected in EXPECTED_INDICES.items():
         twin = HF2DataServerTwin(
-            paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(Config()), options=options
+            paper_world(),
+            paper_gyro_params(),
+            seed=3,
+            wiring=hf2_wiring(Config()),
+            **hf2_twin_settings(options=options),
         )
         twin.connectDevice("dev1234")
         nodes = [n.lower() for n in twin.listNodes("/dev1234", recursive=True, leavesonly=True)]
@@ -305,7 +313,11 @@ def test_twin_lists_exactly_the_option_dependent_branches() -> None:
         oscs = {int(re.match(r"/dev1234/oscs/(\d+)/", p).group(1)) for p in nodes if p.startswith("/dev1234/oscs/")}
         assert oscs == set(expected["oscs"])
     no_pid = HF2DataServerTwin(
-        paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(Config()), options=("MF", "PLL")
+        paper_world(),
+        paper_gyro_params(),
+        seed=3,
+        wiring=hf2_wiring(Config()),
+        **hf2_twin_settings(options=("MF", "PLL")),
     )
     no_pid.connectDevice("dev1234")
     listed = no_pid.listNodes("/dev1234", recursive=True, leavesonly=True)

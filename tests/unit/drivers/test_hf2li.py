@@ -23,7 +23,7 @@ from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LimitError
 from sims.hf2_server import HF2DataServerTwin, HF2Wiring
 from sims.world import World
-from tests.support.twin_params import paper_gyro_params, paper_world
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
 RATE = 210e6 / round(210e6 / 1800.0)  # the configured 1800 Sa/s as the HF2 twin applies it: whole clock ticks
@@ -61,7 +61,7 @@ def bench(cfg: Config | None = None) -> tuple[Config, World, CountingTwin, HF2LI
             )
         }
     )
-    twin = CountingTwin(world, paper_gyro_params(), seed=7, wiring=wiring)
+    twin = CountingTwin(world, paper_gyro_params(), seed=7, wiring=wiring, **hf2_twin_settings())
     session = Session("localhost", hf2=True, connection=twin)
     li = HF2LI(session, "dev1234", lk, output_safe_v=lk.output_safe_v)
     return cfg, world, twin, li

@@ -14,7 +14,7 @@ import pytest
 from sims.gyro import GyroParams
 from sims.hf2_server import AUXIN_ADC_RATE_HZ, HF2DataServerTwin, HF2Wiring
 from sims.world import DITHER_SQUARE, World
-from tests.support.twin_params import paper_gyro_params, paper_world
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
 
@@ -26,7 +26,7 @@ def make_twin(
     rate; the HF2's own rate ladder is tested on its own."""
     world = paper_world()
     twin = HF2DataServerTwin(
-        world, params or paper_gyro_params(), seed=3, wiring=HF2Wiring(**wiring), rate_set=rate_set
+        world, params or paper_gyro_params(), seed=3, wiring=HF2Wiring(**wiring), **hf2_twin_settings(rate_set=rate_set)
     )
     twin.connectDevice("dev1234", "USB")
     return world, twin
@@ -299,7 +299,11 @@ def test_an_hf2li_without_mf_refuses_the_mf_mixer_channels_and_streams_on_two_os
     7, two oscillators; a write to channel 0 is refused like any node the instrument does not list."""
     world = paper_world()
     twin = HF2DataServerTwin(
-        world, paper_gyro_params(), seed=3, wiring=HF2Wiring(forcer_mixer_channel=7), options=("PLL", "PID")
+        world,
+        paper_gyro_params(),
+        seed=3,
+        wiring=HF2Wiring(forcer_mixer_channel=7),
+        **hf2_twin_settings(options=("PLL", "PID")),
     )
     twin.connectDevice("dev1234", "USB")
     assert twin.getString(f"{DEV}/features/options") == "PLL\nPID"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import inspect
 import pkgutil
 from typing import Any
 
@@ -14,6 +15,7 @@ from qmg_lab.config.schema import Config, DeviceSection, SimFaultsSection, SimSe
 from qmg_lab.station import fault_plan, gyro_params, world_params
 from sims.faults import FaultPlan
 from sims.gyro_params import GyroParams
+from sims.hf2_server import HF2DataServerTwin
 from sims.world import WorldParams
 
 SIM_KEYS = set(SimSection.model_fields) - {"faults"}
@@ -67,3 +69,11 @@ def test_the_station_fills_every_field_of_the_twins_parameter_classes_from_the_c
             expected = getattr(source, f.name)
             value = getattr(params, f.name)
             assert (list(value) if isinstance(value, tuple) else value) == expected, f"{f.name}: {value!r}"
+
+
+def test_the_hf2_twin_takes_its_options_and_rate_set_without_a_default_of_its_own() -> None:
+    """[sim] hf2_options and hf2_rate_set reach the HF2 twin as constructor keywords: no default there either."""
+    parameters = inspect.signature(HF2DataServerTwin).parameters
+    for keyword, key in (("options", "hf2_options"), ("rate_set", "hf2_rate_set")):
+        assert key in SIM_KEYS
+        assert parameters[keyword].default is inspect.Parameter.empty, f"HF2DataServerTwin({keyword}=...) has a default"
