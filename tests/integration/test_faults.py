@@ -25,7 +25,7 @@ from sims.faults import GARBLE_BYTE, SENSOR_FAULT_REPLY, FaultInjector
 from sims.table_twin import RateTableTwin
 from sims.world import World
 from tests.support.campaigns import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
-from tests.support.twin_params import fault_plan_with, paper_world
+from tests.support.twin_params import chamber_twin_settings, fault_plan_with, paper_world, table_twin_settings
 
 DT_S = round(210e6 / 1800.0) / 210e6  # demod sample period at 1800 Sa/s, in whole 210 MHz ticks (the HF2 twin)
 BLOCK_S = round(2.0 / DT_S) * DT_S  # one twin poll of sim_poll_interval_s = 2 s: a whole number of samples
@@ -45,7 +45,7 @@ def test_faults_are_off_by_default():
 def _sta_replies(seed: int, n: int = 400) -> list[bytes]:
     world = paper_world()
     inj = FaultInjector(world, fault_plan_with(seed=seed, serial_timeout_prob=0.3, serial_garble_prob=0.3))
-    twin = RateTableTwin(world)
+    twin = RateTableTwin(world, **table_twin_settings())
     inj.attach_serial("table", twin)
     return [twin.respond(b"STA\r") for _ in range(n)]
 
@@ -97,7 +97,7 @@ def test_visa_reply_faults_drop_or_damage_the_reply():
 def test_a_dropped_serial_link_reaches_nobody_then_comes_back():
     world = paper_world()
     inj = FaultInjector(world, fault_plan_with(disconnect_at_s=(10.0,), disconnect_duration_s=5.0))
-    link = inj.serial_link("table", RateTableTwin(world))
+    link = inj.serial_link("table", RateTableTwin(world, **table_twin_settings()))
     assert link.respond(b"JOG1\r") == b">\r"
     assert world.table.rate_command_dps == 1.0
     advance_to(world, 10.0)
@@ -147,7 +147,7 @@ def test_chamber_overshoot_decays_exponentially_from_the_block_that_contains_it(
 def test_chamber_sensor_dropout_answers_sensor_fault_for_its_duration():
     world = paper_world()
     inj = FaultInjector(world, fault_plan_with(chamber_dropout_at_s=2.0, chamber_dropout_duration_s=3.0))
-    twin = ChamberTwin(world)
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="flags16"))
     inj.attach_serial("chamber", twin)
     assert twin.respond(b"C1?\r") == b"25.00\r\n"
     advance_to(world, 2.0)

@@ -18,7 +18,7 @@ from sims.chamber_twin import ChamberTwin
 from sims.hf2_server import HF2DataServerTwin
 from sims.serial_twin import serve_socket
 from sims.world import World
-from tests.support.twin_params import paper_world_params
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 DEV = f"/{SIM_DEVICE_ID}"
 
@@ -62,7 +62,7 @@ def test_build_station_passes_output_safe_v() -> None:
 @pytest.fixture
 def chamber_controller():
     world = World(paper_world_params(), clock="wall")
-    twin = ChamberTwin(world)
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="flags16"))
     url, stop = serve_socket(twin, "127.0.0.1")
     yield twin, url
     stop()

@@ -48,6 +48,25 @@ def hf2_twin_settings(**overrides: Any) -> dict[str, Any]:
     return {"options": tuple(sim.hf2_options), "rate_set": sim.hf2_rate_set, **overrides}
 
 
+def table_twin_settings(**overrides: Any) -> dict[str, Any]:
+    """The 1291BR twin's `servo_on` keyword of the default configuration ([sim] table_servo_on_at_start), with
+    `overrides` changed."""
+    return {"servo_on": Config().sim.table_servo_on_at_start, **overrides}
+
+
+def chamber_twin_settings(**overrides: Any) -> dict[str, Any]:
+    """The EC1x twin's `status_layout`, `self_test` and `acknowledges_settings` keywords of the default
+    configuration ([sim] chamber_status_layout, chamber_self_test, chamber_acknowledges_settings), with
+    `overrides` changed."""
+    sim = Config().sim
+    return {
+        "status_layout": sim.chamber_status_layout,
+        "self_test": sim.chamber_self_test,
+        "acknowledges_settings": sim.chamber_acknowledges_settings,
+        **overrides,
+    }
+
+
 def fault_plan_with(**injected: Any) -> FaultPlan:
     """The default configuration's fault plan (nothing injected, seeded by its sim.seed) with `injected` changed
     (FaultPlan field names)."""

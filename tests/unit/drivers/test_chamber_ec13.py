@@ -21,7 +21,7 @@ from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, serve_socket
 from sims.world import World
 from tests.support.protocol_serial import ProtocolPort, expected_protocol
-from tests.support.twin_params import paper_world_params
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 ON_IDLE = b"YNNNYYYNNNNNNNNNNN0\r\n"  # power, heat, cool, valid set temperature; not ramping; self-test ok
 ON_RAMPING = b"YNNNYYYNYNNNNNNNNN0\r\n"  # the same, ramping (char 8)
@@ -177,7 +177,7 @@ def test_rom_and_undocumented_self_test_codes_are_faults(code: int, meaning: str
 @pytest.fixture(params=["inprocess", "socket"])
 def twin_bench(request: pytest.FixtureRequest) -> Iterator[tuple[ChamberTwin, SunEC1xChamber]]:
     world = World(paper_world_params(initial_temperature_c=25.0))
-    twin = ChamberTwin(world, status_layout="ec13", acknowledges_settings=False)
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="ec13", acknowledges_settings=False))
     stop = None
     if request.param == "inprocess":
         port = InProcessSerial(twin)

@@ -13,9 +13,11 @@ from typing import Any
 import sims
 from qmg_lab.config.schema import Config, DeviceSection, SimFaultsSection, SimSection
 from qmg_lab.station import fault_plan, gyro_params, world_params
+from sims.chamber_twin import ChamberTwin
 from sims.faults import FaultPlan
 from sims.gyro_params import GyroParams
 from sims.hf2_server import HF2DataServerTwin
+from sims.table_twin import RateTableTwin
 from sims.world import WorldParams
 
 SIM_KEYS = set(SimSection.model_fields) - {"faults"}
@@ -71,9 +73,19 @@ def test_the_station_fills_every_field_of_the_twins_parameter_classes_from_the_c
             assert (list(value) if isinstance(value, tuple) else value) == expected, f"{f.name}: {value!r}"
 
 
-def test_the_hf2_twin_takes_its_options_and_rate_set_without_a_default_of_its_own() -> None:
-    """[sim] hf2_options and hf2_rate_set reach the HF2 twin as constructor keywords: no default there either."""
-    parameters = inspect.signature(HF2DataServerTwin).parameters
-    for keyword, key in (("options", "hf2_options"), ("rate_set", "hf2_rate_set")):
+TWIN_KEYWORDS = (  # the twins' constructor keywords the station fills from [sim], with the key of each
+    (HF2DataServerTwin, "options", "hf2_options"),
+    (HF2DataServerTwin, "rate_set", "hf2_rate_set"),
+    (RateTableTwin, "servo_on", "table_servo_on_at_start"),
+    (ChamberTwin, "status_layout", "chamber_status_layout"),
+    (ChamberTwin, "self_test", "chamber_self_test"),
+    (ChamberTwin, "acknowledges_settings", "chamber_acknowledges_settings"),
+)
+
+
+def test_the_twins_take_their_sim_settings_without_a_default_of_their_own() -> None:
+    """[sim] values that reach a twin as a constructor keyword have no default there either."""
+    for twin, keyword, key in TWIN_KEYWORDS:
         assert key in SIM_KEYS
-        assert parameters[keyword].default is inspect.Parameter.empty, f"HF2DataServerTwin({keyword}=...) has a default"
+        default = inspect.signature(twin).parameters[keyword].default
+        assert default is inspect.Parameter.empty, f"{twin.__name__}({keyword}=...) has a default ({key})"
