@@ -2,9 +2,9 @@
 tests and benchmarks that build a twin without a station.
 
 The schema (qmg_lab/config/schema.py SimSection, SimFaultsSection) is the one place of these values; the twins'
-parameter classes carry no copy of them. These helpers take them through the station's own mapping
-(qmg_lab/station.py `gyro_params`, `world_params`, `fault_plan`), so a test sees exactly the device a default
-campaign simulates.
+parameter classes and constructor keywords carry no copy of them. These helpers take them from the default
+configuration, the parameter classes through the station's own mapping (qmg_lab/station.py `gyro_params`,
+`world_params`, `fault_plan`), so a test sees exactly the device a default campaign simulates.
 """
 
 from __future__ import annotations
