@@ -19,10 +19,11 @@ import serial
 
 from drivers.aerosmith import Aerosmith1291BR
 from drivers.chamber import SunEC1xChamber
+from qmg_lab.config.schema import Config
+from qmg_lab.station import make_world
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, LineTwin, serve_pty, serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World
 
 
 def open_port(twin: LineTwin, transport: str) -> tuple[Any, Callable[[], None]]:
@@ -50,9 +51,11 @@ def main() -> None:
     n = ap.parse_args().reads
     out: dict[str, Any] = {"reads": n, "transactions_per_read": 3}
     for transport in ("inprocess", "pty", "socket"):
-        world = World()
-        tport, tstop = open_port(RateTableTwin(world), transport)
-        cport, cstop = open_port(ChamberTwin(world), transport)
+        world = make_world(Config(), clock="virtual")  # the default configuration's stand
+        tport, tstop = open_port(RateTableTwin(world, servo_on=True), transport)
+        cport, cstop = open_port(
+            ChamberTwin(world, status_layout="flags16", self_test=0, acknowledges_settings=True), transport
+        )
         table = Aerosmith1291BR(tport, max_rate_dps=100.0, max_accel_dps2=500.0)
         chamber = SunEC1xChamber(cport, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
         table.set_rate(5.0, 300.0)

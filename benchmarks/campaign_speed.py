@@ -132,9 +132,10 @@ def gyro_alone_wall_s(simulated_s: float, block_s: float = 2.0) -> float:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from sim_speed import DT, _rt_factor
 
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
+    from tests.support.twin_params import paper_gyro_params
 
-    factor, _ = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, block_s, simulated_s)
+    factor, _ = _rt_factor(GyroSim(paper_gyro_params(), DT, seed=1), DT, block_s, simulated_s)
     return simulated_s / factor
 
 

@@ -101,13 +101,14 @@ def _breakdown(block_s: float = 0.5, blocks: int = 400) -> dict[str, float]:
     """CPU ns per averaged step, split: the compiled kernel alone (noise drawn once
     beforehand), the per-step normal draws alone (NoiseStream.steps), and the rest of GyroSim.run (Python per
     block: input checks, loop vector, bias draws, output block), measured as run minus the two."""
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
     from sims.noise import NoiseStream
+    from tests.support.twin_params import paper_gyro_params
 
     loops = _loops()
     n = int(round(block_s / DT))
     inp = _inputs(n, DT, 0.0)
-    sim = GyroSim(GyroParams(), DT, seed=1)
+    sim = GyroSim(paper_gyro_params(), DT, seed=1)
     sim.run(inp, loops)
     stream = NoiseStream(2, 6, 16)
     noise = stream.steps(n)
@@ -218,11 +219,12 @@ def world_advance_costs(runs: int = 7, blocks: int = 100) -> dict[str, float]:
     """CPU ns per step of World.advance for 2 s and 10 s blocks at DT (module docstring): medians over `runs`."""
     import statistics
 
-    from sims.world import DITHER_SQUARE, World
+    from sims.world import DITHER_SQUARE
+    from tests.support.twin_params import paper_world
 
     res: dict[str, float] = {}
     for block_s in (2.0, 10.0):
-        world = World()
+        world = paper_world()
         world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
         world.set_table_rate(5.0, 10.0)
         world.set_chamber(35.0, 0.25)
@@ -242,10 +244,11 @@ def world_advance_costs(runs: int = 7, blocks: int = 100) -> dict[str, float]:
 def _child_memory(hours: float) -> None:
     import resource  # POSIX only: the memory figures are not measured on Windows
 
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
+    from tests.support.twin_params import paper_gyro_params
 
     loops = _loops()
-    sim = GyroSim(GyroParams(), DT, seed=1)
+    sim = GyroSim(paper_gyro_params(), DT, seed=1)
     n = int(round(0.5 / DT))
     acc = 0.0
     for k in range(int(hours * 3600 / 0.5)):
@@ -257,11 +260,12 @@ def _child_memory(hours: float) -> None:
 def _child_compile() -> None:
     t0 = time.perf_counter()
     from sims.carrier import CarrierGyroSim
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
+    from tests.support.twin_params import paper_gyro_params
 
     loops = _loops()
-    GyroSim(GyroParams(), DT, seed=1).run(_inputs(10, DT, 0.0), loops)
-    c = CarrierGyroSim(GyroParams(), 1.0 / (32 * 2200.0), seed=1)
+    GyroSim(paper_gyro_params(), DT, seed=1).run(_inputs(10, DT, 0.0), loops)
+    c = CarrierGyroSim(paper_gyro_params(), 1.0 / (32 * 2200.0), seed=1)
     c.run(_inputs(10, c.demod_interval_s, 0.0), loops)
     print(json.dumps({"seconds": time.perf_counter() - t0}))
 
@@ -280,7 +284,8 @@ def _run_child(args: list[str], env: dict[str, str] | None = None) -> dict[str, 
 
 def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float | int | str]:
     from sims.carrier import CarrierGyroSim
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
+    from tests.support.twin_params import paper_gyro_params
 
     res: dict[str, float | int | str] = {}
     env = dict(os.environ)
@@ -289,21 +294,21 @@ def measure(memory_hours: tuple[float, float] = (1.0, 4.0)) -> dict[str, float |
         res["compile_cold_s"] = _run_child(["--child-compile"], env)["seconds"]
         res["compile_warm_s"] = _run_child(["--child-compile"], env)["seconds"]
 
-    rt_avg, cpu_avg, main_avg = _rt_factors(GyroSim(GyroParams(), DT, seed=1), DT, 0.5, 600.0)
+    rt_avg, cpu_avg, main_avg = _rt_factors(GyroSim(paper_gyro_params(), DT, seed=1), DT, 0.5, 600.0)
     res["averaged_realtime_factor"] = rt_avg
     res["averaged_steps_per_s"] = rt_avg / DT
     res["averaged_ns_per_step"] = 1e9 * DT / rt_avg
     res["averaged_cpu_realtime_factor"] = cpu_avg
     res["averaged_cpu_ns_per_step"] = 1e9 * DT / cpu_avg
     res["averaged_cpu_ns_per_step_main_thread"] = 1e9 * DT / main_avg
-    rt2, cpu2 = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 2.0, 600.0)
+    rt2, cpu2 = _rt_factor(GyroSim(paper_gyro_params(), DT, seed=1), DT, 2.0, 600.0)
     res["averaged_realtime_factor_2s_blocks"] = rt2
     res["averaged_cpu_realtime_factor_2s_blocks"] = cpu2
-    rt60, cpu60 = _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, 60.0, 1200.0)
+    rt60, cpu60 = _rt_factor(GyroSim(paper_gyro_params(), DT, seed=1), DT, 60.0, 1200.0)
     res["averaged_realtime_factor_60s_blocks"] = rt60
     res["averaged_cpu_realtime_factor_60s_blocks"] = cpu60
     res.update(_breakdown())
-    car = CarrierGyroSim(GyroParams(), 1.0 / (32 * 2200.0), seed=1)
+    car = CarrierGyroSim(paper_gyro_params(), 1.0 / (32 * 2200.0), seed=1)
     rt_car, cpu_car = _rt_factor(car, car.demod_interval_s, 0.5, 20.0)
     res["carrier_realtime_factor"] = rt_car
     res["carrier_samples_per_s"] = rt_car * 32 * 2200.0

@@ -89,9 +89,10 @@ def gyro_alone_realtime_factor(simulated_s: float, block_s: float) -> float:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from sim_speed import DT, _rt_factor
 
-    from sims.gyro import GyroParams, GyroSim
+    from sims.gyro import GyroSim
+    from tests.support.twin_params import paper_gyro_params
 
-    return _rt_factor(GyroSim(GyroParams(), DT, seed=1), DT, block_s, simulated_s)[0]
+    return _rt_factor(GyroSim(paper_gyro_params(), DT, seed=1), DT, block_s, simulated_s)[0]
 
 
 def per_task(runs: int) -> dict[str, Any]:

@@ -78,27 +78,22 @@ class _WorldTruth(TruthSource):
         return TruthBlock(time=rec.time, scale_factor=rec.scale_factor, temperature=rec.temperature, rate=rec.rate)
 
 
+def world_params(cfg: Config) -> WorldParams:
+    """The stand's physics outside the gyro from [sim]: every WorldParams field, taken by name (the schema is the
+    one place of their defaults)."""
+    return WorldParams(**cfg.sim.model_dump(include={f.name for f in dataclasses.fields(WorldParams)}))
+
+
 def make_world(cfg: Config, clock: str | None = None) -> World:
     """The twins' shared world from [sim]. clock: "virtual" (the lock-in twin's polls advance it) or "wall";
     default virtual when the lock-in is a twin."""
-    s = cfg.sim
-    params = WorldParams(
-        chamber_time_constant_s=s.chamber_time_constant_s,
-        thermal_lag_s=s.thermal_lag_s,
-        initial_temperature_c=s.initial_temperature_c,
-        table_rate_scale_error_ppm=s.table_rate_scale_error_ppm,
-        table_rate_ripple_ppm=s.table_rate_ripple_ppm,
-        table_ripple_phase_deg=s.table_ripple_phase_deg,
-        ds345_timebase_offset_ppm=s.ds345_timebase_offset_ppm,
-        ds345_timebase_wander_ppm=s.ds345_timebase_wander_ppm,
-        ds345_timebase_wander_period_s=s.ds345_timebase_wander_period_s,
-        ds345_command_latency_s=s.ds345_command_latency_s,
-    )
-    return World(params, clock=clock or ("virtual" if cfg.lockin.sim else "wall"))
+    return World(world_params(cfg), clock=clock or ("virtual" if cfg.lockin.sim else "wall"))
 
 
 def gyro_params(cfg: Config) -> GyroParams:
-    """The twin's physics from [sim] (the device's true constants, which the [device] section only estimates)."""
+    """The twin's physics from [sim] (the device's true constants, which the [device] section only estimates) and
+    [device] drive_amplitude_vrms (the amplitude at which sim.sf_true_v_per_dps applies): every GyroParams field
+    (the schema is the one place of their defaults)."""
     values = cfg.sim.model_dump(include=set(GyroParams.field_names()))  # [sim] also holds the world's and faults'
     values["drive_amplitude_vrms"] = cfg.device.drive_amplitude_vrms
     return GyroParams.from_mapping(values)

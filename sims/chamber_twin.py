@@ -13,15 +13,18 @@ It plays the instrument (no code shared with the driver) against the shared Worl
   SET= value waits for ON.
 * SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on; the
   stored SET= value while off. STATUS? layout (`status_layout`):
-  - "flags16" (default of the class): 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping (on and
+  - "flags16": 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping (on and
     the setpoint has not reached the target), the rest N;
   - "ec13": what the public Sun EC13 driver (achim1/skippylab, skippylab/instruments/climate_chambers.py)
     decodes: 18 Y/N flags then the self-test digit (`self_test`, 0 = ok), e.g. ``YNNNYYYNNNNNNNNNNN0``:
     0 power, 1 last command error (the previous command was refused), 4 heat enabled, 5 cool enabled, 6 valid
     set temperature (always Y), 8 ramping, 9 air below LTL, 10 air above UTL, the rest N.
-* acknowledgements (`acknowledges_settings`): True (default) answers every setting/action OK; False plays a
+* acknowledgements (`acknowledges_settings`): True answers every setting/action OK; False plays a
   controller that answers settings with nothing at all (as that public driver expects: it never reads one),
   refusals included: a refused setting then only shows in the read-back and in the last-command-error flag.
+* `status_layout`, `self_test` and `acknowledges_settings` have no default here: the station passes [sim]
+  chamber_status_layout, chamber_self_test and chamber_acknowledges_settings, whose defaults
+  live in the configuration schema only.
 * framing options (the real framing is unconfirmed): `command_end` (CR LF by default; CR or LF) and
   `reply_end` (CR LF by default; CR or LF).
 """
@@ -57,9 +60,9 @@ class ChamberTwin(FaultableTwin):
         max_ramp_c_per_min: float = 60.0,
         command_end: bytes = b"\r\n",
         reply_end: bytes = REPLY_END,
-        status_layout: str = "flags16",
-        self_test: int = 0,
-        acknowledges_settings: bool = True,
+        status_layout: str,
+        self_test: int,
+        acknowledges_settings: bool,
     ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")

@@ -90,29 +90,34 @@ HF2_LINK_CALLS = (
 
 @dataclass(frozen=True)
 class FaultPlan:
-    """What to inject. Probabilities per reply; times in world seconds; durations in seconds."""
+    """What to inject. Probabilities per reply; times in world seconds; durations in seconds.
 
-    seed: int = 0
-    serial_timeout_prob: float = 0.0
-    serial_garble_prob: float = 0.0
-    visa_timeout_prob: float = 0.0
-    visa_garble_prob: float = 0.0
-    disconnect_at_s: tuple[float, ...] = ()
-    disconnect_duration_s: float = 2.0
-    disconnect_instrument: str = "table"
-    interlock_trip_at_s: float | None = None
-    chamber_overshoot_at_s: float | None = None
-    chamber_overshoot_c: float = 5.0
-    chamber_overshoot_decay_s: float = 30.0
-    chamber_dropout_at_s: float | None = None
-    chamber_dropout_duration_s: float = 5.0
-    sample_loss_at_s: tuple[float, ...] = ()
-    sample_loss_count: int = 100
-    pll_unlock_at_s: float | None = None
-    pll_unlock_duration_s: float = 3.0
-    hf2_disconnect_at_s: tuple[float, ...] = ()
-    hf2_disconnect_duration_s: float = 2.0
-    hf2_call_timeout_s: float = 1.0
+    Every field is required: the configuration's [sim.faults] section (and [sim] seed) exposes each one, and the
+    schema (qmg_lab/config/schema.py SimFaultsSection) is the one place of their defaults (nothing injected),
+    bounds and descriptions; qmg_lab/station.py `fault_plan` maps a configuration to this class.
+    """
+
+    seed: int
+    serial_timeout_prob: float
+    serial_garble_prob: float
+    visa_timeout_prob: float
+    visa_garble_prob: float
+    disconnect_at_s: tuple[float, ...]
+    disconnect_duration_s: float
+    disconnect_instrument: str
+    interlock_trip_at_s: float | None
+    chamber_overshoot_at_s: float | None
+    chamber_overshoot_c: float
+    chamber_overshoot_decay_s: float
+    chamber_dropout_at_s: float | None
+    chamber_dropout_duration_s: float
+    sample_loss_at_s: tuple[float, ...]
+    sample_loss_count: int
+    pll_unlock_at_s: float | None
+    pll_unlock_duration_s: float
+    hf2_disconnect_at_s: tuple[float, ...]
+    hf2_disconnect_duration_s: float
+    hf2_call_timeout_s: float
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hf2_disconnect_at_s", tuple(float(t) for t in self.hf2_disconnect_at_s))

@@ -1,8 +1,10 @@
 """Parameters, loop settings and output block of the QMG physics twin (the GyroSim contract types).
 
-Units are in the names. Defaults are the paper's QMG (Trusov et al., 2013, docs/physics.md
-section 1); the names mirror qmg_lab/config/schema.py SimSection so a config section can be passed to
-`GyroParams.from_mapping`.
+Units are in the names. The names mirror qmg_lab/config/schema.py SimSection (and [device]
+drive_amplitude_vrms) so a config section can be passed to `GyroParams.from_mapping`. The values, the paper's QMG
+by default (Trusov et al., 2013, docs/physics.md section 1), live in one place, that schema: this module carries no
+second copy of them (the station fills `GyroParams` from the configuration; tests take the paper's device from
+tests/support/twin_params.py).
 
 Derived constants (`Derived`), with omega0 = 2 pi f0, tau = 2Q/omega (amplitude decay time of the slow
 variables, physics.md section 2), a0 = sqrt(2) drive_amplitude_vrms (G_px = 1 V/unit at T_ref):
@@ -38,44 +40,50 @@ NOISE_OFF: dict[str, Any] = {
 
 @dataclass
 class GyroParams:
-    """Physical parameters of the simulated QMG (defaults: the paper's device)."""
+    """Physical parameters of the simulated QMG.
 
-    f0_hz: float = 2200.0
-    q_factor: float = 1.2e6
-    damping_mismatch: float = 0.01  # Delta(1/tau) / (1/tau)
-    damping_axis_deg: float = 5.0
-    freq_mismatch_hz: float = 0.02  # mode split after tuning, Hz; assumed ("mode-matched" in the paper)
-    stiffness_axis_deg: float = 20.0  # its principal axis; assumed (0 would leave the quadrature loop idle)
-    angular_gain: float = 0.8
-    arw_dps_per_rt_hz: float | None = None  # if None: arw_deg_per_rt_h / 60
-    arw_deg_per_rt_h: float = 0.02
-    bias_instability_deg_per_h: float = 0.2  # IEEE 952 B: overlapping-ADEV floor / 0.664
-    pickoff_noise_vrms_per_rt_hz: float = 2.3e-7  # per demod quadrature (docs/noise-budget.md: inferred)
-    forcer_noise_v_per_rt_hz: float = 1e-6  # summing node + modulator, one-sided, not recorded (assumed)
-    auxout_bits: int = 16  # HF2 AuxOut DAC: 16 bit over +-auxout_range_v (0 = ideal)
-    auxout_range_v: float = 10.0
-    auxin_bits: int = 16  # HF2 AuxIn ADC: 16 bit over +-auxin_range_v (0 = ideal)
-    auxin_range_v: float = 10.0
-    auxin_noise_v_rms: float = 1e-4  # white noise of one AuxIn reading (assumed)
-    forcer_tempco_ppm_per_c: float = -1000.0
-    frequency_tempco_ppm_per_c: float = -30.0
-    pickoff_ratio_tempco_ppm_per_c: float = 60.0
-    reference_temperature_c: float = 25.0
-    loop_delay_us: float = 0.0
-    drive_voltage_v: float = 0.05  # sustains drive_amplitude_vrms at T_ref
-    sf_true_v_per_dps: float = 0.06  # true FTR SF at T_ref, drive_amplitude_vrms, forcer gain 1
-    drive_amplitude_vrms: float = 0.5  # the drive amplitude at which sf_true applies
+    Every field is required: the configuration's [sim] section (and [device] drive_amplitude_vrms) exposes each
+    one, and the schema (qmg_lab/config/schema.py SimSection) is the one place of their defaults, bounds and
+    descriptions; qmg_lab/station.py `gyro_params` maps a configuration to this class. A default written here
+    would be a second copy that could drift from the schema (tests/unit/sims/test_sim_defaults_one_place.py).
+    """
+
+    f0_hz: float
+    q_factor: float
+    damping_mismatch: float  # Delta(1/tau) / (1/tau)
+    damping_axis_deg: float
+    freq_mismatch_hz: float  # mode split after tuning, Hz; assumed ("mode-matched" in the paper)
+    stiffness_axis_deg: float  # its principal axis; assumed (0 would leave the quadrature loop idle)
+    angular_gain: float
+    arw_dps_per_rt_hz: float | None  # if None: arw_deg_per_rt_h / 60
+    arw_deg_per_rt_h: float
+    bias_instability_deg_per_h: float  # IEEE 952 B: overlapping-ADEV floor / 0.664
+    pickoff_noise_vrms_per_rt_hz: float  # per demod quadrature (docs/noise-budget.md: inferred)
+    forcer_noise_v_per_rt_hz: float  # summing node + modulator, one-sided, not recorded (assumed)
+    auxout_bits: int  # HF2 AuxOut DAC: bits over +-auxout_range_v (0 = ideal)
+    auxout_range_v: float
+    auxin_bits: int  # HF2 AuxIn ADC: bits over +-auxin_range_v (0 = ideal)
+    auxin_range_v: float
+    auxin_noise_v_rms: float  # white noise of one AuxIn reading (assumed)
+    forcer_tempco_ppm_per_c: float
+    frequency_tempco_ppm_per_c: float
+    pickoff_ratio_tempco_ppm_per_c: float
+    reference_temperature_c: float
+    loop_delay_us: float
+    drive_voltage_v: float  # sustains drive_amplitude_vrms at T_ref
+    sf_true_v_per_dps: float  # true FTR SF at T_ref, drive_amplitude_vrms, forcer gain 1
+    drive_amplitude_vrms: float  # the drive amplitude at which sf_true applies
     # ---- deterministic non-idealities (docs/accuracy-budget.md: each value's origin and what the paper implies)
-    q_tempco_ppm_per_c: float = -2000.0  # dQ/Q per degC; assumed (thermoelastic-limited silicon: Q falls with T)
-    damping_mismatch_tempco_per_c: float = 1e-4  # d(Delta(1/tau)/(1/tau))/dT, per degC; assumed
-    freq_mismatch_tempco_hz_per_c: float = -0.002  # d(split)/dT, Hz per degC; assumed (sign unknown)
-    forcer_bias_v: float = 5.0  # proof-mass polarization voltage V_p on the sense forcer; assumed
-    forcer_gap_um: float = 2.0  # parallel-plate forcer gap g; assumed (deep-etched silicon class)
-    drive_amplitude_um: float = 5.0  # physical drive amplitude a at drive_amplitude_vrms; assumed
-    forcer_electrode_v_per_v: float = 1.0  # forcer AC amplitude per volt of command (paper: 10 V <-> 150 deg/s)
-    feedthrough_v_per_v: float = 1e-4  # sense pickoff volts per forcer-electrode volt; assumed (EAM-suppressed)
-    feedthrough_phase_deg: float = 90.0  # feedthrough phase against the force (capacitive: into Y); assumed
-    hf2_demod_ripple: bool = True  # carrier model: the demodulator filter's residual 2 omega term in the stream
+    q_tempco_ppm_per_c: float  # dQ/Q per degC; assumed (thermoelastic-limited silicon: Q falls with T)
+    damping_mismatch_tempco_per_c: float  # d(Delta(1/tau)/(1/tau))/dT, per degC; assumed
+    freq_mismatch_tempco_hz_per_c: float  # d(split)/dT, Hz per degC; assumed (sign unknown)
+    forcer_bias_v: float  # proof-mass polarization voltage V_p on the sense forcer; assumed
+    forcer_gap_um: float  # parallel-plate forcer gap g; assumed (deep-etched silicon class)
+    drive_amplitude_um: float  # physical drive amplitude a at drive_amplitude_vrms; assumed
+    forcer_electrode_v_per_v: float  # forcer AC amplitude per volt of command (paper: 10 V <-> 150 deg/s)
+    feedthrough_v_per_v: float  # sense pickoff volts per forcer-electrode volt; assumed (EAM-suppressed)
+    feedthrough_phase_deg: float  # feedthrough phase against the force (capacitive: into Y); assumed
+    hf2_demod_ripple: bool  # carrier model: the demodulator filter's residual 2 omega term in the stream
 
     def __post_init__(self) -> None:
         self.validate()
@@ -85,20 +93,21 @@ class GyroParams:
         """The names of the parameters (what `from_mapping` accepts)."""
         return frozenset(f.name for f in dataclasses.fields(cls))
 
-    @classmethod
-    def noiseless(cls, **values: Any) -> GyroParams:
-        """The paper's device (or `values`) with every noise source off and ideal AuxOut converters: the
+    def noiseless(self, **values: Any) -> GyroParams:
+        """This device (with `values` changed) with every noise source off and an ideal AuxOut DAC: the
         deterministic plant that the physics tests check against their equations."""
-        return cls(**{**NOISE_OFF, **values})
+        return dataclasses.replace(self, **{**NOISE_OFF, **values})
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> GyroParams:
-        """Build from a mapping of parameter names (a subset; the rest keep their defaults). A key this class
-        does not know is an error that names it: a misspelt parameter must not be silently simulated as its
-        default."""
+        """Build from a mapping of every parameter name. A key this class does not know, or one it needs and
+        does not find, is an error that names it: a misspelt parameter must not be silently dropped."""
         unknown = sorted(set(d) - cls.field_names())
         if unknown:
             raise ValueError(f"GyroParams: unknown parameters {unknown}; known: {sorted(cls.field_names())}")
+        missing = sorted(cls.field_names() - set(d))
+        if missing:
+            raise ValueError(f"GyroParams: missing parameters {missing}")
         return cls(**d)
 
     def validate(self) -> None:

@@ -2,8 +2,8 @@
 
 The node *documentation* comes from zhinst-toolkit's bundled ``resources/nodedoc_hf2.json`` (one entry per
 generic path such as ``/devxxxx/demods/n/rate``, with type, properties, unit and enumerated options). This module
-expands every ``n`` into the instances an HF2LI with the given options (``features/options``; default MF, PLL,
-PID) has and stores a value per leaf. Where each count comes from:
+expands every ``n`` into the instances an HF2LI with the given options (``features/options``; the configuration's
+[sim] hf2_options, MF, PLL, PID by default) has and stores a value per leaf. Where each count comes from:
 
 * zhinst-toolkit's recorded HF2 node list (its tests/data/list_nodes_hf2_dev.txt, an HF2LI with MF and PLL and
   without PID): 6 demodulators, 6 oscillators, 2 PLLs, 2 outputs listing mixer channels 0..7 (enables,
@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-DEFAULT_OPTIONS = ("MF", "PLL", "PID")
 NON_MF_MIXER_CHANNELS = (6, 7)
 NON_MF_OSCILLATORS = 2
 OUTPUT_MIXER_BRANCHES = ("sigouts/n/enables/n", "sigouts/n/amplitudes/n", "sigouts/n/waveforms/n")
@@ -192,7 +191,7 @@ def _power_on(rel: str, meta: NodeMeta) -> Any:
 class HF2NodeTree:
     """Concrete node documentation and values of one HF2LI. Paths are absolute and case-insensitive."""
 
-    def __init__(self, device_id: str, clockbase_hz: float, options: tuple[str, ...] = DEFAULT_OPTIONS) -> None:
+    def __init__(self, device_id: str, clockbase_hz: float, options: tuple[str, ...]) -> None:
         if not re.fullmatch(r"dev\d+", device_id.lower()):
             raise ValueError(f"device_id {device_id!r} must look like 'dev1234'")
         self.device_id = device_id.lower()

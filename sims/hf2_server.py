@@ -51,7 +51,7 @@ import numpy as np
 
 from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
-from sims.hf2_nodetree import DEFAULT_OPTIONS, HF2NodeTree, NodeError
+from sims.hf2_nodetree import HF2NodeTree, NodeError
 from sims.noise import NormalStream
 from sims.world import BlockInputs, TruthRecord, World
 
@@ -148,8 +148,10 @@ def _slice_inputs(inp: BlockInputs, sl: slice) -> BlockInputs:
 
 class HF2DataServerTwin:
     """HF2 data server + one HF2LI whose loops drive ``sims.gyro.GyroSim``. ``options``: its installed options
-    (``features/options``; default MF, PLL, PID); the node tree lists what such an instrument lists
-    (sims/hf2_nodetree.py, with the sources of each count)."""
+    (``features/options``); the node tree lists what such an instrument lists (sims/hf2_nodetree.py, with the
+    sources of each count). ``rate_set``: the demodulator rates it offers (RATE_SETS). Both are the
+    configuration's [sim] hf2_options and hf2_rate_set, whose defaults live in the schema only (the station passes
+    them)."""
 
     api_level = 1
 
@@ -159,12 +161,13 @@ class HF2DataServerTwin:
         gyro_params: GyroParams,
         seed: int,
         wiring: HF2Wiring,
+        *,
+        rate_set: str,
+        options: tuple[str, ...],
         device_id: str = "dev1234",
         clockbase_hz: float = 210e6,
         host: str = "localhost",
         port: int = 8005,
-        rate_set: str = "hf2",
-        options: tuple[str, ...] = DEFAULT_OPTIONS,
     ) -> None:
         if clockbase_hz <= 0:
             raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")

@@ -18,8 +18,9 @@ the shared `sims.world.World` under `world.lock`. Protocol implemented (document
 * STA bits: 1 moving (profile rate != 0), 2 at rate (rate mode, ramp finished), 4 interlock, 8 servo on,
   16 sinusoid running.
 * servo (public Aerosmith code enables it with SRV before motion): SRV or SRV1 switches it on, SRV0 off
-  (prompt only). `servo_on` gives its state at power-up (True by default; the station's twin follows
-  [sim] table_servo_on_at_start). While it is off, JOG and SGO answer E06 SERVO OFF (STO is accepted).
+  (prompt only). `servo_on` gives its state at power-up (required: the station passes [sim]
+  table_servo_on_at_start, whose default lives in the configuration schema only). While it is off, JOG and
+  SGO answer E06 SERVO OFF (STO is accepted).
 * while world.table.interlock is set, JOG and SGO answer E04 (STO is accepted).
 """
 
@@ -58,7 +59,7 @@ class RateTableTwin(FaultableTwin):
         command_end: bytes = b"\r\n",
         reply_end: bytes = b"\r",
         prompt_end: bytes = b"\r",
-        servo_on: bool = True,
+        servo_on: bool,
     ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")

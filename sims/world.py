@@ -60,20 +60,25 @@ _DEG = math.pi / 180.0  # rad per degree (numpy's deg2rad multiplies by this)
 
 @dataclass
 class WorldParams:
-    """Physical constants of the stand outside the gyro itself."""
+    """Physical constants of the stand outside the gyro itself.
 
-    chamber_time_constant_s: float = 60.0
-    thermal_lag_s: float = 600.0
-    initial_temperature_c: float = 25.0
-    table_rate_scale_error_ppm: float = 60.0
-    table_rate_ripple_ppm: float = 100.0  # once-per-revolution rate ripple r, ppm of the rate (assumed)
-    table_ripple_phase_deg: float = 0.0  # phi_r: where on the revolution the ripple peaks
-    # the DS345's own timebase against the HF2's clock (assumed values: the DS345 specification was not at
-    # hand; a crystal timebase of a few ppm is typical of such generators). See docs/simulation.md.
-    ds345_timebase_offset_ppm: float = 3.0
-    ds345_timebase_wander_ppm: float = 0.5
-    ds345_timebase_wander_period_s: float = 3600.0
-    ds345_command_latency_s: float = 0.37e-3
+    Every field is required: the configuration's [sim] section exposes each one, and the schema
+    (qmg_lab/config/schema.py SimSection) is the one place of their defaults, bounds, descriptions and origins
+    (the DS345 timebase values are assumed: a crystal timebase of a few ppm is typical of such generators; see
+    docs/simulation.md). qmg_lab/station.py `world_params` maps a configuration to this class.
+    """
+
+    chamber_time_constant_s: float  # chamber air -> its setpoint, first-order lag, s
+    thermal_lag_s: float  # chamber air -> gyro, first-order lag, s
+    initial_temperature_c: float
+    table_rate_scale_error_ppm: float
+    table_rate_ripple_ppm: float  # once-per-revolution rate ripple r, ppm of the rate
+    table_ripple_phase_deg: float  # phi_r: where on the revolution the ripple peaks
+    # the DS345's own timebase against the HF2's clock
+    ds345_timebase_offset_ppm: float
+    ds345_timebase_wander_ppm: float
+    ds345_timebase_wander_period_s: float
+    ds345_command_latency_s: float
 
 
 @dataclass
@@ -147,10 +152,10 @@ def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
 class World:
     """The virtual clock and the shared physical state. Thread-safe: twins on pty threads read it too."""
 
-    def __init__(self, params: WorldParams | None = None, clock: str = "virtual") -> None:
+    def __init__(self, params: WorldParams, clock: str = "virtual") -> None:
         if clock not in ("virtual", "wall"):
             raise ValueError("clock must be 'virtual' or 'wall'")
-        self.params = params or WorldParams()
+        self.params = params
         self.clock = clock
         self.lock = threading.RLock()
         self.t = 0.0

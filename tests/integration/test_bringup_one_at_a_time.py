@@ -21,8 +21,9 @@ import pytest
 
 from sims.serial_twin import serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World, WorldParams
+from sims.world import World
 from tests.support.campaigns import SHORT_TOML
+from tests.support.twin_params import paper_world_params
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -50,7 +51,7 @@ class RealTable:
     """The bench's table: a 1291BR twin with its own wall-clock world, on a loopback TCP port."""
 
     def __init__(self) -> None:
-        self.world = World(WorldParams(), clock="wall")
+        self.world = World(paper_world_params(), clock="wall")
         self.twin = AnsweringTable(self.world)
         self.url, self.stop = serve_socket(self.twin, "127.0.0.1")
 

@@ -21,10 +21,11 @@ from qmg_lab.config.schema import parse_config
 from qmg_lab.station import fault_plan
 from sims.chamber_twin import ChamberTwin
 from sims.ds345_twin import DS345Twin
-from sims.faults import GARBLE_BYTE, SENSOR_FAULT_REPLY, FaultInjector, FaultPlan
+from sims.faults import GARBLE_BYTE, SENSOR_FAULT_REPLY, FaultInjector
 from sims.table_twin import RateTableTwin
 from sims.world import World
 from tests.support.campaigns import SHORT_DURATION_S, SHORT_STEPS, config_text, run_inprocess
+from tests.support.twin_params import chamber_twin_settings, fault_plan_with, paper_world, table_twin_settings
 
 DT_S = round(210e6 / 1800.0) / 210e6  # demod sample period at 1800 Sa/s, in whole 210 MHz ticks (the HF2 twin)
 BLOCK_S = round(2.0 / DT_S) * DT_S  # one twin poll of sim_poll_interval_s = 2 s: a whole number of samples
@@ -42,9 +43,9 @@ def test_faults_are_off_by_default():
 
 
 def _sta_replies(seed: int, n: int = 400) -> list[bytes]:
-    world = World()
-    inj = FaultInjector(world, FaultPlan(seed=seed, serial_timeout_prob=0.3, serial_garble_prob=0.3))
-    twin = RateTableTwin(world)
+    world = paper_world()
+    inj = FaultInjector(world, fault_plan_with(seed=seed, serial_timeout_prob=0.3, serial_garble_prob=0.3))
+    twin = RateTableTwin(world, **table_twin_settings())
     inj.attach_serial("table", twin)
     return [twin.respond(b"STA\r") for _ in range(n)]
 
@@ -71,8 +72,8 @@ def test_serial_faults_follow_the_seed():
 
 
 def test_visa_reply_faults_drop_or_damage_the_reply():
-    world = World()
-    inj = FaultInjector(world, FaultPlan(seed=1, visa_timeout_prob=0.5, visa_garble_prob=0.5))
+    world = paper_world()
+    inj = FaultInjector(world, fault_plan_with(seed=1, visa_timeout_prob=0.5, visa_garble_prob=0.5))
     twin = DS345Twin(world)
     inj.attach_ds345(twin)
     res = twin.resource()
@@ -94,9 +95,9 @@ def test_visa_reply_faults_drop_or_damage_the_reply():
 
 
 def test_a_dropped_serial_link_reaches_nobody_then_comes_back():
-    world = World()
-    inj = FaultInjector(world, FaultPlan(disconnect_at_s=(10.0,), disconnect_duration_s=5.0))
-    link = inj.serial_link("table", RateTableTwin(world))
+    world = paper_world()
+    inj = FaultInjector(world, fault_plan_with(disconnect_at_s=(10.0,), disconnect_duration_s=5.0))
+    link = inj.serial_link("table", RateTableTwin(world, **table_twin_settings()))
     assert link.respond(b"JOG1\r") == b">\r"
     assert world.table.rate_command_dps == 1.0
     advance_to(world, 10.0)
@@ -111,10 +112,10 @@ def test_a_dropped_serial_link_reaches_nobody_then_comes_back():
 def test_a_dropped_visa_link_fails_io_and_reopening():
     import pyvisa.errors
 
-    world = World()
+    world = paper_world()
     twin = DS345Twin(world)
     inj = FaultInjector(
-        world, FaultPlan(disconnect_at_s=(1.0,), disconnect_duration_s=2.0, disconnect_instrument="generator")
+        world, fault_plan_with(disconnect_at_s=(1.0,), disconnect_duration_s=2.0, disconnect_instrument="generator")
     )
     opener = inj.visa_link("generator", twin.resource)
     res = opener()
@@ -130,9 +131,9 @@ def test_a_dropped_visa_link_fails_io_and_reopening():
 
 
 def test_chamber_overshoot_decays_exponentially_from_the_block_that_contains_it():
-    world = World()
+    world = paper_world()
     FaultInjector(
-        world, FaultPlan(chamber_overshoot_at_s=10.5, chamber_overshoot_c=5.0, chamber_overshoot_decay_s=30.0)
+        world, fault_plan_with(chamber_overshoot_at_s=10.5, chamber_overshoot_c=5.0, chamber_overshoot_decay_s=30.0)
     )
     advance_to(world, 10.0)
     assert world.chamber.disturbance_c == 0.0
@@ -144,9 +145,9 @@ def test_chamber_overshoot_decays_exponentially_from_the_block_that_contains_it(
 
 
 def test_chamber_sensor_dropout_answers_sensor_fault_for_its_duration():
-    world = World()
-    inj = FaultInjector(world, FaultPlan(chamber_dropout_at_s=2.0, chamber_dropout_duration_s=3.0))
-    twin = ChamberTwin(world)
+    world = paper_world()
+    inj = FaultInjector(world, fault_plan_with(chamber_dropout_at_s=2.0, chamber_dropout_duration_s=3.0))
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="flags16"))
     inj.attach_serial("chamber", twin)
     assert twin.respond(b"C1?\r") == b"25.00\r\n"
     advance_to(world, 2.0)
@@ -157,8 +158,8 @@ def test_chamber_sensor_dropout_answers_sensor_fault_for_its_duration():
 
 
 def test_interlock_trip_brakes_the_table():
-    world = World()
-    FaultInjector(world, FaultPlan(interlock_trip_at_s=3.0))
+    world = paper_world()
+    FaultInjector(world, fault_plan_with(interlock_trip_at_s=3.0))
     world.set_table_rate(5.0, 300.0)
     advance_to(world, 3.0)
     assert not world.table.interlock

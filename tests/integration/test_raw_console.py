@@ -18,7 +18,8 @@ import pytest
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import chamber_twin_settings, paper_world_params, table_twin_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,7 +47,9 @@ def write(tmp: Path, text: str) -> Path:
 def test_table_raw_prints_the_bytes_of_a_real_serial_exchange(
     tmp_path: Path, reply_end: bytes, prompt_end: bytes, received: bytes
 ) -> None:
-    twin = RateTableTwin(World(WorldParams(), clock="wall"), reply_end=reply_end, prompt_end=prompt_end)
+    twin = RateTableTwin(
+        World(paper_world_params(), clock="wall"), reply_end=reply_end, prompt_end=prompt_end, **table_twin_settings()
+    )
     url, stop = serve_socket(twin, "127.0.0.1")
     try:
         cfg = write(tmp_path, f'[table]\nport = "{url}"\n')
@@ -62,7 +65,7 @@ def test_table_raw_prints_the_bytes_of_a_real_serial_exchange(
 
 
 def test_chamber_raw_without_terminator_and_with_escapes(tmp_path: Path) -> None:
-    twin = ChamberTwin(World(WorldParams(), clock="wall"))
+    twin = ChamberTwin(World(paper_world_params(), clock="wall"), **chamber_twin_settings(status_layout="flags16"))
     url, stop = serve_socket(twin, "127.0.0.1")
     try:
         cfg = write(tmp_path, f'[chamber]\nport = "{url}"\n')
@@ -75,7 +78,7 @@ def test_chamber_raw_without_terminator_and_with_escapes(tmp_path: Path) -> None
 
 def test_table_raw_reports_silence(tmp_path: Path) -> None:
     """A port where nobody answers: the console says so, exit 0 (nothing was wrong with the input)."""
-    twin = RateTableTwin(World(WorldParams(), clock="wall"))
+    twin = RateTableTwin(World(paper_world_params(), clock="wall"), **table_twin_settings())
     twin.fault_hook = lambda line, reply: b""  # the instrument stays silent
     url, stop = serve_socket(twin, "127.0.0.1")
     try:

@@ -17,7 +17,8 @@ from qmg_lab.station import SIM_DEVICE_ID, build_station, connect_instrument, gy
 from sims.chamber_twin import ChamberTwin
 from sims.hf2_server import HF2DataServerTwin
 from sims.serial_twin import serve_socket
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 DEV = f"/{SIM_DEVICE_ID}"
 
@@ -28,8 +29,16 @@ def cfg_from(text: str):
 
 def test_output_safe_v_reaches_the_lockin_safe_state() -> None:
     cfg = cfg_from("[lockin]\nsim = true\noutput_safe_v = 1.25\nrate_auxout = 2\nquadrature_auxout = 3\n")
-    world = World(WorldParams(), clock="virtual")
-    twin = HF2DataServerTwin(world, gyro_params(cfg), 1, hf2_wiring(cfg), device_id=SIM_DEVICE_ID)
+    world = World(paper_world_params(), clock="virtual")
+    twin = HF2DataServerTwin(
+        world,
+        gyro_params(cfg),
+        1,
+        hf2_wiring(cfg),
+        rate_set=cfg.sim.hf2_rate_set,
+        options=tuple(cfg.sim.hf2_options),
+        device_id=SIM_DEVICE_ID,
+    )
     li = lockin_driver(cfg, Session("localhost", 8005, hf2=True, connection=twin), SIM_DEVICE_ID)
     li.safe_state()
     for ch in (2, 3):
@@ -52,8 +61,8 @@ def test_build_station_passes_output_safe_v() -> None:
 
 @pytest.fixture
 def chamber_controller():
-    world = World(WorldParams(), clock="wall")
-    twin = ChamberTwin(world)
+    world = World(paper_world_params(), clock="wall")
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="flags16"))
     url, stop = serve_socket(twin, "127.0.0.1")
     yield twin, url
     stop()

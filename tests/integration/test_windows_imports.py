@@ -220,7 +220,7 @@ def test_the_pty_transport_is_refused_without_posix_with_a_message_naming_the_wa
     from qmg_lab.config import schema
     from sims import serial_twin
     from sims.table_twin import RateTableTwin
-    from sims.world import World
+    from tests.support.twin_params import paper_world, table_twin_settings
 
     windows = types.SimpleNamespace(name="nt")
     monkeypatch.setattr(schema, "os", windows)
@@ -233,4 +233,4 @@ def test_the_pty_transport_is_refused_without_posix_with_a_message_naming_the_wa
         )
     assert not serial_twin.pty_supported()
     with pytest.raises(OSError, match=r'needs a POSIX system.*sim_transport = "inprocess"'):
-        serial_twin.serve_pty(RateTableTwin(World()))
+        serial_twin.serve_pty(RateTableTwin(paper_world(), **table_twin_settings()))

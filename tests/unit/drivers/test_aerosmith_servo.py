@@ -15,8 +15,8 @@ from qmg_lab.instruments import InstrumentError
 from qmg_lab.station import connect_instrument
 from sims.serial_twin import InProcessSerial
 from sims.table_twin import RateTableTwin
-from sims.world import World
 from tests.support.protocol_serial import ProtocolPort, expected_protocol
+from tests.support.twin_params import paper_world
 
 P = b">\r"
 SERVO_ON_BIT = 8  # STA bit 3 (drivers/aerosmith_commands.py, TableStatus.SERVO_ON)
@@ -77,7 +77,7 @@ def test_servo_command_must_be_one_printable_word() -> None:
 
 
 def test_twin_refuses_motion_until_the_servo_is_on() -> None:
-    twin = RateTableTwin(World(), servo_on=False)
+    twin = RateTableTwin(paper_world(), servo_on=False)
     assert twin.respond(b"STA\r") == b"2\r" + P  # at rate (0), servo off
     assert twin.respond(b"JOG5\r") == b"E06 SERVO OFF\r" + P
     assert twin.respond(b"SRV\r") == P
@@ -87,12 +87,12 @@ def test_twin_refuses_motion_until_the_servo_is_on() -> None:
 
 
 def test_driver_on_a_twin_whose_servo_is_off() -> None:
-    twin = RateTableTwin(World(), servo_on=False)
+    twin = RateTableTwin(paper_world(), servo_on=False)
     t = Aerosmith1291BR(InProcessSerial(twin), max_rate_dps=100.0, max_accel_dps2=500.0, servo_enable_command="SRV")
     t.set_rate(5.0, 300.0)
     assert t.read().status & SERVO_ON_BIT
     bare = Aerosmith1291BR(
-        InProcessSerial(RateTableTwin(World(), servo_on=False)), max_rate_dps=100.0, max_accel_dps2=500.0
+        InProcessSerial(RateTableTwin(paper_world(), servo_on=False)), max_rate_dps=100.0, max_accel_dps2=500.0
     )
     with pytest.raises(InstrumentError, match=r"'JOG5\.000000' refused: E06 SERVO OFF \(servo off"):
         bare.set_rate(5.0, 300.0)

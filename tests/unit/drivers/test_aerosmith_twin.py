@@ -20,7 +20,8 @@ from drivers.aerosmith import Aerosmith1291BR
 from qmg_lab.instruments import InstrumentError, InterlockError, LimitError
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import paper_world, paper_world_params, table_twin_settings
 
 E_PPM = 60.0
 SCALE = 1.0 + E_PPM * 1e-6
@@ -38,8 +39,8 @@ class Bench:
 
 @pytest.fixture(params=["inprocess", "pty", "socket"])
 def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
-    twin = RateTableTwin(world)
+    world = World(paper_world_params(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
+    twin = RateTableTwin(world, **table_twin_settings())
     stop = None
     if request.param == "inprocess":
         port = InProcessSerial(twin)
@@ -159,8 +160,8 @@ def test_state_is_json_like(bench: Bench) -> None:
 
 
 def _inprocess() -> tuple[World, RateTableTwin, Aerosmith1291BR]:
-    world = World()
-    twin = RateTableTwin(world)
+    world = paper_world()
+    twin = RateTableTwin(world, **table_twin_settings())
     return world, twin, Aerosmith1291BR(InProcessSerial(twin), max_rate_dps=100.0, max_accel_dps2=500.0)
 
 
@@ -190,8 +191,8 @@ def test_closed_port_is_an_instrument_error() -> None:
 
 
 def test_reconnect_over_socket_keeps_the_motion() -> None:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
-    twin = RateTableTwin(world)
+    world = World(paper_world_params(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
+    twin = RateTableTwin(world, **table_twin_settings())
     url, stop = serve_socket(twin)
     try:
         table = Aerosmith1291BR(
@@ -245,8 +246,8 @@ def test_every_command_the_driver_accepts_is_understood_by_the_twin(
 
 
 def test_reconnect_over_pty_reopens_the_same_device() -> None:
-    world = World(WorldParams(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
-    path, stop = serve_pty(RateTableTwin(world))
+    world = World(paper_world_params(table_rate_scale_error_ppm=E_PPM, table_rate_ripple_ppm=0.0))  # ripple: tests/sims
+    path, stop = serve_pty(RateTableTwin(world, **table_twin_settings()))
     try:
         table = Aerosmith1291BR(
             serial.Serial(path, 9600, timeout=2.0),

@@ -19,8 +19,9 @@ from drivers.chamber import ChamberStatus, SunEC1xChamber, parse_status
 from qmg_lab.instruments import ChamberReading, InstrumentError
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, serve_socket
-from sims.world import World, WorldParams
+from sims.world import World
 from tests.support.protocol_serial import ProtocolPort, expected_protocol
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 ON_IDLE = b"YNNNYYYNNNNNNNNNNN0\r\n"  # power, heat, cool, valid set temperature; not ramping; self-test ok
 ON_RAMPING = b"YNNNYYYNYNNNNNNNNN0\r\n"  # the same, ramping (char 8)
@@ -175,8 +176,8 @@ def test_rom_and_undocumented_self_test_codes_are_faults(code: int, meaning: str
 # ------------------------------------------------------------------------------------------ the twin as an EC13
 @pytest.fixture(params=["inprocess", "socket"])
 def twin_bench(request: pytest.FixtureRequest) -> Iterator[tuple[ChamberTwin, SunEC1xChamber]]:
-    world = World(WorldParams(initial_temperature_c=25.0))
-    twin = ChamberTwin(world, status_layout="ec13", acknowledges_settings=False)
+    world = World(paper_world_params(initial_temperature_c=25.0))
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="ec13", acknowledges_settings=False))
     stop = None
     if request.param == "inprocess":
         port = InProcessSerial(twin)

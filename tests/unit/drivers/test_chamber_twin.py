@@ -19,7 +19,8 @@ from drivers.chamber import SunEC1xChamber
 from qmg_lab.instruments import LimitError
 from sims.chamber_twin import ChamberTwin
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 TAU = 60.0
 DT = 0.1
@@ -38,8 +39,8 @@ class Bench:
 
 @pytest.fixture(params=["inprocess", "pty", "socket"])
 def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
-    world = World(WorldParams(chamber_time_constant_s=TAU, initial_temperature_c=25.0))
-    twin = ChamberTwin(world)
+    world = World(paper_world_params(chamber_time_constant_s=TAU, initial_temperature_c=25.0))
+    twin = ChamberTwin(world, **chamber_twin_settings(status_layout="flags16"))
     stop = None
     if request.param == "inprocess":
         port = InProcessSerial(twin)

@@ -20,8 +20,8 @@ from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import InstrumentError
 from qmg_lab.station import connect_instrument
 from sims.ds345_twin import DS345Twin
-from sims.world import World
 from tests.support.protocol_visa import expected_protocol
+from tests.support.twin_params import paper_world
 
 YAML = importlib.resources.files("sims") / "ds345.yaml"
 ASRL_REPLY_LINE = '        r: "\\r"\n'  # the RS-232 reply terminator line of sims/ds345.yaml
@@ -84,7 +84,7 @@ def test_gpib_stays_on_lf_and_serial_reads_cr_for_the_raw_console() -> None:
 
 @pytest.mark.parametrize("reply_end", [b"\r", b"\n", b"\r\n"])
 def test_twin_on_an_asrl_resource_in_each_framing(reply_end: bytes) -> None:
-    twin = DS345Twin(World())
+    twin = DS345Twin(paper_world())
     generator = DS345(twin.resource("ASRL1::INSTR", reply_end=reply_end))
     assert generator.identify().split(",")[1] == "DS345"
     generator.set_square(7, 0.6)
@@ -94,7 +94,7 @@ def test_twin_on_an_asrl_resource_in_each_framing(reply_end: bytes) -> None:
 
 def test_twin_on_gpib_with_cr_replies_is_not_read_as_serial() -> None:
     """GPIB stays strict: a reply without LF is not a reply there (the driver does not read to CR on GPIB)."""
-    generator = DS345(DS345Twin(World()).resource("GPIB0::19::INSTR", reply_end=b"\r"))
+    generator = DS345(DS345Twin(paper_world()).resource("GPIB0::19::INSTR", reply_end=b"\r"))
     with pytest.raises(InstrumentError, match="no reply to '\\*IDN\\?'"):
         generator.identify()
 

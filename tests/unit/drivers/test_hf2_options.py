@@ -33,11 +33,10 @@ from qmg_lab.campaign.loops import lockin_setup
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import InstrumentError
 from qmg_lab.station import hf2_wiring
-from sims.gyro import GyroParams
 from sims.hf2_loops import identify_loops
 from sims.hf2_nodetree import NodeError, nodedoc_path
 from sims.hf2_server import HF2DataServerTwin
-from sims.world import World
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 MF = ("MF", "PLL", "PID")
 NON_MF = ("PLL", "PID")
@@ -99,9 +98,19 @@ class RecordingTwin(HF2DataServerTwin):
         return super().get(paths, *args, **kwargs)
 
 
+def bare_twin(options: tuple[str, ...], cfg: Config | None = None) -> HF2DataServerTwin:
+    """The HF2 twin with `options`, wired as `cfg` (default: the default configuration) says."""
+    wiring = hf2_wiring(cfg or Config())
+    return HF2DataServerTwin(
+        paper_world(), paper_gyro_params(), seed=3, wiring=wiring, **hf2_twin_settings(options=options)
+    )
+
+
 def make_twin(options: tuple[str, ...], cfg: Config | None = None) -> tuple[Config, RecordingTwin]:
     cfg = (cfg or Config()).model_copy(update={"sim": Config().sim.model_copy(update={"hf2_options": list(options)})})
-    return cfg, RecordingTwin(World(), GyroParams(), seed=3, wiring=hf2_wiring(cfg), options=options)
+    return cfg, RecordingTwin(
+        paper_world(), paper_gyro_params(), seed=3, wiring=hf2_wiring(cfg), **hf2_twin_settings(options=options)
+    )
 
 
 def driver_on(twin: HF2DataServerTwin, cfg: Config) -> HF2LI:
@@ -206,7 +215,7 @@ def test_a_configured_mixer_channel_overrides_the_derived_one_and_an_absent_one_
 )
 def test_a_lockin_without_pll_or_pid_is_refused_naming_the_option(options: tuple[str, ...], missing: str) -> None:
     cfg = Config()
-    twin = HF2DataServerTwin(World(), GyroParams(), seed=3, wiring=hf2_wiring(cfg), options=options)
+    twin = bare_twin(options, cfg)
     with pytest.raises(MissingOptionError, match=missing):
         driver_on(twin, cfg)
 
@@ -295,7 +304,7 @@ def test_reconnect_on_hardware_opens_a_new_data_server_session(monkeypatch: pyte
 
 def test_twin_lists_exactly_the_option_dependent_branches() -> None:
     for options, expected in EXPECTED_INDICES.items():
-        twin = HF2DataServerTwin(World(), GyroParams(), seed=3, wiring=hf2_wiring(Config()), options=options)
+        twin = bare_twin(options)
         twin.connectDevice("dev1234")
         nodes = [n.lower() for n in twin.listNodes("/dev1234", recursive=True, leavesonly=True)]
         for leaf in MIXER_LEAVES:
@@ -303,7 +312,7 @@ def test_twin_lists_exactly_the_option_dependent_branches() -> None:
             assert got == set(expected["mixer"]), (options, leaf)
         oscs = {int(re.match(r"/dev1234/oscs/(\d+)/", p).group(1)) for p in nodes if p.startswith("/dev1234/oscs/")}
         assert oscs == set(expected["oscs"])
-    no_pid = HF2DataServerTwin(World(), GyroParams(), seed=3, wiring=hf2_wiring(Config()), options=("MF", "PLL"))
+    no_pid = bare_twin(("MF", "PLL"))
     no_pid.connectDevice("dev1234")
     listed = no_pid.listNodes("/dev1234", recursive=True, leavesonly=True)
     assert not [p for p in listed if "/PIDS/" in p.upper()] and [p for p in listed if "/PLLS/" in p.upper()]

@@ -21,9 +21,9 @@ from drivers.hf2li import HF2LI, MAGNITUDE_ERROR_U, demod_magnitude
 from qmg_lab.campaign.loops import agc_pi, lockin_setup, pll_pi, quadrature_pi, rate_pi
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LimitError
-from sims.gyro import GyroParams
 from sims.hf2_server import HF2DataServerTwin, HF2Wiring
 from sims.world import World
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
 RATE = 210e6 / round(210e6 / 1800.0)  # the configured 1800 Sa/s as the HF2 twin applies it: whole clock ticks
@@ -44,7 +44,7 @@ class CountingTwin(HF2DataServerTwin):
 def bench(cfg: Config | None = None) -> tuple[Config, World, CountingTwin, HF2LI]:
     cfg = cfg or Config()
     lk = cfg.lockin
-    world = World()
+    world = paper_world()
     wiring = HF2Wiring(
         **{
             f: getattr(lk, f)
@@ -61,7 +61,7 @@ def bench(cfg: Config | None = None) -> tuple[Config, World, CountingTwin, HF2LI
             )
         }
     )
-    twin = CountingTwin(world, GyroParams(), seed=7, wiring=wiring)
+    twin = CountingTwin(world, paper_gyro_params(), seed=7, wiring=wiring, **hf2_twin_settings())
     session = Session("localhost", hf2=True, connection=twin)
     li = HF2LI(session, "dev1234", lk, output_safe_v=lk.output_safe_v)
     return cfg, world, twin, li

@@ -15,6 +15,7 @@ import pytest
 
 from qmg_lab.config.schema import parse_config
 from qmg_lab.station import connect_instrument
+from tests.support.twin_params import paper_world_params, table_twin_settings
 
 TERMS = ("CR", "LF", "CRLF")
 
@@ -87,9 +88,9 @@ def test_a_wrong_command_terminator_is_named_by_the_twin() -> None:
     from qmg_lab.station import table_driver
     from sims.serial_twin import InProcessSerial
     from sims.table_twin import RateTableTwin
-    from sims.world import World, WorldParams
+    from sims.world import World
 
     cfg = parse_config('[table]\ncommand_terminator = "LF"\n')
-    twin = RateTableTwin(World(WorldParams(), clock="wall"))  # expects CR LF
+    twin = RateTableTwin(World(paper_world_params(), clock="wall"), **table_twin_settings())  # expects CR LF
     with pytest.raises(InstrumentError, match=r"'STA' refused: E05 FRAMING"):
         table_driver(cfg, lambda: InProcessSerial(twin)).identify()

@@ -17,12 +17,13 @@ import drivers.ds345
 from drivers.ds345 import DS345
 from qmg_lab.instruments import InstrumentError
 from sims.ds345_twin import DS345Twin, VisaTwinResource
-from sims.world import DITHER_SQUARE, World, WorldParams
+from sims.world import DITHER_SQUARE, World
+from tests.support.twin_params import paper_world_params
 
 DT = 1.0 / 1400.0  # 200 steps per 7 Hz period
 # The protocol tests look at what the twin tells the World; the DS345's own timebase (offset, wander, command
 # latency: tests/unit/sims/test_world.py) is set ideal here so that levels and periods land on the step grid.
-IDEAL = WorldParams(ds345_timebase_offset_ppm=0.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
+IDEAL = paper_world_params(ds345_timebase_offset_ppm=0.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
 
 
 def bench() -> tuple[World, DS345Twin, VisaTwinResource]:

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from drivers.ds345 import DS345
 from sims.ds345_twin import DS345Twin
-from sims.world import World
+from tests.support.twin_params import paper_world
 
 
 @st.composite
@@ -26,7 +26,7 @@ def legal_levels(draw: st.DrawFn) -> tuple[float, float]:
 @settings(max_examples=60, deadline=None)
 @given(st.lists(legal_levels(), min_size=2, max_size=5))
 def test_every_transition_is_accepted(path: list[tuple[float, float]]) -> None:
-    world = World()
+    world = paper_world()
     gen = DS345(DS345Twin(world).resource())
     for vpp, offset in path:
         gen.set_square(7.0, vpp, offset)  # raises InstrumentError if any intermediate state was refused

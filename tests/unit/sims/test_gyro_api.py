@@ -13,21 +13,25 @@ from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 from sims.world import BlockInputs
 from tests.support.paper_loops import paper_loops
+from tests.support.twin_params import paper_gyro_params, paper_world
 
 DT = 1.0 / 1400.0
-QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
+QUIET = paper_gyro_params().noiseless(**NONIDEALITIES_OFF)
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
     return paper_loops(gain)
 
 
-def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_keys() -> None:
+def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_and_missing_keys() -> None:
     section = SimSection(q_factor=1e6).model_dump(include=set(GyroParams.field_names()))
+    section["drive_amplitude_vrms"] = 0.5  # [device]'s, not [sim]'s
     p = GyroParams.from_mapping(section)
     assert p.q_factor == 1e6
     with pytest.raises(ValueError, match=r"unknown parameters \['q_facter'\]"):
-        GyroParams.from_mapping({"q_facter": 1e6})
+        GyroParams.from_mapping({**section, "q_facter": 1e6})
+    with pytest.raises(ValueError, match=r"missing parameters \['f0_hz'\]"):
+        GyroParams.from_mapping({k: v for k, v in section.items() if k != "f0_hz"})
     assert p.arw_rad_per_rt_s == pytest.approx(0.02 / 60.0 * math.pi / 180.0)
 
 
@@ -44,7 +48,7 @@ def test_from_mapping_takes_the_config_sections_gyro_keys_and_refuses_unknown_ke
 )
 def test_bad_params_are_named(kwargs: dict[str, float], word: str) -> None:
     with pytest.raises(ValueError, match=word):
-        GyroParams(**kwargs)
+        paper_gyro_params(**kwargs)
 
 
 def test_bad_construction_and_inputs_are_named() -> None:
@@ -65,12 +69,12 @@ def test_bad_construction_and_inputs_are_named() -> None:
 
 def test_same_seed_same_output_independent_of_block_split() -> None:
     loops = _loops()
-    one = GyroSim(GyroParams(), DT, seed=7).run(held_inputs(3000, DT), loops)
-    sim = GyroSim(GyroParams(), DT, seed=7)
+    one = GyroSim(paper_gyro_params(), DT, seed=7).run(held_inputs(3000, DT), loops)
+    sim = GyroSim(paper_gyro_params(), DT, seed=7)
     parts = [sim.run(held_inputs(n, DT), loops) for n in (1000, 1, 1999)]
     split = np.concatenate([b.rate_output_v for b in parts])
     np.testing.assert_array_equal(one.rate_output_v, split)
-    other = GyroSim(GyroParams(), DT, seed=8).run(held_inputs(3000, DT), loops)
+    other = GyroSim(paper_gyro_params(), DT, seed=8).run(held_inputs(3000, DT), loops)
     assert not np.array_equal(one.rate_output_v, other.rate_output_v)
 
 
@@ -125,9 +129,8 @@ def test_unsettled_start_locks() -> None:
 
 
 def test_block_inputs_from_a_world_are_accepted() -> None:
-    from sims.world import World
 
-    w = World()
+    w = paper_world()
     sim = GyroSim(QUIET, DT, seed=1)
     inp = w.advance(700, DT)
     assert isinstance(inp, BlockInputs)

@@ -21,11 +21,12 @@ import numpy as np
 import pytest
 
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
+from sims.gyro import GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
 from tests.support.paper_loops import paper_loops
+from tests.support.twin_params import paper_gyro_params
 
-QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
+QUIET = paper_gyro_params().noiseless(**NONIDEALITIES_OFF)
 F0 = QUIET.f0_hz
 PERIOD = 314  # demod samples per dither period
 V_DITHER = 0.3  # 5 deg/s virtual rate at SF 0.06

@@ -16,10 +16,11 @@ import pytest
 
 from qmg_lab.campaign.loops import lockin_setup
 from qmg_lab.config.schema import Config
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
+from tests.support.twin_params import paper_gyro_params
 
-QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
+QUIET = paper_gyro_params().noiseless(**NONIDEALITIES_OFF)
 DT = 1.0 / 1400.0
 F_DITHER = 7.0  # 200 steps per period: edges on step boundaries
 V_DITHER = 0.3

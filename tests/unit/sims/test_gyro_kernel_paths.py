@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 
 from sims import gyro_kernel as gk
-from sims.gyro import CHUNK_STEPS, GyroParams, GyroSim, _same_loops, held_inputs
+from sims.gyro import CHUNK_STEPS, GyroSim, _same_loops, held_inputs
 from sims.gyro_params import LoopSettings, pack_loops
 from tests.support.paper_loops import paper_loops
+from tests.support.twin_params import paper_gyro_params
 
 DT = 1.0 / 1800.0
 EPS = np.finfo(float).eps
@@ -52,7 +53,7 @@ def test_single_demod_section_follows_the_first_order_hold_formula(tc: float) ->
     loops.demod_timeconstant_s = tc
     loops.demod_order = 1
     lvec = pack_loops(loops)
-    p = GyroSim(GyroParams(), DT, seed=1)._P
+    p = GyroSim(paper_gyro_params(), DT, seed=1)._P
     fj, fs, fr, order, a_d, c_d, sections = gk._lowpass_sections(p, lvec, DT)
     rng = np.random.default_rng(3)
     s = np.zeros(gk.N_STATE)
@@ -73,8 +74,8 @@ def test_a_block_longer_than_a_chunk_equals_the_same_steps_in_short_blocks(n: in
     """A long block runs chunk by chunk, each chunk drawing its own noise rows: the same run as short blocks."""
     loops = paper_loops(1.0)
     inputs = held_inputs(n, DT, rate_dps=5.0, temperature_c=np.linspace(25.0, 26.0, n))
-    one = GyroSim(GyroParams(), DT, seed=11).run(inputs, loops)
-    sim = GyroSim(GyroParams(), DT, seed=11)
+    one = GyroSim(paper_gyro_params(), DT, seed=11).run(inputs, loops)
+    sim = GyroSim(paper_gyro_params(), DT, seed=11)
     cuts = [0, 900, CHUNK_STEPS - 1, CHUNK_STEPS + 1, n]
     parts = []
     for a, b in itertools.pairwise(cuts):
@@ -87,7 +88,7 @@ def test_a_block_longer_than_a_chunk_equals_the_same_steps_in_short_blocks(n: in
 
 def test_loop_settings_changed_in_place_between_blocks_take_effect() -> None:
     loops = paper_loops(1.0)
-    sim = GyroSim(GyroParams.noiseless(), DT, seed=1)
+    sim = GyroSim(paper_gyro_params().noiseless(), DT, seed=1)
     first = sim.run(held_inputs(200, DT, rate_dps=5.0), loops)
     assert abs(first.rate_output_v[-1]) > 0.01  # the rate loop balances the 5 deg/s Coriolis force
     loops.rate.enabled = False  # the same object, changed in place
@@ -97,7 +98,7 @@ def test_loop_settings_changed_in_place_between_blocks_take_effect() -> None:
 
 @pytest.mark.parametrize("n", [300, CHUNK_STEPS + 300])
 def test_a_block_whose_state_went_nan_reads_as_unlocked(n: int) -> None:
-    sim = GyroSim(GyroParams.noiseless(), DT, seed=1)
+    sim = GyroSim(paper_gyro_params().noiseless(), DT, seed=1)
     loops = paper_loops(1.0)
     assert sim.run(held_inputs(n, DT), loops).pll_locked
     sim._S[gk.S_CX] = float("nan")  # a diverged state: the PLL error is NaN from then on
@@ -124,7 +125,7 @@ def test_the_loop_settings_comparison_sees_every_field() -> None:
 def test_a_disabled_pll_never_reads_as_locked() -> None:
     loops = paper_loops(1.0)
     loops.pll.enabled = False
-    b = GyroSim(GyroParams.noiseless(), DT, seed=1).run(held_inputs(100, DT), loops)
+    b = GyroSim(paper_gyro_params().noiseless(), DT, seed=1).run(held_inputs(100, DT), loops)
     assert not b.pll_locked
 
 
@@ -138,7 +139,7 @@ def test_a_disabled_pll_never_reads_as_locked() -> None:
 )
 def test_a_non_finite_input_is_named_and_the_state_is_kept(name: str, bad: float, words: str) -> None:
     loops = paper_loops(1.0)
-    sim = GyroSim(GyroParams(), DT, seed=5)
+    sim = GyroSim(paper_gyro_params(), DT, seed=5)
     sim.run(held_inputs(50, DT), loops)
     before = sim._S.copy()
     inputs = held_inputs(50, DT)

@@ -17,7 +17,8 @@ import pytest
 
 from qmg_lab.campaign.loops import lockin_setup
 from qmg_lab.config.schema import Config
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from tests.support.twin_params import paper_gyro_params
 
 DT = 1.0 / 1400.0
 HOURS = 4.0
@@ -34,7 +35,7 @@ def adev() -> tuple[np.ndarray, np.ndarray]:
         rate=PidSettings.from_gains(su.rate),
         quadrature=PidSettings.from_gains(su.quadrature),
     )
-    sim = GyroSim(GyroParams(), DT, seed=1)
+    sim = GyroSim(paper_gyro_params(), DT, seed=1)
     blk = int(round(BLOCK_S / DT))
     bins = []
     for _ in range(int(HOURS * 3600 / BLOCK_S)):

@@ -11,11 +11,12 @@ import pytest
 
 from qmg_lab.campaign.loops import lockin_setup, rate_pi
 from qmg_lab.config.schema import Config, DeviceSection
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
+from sims.gyro import GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import paper_gyro_params, paper_world_params
 
-QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)
+QUIET = paper_gyro_params().noiseless(**NONIDEALITIES_OFF)
 DT = 1.0 / 1400.0
 BW_HZ = 2.0
 
@@ -33,7 +34,7 @@ def _loops() -> LoopSettings:
 
 def _response(freq_hz: float, amp_dps: float = 5.0) -> complex:
     """Complex gain V_r / (SF * Omega) at freq_hz, table driven sinusoidally through a World."""
-    world = World(WorldParams(table_rate_scale_error_ppm=0.0))
+    world = World(paper_world_params(table_rate_scale_error_ppm=0.0))
     sim = GyroSim(QUIET, DT, seed=1)
     loops = _loops()
     world.set_table_sine(amp_dps, freq_hz)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from sims.carrier import CarrierGyroSim
-from sims.gyro import GyroParams, GyroSim, LoopSettings, PllSettings, held_inputs
+from sims.gyro import GyroSim, LoopSettings, PllSettings, held_inputs
 from sims.gyro_params import NOISE_OFF, NONIDEALITIES_OFF
+from tests.support.twin_params import paper_gyro_params
 
 QUIET = {**NOISE_OFF, **NONIDEALITIES_OFF}
 OPEN = LoopSettings(pll=PllSettings(enabled=False, center_hz=2200.0))  # every loop open, reference at f0
@@ -22,12 +23,12 @@ def _decay_time_s(t: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
 
 
 def test_tau_formula_is_the_papers_value() -> None:
-    assert GyroParams().tau_s == pytest.approx(173.6, abs=0.05)
+    assert paper_gyro_params().tau_s == pytest.approx(173.6, abs=0.05)
 
 
 @pytest.mark.parametrize("mismatch, tol", [(0.0, 1e-5), (0.01, 0.01)])
 def test_averaged_sense_ringdown(mismatch: float, tol: float) -> None:
-    p = GyroParams(damping_mismatch=mismatch, **QUIET)
+    p = paper_gyro_params(damping_mismatch=mismatch, **QUIET)
     dt = 1.0 / 1400.0
     sim = GyroSim(p, dt, seed=1)
     sim.reset(settled=False)
@@ -41,7 +42,7 @@ def test_averaged_sense_ringdown(mismatch: float, tol: float) -> None:
 
 def test_carrier_sense_ringdown_is_exact_not_rk4() -> None:
     """At 32 samples per cycle the exact ZOH keeps tau (RK4 would ring down in 29.7 s, physics.md section 2)."""
-    p = GyroParams(damping_mismatch=0.0, **QUIET)
+    p = paper_gyro_params(damping_mismatch=0.0, **QUIET)
     sim = CarrierGyroSim(p, 1.0 / (32 * p.f0_hz), seed=1)
     sim.reset(settled=False)
     sim.set_modal_state(0.0, 0.0, 1.0, 0.0)

@@ -14,6 +14,7 @@ import pytest
 from sims.gyro import GyroParams
 from sims.hf2_server import AUXIN_ADC_RATE_HZ, HF2DataServerTwin, HF2Wiring
 from sims.world import DITHER_SQUARE, World
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
 
@@ -23,8 +24,10 @@ def make_twin(
 ) -> tuple[World, HF2DataServerTwin]:
     """The protocol tests stream at 1400 Sa/s (whole clock ticks): rate_set "ticks" offers any clockbase/integer
     rate; the HF2's own rate ladder is tested on its own."""
-    world = World()
-    twin = HF2DataServerTwin(world, params or GyroParams(), seed=3, wiring=HF2Wiring(**wiring), rate_set=rate_set)
+    world = paper_world()
+    twin = HF2DataServerTwin(
+        world, params or paper_gyro_params(), seed=3, wiring=HF2Wiring(**wiring), **hf2_twin_settings(rate_set=rate_set)
+    )
     twin.connectDevice("dev1234", "USB")
     return world, twin
 
@@ -222,7 +225,7 @@ def test_disabled_demod_delivers_nothing() -> None:
 
 
 def test_auxins_carry_the_dither_and_truth_is_recorded() -> None:
-    world, twin = make_twin(params=GyroParams(auxin_bits=0, auxin_noise_v_rms=0.0), rate_auxin=0, dither_auxin=1)
+    world, twin = make_twin(params=paper_gyro_params(auxin_bits=0, auxin_noise_v_rms=0.0), rate_auxin=0, dither_auxin=1)
     world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
     stream_demods(twin)
     s = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]
@@ -273,7 +276,7 @@ def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
     """Each AuxIn reading: + white noise sigma, rounded to 2 R / 2^bits, clipped to +-R. The dither's plateaus
     (+-0.3 V) then read as multiples of the step whose spread about the true level is sqrt(sigma^2 + lsb^2/12)
     (sigma >= lsb/2 dithers the rounding), and a range below the level clips it."""
-    params = GyroParams(auxin_bits=8, auxin_range_v=1.0, auxin_noise_v_rms=0.01)
+    params = paper_gyro_params(auxin_bits=8, auxin_range_v=1.0, auxin_noise_v_rms=0.01)
     lsb = 2.0 / 2**8
     world, twin = make_twin(params=params, rate_auxin=0, dither_auxin=1)
     world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
@@ -284,7 +287,7 @@ def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
     err = plateau - np.sign(plateau) * 0.3
     assert abs(float(np.mean(err))) < 0.002
     assert float(np.std(err)) == pytest.approx(math.sqrt(0.01**2 + lsb**2 / 12), rel=0.05)
-    world, twin = make_twin(params=GyroParams(auxin_range_v=0.2), rate_auxin=0, dither_auxin=1)
+    world, twin = make_twin(params=paper_gyro_params(auxin_range_v=0.2), rate_auxin=0, dither_auxin=1)
     world.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
     stream_demods(twin)
     d = twin.poll(1.0, 500, 0, True)[f"{DEV}/demods/1/sample"]["auxin1"]
@@ -294,9 +297,13 @@ def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
 def test_an_hf2li_without_mf_refuses_the_mf_mixer_channels_and_streams_on_two_oscillators() -> None:
     """Without MF (zhinst-utils default_output_mixer_channel; a recorded non-MF HF2): only mixer channels 6 and
     7, two oscillators; a write to channel 0 is refused like any node the instrument does not list."""
-    world = World()
+    world = paper_world()
     twin = HF2DataServerTwin(
-        world, GyroParams(), seed=3, wiring=HF2Wiring(forcer_mixer_channel=7), options=("PLL", "PID")
+        world,
+        paper_gyro_params(),
+        seed=3,
+        wiring=HF2Wiring(forcer_mixer_channel=7),
+        **hf2_twin_settings(options=("PLL", "PID")),
     )
     twin.connectDevice("dev1234", "USB")
     assert twin.getString(f"{DEV}/features/options") == "PLL\nPID"

@@ -19,9 +19,10 @@ import numpy as np
 import pytest
 
 from sims import gyro_kernel as gk
-from sims.gyro import GyroParams, GyroSim, held_inputs
+from sims.gyro import GyroSim, held_inputs
 from sims.noise import NoiseStream, NormalStream
 from tests.support.paper_loops import paper_loops
+from tests.support.twin_params import paper_gyro_params
 
 PATTERNS = {
     "hf2 poll blocks": [900] * 30,
@@ -146,7 +147,7 @@ def test_twins_draw_in_the_callers_thread_and_start_none() -> None:
     loops = paper_loops(1.0)
     inputs = held_inputs(900, 1.0 / 1800.0)
     before = {t.ident for t in threading.enumerate()}
-    sims = [GyroSim(GyroParams(), 1.0 / 1800.0, seed=seed) for seed in range(20)]
+    sims = [GyroSim(paper_gyro_params(), 1.0 / 1800.0, seed=seed) for seed in range(20)]
     for sim in sims:
         for _ in range(3):
             sim.run(inputs, loops)

@@ -17,12 +17,13 @@ from scipy.optimize import brentq
 from sims.carrier import CarrierGyroSim
 from sims.gyro import GyroParams, GyroSim, LoopSettings, held_inputs
 from sims.gyro_params import DEG_PER_RAD, NONIDEALITIES_OFF
-from sims.world import World, WorldParams
+from sims.world import World
 from tests.support.paper_loops import paper_loops
+from tests.support.twin_params import paper_gyro_params, paper_world_params
 
 DT = 1.0 / 1400.0
 EPS0 = 8.8541878128e-12
-QUIET = GyroParams.noiseless(**NONIDEALITIES_OFF)  # every random source and converter step off
+QUIET = paper_gyro_params().noiseless(**NONIDEALITIES_OFF)  # every random source and converter step off
 
 
 def _loops(gain: float = 1.0) -> LoopSettings:
@@ -38,7 +39,7 @@ def test_forcer_cubic_is_the_parallel_plate_gap_closing(v_p: float, gap_um: floa
     deflection y (v the electrode's AC amplitude), then the 1-omega force eps0 A V_p v / (g - y)^2. Its gain change
     from v = 0 to v must be beta u^2 (u = v / c_e) to first order in beta u^2. A and m are any pair consistent with
     the SF (the mass cancels from beta: two different masses give the same answer)."""
-    p = GyroParams(forcer_bias_v=v_p, forcer_gap_um=gap_um, forcer_electrode_v_per_v=c_e)
+    p = paper_gyro_params(forcer_bias_v=v_p, forcer_gap_um=gap_um, forcer_electrode_v_per_v=c_e)
     g = gap_um * 1e-6
     a_m = p.drive_amplitude_um * 1e-6
     sf_rad = p.sf_true_v_per_dps * DEG_PER_RAD
@@ -63,7 +64,7 @@ def test_forcer_cubic_is_the_parallel_plate_gap_closing(v_p: float, gap_um: floa
 
 def test_pull_in_is_refused_by_name() -> None:
     with pytest.raises(ValueError, match="electrostatic spring"):
-        GyroParams(forcer_bias_v=200.0, forcer_gap_um=0.01, forcer_electrode_v_per_v=0.01)
+        paper_gyro_params(forcer_bias_v=200.0, forcer_gap_um=0.01, forcer_electrode_v_per_v=0.01)
 
 
 def _settled_rate_output(p: GyroParams, rate_dps: float, temperature_c: float = 25.0, seconds: float = 30.0) -> float:
@@ -164,7 +165,7 @@ def test_table_ripple_follows_the_angle_and_averages_out_over_a_revolution() -> 
     """Delivered rate = Omega (1 + e)(1 + r sin(theta + phi)); over one whole revolution its mean is Omega (1 + e)."""
     r_ppm, e_ppm, phi = 2000.0, 60.0, 30.0
     world = World(
-        WorldParams(table_rate_ripple_ppm=r_ppm, table_rate_scale_error_ppm=e_ppm, table_ripple_phase_deg=phi)
+        paper_world_params(table_rate_ripple_ppm=r_ppm, table_rate_scale_error_ppm=e_ppm, table_ripple_phase_deg=phi)
     )
     world.set_table_rate(10.0, 1e9)
     dt = 1e-3

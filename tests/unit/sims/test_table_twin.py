@@ -14,7 +14,8 @@ import serial
 
 from sims.serial_twin import InProcessSerial, LineFramer, serve_pty, serve_socket
 from sims.table_twin import RateTableTwin
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import paper_world_params, table_twin_settings
 
 P = b">\r"
 
@@ -22,9 +23,10 @@ P = b">\r"
 @pytest.fixture
 def twin() -> RateTableTwin:
     return RateTableTwin(
-        World(WorldParams(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0)),
+        World(paper_world_params(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0)),
         max_rate_dps=500.0,
         max_accel_dps2=800.0,
+        **table_twin_settings(),
     )
 
 

@@ -7,12 +7,17 @@ from __future__ import annotations
 import pytest
 
 from sims.chamber_twin import ChamberTwin
-from sims.world import World, WorldParams
+from sims.world import World
+from tests.support.twin_params import chamber_twin_settings, paper_world_params
 
 
 @pytest.fixture
 def twin() -> ChamberTwin:
-    return ChamberTwin(World(WorldParams(initial_temperature_c=22.0)), max_ramp_c_per_min=10.0)
+    return ChamberTwin(
+        World(paper_world_params(initial_temperature_c=22.0)),
+        max_ramp_c_per_min=10.0,
+        **chamber_twin_settings(status_layout="flags16"),
+    )
 
 
 def test_settings_reach_the_world(twin: ChamberTwin) -> None:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from sims.world import DITHER_SINE, DITHER_SQUARE, World, WorldParams, first_order_lag
+from tests.support.twin_params import paper_world, paper_world_params
 
 DT = 1 / 1400
 
@@ -24,7 +25,7 @@ def test_first_order_lag_is_the_exact_recursion_across_chunks():
 
 
 def test_table_ramps_at_the_acceleration_limit_then_holds_with_scale_error():
-    w = World(WorldParams(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0))
+    w = World(paper_world_params(table_rate_scale_error_ppm=100.0, table_rate_ripple_ppm=0.0))
     w.set_table_rate(5.0, 300.0)
     b = w.advance(1400, DT)
     scale = 1 + 100e-6
@@ -42,7 +43,7 @@ def test_table_ramps_at_the_acceleration_limit_then_holds_with_scale_error():
 
 
 def test_reversal_passes_through_zero_at_the_acceleration_limit():
-    w = World(WorldParams(table_rate_scale_error_ppm=0.0, table_rate_ripple_ppm=0.0))
+    w = World(paper_world_params(table_rate_scale_error_ppm=0.0, table_rate_ripple_ppm=0.0))
     w.set_table_rate(5.0, 300.0)
     w.advance(700, DT)
     w.set_table_rate(-5.0, 300.0)
@@ -54,7 +55,7 @@ def test_reversal_passes_through_zero_at_the_acceleration_limit():
 
 def test_chamber_setpoint_ramps_and_air_lags_first_order():
     tau_air = 60.0
-    w = World(WorldParams(chamber_time_constant_s=tau_air, thermal_lag_s=600.0, initial_temperature_c=25.0))
+    w = World(paper_world_params(chamber_time_constant_s=tau_air, thermal_lag_s=600.0, initial_temperature_c=25.0))
     w.set_chamber(35.0, 1.0)  # 1 degC/min
     for _ in range(120):
         w.advance(1400, DT)
@@ -83,7 +84,7 @@ def _ds345_phase_cycles(t: np.ndarray, f: float, p: WorldParams, t_cmd: float = 
 
 def test_square_dither_runs_on_the_ds345_timebase_with_exact_step_means():
     # a fast crystal (+50 ppm) and a large wander, so that edges drift through the step grid measurably
-    p = WorldParams(
+    p = paper_world_params(
         ds345_timebase_offset_ppm=50.0,
         ds345_timebase_wander_ppm=20.0,
         ds345_timebase_wander_period_s=30.0,
@@ -118,7 +119,7 @@ def _step_means_from_the_phase(w: World, n: int) -> np.ndarray:
 def test_dither_origin_follows_new_frequencies_and_timebase_parameters():
     """Block after block the step means equal those formed from the phase afresh, through a new frequency (a new
     phase origin), a changed timebase offset, wander and wander period, and a return to earlier values."""
-    w = World(WorldParams(ds345_timebase_wander_ppm=20.0, ds345_timebase_wander_period_s=30.0))
+    w = World(paper_world_params(ds345_timebase_wander_ppm=20.0, ds345_timebase_wander_period_s=30.0))
     w.set_dither(function=DITHER_SQUARE, frequency_hz=7.0, amplitude_vpp=0.6)
     changes = [
         lambda: None,
@@ -136,7 +137,7 @@ def test_dither_origin_follows_new_frequencies_and_timebase_parameters():
 
 
 def test_sine_dither_step_means_and_mute():
-    p = WorldParams()
+    p = paper_world_params()
     w = World(p)
     w.set_dither(function=DITHER_SINE, frequency_hz=10.0, amplitude_vpp=2.0, offset_v=0.5)
     b = w.advance(700, DT)
@@ -149,7 +150,7 @@ def test_sine_dither_step_means_and_mute():
 
 
 def test_auxin_windows_read_point_values_and_exact_fractions():
-    p = WorldParams(ds345_timebase_offset_ppm=20.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
+    p = paper_world_params(ds345_timebase_offset_ppm=20.0, ds345_timebase_wander_ppm=0.0, ds345_command_latency_s=0.0)
     w = World(p)
     w.set_dither(function=DITHER_SQUARE, frequency_hz=7.3, amplitude_vpp=0.6)
     b = w.advance(1400 * 2, DT)
@@ -169,7 +170,7 @@ def test_auxin_windows_read_point_values_and_exact_fractions():
 
 
 def test_interlock_brakes_the_table_to_rest():
-    w = World()
+    w = paper_world()
     w.set_table_rate(50.0, 300.0)
     w.advance(1400, DT)
     w.trip_interlock()
@@ -178,14 +179,14 @@ def test_interlock_brakes_the_table_to_rest():
 
 
 def test_restore_puts_back_time_chamber_and_gyro_but_not_the_time_of_a_wall_clock() -> None:
-    w = World()
+    w = paper_world()
     w.restore(time_s=1234.5, chamber_setpoint_c=31.0, chamber_air_c=30.2, gyro_c=29.9)
     assert w.t == 1234.5
     assert w.chamber.controller_setpoint_c == w.chamber.target_c == 31.0
     assert (w.chamber.air_c, w.chamber.gyro_c) == (30.2, 29.9)
     w.restore(gyro_c=28.0)  # None leaves a quantity as it is
     assert (w.t, w.chamber.air_c, w.chamber.gyro_c) == (1234.5, 30.2, 28.0)
-    wall = World(clock="wall")
+    wall = paper_world(clock="wall")
     t0 = wall.t
     wall.restore(time_s=1e6)
     assert wall.t == t0
