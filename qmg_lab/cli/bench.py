@@ -14,20 +14,29 @@ from typing import Annotated, Any
 
 import typer
 
-from qmg_lab.cli.main import (
+from qmg_lab.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAULT,
     ConfigArg,
     SimOpt,
-    _fail,
-    _load,
-    chamber_app,
-    generator_app,
-    lockin_app,
+    fail,
+    load,
     out,
-    table_app,
 )
 from qmg_lab.instruments import InstrumentError, LimitError
+
+table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
+chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
+generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
+lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF2 nodes by hand")
+
+
+def register(app: typer.Typer) -> None:
+    """Add the bring-up groups to the `qmg-lab` app (qmg_lab.cli.main)."""
+    app.add_typer(table_app, name="table")
+    app.add_typer(chamber_app, name="chamber")
+    app.add_typer(generator_app, name="generator")
+    app.add_typer(lockin_app, name="lockin")
 
 
 @contextmanager
@@ -36,21 +45,21 @@ def _bring_up(config: Path, sim: bool, name: str) -> Iterator[Any]:
     is put in its safe state and the command exits 3."""
     from qmg_lab.station import connect_instrument
 
-    cfg, _ = _load(config, sim)
+    cfg, _ = load(config, sim)
     try:
         conn = connect_instrument(cfg, name)
     except (InstrumentError, OSError) as exc:
-        _fail(EXIT_FAULT, f"could not connect the {name}: {exc}")
+        fail(EXIT_FAULT, f"could not connect the {name}: {exc}")
     try:
         yield conn.instrument
     except LimitError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     except InstrumentError as exc:
         try:
             conn.instrument.safe_state()
         except Exception as again:
-            _fail(EXIT_FAULT, f"{exc}; safe state not confirmed: {again}")
-        _fail(EXIT_FAULT, str(exc))
+            fail(EXIT_FAULT, f"{exc}; safe state not confirmed: {again}")
+        fail(EXIT_FAULT, str(exc))
     finally:
         conn.close()
 
@@ -157,22 +166,22 @@ def _raw_serial(
     from qmg_lab.cli.raw_console import decode_escapes, serial_exchange
     from qmg_lab.station import open_raw_serial
 
-    cfg, _ = _load(config, sim)
+    cfg, _ = load(config, sim)
     try:
         data = decode_escapes(command)
     except ValueError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     if not data:
-        _fail(EXIT_BAD_INPUT, "the command is empty")
+        fail(EXIT_BAD_INPUT, "the command is empty")
     if wait_s is not None and not 0 < wait_s <= 60:
-        _fail(EXIT_BAD_INPUT, f"--wait {wait_s:g} s: must be > 0 and <= 60 s")
+        fail(EXIT_BAD_INPUT, f"--wait {wait_s:g} s: must be > 0 and <= 60 s")
     if not 0 < idle_s <= 10:
-        _fail(EXIT_BAD_INPUT, f"--idle {idle_s:g} s: must be > 0 and <= 10 s")
+        fail(EXIT_BAD_INPUT, f"--idle {idle_s:g} s: must be > 0 and <= 10 s")
     section = getattr(cfg, name)
     try:
         port, framing, close, at_once = open_raw_serial(cfg, name)
     except (InstrumentError, OSError) as exc:
-        _fail(EXIT_FAULT, f"could not open the {name}'s port: {exc}")
+        fail(EXIT_FAULT, f"could not open the {name}'s port: {exc}")
     try:
         if not no_terminator:
             data += framing.command_end
@@ -186,7 +195,7 @@ def _raw_serial(
         )
         ex = serial_exchange(port, data, wait_s=wait_s or section.timeout_s, idle_s=idle_s, answers_at_once=at_once)
     except (OSError, ValueError) as exc:
-        _fail(EXIT_FAULT, f"{name}: the raw exchange failed: {exc}")
+        fail(EXIT_FAULT, f"{name}: the raw exchange failed: {exc}")
     finally:
         close()
     for line in ex.render():
@@ -229,17 +238,17 @@ def generator_raw(
     from qmg_lab.cli.raw_console import visa_exchange
     from qmg_lab.station import open_raw_visa
 
-    cfg, _ = _load(config, sim)
+    cfg, _ = load(config, sim)
     if not command.strip():
-        _fail(EXIT_BAD_INPUT, "the command is empty")
+        fail(EXIT_BAD_INPUT, "the command is empty")
     try:
         resource, close = open_raw_visa(cfg)
     except (InstrumentError, OSError) as exc:
-        _fail(EXIT_FAULT, f"could not open the generator: {exc}")
+        fail(EXIT_FAULT, f"could not open the generator: {exc}")
     try:
         ex = visa_exchange(resource, command)
     except Exception as exc:
-        _fail(EXIT_FAULT, f"generator: {command!r}: {type(exc).__name__}: {exc}")
+        fail(EXIT_FAULT, f"generator: {command!r}: {type(exc).__name__}: {exc}")
     finally:
         close()
     for line in ex.render():
@@ -254,7 +263,7 @@ NodePath = Annotated[
 def _node_path(path: str, device: str) -> str:
     p = path.strip().lower()
     if not p or any(ch.isspace() for ch in p):
-        _fail(EXIT_BAD_INPUT, f"node path {path!r} is empty or contains blanks")
+        fail(EXIT_BAD_INPUT, f"node path {path!r} is empty or contains blanks")
     return p if p.startswith("/dev") else f"/{device}/{p.lstrip('/')}"
 
 
@@ -262,16 +271,16 @@ def _raw_node(config: Path, sim: bool, path: str, value: str | None) -> None:
     from qmg_lab.cli.raw_console import node_get, node_set
     from qmg_lab.station import open_raw_hf2
 
-    cfg, _ = _load(config, sim)
+    cfg, _ = load(config, sim)
     try:
         connection, device, close = open_raw_hf2(cfg)
     except (InstrumentError, OSError) as exc:
-        _fail(EXIT_FAULT, f"could not reach the HF2: {exc}")
+        fail(EXIT_FAULT, f"could not reach the HF2: {exc}")
     node = _node_path(path, device)
     try:
         ex, _ = node_get(connection, node) if value is None else node_set(connection, node, value)
     except Exception as exc:
-        _fail(EXIT_BAD_INPUT if "not" in str(exc).lower() else EXIT_FAULT, f"HF2 {node}: {exc}")
+        fail(EXIT_BAD_INPUT if "not" in str(exc).lower() else EXIT_FAULT, f"HF2 {node}: {exc}")
     finally:
         close()
     for t, d, p in ex.lines:

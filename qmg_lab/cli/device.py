@@ -15,17 +15,16 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from qmg_lab.cli.main import (
+from qmg_lab.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAULT,
     ConfigArg,
     JsonOpt,
     SimOpt,
-    _fail,
-    _load,
-    _station,
-    app,
     characterize_app,
+    connected_station,
+    fail,
+    load,
     out,
 )
 from qmg_lab.config.schema import Config, ConfigError
@@ -53,16 +52,16 @@ def _measure(config: Path, sim: bool, what: Callable[[Config, Station], dict[str
     """Connect the station, run one characterisation, leave it safe; exit 3 on an instrument fault."""
     from qmg_lab.campaign.tuning import TuningError
 
-    cfg, _ = _load(config, sim)
-    with _station(cfg) as st:
+    cfg, _ = load(config, sim)
+    with connected_station(cfg) as st:
         try:
             return what(cfg, st)
         except LimitError as exc:
             st.safe_state()
-            _fail(EXIT_BAD_INPUT, str(exc))
+            fail(EXIT_BAD_INPUT, str(exc))
         except (TuningError, InstrumentError) as exc:
             failures = st.safe_state()
-            _fail(
+            fail(
                 EXIT_FAULT,
                 f"{exc}"
                 + (
@@ -89,7 +88,7 @@ def characterize_resonance(
     from qmg_lab.campaign.tuning import measure_resonance
 
     if not 1.0 <= record_s <= 3600.0:
-        _fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [1, 3600] s")
+        fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [1, 3600] s")
     data = _measure(config, sim, lambda cfg, st: asdict(measure_resonance(cfg, st, record_s)))
     _print_result(data, json_out, "resonance")
 
@@ -109,7 +108,7 @@ def characterize_ringdown(
     from qmg_lab.campaign.tuning import measure_resonance, measure_ringdown
 
     if record_s is not None and not 5.0 <= record_s <= 36000.0:
-        _fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [5, 36000] s")
+        fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [5, 36000] s")
 
     def what(cfg: Config, st: Station) -> dict[str, Any]:
         res = measure_resonance(cfg, st, 5.0)
@@ -131,11 +130,10 @@ def characterize_noise(
     from qmg_lab.campaign.tuning import measure_noise
 
     if not 60.0 <= record_s <= 7 * 86400.0:
-        _fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [60, 604800] s")
+        fail(EXIT_BAD_INPUT, f"--record {record_s:g} s: must lie in [60, 604800] s")
     _print_result(_measure(config, sim, lambda cfg, st: asdict(measure_noise(cfg, st, record_s))), json_out, "noise")
 
 
-@app.command()
 def tune(
     config: ConfigArg,
     output: Annotated[Path, typer.Option("-o", "--output", help="the tuned configuration to write (TOML)")],
@@ -150,20 +148,25 @@ def tune(
     from qmg_lab.config.schema import parse_config
 
     if output.exists() and not overwrite:
-        _fail(EXIT_BAD_INPUT, f"{output} exists: choose another -o or add --overwrite")
+        fail(EXIT_BAD_INPUT, f"{output} exists: choose another -o or add --overwrite")
     if output.resolve() == config.resolve():
-        _fail(EXIT_BAD_INPUT, f"-o {output} is the configuration itself: write the tuned one to a new file")
-    _, text = _load(config, sim)
+        fail(EXIT_BAD_INPUT, f"-o {output} is the configuration itself: write the tuned one to a new file")
+    _, text = load(config, sim)
     result = _measure(config, sim, lambda cfg, st: {"tuning": run_tuning(cfg, st)})["tuning"]
     tuned = tuned_config_text(text, result.device_values(), header_lines(result, config.name))
     try:
         parse_config(tuned, str(output))
     except ConfigError as exc:
-        _fail(EXIT_FAULT, f"the measured constants do not make a valid configuration: {exc}")
+        fail(EXIT_FAULT, f"the measured constants do not make a valid configuration: {exc}")
     try:
         output.write_text(tuned, encoding="utf-8")
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot write {output}: {exc}")
+        fail(EXIT_BAD_INPUT, f"cannot write {output}: {exc}")
     data = result.as_dict()
     data["file"] = str(output)
     _print_result(data, json_out, escape(f"tuned [device] written to {output}"))
+
+
+def register(app: typer.Typer) -> None:
+    """Add `qmg-lab tune` to the app (qmg_lab.cli.main)."""
+    app.command()(tune)

@@ -8,7 +8,11 @@ from typing import Annotated
 
 import typer
 
-from qmg_lab.cli.main import EXIT_BAD_INPUT, _fail, app, console
+from qmg_lab.cli.common import (
+    EXIT_BAD_INPUT,
+    console,
+    fail,
+)
 from qmg_lab.cli.signals import say
 
 
@@ -35,7 +39,6 @@ def damaged_file_report(path: Path, problem: str) -> str:
     return "\n".join(lines)
 
 
-@app.command()
 def salvage(
     run_file: Annotated[Path, typer.Argument(help="damaged run file (HDF5, qmg-lab/1)", show_default=False)],
     output: Annotated[Path, typer.Option("-o", "--output", help="new file for what still reads", show_default=False)],
@@ -46,14 +49,19 @@ def salvage(
     from qmg_lab.storage.salvage import salvage as salvage_file
 
     if not run_file.is_file():
-        _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
+        fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     try:
         rows = salvage_file(run_file, output)
     except StorageError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot write {output}: {exc}")
+        fail(EXIT_BAD_INPUT, f"cannot write {output}: {exc}")
     for r in rows:
         state = "whole" if r.complete else f"{r.rows_read} of {r.rows} rows ({r.error or 'cut short'})"
         say(console.print, f"{r.name}: {state}", highlight=False, markup=False)
     say(console.print, f"salvaged into {output}", highlight=False, markup=False)
+
+
+def register(app: typer.Typer) -> None:
+    """Add `qmg-lab salvage` to the app (qmg_lab.cli.main)."""
+    app.command()(salvage)

@@ -3,9 +3,10 @@
 Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message naming what is wrong, no traceback);
 3 instrument fault (safe state reached); 130 interrupted (safe state reached).
 
-Why one module of this length: it is the typer app and its commands' argument handling, each command a
-thin layer over the package that does the work; the bring-up and device commands live in bench.py and
-device.py.
+This module builds the typer app, holds the campaign commands (check, run, instruments, characterize, analyze,
+study, budget), each a thin layer over the package that does the work, and registers the other modules'
+commands explicitly: bench.py (bring-up), device.py (device characterization, tune), files.py (salvage),
+runs.py, watch.py. What they share is in common.py; none of them imports this module.
 """
 
 from __future__ import annotations
@@ -14,22 +15,35 @@ import json
 import logging
 import sys
 import tempfile
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
-from qmg_lab.cli import heap
+from qmg_lab.cli import bench, device, files, heap, runs, watch
+from qmg_lab.cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    ConfigArg,
+    JsonOpt,
+    OutputOpt,
+    QuietOpt,
+    SimOpt,
+    characterize_app,
+    connected_station,
+    console,
+    fail,
+    load,
+    out,
+)
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
-from qmg_lab.config.schema import Config, ConfigError, config_fingerprint, load_config, stream_timing_problem
-from qmg_lab.instruments import InstrumentError, LimitError, Station
+from qmg_lab.config.schema import Config, config_fingerprint
+from qmg_lab.instruments import InstrumentError, LimitError
 
 app = typer.Typer(
     add_completion=False,
@@ -38,32 +52,9 @@ app = typer.Typer(
     help="Closed-loop scale-factor self-calibration campaigns for MEMS gyroscopes (HF2LI, DS345, "
     "1291BR), on the bench or on simulated twins.",
 )
-characterize_app = typer.Typer(
-    no_args_is_help=True,
-    help="FTR characterization: bandwidth (Fig. 3), linearity (Fig. 2); the device: resonance, ringdown, noise",
-)
-table_app = typer.Typer(no_args_is_help=True, help="Bring-up: drive the rate table by hand")
-chamber_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the thermal chamber by hand")
-generator_app = typer.Typer(no_args_is_help=True, help="Bring-up: set the DS345 by hand")
 app.add_typer(characterize_app, name="characterize")
-app.add_typer(table_app, name="table")
-app.add_typer(chamber_app, name="chamber")
-lockin_app = typer.Typer(no_args_is_help=True, help="Bring-up: read and write HF2 nodes by hand")
-app.add_typer(generator_app, name="generator")
-app.add_typer(lockin_app, name="lockin")
 
 log = logging.getLogger(__name__)
-console = Console(stderr=True)
-out = Console()
-
-EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
-
-ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
-SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
-OutputOpt = Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")]
-QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")]
-
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
@@ -87,48 +78,13 @@ def _options(
         return
     level = log_level.upper()
     if level not in LOG_LEVELS:
-        _fail(EXIT_BAD_INPUT, f"--log-level {log_level!r}: one of {', '.join(LOG_LEVELS)}")
+        fail(EXIT_BAD_INPUT, f"--log-level {log_level!r}: one of {', '.join(LOG_LEVELS)}")
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     for name in ("qmg_lab", "drivers"):
         logger = logging.getLogger(name)
         logger.setLevel(level)
         logger.addHandler(handler)
-
-
-def _fail(code: int, message: str) -> NoReturn:
-    # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
-    say(console.print, f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
-    raise typer.Exit(code)
-
-
-def _load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:
-    """The configuration (every instrument a twin with --sim); campaign=True: also the CLSF's stream timing."""
-    try:
-        cfg, text = load_config(path)
-    except ConfigError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
-    cfg = cfg.with_all_sim() if sim else cfg
-    if campaign:
-        problem = stream_timing_problem(cfg)
-        if problem is not None:
-            _fail(EXIT_BAD_INPUT, f"{path}: {problem}")
-    return cfg, text
-
-
-@contextmanager
-def _station(cfg: Config) -> Iterator[Station]:
-    """Build the station; on the way out every instrument is made safe and closed."""
-    from qmg_lab.station import build_station
-
-    try:
-        station = build_station(cfg)
-    except (InstrumentError, OSError) as exc:
-        _fail(EXIT_FAULT, f"could not connect the station: {exc}")
-    try:
-        yield station
-    finally:
-        station.close()
 
 
 # ====================================================================================== check
@@ -138,7 +94,7 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
     from qmg_lab.campaign.plan import build_plan, limit_checks, plan_duration_s
     from qmg_lab.clsf.stream_plan import StreamPlan
 
-    cfg, text = _load(config, False, campaign=True)
+    cfg, text = load(config, False, campaign=True)
     steps = build_plan(cfg)
     checks = limit_checks(cfg, steps)
     bad = [c for c in checks if not c.ok]
@@ -196,7 +152,7 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
                 f"{sp['filter_gain_h5']:.5f} (compensated by the estimator)"
             )
     if bad:
-        _fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
+        fail(EXIT_BAD_INPUT, "the plan breaks instrument limits: " + "; ".join(c.describe() for c in bad))
 
 
 def _summarise_steps(steps: list[Any]) -> list[tuple[str, ...]]:
@@ -252,7 +208,7 @@ def run(
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
 
-    cfg, text = _load(config, sim, campaign=True)
+    cfg, text = load(config, sim, campaign=True)
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
     with watch_beside((resume or output) if watch_page else None):
@@ -283,14 +239,14 @@ def _execute(
     try:
         plan = checked_plan(cfg)
     except LimitError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
     modes = _instrument_modes(cfg)
     mode = "sim" if cfg.all_sim else "hardware"
     with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
         if resume is not None:
             if output is not None and output.resolve() != resume.resolve():
-                _fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+                fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
             if resume.is_file():
                 _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
             try:
@@ -303,18 +259,18 @@ def _execute(
                 if short:
                     refuse_study_resume(resume)
             except StorageError as exc:
-                _fail(EXIT_BAD_INPUT, str(exc))
+                fail(EXIT_BAD_INPUT, str(exc))
             path = resume
         else:
             path = output or _default_output(cfg)
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+                fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
             _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
             if path.exists() and not (overwrite and path.is_file()):
-                _fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
-        with stop_exits(console.print), InterruptGuard() as guard, _station(cfg) as station:
+                fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg) as station:
             # one guard from here to the file's last close: a stop signal while the station connects or the file is
             # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
             try:
@@ -337,9 +293,9 @@ def _execute(
                         instrument_modes=modes,
                     )
             except StorageError as exc:
-                _fail(EXIT_BAD_INPUT, str(exc))
+                fail(EXIT_BAD_INPUT, str(exc))
             except OSError as exc:
-                _fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
+                fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
             log.info("run file %s; instruments %s", writer.path, modes)
             heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
             view = ProgressView(console, enabled=not quiet)
@@ -351,16 +307,16 @@ def _execute(
                     )
                     return runner.run()
             except CampaignInterrupted as exc:
-                _fail(
+                fail(
                     exit_code(exc.signum),
                     f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
                     f"aborted; continue with --resume {writer.path})",
                 )
             except (CampaignAborted, InstrumentError) as exc:
                 words = safe_state_words(runner.safe_state_note if runner else "")
-                _fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
+                fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
             except LimitError as exc:
-                _fail(EXIT_BAD_INPUT, str(exc))
+                fail(EXIT_BAD_INPUT, str(exc))
             finally:
                 with guard.protect():  # a second stop signal waits for the file's last write
                     writer.close()
@@ -375,7 +331,7 @@ def _hold(stack: ExitStack, path: Path) -> None:
     try:
         stack.enter_context(RunFileLock(path))
     except StorageError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
 
 
 def _print_summary(summary: Any) -> None:
@@ -403,7 +359,7 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
     """Connect each instrument on its own, identify it and show its state; exit 3 if any failed."""
     from qmg_lab.station import INSTRUMENT_NAMES, connect_instrument
 
-    cfg, _ = _load(config, sim)
+    cfg, _ = load(config, sim)
     report: dict[str, dict[str, Any]] = {}
     for name in INSTRUMENT_NAMES:
         entry: dict[str, Any] = {"simulated": bool(getattr(cfg, name).sim)}
@@ -434,7 +390,7 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
         out.print(tbl)
     failed = [n for n, e in report.items() if not e["ok"]]
     if failed:
-        _fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})" for n in failed))
+        fail(EXIT_FAULT, "could not connect or identify: " + "; ".join(f"{n} ({report[n]['error']})" for n in failed))
 
 
 # ====================================================================================== characterize
@@ -442,7 +398,7 @@ def _characterize(kind: str, config: Path, sim: bool, json_out: bool, output: Pa
     from qmg_lab.analysis.compute import analyze
     from qmg_lab.config.edit import with_values  # tomlkit: only characterize rewrites the configuration's text
 
-    cfg, text = _load(config, sim, campaign=True)
+    cfg, text = load(config, sim, campaign=True)
     text = with_values(text, {"campaign.kind": kind})
     cfg = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": kind})})
     tmp = None
@@ -513,18 +469,18 @@ def analyze(
     from qmg_lab.storage.superblock import check_file_end
 
     if fmt not in ("png", "svg", "pdf"):
-        _fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
+        fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
     if not run_file.exists():
-        _fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
+        fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")
     if run_file.is_dir():
         _analyze_study(run_file, json_out, figures)
         return
     try:
         check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
     except DamagedFileError as exc:
-        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
+        fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
 
     from qmg_lab.analysis.compute import analyze as run_analysis
     from qmg_lab.analysis.render import render_table
@@ -539,9 +495,9 @@ def analyze(
 
             written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
     except DamagedFileError as exc:  # what still reads, and what does not
-        _fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
+        fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     if json_out:
         data = result.to_json()
         data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
@@ -561,9 +517,9 @@ def _analyze_study(out_dir: Path, json_out: bool, figures: Path | None) -> None:
     try:
         columns, rows = collect_rows(out_dir)
     except (FileNotFoundError, ValueError, KeyError) as exc:
-        _fail(EXIT_BAD_INPUT, f"{out_dir}: not a readable study directory ({exc})")
+        fail(EXIT_BAD_INPUT, f"{out_dir}: not a readable study directory ({exc})")
     if figures is not None and figures.resolve() != (out_dir / "figures").resolve():
-        _fail(EXIT_BAD_INPUT, f"a study's figures go to {out_dir / 'figures'}; --figures takes no other folder")
+        fail(EXIT_BAD_INPUT, f"a study's figures go to {out_dir / 'figures'}; --figures takes no other folder")
     written = write_figures(out_dir) if figures is not None else []
     if json_out:
         out.print_json(json.dumps({"columns": columns, "rows": rows, "figures": [str(p) for p in written]}))
@@ -605,16 +561,16 @@ def study(
     from qmg_lab.study.spec import StudyError, load_study
 
     if workers is not None and scheduler is not None:
-        _fail(EXIT_BAD_INPUT, "--workers and --scheduler exclude each other (the scheduler's cluster has its workers)")
+        fail(EXIT_BAD_INPUT, "--workers and --scheduler exclude each other (the scheduler's cluster has its workers)")
     try:
         spec = load_study(study_file)
     except StudyError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     out_dir = output or Path("studies-out") / spec.spec.study.name
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot create the study directory: {exc}")
+        fail(EXIT_BAD_INPUT, f"cannot create the study directory: {exc}")
     console.print(
         f"study {spec.spec.study.name}: {len(spec.points)} points ({len(spec.points) // len(spec.spec.study.seeds)} "
         f"grid cells x {len(spec.spec.study.seeds)} seeds), every configuration valid; results in {out_dir}",
@@ -631,9 +587,9 @@ def study(
             dashboard_address=dashboard_address,
         )
     except StudyDirError as exc:
-        _fail(EXIT_BAD_INPUT, str(exc))
+        fail(EXIT_BAD_INPUT, str(exc))
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot reach the Dask scheduler {scheduler}: {exc}")
+        fail(EXIT_BAD_INPUT, f"cannot reach the Dask scheduler {scheduler}: {exc}")
     written = write_results(out_dir)
     written += write_figures(out_dir)
     out.print(summary_table(out_dir))
@@ -658,7 +614,7 @@ def budget(
     from qmg_lab.budget.noise import noise_budget
     from qmg_lab.budget.table import budget_table
 
-    cfg, _ = _load(config, sim=False)
+    cfg, _ = load(config, sim=False)
     result = noise_budget(cfg, sim_blocks=sim)
     if json_out:
         out.print_json(json.dumps(result.to_json(), default=float))
@@ -684,6 +640,11 @@ def version() -> None:
     out.print(f"qmg-lab {__version__}")
 
 
+# the bring-up, device, file, run-list and watch commands, after this module's own (the order of `--help`)
+for _commands in (bench, device, files, runs, watch):
+    _commands.register(app)
+
+
 def main() -> None:  # pragma: no cover - console entry
     heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
     from qmg_lab.campaign.interrupts import StopRequested, exit_code
@@ -697,7 +658,3 @@ def main() -> None:  # pragma: no cover - console entry
     finally:
         settle_streams()  # a dead terminal or a full stdout must not change the exit code
         heap.quiet_exit()
-
-
-# the bring-up and device-tuning commands live in their own modules; importing them registers them
-from qmg_lab.cli import bench, device, files, runs, watch  # noqa: E402,F401 - imported for their side effect

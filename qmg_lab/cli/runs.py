@@ -9,7 +9,12 @@ from typing import Annotated, Any
 import typer
 from rich.table import Table
 
-from qmg_lab.cli.main import EXIT_BAD_INPUT, JsonOpt, _fail, app, out
+from qmg_lab.cli.common import (
+    EXIT_BAD_INPUT,
+    JsonOpt,
+    fail,
+    out,
+)
 
 
 def _fmt(v: Any, fmt: str) -> str:
@@ -25,7 +30,6 @@ def _duration(s: Any) -> str:
     return f"{h}:{rem // 60:02d}:{rem % 60:02d}"
 
 
-@app.command()
 def runs(
     folder: Annotated[Path, typer.Argument(help="folder of run files (*.h5)", show_default=False)],
     json_out: JsonOpt = False,
@@ -35,7 +39,7 @@ def runs(
     from qmg_lab.data.summary import json_rows, list_runs
 
     if not folder.is_dir():
-        _fail(EXIT_BAD_INPUT, f"{folder}: no such folder")
+        fail(EXIT_BAD_INPUT, f"{folder}: no such folder")
     rows = list_runs(folder)
     if json_out:
         out.print_json(json_rows(rows))
@@ -67,3 +71,8 @@ def runs(
         out.print(f"no run files (*.h5) in {folder}")
         return
     out.print(tab)
+
+
+def register(app: typer.Typer) -> None:
+    """Add `qmg-lab runs` to the app (qmg_lab.cli.main)."""
+    app.command()(runs)

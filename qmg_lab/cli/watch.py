@@ -12,7 +12,11 @@ from typing import Annotated
 
 import typer
 
-from qmg_lab.cli.main import EXIT_BAD_INPUT, _fail, app, console
+from qmg_lab.cli.common import (
+    EXIT_BAD_INPUT,
+    console,
+    fail,
+)
 
 LOOPBACK = "127.0.0.1"  # also qmg_lab.watch.server.LOOPBACK; repeated so that `run` need not import Bokeh
 OPEN_WARNING = (
@@ -27,17 +31,16 @@ def _check_run_file(path: Path) -> None:
     from qmg_lab.storage.layout import FORMAT
 
     if not path.is_file():
-        _fail(EXIT_BAD_INPUT, f"{path}: no such run file")
+        fail(EXIT_BAD_INPUT, f"{path}: no such run file")
     try:
         with h5py.File(path, "r", swmr=True, libver="latest") as h5:
             fmt = h5.attrs.get("format")
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"{path}: HDF5 cannot open it: {exc}")
+        fail(EXIT_BAD_INPUT, f"{path}: HDF5 cannot open it: {exc}")
     if (fmt.decode() if isinstance(fmt, bytes) else fmt) != FORMAT:
-        _fail(EXIT_BAD_INPUT, f"{path}: not a {FORMAT} run file (root attribute format = {fmt!r})")
+        fail(EXIT_BAD_INPUT, f"{path}: not a {FORMAT} run file (root attribute format = {fmt!r})")
 
 
-@app.command()
 def watch(
     run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1)", show_default=False)],
     host: Annotated[
@@ -58,7 +61,7 @@ def watch(
         chosen = free_port(host, port)
         server = make_server(run_file, host, chosen)
     except OSError as exc:
-        _fail(EXIT_BAD_INPUT, f"cannot listen on {host}:{port}: {exc}")
+        fail(EXIT_BAD_INPUT, f"cannot listen on {host}:{port}: {exc}")
     print(f"watching {run_file} at {url(host, chosen)}  (Ctrl-C stops the page, not the run)", flush=True)
     try:
         server.io_loop.start()
@@ -94,3 +97,8 @@ def watch_beside(path: Path | None) -> Iterator[None]:
             proc.kill()
             proc.wait()
         console.print(f"live page closed; replay the run with: qmg-lab watch {path}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add `qmg-lab watch` to the app (qmg_lab.cli.main)."""
+    app.command()(watch)

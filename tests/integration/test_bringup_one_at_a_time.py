@@ -23,7 +23,7 @@ from sims.serial_twin import serve_socket
 from sims.table_twin import RateTableTwin
 from sims.world import World
 from tests.support.campaigns import SHORT_TOML
-from tests.support.twin_params import paper_world_params
+from tests.support.twin_params import paper_world_params, table_twin_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -38,7 +38,7 @@ class AnsweringTable(RateTableTwin):
     """The 1291BR twin, keeping every rate it answered to PVE (what a driver can only have read from it)."""
 
     def __init__(self, world: World) -> None:
-        super().__init__(world)
+        super().__init__(world, **table_twin_settings())
         self.rates_answered: list[float] = []
 
     def _pve(self, arg: str) -> str:
