@@ -46,6 +46,7 @@ from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import ClsfEstimator, ClsfPeriods
 from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.station import build_station, make_world
 from qmg_lab.storage.summary import create_run_writer
 
@@ -58,7 +59,7 @@ def paper_text(end_hold_s: float | None, block_s: float | None = None) -> str:
     """The paper campaign on the twins at the study storage level (optionally with a shorter end hold, and with
     the HF2 twin's blocks `block_s` long instead of the configured 2 s: [lockin] sim_poll_interval_s)."""
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
-    for name in ("lockin", "generator", "table", "chamber"):
+    for name in INSTRUMENT_NAMES:
         doc[name]["sim"] = True
     doc.setdefault("storage", {})["level"] = "study"
     if end_hold_s is not None:
@@ -115,7 +116,7 @@ def record(text: str) -> tuple[list[Call], dict[str, Any], float]:
             mode="sim",
             software_version="bench",
             t0_unix=0.0,
-            instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
+            instrument_modes=dict.fromkeys(INSTRUMENT_NAMES, "twin"),
         )
         runner = CampaignRunner(cfg, station, writer, plan=plan)
         est = runner.clsf

@@ -142,11 +142,12 @@ def _hf2_lockin():
 
     from qmg_lab.campaign.loops import lockin_setup
     from qmg_lab.config.schema import parse_config
+    from qmg_lab.instruments import INSTRUMENT_NAMES
     from qmg_lab.station import connect_instrument
     from sims.world import DITHER_SQUARE
 
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
-    for name in ("lockin", "generator", "table", "chamber"):
+    for name in INSTRUMENT_NAMES:
         doc[name]["sim"] = True
     cfg = parse_config(tomlkit.dumps(doc))
     connected = connect_instrument(cfg, "lockin")

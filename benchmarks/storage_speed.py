@@ -44,7 +44,7 @@ from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.clsf.estimator import ClsfPeriods
 from qmg_lab.config.schema import parse_config
-from qmg_lab.instruments import ChamberReading, LockInBlock, TableReading, TruthBlock
+from qmg_lab.instruments import INSTRUMENT_NAMES, ChamberReading, LockInBlock, TableReading, TruthBlock
 from qmg_lab.storage.summary import create_run_writer
 from qmg_lab.storage.writer import RunWriter
 
@@ -156,7 +156,7 @@ def record_per_block(level: str, n_blocks: int, d: Path) -> dict[str, float]:
     new run file at `level`; the blocks' construction (timed on its own) is subtracted."""
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
     doc.setdefault("storage", {})["level"] = level
-    for name in ("lockin", "generator", "table", "chamber"):
+    for name in INSTRUMENT_NAMES:
         doc[name]["sim"] = True
     text = tomlkit.dumps(doc)
     cfg = parse_config(text, "paper_campaign.toml")
@@ -171,7 +171,7 @@ def record_per_block(level: str, n_blocks: int, d: Path) -> dict[str, float]:
         mode="sim",
         software_version="bench",
         t0_unix=time.time(),
-        instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
+        instrument_modes=dict.fromkeys(INSTRUMENT_NAMES, "twin"),
     )
     recorder = BlockRecorder(writer)
     t_step = 0.0

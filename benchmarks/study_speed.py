@@ -47,8 +47,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def paper_text(level: str, sim_poll_interval_s: float | None = None, **plan: float) -> str:
     """The paper campaign on the twins at a storage level (plan values and the twin's block length changed)."""
+    from qmg_lab.instruments import INSTRUMENT_NAMES
+
     doc = tomllib.loads((ROOT / "configs" / "paper_campaign.toml").read_text())
-    for name in ("lockin", "generator", "table", "chamber"):
+    for name in INSTRUMENT_NAMES:
         doc[name]["sim"] = True
     doc.setdefault("storage", {})["level"] = level
     doc["plan"].update(plan)

@@ -17,6 +17,12 @@ from typing import Any
 
 import numpy as np
 
+#: the station's four instruments, by the names the configuration's sections, the station, the CLI and the run
+#: file's `instrument_modes` attribute use (the one place they are spelled)
+INSTRUMENT_NAMES: tuple[str, ...] = ("lockin", "generator", "table", "chamber")
+#: how an instrument runs: on its simulated twin or on the hardware
+INSTRUMENT_MODES: tuple[str, ...] = ("twin", "hardware")
+
 
 class InstrumentError(RuntimeError):
     """An instrument did not do what it was told: timeout, garbled reply, disconnect, reported error."""

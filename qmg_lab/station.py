@@ -38,6 +38,7 @@ from drivers.line_transport import LineTransport, SerialLineTransport, VisaLineT
 from drivers.serial_link import Framing
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import (
+    INSTRUMENT_NAMES,
     FunctionGenerator,
     Instrument,
     InstrumentError,
@@ -60,7 +61,6 @@ from sims.visa_line_twin import LineTwinVisaResource
 from sims.world import World, WorldParams
 
 SIM_DEVICE_ID = "dev1234"
-INSTRUMENT_NAMES = ("lockin", "generator", "table", "chamber")
 
 log = logging.getLogger(__name__)
 
@@ -467,7 +467,7 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
         bench.close()
         raise
     lk = cfg.lockin
-    lockin, generator, table, chamber = (connected[n] for n in ("lockin", "generator", "table", "chamber"))
+    lockin, generator, table, chamber = (connected[n] for n in INSTRUMENT_NAMES)
     if not (
         isinstance(lockin, LockIn)
         and isinstance(generator, FunctionGenerator)

@@ -43,7 +43,7 @@ from qmg_lab.cli.common import (
 )
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, config_fingerprint
-from qmg_lab.instruments import InstrumentError, LimitError
+from qmg_lab.instruments import INSTRUMENT_NAMES, InstrumentError, LimitError
 
 app = typer.Typer(
     add_completion=False,
@@ -137,9 +137,7 @@ def check(config: ConfigArg, json_out: JsonOpt = False) -> None:
                 "[green]ok[/]" if c.ok else "[bold red]REFUSED[/]",
             )
         out.print(lim)
-        instruments = ", ".join(
-            f"{n}: {'twin' if getattr(cfg, n).sim else 'hardware'}" for n in ("lockin", "generator", "table", "chamber")
-        )
+        instruments = ", ".join(f"{n}: {mode}" for n, mode in cfg.instrument_modes().items())
         out.print(f"instruments: {instruments}")
         if cfg.clsf.mode != "off":
             sp = stream.summary()
@@ -216,11 +214,6 @@ def run(
     _print_summary(summary)
 
 
-def _instrument_modes(cfg: Config) -> dict[str, str]:
-    """ "twin" | "hardware" per instrument, as the configuration (after --sim) sets them."""
-    return {n: ("twin" if getattr(cfg, n).sim else "hardware") for n in ("lockin", "generator", "table", "chamber")}
-
-
 def _execute(
     cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
 ) -> Any:
@@ -241,7 +234,7 @@ def _execute(
     except LimitError as exc:
         fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
-    modes = _instrument_modes(cfg)
+    modes = cfg.instrument_modes()
     mode = "sim" if cfg.all_sim else "hardware"
     with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
         if resume is not None:
@@ -357,7 +350,7 @@ def _print_summary(summary: Any) -> None:
 @app.command()
 def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
     """Connect each instrument on its own, identify it and show its state; exit 3 if any failed."""
-    from qmg_lab.station import INSTRUMENT_NAMES, connect_instrument
+    from qmg_lab.station import connect_instrument
 
     cfg, _ = load(config, sim)
     report: dict[str, dict[str, Any]] = {}

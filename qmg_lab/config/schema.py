@@ -23,6 +23,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue, Va
 
 from qmg_lab.clsf.stream_plan import StreamPlan, hf2_rate
 from qmg_lab.config.errors import describe_error, toml_syntax_message
+from qmg_lab.instruments import INSTRUMENT_NAMES
 
 
 class ConfigError(ValueError):
@@ -587,19 +588,21 @@ class Config(_Section):
 
     def with_all_sim(self, sim: bool = True) -> Config:
         """The same configuration with every instrument set to its twin (the CLI's --sim)."""
-        update = {
-            name: getattr(self, name).model_copy(update={"sim": sim})
-            for name in ("lockin", "generator", "table", "chamber")
-        }
+        update = {name: getattr(self, name).model_copy(update={"sim": sim}) for name in INSTRUMENT_NAMES}
         return self.model_copy(update=update)
 
     @property
     def any_sim(self) -> bool:
-        return any(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+        return any(getattr(self, n).sim for n in INSTRUMENT_NAMES)
 
     @property
     def all_sim(self) -> bool:
-        return all(getattr(self, n).sim for n in ("lockin", "generator", "table", "chamber"))
+        return all(getattr(self, n).sim for n in INSTRUMENT_NAMES)
+
+    def instrument_modes(self) -> dict[str, str]:
+        """ "twin" | "hardware" per instrument, as the configuration (after --sim) sets them: the one place that
+        decides it for the CLI, the study task and the run file's instrument_modes attribute."""
+        return {n: ("twin" if getattr(self, n).sim else "hardware") for n in INSTRUMENT_NAMES}
 
 
 def plan_limit_problems(cfg: Config) -> list[str]:

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from qmg_lab.instruments import INSTRUMENT_NAMES
+
 FORMAT = "qmg-lab/1"
 
 LOCKIN_UNITS = {
@@ -129,8 +131,7 @@ GZIP_LEVEL = 1
 GZIP_LEVELS = {"time": 6}
 MODES = ("sim", "hardware")
 #: instruments of a station, each run on its twin or on the hardware (root attribute instrument_modes)
-INSTRUMENTS = ("lockin", "generator", "table", "chamber")
-INSTRUMENT_MODES = ("twin", "hardware")
+INSTRUMENTS = INSTRUMENT_NAMES
 STATUSES = ("running", "completed", "aborted")
 
 

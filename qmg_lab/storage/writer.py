@@ -54,6 +54,7 @@ import h5py
 import numpy as np
 from h5py import h5s
 
+from qmg_lab.instruments import INSTRUMENT_MODES
 from qmg_lab.storage.background import BackgroundWrites
 from qmg_lab.storage.deflate import shuffled_deflate
 from qmg_lab.storage.h5clear import clear_superblock_flags, writer_flags_set
@@ -71,7 +72,6 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
     GROUP_UNITS,
     GZIP_LEVEL,
     GZIP_LEVELS,
-    INSTRUMENT_MODES,
     INSTRUMENTS,
     KIND_BYTES,
     LOCKIN_UNITS,

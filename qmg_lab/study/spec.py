@@ -35,10 +35,10 @@ from tomlkit.exceptions import ParseError
 from qmg_lab.campaign.plan import assert_within_limits, build_plan
 from qmg_lab.config.errors import toml_syntax_message
 from qmg_lab.config.schema import ConfigError, parse_config, stream_timing_problem
-from qmg_lab.instruments import LimitError
+from qmg_lab.instruments import INSTRUMENT_NAMES, LimitError
 
 Scalar = bool | int | float | str
-INSTRUMENT_SECTIONS = ("lockin", "generator", "table", "chamber")
+INSTRUMENT_SECTIONS = INSTRUMENT_NAMES  # every point runs each of them on its twin
 
 
 class StudyError(ValueError):

@@ -140,7 +140,7 @@ def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], floa
             mode="sim",
             software_version=__version__,
             t0_unix=datetime.now(UTC).timestamp(),
-            instrument_modes=dict.fromkeys(("lockin", "generator", "table", "chamber"), "twin"),
+            instrument_modes=cfg.instrument_modes(),
         )
         try:
             summary = CampaignRunner(cfg, station, writer, plan=plan).run()
