@@ -205,7 +205,7 @@ def _load(path: str | Path) -> _Ctx:
         notes.append("study-level file: step means from /edges and /windows, settling from its one raw step")
     elif cfg.clsf.mode != "off" and "dither" in lk:
         # the same edge location and 32-edge line fit as the CLSF estimator
-        tracker = EdgeTracker(min_step_v=0.5 * dither_amplitude_vpp(cfg), compiled=False)  # no numba to load
+        tracker = EdgeTracker(min_step_v=0.5 * dither_amplitude_vpp(cfg))
         n = EDGE_CHUNK_SAMPLES
         ctx.dither_rising_s = np.concatenate(
             [np.empty(0)] + [tracker.process(t[i : i + n], lk["dither"][i : i + n])[0] for i in range(0, t.shape[0], n)]
