@@ -41,13 +41,13 @@ from typing import Any
 import numpy as np
 import tomlkit
 
+from qmg_lab.analysis.study_writer import create_run_writer
 from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import ClsfEstimator, ClsfPeriods
 from qmg_lab.config.schema import config_fingerprint, parse_config
 from qmg_lab.station import build_station, make_world
-from qmg_lab.storage.summary import create_run_writer
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -25,8 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from qmg_lab.analysis.compute import AnalysisResult, analyze
-from qmg_lab.storage.reader import stored_config
+from qmg_lab.analysis.compute import AnalysisResult, analyze, stored_config
 from qmg_lab.storage.writer import read_run, read_window
 
 MAX_POINTS = 20000

@@ -122,10 +122,10 @@ def run_campaign(config_text: str, run_file: Path, twin_draw_ahead: bool | None 
     """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s).
     twin_draw_ahead: the twins' noise drawn on a second thread or not (station.set_twin_noise_draw_ahead)."""
     from qmg_lab.analysis.compute import analyze
+    from qmg_lab.analysis.study_writer import create_run_writer
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignRunner
     from qmg_lab.station import build_station, set_twin_noise_draw_ahead
-    from qmg_lab.storage.summary import create_run_writer
     from qmg_lab.storage.writer import read_run, status_detail
 
     set_twin_noise_draw_ahead(twin_draw_ahead)
