@@ -107,12 +107,12 @@ def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray
     t0, j0 = hist_t[n - 1], hist_j[n - 1]
     x = hist_j - j0
     y = hist_t - t0
-    xm = np.sum(x) / n
-    ym = np.sum(y) / n
+    xm = x.sum() / n
+    ym = y.sum() / n
     dx = x - xm
-    sxx = np.sum(dx * dx)
-    slope = np.sum(dx * (y - ym)) / sxx if sxx > 0 else 0.0
-    return np.asarray(t0 + ym + slope * (j - j0 - xm), dtype=np.float64)
+    sxx = float(dx @ dx)
+    slope = float(dx @ (y - ym)) / sxx if sxx > 0 else 0.0
+    return (j - (j0 + xm)) * slope + (t0 + ym)
 
 
 def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_edges: int) -> np.ndarray:
@@ -123,14 +123,15 @@ def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_e
     running sums), slope = (n Sxy - Sx Sy) / (n Sxx - Sx^2) (0 if that is <= 0), intercept = (Sy - slope Sx) / n,
     t = t0 + intercept + slope x."""
     t0, j0 = all_t[0], all_j[0]
-    x = all_j - j0
-    y = all_t - t0
     c = np.zeros((5, all_t.size + 1))
-    for row, v in enumerate((np.ones(all_t.size), x, y, x * x, x * y)):
-        np.cumsum(v, out=c[row, 1:])
-    end = np.arange(start_new, all_t.size) + 1
-    w = c[:, end] - c[:, np.maximum(0, end - fit_edges)]
-    n, sx, sy, sxx, sxy = w
+    c[0, 1:] = 1.0
+    np.subtract(all_j, j0, out=c[1, 1:])
+    np.subtract(all_t, t0, out=c[2, 1:])
+    np.multiply(c[1, 1:], c[1, 1:], out=c[3, 1:])
+    np.multiply(c[1, 1:], c[2, 1:], out=c[4, 1:])
+    np.cumsum(c, axis=1, out=c)
+    end = np.arange(start_new + 1, all_t.size + 1)
+    n, sx, sy, sxx, sxy = c[:, end] - c[:, np.maximum(0, end - fit_edges)]
     den = n * sxx - sx * sx
     slope = np.zeros(end.size)
     np.divide(n * sxy - sx * sy, den, out=slope, where=den > 0)
@@ -147,10 +148,10 @@ def continue_fit(
     Each new edge's index advances by max(1, rint(gap / period)) cycles from the previous edge; when any lies more
     than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed);
     otherwise each is replaced by rolling_line_fit's value."""
-    steps = np.maximum(1.0, np.rint(np.diff(np.concatenate(([hist_t[-1]], te))) / period))
+    steps = np.maximum(1.0, np.rint(np.diff(te, prepend=hist_t[-1]) / period))
     j = np.int64(hist_j[-1]) + np.cumsum(steps.astype(np.int64))
     jf = j.astype(np.float64)
-    if np.any(np.abs(te - line_at(hist_t, hist_j, jf)) > 0.25 * period):
+    if (np.abs(te - line_at(hist_t, hist_j, jf)) > 0.25 * period).any():
         return False, j, te
     return True, j, rolling_line_fit(np.concatenate((hist_t, te)), np.concatenate((hist_j, jf)), hist_t.size, fit_edges)
 

@@ -185,7 +185,7 @@ class ClsfEstimator:
     def _sample_dt(self, t: np.ndarray) -> float:
         """The sample interval: the median spacing of (at most) the first SPACING_SAMPLES samples, s."""
         if len(t) >= 2:
-            return float(np.median(np.diff(t[:SPACING_SAMPLES])))
+            return _median(np.diff(t[:SPACING_SAMPLES]))
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
@@ -205,7 +205,7 @@ class ClsfEstimator:
         # a first block of 1-2 samples cannot outvote its repeated first sample's zero spacing in the median, so its
         # interval comes from its own samples (one sample: the last design, or 1 s; a single sample's filter output
         # is its steady state whatever dt is, and the next block redesigns)
-        dt = self._sample_dt(t) if last is None and len(t) < 3 else float(np.median(np.diff(tt[:SPACING_SAMPLES])))
+        dt = self._sample_dt(t) if last is None and len(t) < 3 else _median(np.diff(tt[:SPACING_SAMPLES]))
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
@@ -300,6 +300,13 @@ class ClsfEstimator:
         """While no edge is known, keep at most the last MAX_HELD_SAMPLES samples."""
         if self._rising.size == 0 and self._n - self._lo > MAX_HELD_SAMPLES:
             self._lo = self._n - MAX_HELD_SAMPLES
+
+
+def _median(v: np.ndarray) -> float:
+    """The median of a short array (np.median's value, without its general machinery: a few spacings per block)."""
+    v = np.sort(v)
+    m = v.size // 2
+    return float(v[m] if v.size % 2 else 0.5 * (v[m - 1] + v[m]))
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

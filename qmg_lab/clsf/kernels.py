@@ -21,29 +21,32 @@ from numba import njit
 TRANSIENT_TCS = 60.0
 
 
+@njit(cache=True, inline="always")
+def _ramp(x: float, order: int, tc_s: float) -> float:
+    """R_n at one tau = x (ramp_response)."""
+    if x <= 0.0:
+        return 0.0
+    if tc_s == 0.0:
+        return x
+    if x >= TRANSIENT_TCS * tc_s:
+        return x - order * tc_s
+    u = x / tc_s
+    acc = 0.0
+    term = 1.0  # u^j / j!
+    for j in range(order):
+        acc += (order - j) * term
+        term = term * u / (j + 1)
+    return x - order * tc_s + tc_s * math.exp(-u) * acc
+
+
 @njit(cache=True)
 def ramp_response(tau: np.ndarray, order: int, tc_s: float) -> np.ndarray:
     """R_n(tau), the response of H(s) = 1/(1 + s tc)^n to a unit ramp starting at tau = 0 (demod_filter.py):
     tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for 0 < tau < 60 tc, tau - n tc beyond, 0 for
     tau <= 0; max(tau, 0) without a filter (tc = 0)."""
     out = np.empty(tau.size)
-    delay = order * tc_s
     for i in range(tau.size):
-        x = tau[i]
-        if x <= 0.0:
-            out[i] = 0.0
-        elif tc_s == 0.0:
-            out[i] = x
-        elif x < TRANSIENT_TCS * tc_s:
-            u = x / tc_s
-            acc = 0.0
-            term = 1.0  # u^j / j!
-            for j in range(order):
-                acc += (order - j) * term
-                term = term * u / (j + 1)
-            out[i] = x - delay + tc_s * math.exp(-u) * acc
-        else:
-            out[i] = x - delay
+        out[i] = _ramp(tau[i], order, tc_s)
     return out
 
 
@@ -67,21 +70,39 @@ def period_ratios(
     H m_d = lo (t - e_0 - n tc) + (hi - lo) sum_j s_j R_n(t - e_j), signs s = (+, -, +, -, +) (each edge adds a
     ramp of slope +-(hi - lo)); r = H m_d minus its least-squares line a + b t over the window: with means over
     it, t' = t - mean t, v' = H m_d - mean H m_d, b = sum t' v' / sum t'^2 (0 if sum t'^2 = 0), r = v' - b t'.
-    H m = H m_r + H m_d. NaN where sum (H m) r = 0."""
+    H m = H m_r + H m_d. NaN where sum (H m) r = 0. (Three passes over a window, H m_d kept between them.)"""
     rho = np.empty(k0.size)
     step = hi - lo
+    longest = 0
     for p in range(k0.size):
-        a, b = k0[p], k1[p]
-        tw = t[a:b]
-        md = lo * (tw - edges[p, 0] - order * tc_s)
-        for j in range(5):
-            sign = step if j % 2 == 0 else -step
-            md += sign * ramp_response(tw - edges[p, j], order, tc_s)
-        tcen = tw - np.mean(tw)
-        vcen = md - np.mean(md)
-        stt = np.sum(tcen * tcen)
-        slope = np.sum(tcen * vcen) / stt if stt > 0 else 0.0
-        r = vcen - slope * tcen
-        den = np.sum((mf[a:b] + md) * r)
-        rho[p] = np.sum(y[a:b] * r) / den if den != 0.0 else np.nan
+        longest = max(longest, k1[p] - k0[p])
+    md = np.empty(longest)
+    for p in range(k0.size):
+        a, n = k0[p], k1[p] - k0[p]
+        e = edges[p]
+        st = 0.0
+        sv = 0.0
+        for i in range(n):
+            tk = t[a + i]
+            ramps = _ramp(tk - e[0], order, tc_s) - _ramp(tk - e[1], order, tc_s) + _ramp(tk - e[2], order, tc_s)
+            ramps += _ramp(tk - e[4], order, tc_s) - _ramp(tk - e[3], order, tc_s)
+            v = lo * (tk - e[0] - order * tc_s) + step * ramps
+            md[i] = v
+            st += tk
+            sv += v
+        mt, mv = st / n, sv / n
+        stt = 0.0
+        stv = 0.0
+        for i in range(n):
+            tc = t[a + i] - mt
+            stt += tc * tc
+            stv += tc * (md[i] - mv)
+        slope = stv / stt if stt > 0 else 0.0
+        num = 0.0
+        den = 0.0
+        for i in range(n):
+            r = (md[i] - mv) - slope * (t[a + i] - mt)
+            num += y[a + i] * r
+            den += (mf[a + i] + md[i]) * r
+        rho[p] = num / den if den != 0.0 else np.nan
     return rho
