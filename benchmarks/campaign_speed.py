@@ -211,7 +211,7 @@ def against_reference(rev: str, runs: int) -> dict[str, object]:
         "reference": rev,
         "runs": runs,
         "simulated_s": simulated,
-        "load_average": os.getloadavg(),
+        "load_average_at_end": os.getloadavg(),
     }
     for name in ("this", "reference"):
         result[f"{name}_wall_s"] = walls[name]
