@@ -4,7 +4,7 @@ One `World` is shared by every twin: the DS345 twin writes the dither, the table
 chamber twin the setpoint; the HF2 twin advances the clock block by block (`advance`), receiving the inputs the
 gyro physics needs at every step. Nothing here sleeps: a 3-hour campaign takes as long as its arithmetic.
 
-Dynamics (all exact for inputs held over a step; a block is one call, sims/world_kernel.block_inputs):
+Dynamics (all exact for inputs held over a step; a block is one compiled call, sims/world_kernel.block_inputs):
 
 * Table, rate mode: rate moves toward the command at the acceleration limit a,
   r(t) = r0 + sign(r1 - r0) * min(a t, |r1 - r0|); sinusoid mode: r(t) = A sin(2 pi f (t - t_s)).
@@ -131,9 +131,9 @@ class TruthRecord:
 
 
 def first_order_lag(u: np.ndarray, y0: float, a: float) -> np.ndarray:
-    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion (for 0 < a,
-    sims.world_kernel.first_order_lag: scipy.signal.lfilter's b = [0, 1 - a], a = [1, -a] with the initial
-    state y0)."""
+    """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] for k < n - 1: the one-pole recursion (for 0 < a, the compiled
+    loop sims.world_kernel.first_order_lag, scipy.signal.lfilter's b = [0, 1 - a], a = [1, -a] with the initial
+    state y0 step by step)."""
     n = u.shape[0]
     y = np.empty(n)
     if a <= 0.0:
@@ -154,6 +154,11 @@ class World:
         self.clock = clock
         self.lock = threading.RLock()
         self.t = 0.0
+        if clock == "wall":
+            # A wall-clock world answers the instruments' commands in real time (a serial twin's reply within the
+            # driver's timeout), and its first advance would compile the block kernel (seconds on a fresh install,
+            # against a 1291BR timeout of 2 s): compile it, or load it from numba's cache, on a throwaway world now.
+            World(self.params).advance(1, 0.01)
         self._wall0 = time.monotonic()
         self.dither = DitherState()
         self.table = TableState()

@@ -1,8 +1,8 @@
-"""The per-step equations of `sims.world.World.advance` over a block, in numpy: table rate and angle, chamber lags,
-dither means.
+"""Compiled (numba) per-step loops of `sims.world.World.advance`: table rate and angle, chamber lags, dither means.
 
-Each function is the World's documented equation (sims/world.py) over a block's steps, written into the caller's
-arrays (cumulative sums by np.cumsum; the one-pole recursion by scipy.signal.lfilter):
+Each loop is the World's documented equation (sims/world.py) evaluated step by step in one pass (cumulative sums
+sequential; the one-pole recursion in scipy.signal.lfilter's direct form II transposed; sines and cosines the C
+library's math.sin and math.cos):
 
 * `table_block`: r_k = p_k s (s = 1 + scale error), and with a ripple r != 0, at the ripple-free mid-step angle
   m_k = theta0 + (r_0 + ... + r_k) dt - r_k dt / 2: r_k <- r_k (1 + r sin(radians(m_k + phi_r))); then the step-start
@@ -20,18 +20,21 @@ arrays (cumulative sums by np.cumsum; the one-pole recursion by scipy.signal.lfi
   s0 + sign(s1 - s0) min(slope k dt, |s1 - s0|) (s0 where s1 = s0).
 * `chamber_lags`: the air lag behind the setpoint, the measured air (+ disturbance) and the gyro lag behind it,
   each `first_order_lag`, in one interleaved pass.
-* `block_inputs`: one block: `ramp_block` (or a given table profile), `table_block`, `chamber_lags` and
-  `dither_grid`.
+* `block_inputs`: one block in one compiled call: `ramp_block` (or a given table profile), `table_block`,
+  `chamber_lags` and `dither_grid`.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy.signal import lfilter
+from numba import njit
 
 DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
 
 
+@njit(cache=True)
 def table_block(
     profile_mid_dps: np.ndarray,
     scale: float,
@@ -45,21 +48,38 @@ def table_block(
     """Delivered mean rates (deg/s) and step-start angles (deg) of a block into `rate_dps` and `angle_deg`
     (module docstring); `ripple` = r as a fraction (ppm * 1e-6), 0: no ripple."""
     n = profile_mid_dps.shape[0]
-    r = profile_mid_dps * scale
-    if ripple != 0.0:
-        mid = angle0_deg + np.cumsum(r) * dt - 0.5 * r * dt
-        r *= 1.0 + ripple * np.sin(np.deg2rad(mid + ripple_phase_deg))
-    rate_dps[:] = r
+    deg = math.pi / 180.0
+    cum = 0.0
+    for k in range(n):
+        r = profile_mid_dps[k] * scale
+        if ripple != 0.0:
+            cum = r if k == 0 else cum + r
+            mid = angle0_deg + cum * dt - 0.5 * r * dt
+            r = r * (1.0 + ripple * math.sin((mid + ripple_phase_deg) * deg))
+        rate_dps[k] = r
     if n > 0:
-        angle_deg[0] = angle0_deg
-        angle_deg[1:] = np.cumsum(r[:-1]) * dt + angle0_deg
+        angle_deg[0] = 0.0 + angle0_deg
+    cum = 0.0
+    for k in range(1, n):
+        cum = rate_dps[0] if k == 1 else cum + rate_dps[k - 1]
+        angle_deg[k] = cum * dt + angle0_deg
 
 
+@njit(cache=True)
 def first_order_lag(u: np.ndarray, y0: float, a: float, y: np.ndarray) -> None:
     """y[0] = y0, y[k+1] = a y[k] + (1 - a) u[k] into `y` (module docstring), 0 < a < 1."""
-    y[:] = lfilter([0.0, 1.0 - a], [1.0, -a], u, zi=[y0])[0]
+    b0 = 0.0
+    b1 = 1.0 - a
+    a1 = -a
+    z = y0
+    for k in range(u.shape[0]):
+        x = u[k]
+        yk = z + b0 * x
+        y[k] = yk
+        z = x * b1 - yk * a1
 
 
+@njit(cache=True)
 def chamber_lags(
     setpoint_c: np.ndarray,
     air0_c: float,
@@ -71,25 +91,40 @@ def chamber_lags(
     air_measured_c: np.ndarray,
     gyro_c: np.ndarray,
 ) -> None:
-    """The air lag behind the setpoint, the measured air (+ disturbance) and the gyro lag behind it
-    (`first_order_lag` of each)."""
-    first_order_lag(setpoint_c, air0_c, a_air, air_c)
-    np.add(air_c, disturbance_c, out=air_measured_c)
-    first_order_lag(air_measured_c, gyro0_c, a_gyro, gyro_c)
+    """The air lag behind the setpoint, the measured air (+ disturbance) and the gyro lag behind it, in one pass:
+    `first_order_lag` of each, step k of the gyro's recursion taking the measured air of step k as soon as it
+    is formed (the two dependency chains interleave; the operations are those of the separate loops)."""
+    b1_air, a1_air = 1.0 - a_air, -a_air
+    b1_gyro, a1_gyro = 1.0 - a_gyro, -a_gyro
+    z_air, z_gyro = air0_c, gyro0_c
+    for k in range(setpoint_c.shape[0]):
+        x = setpoint_c[k]
+        air = z_air + 0.0 * x
+        air_c[k] = air
+        z_air = x * b1_air - air * a1_air
+        measured = air + disturbance_c
+        air_measured_c[k] = measured
+        gyro = z_gyro + 0.0 * measured
+        gyro_c[k] = gyro
+        z_gyro = measured * b1_gyro - gyro * a1_gyro
 
 
-def wave_integral(fn: int, u: np.ndarray) -> np.ndarray:
+@njit(cache=True, inline="always")
+def _wave_integral(fn: int, u: float) -> float:
     """W(u): the integral of the unit waveform from 0 to u (cycles; sims/world.py docstring)."""
-    f = u - np.floor(u)
     if fn == DITHER_SQUARE:
-        return np.where(f < 0.5, f, 1.0 - f)
+        frac = u - math.floor(u)
+        return frac if frac < 0.5 else 1.0 - frac
     if fn == DITHER_TRIANGLE:
-        return np.where(f < 0.5, -f + 2 * f * f, 3 * (f - 0.5) - 2 * (f * f - 0.25))
+        f = u - math.floor(u)
+        return -f + 2 * f * f if f < 0.5 else 3 * (f - 0.5) - 2 * (f * f - 0.25)
     if fn == DITHER_RAMP:
+        f = u - math.floor(u)
         return f * f - f
-    return (1.0 - np.cos(2 * np.pi * u)) / (2 * np.pi)
+    return (1.0 - math.cos(2 * math.pi * u)) / (2 * math.pi)
 
 
+@njit(cache=True)
 def dither_grid(
     t_bounds_s: np.ndarray,
     e0: float,
@@ -107,13 +142,17 @@ def dither_grid(
 ) -> None:
     """Phases `u` (cycles) and W(u) `w` at the n + 1 step boundaries, and the n exact step means `means_v` (V).
     wander_amp_s = e_w P / (2 pi); half_vpp = Vpp / 2 (module docstring)."""
-    t = t_bounds_s
-    tau = t * (1.0 + e0) + wander_amp_s * (1.0 - np.cos(2 * np.pi * t / wander_period_s))
-    u[:] = frequency_hz * (tau - tau_origin_s) + phase_cycles
-    w[:] = wave_integral(function, u)
-    means_v[:] = offset_v + half_vpp * (w[1:] - w[:-1]) / (u[1:] - u[:-1])
+    for j in range(t_bounds_s.shape[0]):
+        t = t_bounds_s[j]
+        tau = t * (1.0 + e0) + wander_amp_s * (1.0 - math.cos(2 * math.pi * t / wander_period_s))
+        uj = frequency_hz * (tau - tau_origin_s) + phase_cycles
+        u[j] = uj
+        w[j] = _wave_integral(function, uj)
+    for k in range(means_v.shape[0]):
+        means_v[k] = offset_v + half_vpp * (w[k + 1] - w[k]) / (u[k + 1] - u[k])
 
 
+@njit(cache=True)
 def dither_window_means(
     t_bounds_s: np.ndarray,
     u: np.ndarray,
@@ -125,10 +164,14 @@ def dither_window_means(
     means_v: np.ndarray,
 ) -> None:
     """The exact means (V) over the last `window_s` of every step, into `means_v` (module docstring)."""
-    du = (u[1:] - u[:-1]) / (t_bounds_s[1:] - t_bounds_s[:-1]) * window_s
-    means_v[:] = offset_v + half_vpp * (w[1:] - wave_integral(function, u[1:] - du)) / du
+    for k in range(means_v.shape[0]):
+        rate = (u[k + 1] - u[k]) / (t_bounds_s[k + 1] - t_bounds_s[k])
+        du = rate * window_s
+        w0 = _wave_integral(function, u[k + 1] - du)
+        means_v[k] = offset_v + half_vpp * (w[k + 1] - w0) / du
 
 
+@njit(cache=True)
 def ramp_block(
     t0_s: float,
     dt: float,
@@ -149,20 +192,19 @@ def ramp_block(
     """Step starts, boundaries, the rate-mode table profile at mid-step (left alone unless `rate_mode`) and the
     chamber setpoint at the step starts (module docstring); span 0: the ramp has arrived (r1 = r0, s1 = s0)."""
     n = t_start_s.shape[0]
-    tau = np.arange(n + 1, dtype=np.float64) * dt
-    t_bounds_s[:] = t0_s + tau
-    t_start_s[:] = t_bounds_s[:n]
-    if rate_mode:
-        if r_span_dps == 0.0:
-            profile_mid_dps[:] = r0_dps
-        else:
-            profile_mid_dps[:] = r0_dps + r_sign * np.minimum(accel_dps2 * (tau[:n] + 0.5 * dt), r_span_dps)
-    if s_span_c == 0.0:
-        setpoint_c[:] = s0_c
-    else:
-        setpoint_c[:] = s0_c + s_sign * np.minimum(slope_c_per_s * tau[:n], s_span_c)
+    for k in range(n + 1):
+        tau = float(k) * dt
+        t_bounds_s[k] = t0_s + tau
+        if k == n:
+            break
+        t_start_s[k] = t0_s + tau
+        if rate_mode:
+            mid = tau + 0.5 * dt
+            profile_mid_dps[k] = r0_dps if r_span_dps == 0.0 else r0_dps + r_sign * min(accel_dps2 * mid, r_span_dps)
+        setpoint_c[k] = s0_c if s_span_c == 0.0 else s0_c + s_sign * min(slope_c_per_s * tau, s_span_c)
 
 
+@njit(cache=True)
 def block_inputs(
     table: np.ndarray,
     chamber: np.ndarray,
