@@ -16,7 +16,7 @@ Two exact forms are needed by the CLSF estimator (qmg_lab/clsf/estimator.py):
   qmg_lab/clsf/kernels.ramp_response, inside the estimator's compiled loop).
 * A discrete filter for inputs known only at the sample instants and linear between them (first-order hold):
   the exact FOH discretization of the state-space chain, as second-order sections (the layout of
-  scipy.signal.sosfilt, which the estimator runs them with), in closed form with numpy alone (see
+  scipy.signal.sosfilt; run by qmg_lab/clsf/kernels.sosfilt), in closed form with numpy alone (see
   DemodFilter.foh_sos), and the sections' steady state for a constant input (sos_steady_state).
 
 tc = 0 means no filter (H = 1).

@@ -63,10 +63,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import sosfilt
 
 from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
+from qmg_lab.clsf.kernels import sosfilt
 from qmg_lab.clsf.periods import evaluate_periods
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
@@ -197,8 +197,8 @@ class ClsfEstimator:
             int x_k = int x_(k-1) + h_k (x_k + x_(k-1)) / 2
             m_r,k   = m_r,(k-1) + h_k ((a_k + a_(k-1)) / 2 + (a_k - a_(k-1)) s_k)
             y_k     = x_k + int x_k / tau
-        H m_r: m_r through the filter's FOH sections (scipy.signal.sosfilt), their states carried from block to
-        block (at a first block, or after a redesign, the states at rest for the first m_r)."""
+        H m_r: m_r through the filter's FOH sections (kernels.sosfilt), their states carried from block to block
+        (at a first block, or after a redesign, the states at rest for the first m_r)."""
         last = self._last  # None before the first block (and after a gap)
         t_prev, x_prev, a_prev, ix0, mr0 = (float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0) if last is None else last
         tt = np.concatenate(([t_prev], t))
@@ -222,7 +222,7 @@ class ClsfEstimator:
         if self._sos is not None:
             if self._zi is None:
                 self._zi = sos_steady_state(self._sos) * mr[0]
-            mf, self._zi = sosfilt(self._sos, mr, zi=self._zi)
+            mf = sosfilt(self._sos, mr, self._zi)
         start = self._reserve(t.size)
         self._n = start + t.size
         self._buf[:, start : self._n] = (t, x + ix / self.tau_s, mf, mr)

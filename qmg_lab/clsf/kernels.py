@@ -1,10 +1,12 @@
-"""The CLSF estimator's one compiled (numba) loop: the per-period ratios rho over the sample buffer.
+"""The CLSF estimator's compiled (numba) loops: the per-period ratios rho over the sample buffer, and the
+demodulator filter's sections run over a block.
 
-Everything else of the estimator is numpy and scipy over whole blocks (qmg_lab/clsf/estimator.py,
-qmg_lab/clsf/periods.py, qmg_lab/clsf/dither_edges.py). The ratios stay compiled because each dither period needs
-the filter's ramp response at every sample for five edges, its own least-squares line and four sums: about 25
-numpy calls per period on arrays of a few hundred samples, where the call overhead would cost several times the
-arithmetic (14 periods per 2 s block).
+Everything else of the estimator is numpy over whole blocks (qmg_lab/clsf/estimator.py, qmg_lab/clsf/periods.py,
+qmg_lab/clsf/dither_edges.py). The ratios are compiled because each dither period needs the filter's ramp response
+at every sample for five edges, its own least-squares line and four sums: about 25 numpy calls per period on
+arrays of a few hundred samples, where the call overhead would cost several times the arithmetic (14 periods per
+2 s block). The sections are a recursion, which numpy cannot vectorise; scipy.signal.sosfilt would do, but
+importing scipy.signal costs a campaign process about 0.4 s of start-up.
 
 Compiled with cache=True (the first run in a fresh environment compiles it once; later runs load it from the cache).
 """
@@ -19,6 +21,26 @@ from numba import njit
 #: beyond this many time constants the ramp response's transient e^(-x) sum_(j<n) (n - j) x^j / j! is below
 #: 1e-17 tc for n <= 8 and is left out
 TRANSIENT_TCS = 60.0
+
+
+@njit(cache=True)
+def sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """The second-order sections sos (rows b0 b1 b2 1 a1 a2) run over x from their states zi (n_sections x 2,
+    updated in place): per section, transposed direct form II (scipy.signal.sosfilt's recursion),
+        y = b0 u + z0;  z0 <- b1 u - a1 y + z1;  z1 <- b2 u - a2 y.
+    Returns the output (a new array)."""
+    y = x.copy()
+    for s in range(sos.shape[0]):
+        b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+        z0, z1 = zi[s, 0], zi[s, 1]
+        for k in range(y.size):
+            u = y[k]
+            v = b0 * u + z0
+            z0 = b1 * u - a1 * v + z1
+            z1 = b2 * u - a2 * v
+            y[k] = v
+        zi[s, 0], zi[s, 1] = z0, z1
+    return y
 
 
 @njit(cache=True, inline="always")

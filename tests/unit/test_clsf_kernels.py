@@ -15,7 +15,7 @@ from scipy import signal
 
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import BUF_MF, BUF_MR, BUF_T, BUF_Y, ClsfEstimator
-from qmg_lab.clsf.kernels import period_ratios
+from qmg_lab.clsf.kernels import period_ratios, sosfilt
 from qmg_lab.clsf.periods import complete_periods, evaluate_periods
 
 RNG = np.random.default_rng(20131)
@@ -110,6 +110,24 @@ def test_period_ratio_is_the_gain_of_a_signal_that_follows_the_forcer_input() ->
     for p, (a, b) in enumerate(zip(k0, k1, strict=True)):
         _, bound = _ratio_and_bound(t[a:b], y[a:b], np.zeros(b - a), edges[p], lo, hi, 1, 1e-4)
         assert abs(got[p] - beta) <= bound + 2 * EPS * beta  # plus the rounding of beta H m itself
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 8])
+def test_sosfilt_is_scipys_sosfilt(order: int) -> None:
+    """The sections' recursion against scipy's, from the same states. Bound: each output and state is a few
+    roundings (products and sums, eps/2 each) of terms no larger than the sections' coefficients times the
+    signal's size (the FOH low-pass: DC gain 1, every pole at p = e^(-dt/tc) = 0.16, so a rounding decays by p
+    per step and per section): 64 eps max|x| covers eight sections."""
+    sos = DemodFilter(order, 3e-4).foh_sos(1 / 1800)
+    x = np.cumsum(_spread(3600))
+    zi0 = signal.sosfilt_zi(sos) * x[0]
+    expected, zf = signal.sosfilt(sos, x, zi=zi0)
+    zi = zi0.copy()
+    got = sosfilt(sos, x, zi)
+    bound = 64 * EPS * np.max(np.abs(x))
+    assert np.max(np.abs(got - expected)) <= bound
+    assert np.max(np.abs(zi - zf)) <= bound  # the states at the block's end, for the next block
+    assert np.max(np.abs(got - x)) > 1e3 * bound  # the filter did something
 
 
 Row = tuple[tuple[float, ...], int, int]
