@@ -34,7 +34,7 @@ from numba import njit
 DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def table_block(
     profile_mid_dps: np.ndarray,
     scale: float,
@@ -79,7 +79,7 @@ def first_order_lag(u: np.ndarray, y0: float, a: float, y: np.ndarray) -> None:
         z = x * b1 - yk * a1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def chamber_lags(
     setpoint_c: np.ndarray,
     air0_c: float,
@@ -124,7 +124,7 @@ def _wave_integral(fn: int, u: float) -> float:
     return (1.0 - math.cos(2 * math.pi * u)) / (2 * math.pi)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def dither_grid(
     t_bounds_s: np.ndarray,
     e0: float,
@@ -171,7 +171,7 @@ def dither_window_means(
         means_v[k] = offset_v + half_vpp * (w[k + 1] - w0) / du
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def ramp_block(
     t0_s: float,
     dt: float,
