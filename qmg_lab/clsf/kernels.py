@@ -43,7 +43,7 @@ def sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
     return y
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _ramp(x: float, order: int, tc_s: float) -> float:
     """R_n at one tau = x (ramp_response)."""
     if x <= 0.0:
