@@ -169,6 +169,7 @@ def reference_package(rev: str, into: Path) -> tuple[Any, Any]:
             text = subprocess.run(
                 ["git", "show", f"{rev}:qmg_lab/clsf/{name}"], cwd=ROOT, check=True, capture_output=True, text=True
             ).stdout
+            text = text.replace("from qmg_lab.clsf import", "from clsf_reference import")
             (pkg / name).write_text(text.replace("qmg_lab.clsf.", "clsf_reference."), encoding="utf-8")
     sys.path.insert(0, str(into))
     return (
