@@ -66,13 +66,14 @@ import numpy as np
 
 from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.clsf.kernels import sosfilt
+from qmg_lab.clsf.kernels import integrate_block
 from qmg_lab.clsf.periods import evaluate_periods
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
 MAX_HELD_SAMPLES = 100_000  # samples kept while no edge has been found
 BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (ClsfEstimator._append)
 SPACING_SAMPLES = 65  # the sample interval is the median of (at most) this many first spacings of a block
+NO_SECTIONS = np.empty((0, 6))  # the filter's sections when there is no filter (tc = 0)
 NO_HOLDS = np.empty((0, 2))
 
 
@@ -189,44 +190,34 @@ class ClsfEstimator:
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
-        """Extend the buffer by t, y, H m_r and m_r.
-
-        With h_k = t_k - t_(k-1) (from the previous block's last sample; a first block repeats its first), the
-        trapezoid rule (AuxIn values sit at t_k - W/2, so the line through two readings is shifted by
-        s_k = W / (2 h_k), 0 where h_k = 0):
-            int x_k = int x_(k-1) + h_k (x_k + x_(k-1)) / 2
-            m_r,k   = m_r,(k-1) + h_k ((a_k + a_(k-1)) / 2 + (a_k - a_(k-1)) s_k)
-            y_k     = x_k + int x_k / tau
-        H m_r: m_r through the filter's FOH sections (kernels.sosfilt), their states carried from block to block
-        (at a first block, or after a redesign, the states at rest for the first m_r)."""
+        """Extend the buffer by t, y = x + (1/tau) int x, H m_r and m_r (kernels.integrate_block: the trapezoid
+        rule; AuxIn values sit at t_k - W/2), the filter's section states carried from block to block (at a first
+        block, or after a redesign, the states at rest for the first m_r)."""
         last = self._last  # None before the first block (and after a gap)
-        t_prev, x_prev, a_prev, ix0, mr0 = (float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0) if last is None else last
-        tt = np.concatenate(([t_prev], t))
-        # a first block of 1-2 samples cannot outvote its repeated first sample's zero spacing in the median, so its
-        # interval comes from its own samples (one sample: the last design, or 1 s; a single sample's filter output
-        # is its steady state whatever dt is, and the next block redesigns)
-        dt = self._sample_dt(t) if last is None and len(t) < 3 else _median(np.diff(tt[:SPACING_SAMPLES]))
+        before = (float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0) if last is None else last
+        # the samples' spacings start from the previous block's last time (or, for a first block, a repeat of its
+        # first); a first block of 1-2 samples cannot outvote that zero spacing in the median, so its interval
+        # comes from its own samples (one sample: the last design, or 1 s; a single sample's filter output is its
+        # steady state whatever dt is, and the next block redesigns)
+        if last is None and len(t) < 3:
+            dt = self._sample_dt(t)
+        else:
+            dt = _median(np.diff(t[: SPACING_SAMPLES - 1], prepend=before[0]))
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
             self._sos = self.demod_filter.foh_sos(dt)
             self._sos_dt = dt
             self._zi = None
-        h = np.diff(tt)
-        xx = np.concatenate(([x_prev], x))
-        aa = np.concatenate(([a_prev], aux))
-        shift = np.divide(0.5 * self.auxin_window_s, h, out=np.zeros_like(h), where=h > 0)
-        ix = ix0 + np.cumsum(0.5 * h * (xx[1:] + xx[:-1]))
-        mr = mr0 + np.cumsum(h * (0.5 * (aa[1:] + aa[:-1]) + (aa[1:] - aa[:-1]) * shift))
-        mf = mr
-        if self._sos is not None:
-            if self._zi is None:
-                self._zi = sos_steady_state(self._sos) * mr[0]
-            mf = sosfilt(self._sos, mr, self._zi)
+        sos = NO_SECTIONS if self._sos is None else self._sos
+        zi_per_unit = self._zi is None
+        if self._zi is None:
+            self._zi = sos_steady_state(sos)
         start = self._reserve(t.size)
         self._n = start + t.size
-        self._buf[:, start : self._n] = (t, x + ix / self.tau_s, mf, mr)
-        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix[-1]), float(mr[-1]))
+        rows = self._buf[:, start : self._n]
+        ix = integrate_block(t, x, aux, before, self.auxin_window_s, self.tau_s, sos, self._zi, zi_per_unit, rows)
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix), float(rows[BUF_MR, -1]))
 
     def _reserve(self, samples: int) -> int:
         """Room for `samples` more columns after the held ones: those move to the buffer's start (into a buffer

@@ -1,12 +1,13 @@
-"""The CLSF estimator's compiled (numba) loops: the per-period ratios rho over the sample buffer, and the
-demodulator filter's sections run over a block.
+"""The CLSF estimator's compiled (numba) loops: the per-period ratios rho over the sample buffer, and a block's
+integrals run through the demodulator filter's sections.
 
-Everything else of the estimator is numpy over whole blocks (qmg_lab/clsf/estimator.py, qmg_lab/clsf/periods.py,
+Everything else of the estimator is numpy (qmg_lab/clsf/estimator.py, qmg_lab/clsf/periods.py,
 qmg_lab/clsf/dither_edges.py). The ratios are compiled because each dither period needs the filter's ramp response
 at every sample for five edges, its own least-squares line and four sums: about 25 numpy calls per period on
 arrays of a few hundred samples, where the call overhead would cost several times the arithmetic (14 periods per
-2 s block). The sections are a recursion, which numpy cannot vectorise; scipy.signal.sosfilt would do, but
-importing scipy.signal costs a campaign process about 0.4 s of start-up.
+2 s block). The sections are a recursion, which numpy cannot vectorise (scipy.signal.sosfilt would do, but
+importing scipy.signal costs a campaign process about 0.4 s of start-up), and the integrals feeding them are two
+running sums, formed in the same loop.
 
 Compiled with cache=True (the first run in a fresh environment compiles it once; later runs load it from the cache).
 """
@@ -24,23 +25,55 @@ TRANSIENT_TCS = 60.0
 
 
 @njit(cache=True)
-def sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
-    """The second-order sections sos (rows b0 b1 b2 1 a1 a2) run over x from their states zi (n_sections x 2,
-    updated in place): per section, transposed direct form II (scipy.signal.sosfilt's recursion),
-        y = b0 u + z0;  z0 <- b1 u - a1 y + z1;  z1 <- b2 u - a2 y.
-    Returns the output (a new array)."""
-    y = x.copy()
+def integrate_block(
+    t: np.ndarray,
+    x: np.ndarray,
+    aux: np.ndarray,
+    before: tuple[float, float, float, float, float],
+    window_s: float,
+    tau_s: float,
+    sos: np.ndarray,
+    zi: np.ndarray,
+    zi_per_unit: bool,
+    out: np.ndarray,
+) -> float:
+    """A block's rows of the estimator's sample buffer into out (4 x n): t, y, H m_r, m_r; returns int x at the
+    block's last sample. before: t, x, aux, int x and m_r at the sample before t[0] (for a first block, t[0], x[0],
+    aux[0], 0, 0).
+
+    With h_k = t_k - t_(k-1), the trapezoid rule (AuxIn values sit at t_k - W/2, so the line through two readings
+    is shifted by s_k = W / (2 h_k), 0 where h_k = 0):
+        int x_k = int x_(k-1) + h_k (x_k + x_(k-1)) / 2
+        m_r,k   = m_r,(k-1) + h_k ((a_k + a_(k-1)) / 2 + (a_k - a_(k-1)) s_k)
+        y_k     = x_k + int x_k / tau
+    H m_r: m_r through the second-order sections sos (rows b0 b1 b2 1 a1 a2; none: H m_r = m_r) from their states
+    zi (n_sections x 2, updated in place; zi_per_unit: zi holds the states at rest per unit input, and starts at
+    those times the first m_r), each section over the block in transposed direct form II (scipy.signal.sosfilt's
+    recursion): y = b0 u + z0; z0 <- b1 u - a1 y + z1; z1 <- b2 u - a2 y."""
+    t_prev, x_prev, a_prev, ix, mr = before
+    for k in range(t.size):
+        h = t[k] - t_prev
+        shift = 0.5 * window_s / h if h > 0 else 0.0
+        ix += 0.5 * h * (x[k] + x_prev)
+        mr += h * (0.5 * (aux[k] + a_prev) + (aux[k] - a_prev) * shift)
+        out[0, k] = t[k]
+        out[1, k] = x[k] + ix / tau_s
+        out[2, k] = mr
+        out[3, k] = mr
+        t_prev, x_prev, a_prev = t[k], x[k], aux[k]
+    if zi_per_unit and t.size:
+        zi *= out[3, 0]
     for s in range(sos.shape[0]):
         b0, b1, b2, a1, a2 = sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
         z0, z1 = zi[s, 0], zi[s, 1]
-        for k in range(y.size):
-            u = y[k]
+        for k in range(t.size):
+            u = out[2, k]
             v = b0 * u + z0
             z0 = b1 * u - a1 * v + z1
             z1 = b2 * u - a2 * v
-            y[k] = v
+            out[2, k] = v
         zi[s, 0], zi[s, 1] = z0, z1
-    return y
+    return ix
 
 
 @njit(cache=True)
