@@ -135,17 +135,25 @@ def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray
     n = hist_t.size
     out = np.empty(j.size)
     if n < 2:
-        out[:] = hist_t[n - 1]
+        for i in range(j.size):
+            out[i] = hist_t[n - 1]
         return out
     t0 = hist_t[n - 1]
     j0 = hist_j[n - 1]
-    x = hist_j - j0
-    y = hist_t - t0
-    xm = np.sum(x) / n
-    ym = np.sum(y) / n
-    dx = x - xm
-    sxx = np.sum(dx * dx)
-    slope = np.sum(dx * (y - ym)) / sxx if sxx > 0 else 0.0
+    sx = 0.0
+    sy = 0.0
+    for i in range(n):
+        sx += hist_j[i] - j0
+        sy += hist_t[i] - t0
+    xm = sx / n
+    ym = sy / n
+    sxx = 0.0
+    sxy = 0.0
+    for i in range(n):
+        dx = hist_j[i] - j0 - xm
+        sxx += dx * dx
+        sxy += dx * (hist_t[i] - t0 - ym)
+    slope = sxy / sxx if sxx > 0 else 0.0
     for i in range(j.size):
         out[i] = t0 + ym + slope * (j[i] - j0 - xm)
     return out
