@@ -20,10 +20,6 @@ Smoothing: edges of one kind follow t_j = a + b j (cycle index j) up to the time
 replaced by the least-squares line through the last `window` edges of its kind (itself included), evaluated at its
 own index. A gap-located edge then carries an error of about (dt - W) / sqrt(3 window) instead of dt/2. An edge
 that lies more than a quarter period off the line (the generator was reprogrammed) restarts the fit.
-
-The level estimate, the level crossings and the line fits are compiled (numba, cached after the first run): a
-campaign hands the tracker a 2 s block at a time, and their numpy forms cost several times as much in call
-overhead as in arithmetic (0.16 against 0.04 ms a block). `qmg-lab analyze` runs them too, and so loads numba.
 """
 
 from __future__ import annotations
@@ -31,36 +27,24 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
 INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
 HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, else the previous side
 
 
-@njit(cache=True)
 def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
     """(lo, hi) updated from a block of readings d: the means of the readings above mid + 0.45 span and below
     mid - 0.45 span (mid, span of the current levels: plateau readings only, an edge's intermediate reading is
     excluded); a level with no such reading is kept."""
     mid = 0.5 * (lo + hi)
     span = hi - lo
-    above = mid + 0.45 * span
-    below = mid - 0.45 * span
-    sh = 0.0
-    sl = 0.0
-    nh = 0
-    nl = 0
-    for v in d:
-        if v > above:
-            sh += v
-            nh += 1
-        if v < below:
-            sl += v
-            nl += 1
-    return (sl / nl if nl else lo), (sh / nh if nh else hi)
+    high = d[d > mid + 0.45 * span]
+    low = d[d < mid - 0.45 * span]
+    new_hi = float(np.sum(high)) / high.size if high.size else hi
+    new_lo = float(np.sum(low)) / low.size if low.size else lo
+    return new_lo, new_hi
 
 
-@njit(cache=True)
 def level_crossings(
     t: np.ndarray,
     d: np.ndarray,
@@ -71,95 +55,66 @@ def level_crossings(
     hysteresis: float,
     intermediate: float,
 ) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """The edges in a block of dither readings d at times t (dither_edges.py): (rising times, falling times, the
+    """The edges in a block of dither readings d at times t (module docstring): (rising times, falling times, the
     last reading's fraction s, its side). prev = (time, s, side 0/1) of the previous block's last reading, side -1
     when there is none (then its time and s are not used).
 
     With s_k = (d_k - lo) / (hi - lo): a reading is high above 1 - hysteresis, low below hysteresis, else on the
-    side of the last clear one; the first reading's side is the previous block's, or its own (s > 1/2 if unclear).
-    At each change of side, k the first reading on the new side: the edge is at the middle of the gap
-    t_e = (t_(k-1) + t_k - W) / 2, unless a window holds it: t_e = t_(k-1) - W f_old if window k-1 has a fraction
-    f_old > intermediate on the new level, and t_e = t_k - W f_new if window k has intermediate < f_new <
-    1 - intermediate (the latter wins)."""
+    side of the last clear one (the clear readings' sides carried forward); the first reading's side is the
+    previous block's, or its own (s > 1/2 if unclear). At each change of side, k the first reading on the new side:
+    the edge is at the middle of the gap t_e = (t_(k-1) + t_k - W) / 2, unless a window holds it:
+    t_e = t_(k-1) - W f_old if window k-1 has a fraction f_old > intermediate on the new level, and
+    t_e = t_k - W f_new if window k has intermediate < f_new < 1 - intermediate (the latter wins)."""
     prev_t, prev_s, prev_side = prev
-    span = hi - lo
-    rising = np.empty(d.size)
-    falling = np.empty(d.size)
-    nr = 0
-    nf = 0
-    # the reading before the loop's first: the previous block's last, or this block's first (its side its own)
-    start = 0 if prev_side >= 0 else 1
-    tp, sp = (prev_t, prev_s) if prev_side >= 0 else (t[0], (d[0] - lo) / span)
+    ss = (d - lo) / (hi - lo)
+    tt = t
     if prev_side >= 0:
-        high = prev_side == 1
-    elif sp > 1.0 - hysteresis:
-        high = True
-    elif sp < hysteresis:
-        high = False
+        tt = np.concatenate(([prev_t], t))
+        ss = np.concatenate(([prev_s], ss))
+        first = prev_side == 1
+    elif ss[0] > 1.0 - hysteresis:
+        first = True
+    elif ss[0] < hysteresis:
+        first = False
     else:
-        high = sp > 0.5
-    for k in range(start, d.size):
-        tk = t[k]
-        s = (d[k] - lo) / span
-        if s > 1.0 - hysteresis:
-            now = True
-        elif s < hysteresis:
-            now = False
-        else:
-            now = high
-        if now != high:
-            frac_new = s if now else 1.0 - s
-            frac_old = sp if now else 1.0 - sp
-            e = 0.5 * (tp + tk - window_s)
-            if window_s > 0.0:
-                if frac_old > intermediate:
-                    e = tp - window_s * frac_old
-                if frac_new > intermediate and frac_new < 1.0 - intermediate:
-                    e = tk - window_s * frac_new
-            if now:
-                rising[nr] = e
-                nr += 1
-            else:
-                falling[nf] = e
-                nf += 1
-            high = now
-        tp, sp = tk, s
-    return rising[:nr], falling[:nf], sp, high
+        first = bool(ss[0] > 0.5)
+    state = np.full(ss.size, -1, dtype=np.int8)  # -1: unclear, keeps the side before it
+    state[ss < hysteresis] = 0
+    state[ss > 1.0 - hysteresis] = 1
+    state[0] = first
+    last_clear = np.where(state >= 0, np.arange(ss.size), 0)
+    np.maximum.accumulate(last_clear, out=last_clear)
+    side = state[last_clear] == 1
+    k = np.flatnonzero(side[1:] != side[:-1]) + 1
+    now = side[k]
+    frac_new = np.where(now, ss[k], 1.0 - ss[k])
+    frac_old = np.where(now, ss[k - 1], 1.0 - ss[k - 1])
+    e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+    if window_s > 0.0:
+        e = np.where(frac_old > intermediate, tt[k - 1] - window_s * frac_old, e)
+        inside = (frac_new > intermediate) & (frac_new < 1.0 - intermediate)
+        e = np.where(inside, tt[k] - window_s * frac_new, e)
+    return e[now], e[~now], float(ss[-1]), bool(side[-1])
 
 
-@njit(cache=True)
 def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """The least-squares line t = a + b j through the pairs (hist_j, hist_t), at the indices j:
-    about the last pair (t0, j0), x = j - j0, y = t - t0, slope = sum (x - xm)(y - ym) / sum (x - xm)^2 (0 if the
-    latter is 0), t(j) = t0 + ym + slope (j - j0 - xm); the last time when fewer than two pairs."""
+    """The least-squares line t = a + b j through the pairs (hist_j, hist_t), at the indices j: about the last pair
+    (t0, j0), x = j - j0, y = t - t0, slope = sum (x - xm)(y - ym) / sum (x - xm)^2 (0 if the latter is 0),
+    t(j) = t0 + ym + slope (j - j0 - xm); the last time when fewer than two pairs."""
     n = hist_t.size
-    out = np.empty(j.size)
     if n < 2:
-        for i in range(j.size):
-            out[i] = hist_t[n - 1]
-        return out
-    t0 = hist_t[n - 1]
-    j0 = hist_j[n - 1]
-    sx = 0.0
-    sy = 0.0
-    for i in range(n):
-        sx += hist_j[i] - j0
-        sy += hist_t[i] - t0
-    xm = sx / n
-    ym = sy / n
-    sxx = 0.0
-    sxy = 0.0
-    for i in range(n):
-        dx = hist_j[i] - j0 - xm
-        sxx += dx * dx
-        sxy += dx * (hist_t[i] - t0 - ym)
-    slope = sxy / sxx if sxx > 0 else 0.0
-    for i in range(j.size):
-        out[i] = t0 + ym + slope * (j[i] - j0 - xm)
-    return out
+        return np.full(j.size, hist_t[n - 1])
+    t0, j0 = hist_t[n - 1], hist_j[n - 1]
+    x = hist_j - j0
+    y = hist_t - t0
+    xm = x.sum() / n
+    ym = y.sum() / n
+    dx = x - xm
+    sxx = float(dx @ dx)
+    slope = float(dx @ (y - ym)) / sxx if sxx > 0 else 0.0
+    return (j - (j0 + xm)) * slope + (t0 + ym)
 
 
-@njit(cache=True)
 def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_edges: int) -> np.ndarray:
     """For each point from start_new on, the least-squares line through it and the fit_edges - 1 points before
     (fewer at the start), evaluated at its own index; the point itself where fewer than 4 points are fitted.
@@ -167,35 +122,23 @@ def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_e
     About the first point (t0, j0): x = j - j0, y = t - t0; with window sums n, Sx, Sy, Sxx, Sxy (differences of
     running sums), slope = (n Sxy - Sx Sy) / (n Sxx - Sx^2) (0 if that is <= 0), intercept = (Sy - slope Sx) / n,
     t = t0 + intercept + slope x."""
-    size = all_t.size
-    t0 = all_t[0]
-    j0 = all_j[0]
-    c = np.zeros((5, size + 1))
-    for i in range(size):
-        x = all_j[i] - j0
-        y = all_t[i] - t0
-        c[0, i + 1] = c[0, i] + 1.0
-        c[1, i + 1] = c[1, i] + x
-        c[2, i + 1] = c[2, i] + y
-        c[3, i + 1] = c[3, i] + x * x
-        c[4, i + 1] = c[4, i] + x * y
-    out = np.empty(size - start_new)
-    for i in range(start_new, size):
-        end = i + 1
-        start = max(0, end - fit_edges)
-        n = c[0, end] - c[0, start]
-        sx = c[1, end] - c[1, start]
-        sy = c[2, end] - c[2, start]
-        sxx = c[3, end] - c[3, start]
-        sxy = c[4, end] - c[4, start]
-        den = n * sxx - sx * sx
-        slope = (n * sxy - sx * sy) / den if den > 0 else 0.0
-        icpt = (sy - slope * sx) / n
-        out[i - start_new] = t0 + icpt + slope * (all_j[i] - j0) if n >= 4 else all_t[i]
-    return out
+    t0, j0 = all_t[0], all_j[0]
+    c = np.zeros((5, all_t.size + 1))
+    c[0, 1:] = 1.0
+    np.subtract(all_j, j0, out=c[1, 1:])
+    np.subtract(all_t, t0, out=c[2, 1:])
+    np.multiply(c[1, 1:], c[1, 1:], out=c[3, 1:])
+    np.multiply(c[1, 1:], c[2, 1:], out=c[4, 1:])
+    np.cumsum(c, axis=1, out=c)
+    end = np.arange(start_new + 1, all_t.size + 1)
+    n, sx, sy, sxx, sxy = c[:, end] - c[:, np.maximum(0, end - fit_edges)]
+    den = n * sxx - sx * sx
+    slope = np.zeros(end.size)
+    np.divide(n * sxy - sx * sy, den, out=slope, where=den > 0)
+    icpt = (sy - slope * sx) / n
+    return np.where(n >= 4, t0 + icpt + slope * (all_j[start_new:] - j0), all_t[start_new:])
 
 
-@njit(cache=True)
 def continue_fit(
     hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
 ) -> tuple[bool, np.ndarray, np.ndarray]:
@@ -203,25 +146,14 @@ def continue_fit(
     hist_j): (they follow the line, their cycle indices, their smoothed times).
 
     Each new edge's index advances by max(1, rint(gap / period)) cycles from the previous edge; when any lies more
-    than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed)
-    and nothing else is computed; otherwise each is replaced by rolling_line_fit's value."""
-    j = np.empty(te.size, dtype=np.int64)
-    last_t = hist_t[hist_t.size - 1]
-    last_j = np.int64(hist_j[hist_j.size - 1])
-    acc = np.int64(0)
-    for i in range(te.size):
-        step = max(1.0, np.rint((te[i] - last_t) / period))
-        acc += np.int64(step)
-        j[i] = last_j + acc
-        last_t = te[i]
+    than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed);
+    otherwise each is replaced by rolling_line_fit's value."""
+    steps = np.maximum(1.0, np.rint(np.diff(te, prepend=hist_t[-1]) / period))
+    j = np.int64(hist_j[-1]) + np.cumsum(steps.astype(np.int64))
     jf = j.astype(np.float64)
-    pred = line_at(hist_t, hist_j, jf)
-    for i in range(te.size):
-        if abs(te[i] - pred[i]) > 0.25 * period:
-            return False, j, te
-    all_t = np.concatenate((hist_t, te))
-    all_j = np.concatenate((hist_j, jf))
-    return True, j, rolling_line_fit(all_t, all_j, hist_t.size, fit_edges)
+    if (np.abs(te - line_at(hist_t, hist_j, jf)) > 0.25 * period).any():
+        return False, j, te
+    return True, j, rolling_line_fit(np.concatenate((hist_t, te)), np.concatenate((hist_j, jf)), hist_t.size, fit_edges)
 
 
 @dataclass
