@@ -19,6 +19,14 @@ after a warm-up. No campaign process can beat
 twin's demodulators and AuxIns, the drivers, CLSF, the file and the runner, which all cost more than nothing.
 
     python benchmarks/campaign_speed.py [--json] [--runs N]
+    python benchmarks/campaign_speed.py --reference REV [--json] [--runs N]
+
+With `--reference REV` it measures only the paper campaign side by side with git revision REV: a worktree of REV
+in a temporary folder (run with the same interpreter and packages, its own code first on the path), `--runs`
+rounds each running both once, in alternating order, warm (each tree's own numba cache); then `--cold-runs`
+rounds of first runs from an empty numba cache (NUMBA_CACHE_DIR pointing at a fresh empty folder each time),
+alternating too. Printed: the medians, the ratio of this tree's median to REV's, and each tree's median cold first
+run against its warm median.
 
 Targets: realtime_factor >= 1000 (issue 10; issue 4 asked 500) on a 2-core machine; peak memory independent of
 campaign length; the file (default compression, with /truth) <= 250 MB per campaign hour (file_mb_per_campaign_hour).
@@ -60,15 +68,22 @@ def main_thread_cpu_s(pid: int, last: float) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_once(config: Path, out: Path) -> tuple[float, float, float, float, float, float]:
+def run_once(
+    config: Path, out: Path, tree: Path = ROOT, numba_cache: Path | None = None
+) -> tuple[float, float, float, float, float, float]:
     """(wall s, peak RSS MB, simulated s, file MB, CPU s of all the process's threads, CPU s of its main thread)
-    of one `qmg-lab run`."""
+    of one `qmg-lab run` of the code in `tree` (its packages first on the path), with numba's cache in
+    `numba_cache` (default: the tree's own)."""
     if out.exists():
         out.unlink()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    if numba_cache is not None:
+        env["NUMBA_CACHE_DIR"] = str(numba_cache)
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "qmg_lab", "run", str(config), "--sim", "-o", str(out), "-q"],
-        cwd=ROOT,
+        cwd=tree,
+        env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
@@ -162,11 +177,77 @@ def third_party_floor_s() -> float:
     return time.perf_counter() - t0
 
 
+def against_reference(rev: str, runs: int, cold_count: int) -> dict[str, object]:
+    """The paper campaign of this tree and of git revision `rev`, alternating (module docstring)."""
+    with tempfile.TemporaryDirectory(prefix="qmg-bench-ref-") as d:
+        tmp = Path(d)
+        ref = tmp / "reference"
+        subprocess.run(["git", "worktree", "add", "--detach", str(ref), rev], cwd=ROOT, check=True, capture_output=True)
+        try:
+            trees = {"this": ROOT, "reference": ref}
+            for name, tree in trees.items():  # warm each tree's numba cache and the file-system caches
+                run_once(tree / "configs" / "paper_campaign.toml", tmp / f"{name}.h5", tree)
+            walls: dict[str, list[float]] = {name: [] for name in trees}
+            cpus: dict[str, list[float]] = {name: [] for name in trees}
+            simulated = 0.0
+            for i in range(runs):
+                for name in list(trees)[:: 1 if i % 2 == 0 else -1]:
+                    wall, _, simulated, _, cpu, _ = run_once(
+                        trees[name] / "configs" / "paper_campaign.toml", tmp / f"{name}.h5", trees[name]
+                    )
+                    walls[name].append(wall)
+                    cpus[name].append(cpu)
+            cold_runs: dict[str, list[tuple[float, float]]] = {name: [] for name in trees}
+            for i in range(cold_count):  # first runs, each from its own empty numba cache, alternating too
+                for name in list(trees)[:: 1 if i % 2 == 0 else -1]:
+                    empty = tmp / f"numba-cache-{name}-{i}"
+                    empty.mkdir()
+                    config = trees[name] / "configs" / "paper_campaign.toml"
+                    wall, _, _, _, cpu, _ = run_once(config, tmp / f"{name}.h5", trees[name], empty)
+                    cold_runs[name].append((wall, cpu))
+            cold = {
+                name: (statistics.median(w for w, _ in runs_), statistics.median(c for _, c in runs_))
+                for name, runs_ in cold_runs.items()
+            }
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(ref)], cwd=ROOT, check=False)
+    med = {name: statistics.median(w) for name, w in walls.items()}
+    med_cpu = {name: statistics.median(c) for name, c in cpus.items()}
+    result: dict[str, object] = {
+        "reference": rev,
+        "runs": runs,
+        "simulated_s": simulated,
+        "load_average_at_end": os.getloadavg(),
+    }
+    for name in ("this", "reference"):
+        result[f"{name}_wall_s"] = walls[name]
+        result[f"{name}_wall_s_median"] = med[name]
+        result[f"{name}_cpu_s_median"] = med_cpu[name]
+        result[f"{name}_cold_first_run_wall_s"] = [w for w, _ in cold_runs[name]]
+        result[f"{name}_cold_first_run_wall_s_median"] = cold[name][0]
+        result[f"{name}_cold_first_run_cpu_s_median"] = cold[name][1]
+        result[f"{name}_cold_over_warm_wall"] = cold[name][0] / med[name]
+        result[f"{name}_cold_over_warm_cpu"] = cold[name][1] / med_cpu[name]
+    result["wall_ratio_this_over_reference"] = med["this"] / med["reference"]
+    result["cpu_ratio_this_over_reference"] = med_cpu["this"] / med_cpu["reference"]
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--runs", type=int, default=3, help="runs of the paper campaign (median quoted)")
+    ap.add_argument("--reference", metavar="REV", help="compare the paper campaign with git revision REV only")
+    ap.add_argument("--cold-runs", type=int, default=3, help="with --reference: first runs from an empty cache, each")
     args = ap.parse_args()
+    if args.reference:
+        compared = against_reference(args.reference, args.runs, args.cold_runs)
+        if args.json:
+            print(json.dumps(compared))
+        else:
+            for k, v in compared.items():
+                print(f"{k:36s} {v:.3f}" if isinstance(v, float) else f"{k:36s} {v}")
+        return
     with tempfile.TemporaryDirectory(prefix="qmg-bench-") as d:
         tmp = Path(d)
         run_once(PAPER, tmp / "warm.h5")  # numba cache, file-system caches

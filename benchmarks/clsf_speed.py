@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import tomlkit
 
+from qmg_lab.analysis.study_writer import create_run_writer
 from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.clsf.demod_filter import DemodFilter
@@ -48,7 +49,6 @@ from qmg_lab.clsf.estimator import ClsfEstimator, ClsfPeriods
 from qmg_lab.config.schema import config_fingerprint, parse_config
 from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.station import build_station, make_world
-from qmg_lab.storage.summary import create_run_writer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -170,6 +170,7 @@ def reference_package(rev: str, into: Path) -> tuple[Any, Any]:
             text = subprocess.run(
                 ["git", "show", f"{rev}:qmg_lab/clsf/{name}"], cwd=ROOT, check=True, capture_output=True, text=True
             ).stdout
+            text = text.replace("from qmg_lab.clsf import", "from clsf_reference import")
             (pkg / name).write_text(text.replace("qmg_lab.clsf.", "clsf_reference."), encoding="utf-8")
     sys.path.insert(0, str(into))
     return (

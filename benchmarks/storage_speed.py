@@ -40,12 +40,12 @@ import h5py
 import numpy as np
 import tomlkit
 
+from qmg_lab.analysis.study_writer import create_run_writer
 from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.clsf.estimator import ClsfPeriods
 from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import INSTRUMENT_NAMES, ChamberReading, LockInBlock, TableReading, TruthBlock
-from qmg_lab.storage.summary import create_run_writer
 from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0

@@ -9,14 +9,8 @@ the same numbers whichever evaluated them (tests/unit/sims/test_hf2_kernel.py):
 
 * `oscillator_phases`: phi_k = phi_0 + ((2 pi) c_k) dt with c_k = f_0 + ... + f_k (the oscillator's phase in rad
   at the end of step k, from its frequencies f_k in Hz), and the phase the demodulator reports,
-  (h phi_k) mod 2 pi for harmonic h (numpy's floor-modulo: the result takes the sign of 2 pi, in [0, 2 pi)),
-  by `mod_two_pi`: for 0 < x < 2^26 (2 pi) (every phase of a poll's block: a 2 s block at 2.2 kHz turns
-  2.8e4 rad) the remainder x - q (2 pi) is formed exactly instead of by the C library's fmod (bit by bit, a
-  third of the loop's time): with 2 pi = H + L, H its leading 27 significant bits and L the rest (26 bits),
-  q H and q L are exact products for an integer q < 2^26, x - q H is exact (Sterbenz: q H is within a factor
-  2 of x), and the final subtraction is exact because the remainder fmod returns is a double. q starts at
-  floor(x / (2 pi)) and is corrected while the remainder falls outside [0, 2 pi) (only within an ulp of a
-  multiple of 2 pi). Other x: the % operator.
+  (h phi_k) mod 2 pi for harmonic h (floor-modulo, Python's and numpy's: the result takes the sign of 2 pi, in
+  [0, 2 pi); the remainder of a floating-point division is exact).
 * `sample_times`: timestamps T_k = T_0 + (k + 1) m in clockbase ticks (m ticks per sample), and the same instants
   in seconds, T_k / clockbase.
 * `auxin_readings`: row 0, the rate AuxOut's mean over the AuxIn window W ending at each sample instant,
@@ -39,25 +33,6 @@ import numpy as np
 from numba import njit
 
 TWO_PI = 2 * np.pi  # the constant numpy's `2 * np.pi * array` multiplies by
-TWO_PI_HEAD = float((np.array([TWO_PI]).view(np.uint64) & np.uint64(0xFFFFFFFFFC000000)).view(np.float64)[0])
-TWO_PI_TAIL = TWO_PI - TWO_PI_HEAD  # exact: the 26 low bits of 2 pi's significand
-TWO_PI_EXACT_BELOW = 2.0**26 * TWO_PI  # q < 2^26 keeps q * TWO_PI_HEAD and q * TWO_PI_TAIL exact
-
-
-@njit(cache=True, inline="always")
-def mod_two_pi(x: float) -> float:
-    """x mod 2 pi with numpy's floor-modulo semantics, bit for bit (module docstring)."""
-    if not (x > 0.0 and x < TWO_PI_EXACT_BELOW):  # zeros too: -0.0 % 2 pi is +0.0
-        return x % TWO_PI
-    q = float(math.floor(x / TWO_PI))
-    r = (x - q * TWO_PI_HEAD) - q * TWO_PI_TAIL
-    while r < 0.0:
-        q -= 1.0
-        r = (x - q * TWO_PI_HEAD) - q * TWO_PI_TAIL
-    while r >= TWO_PI:
-        q += 1.0
-        r = (x - q * TWO_PI_HEAD) - q * TWO_PI_TAIL
-    return r
 
 
 @njit(cache=True)
@@ -71,7 +46,7 @@ def oscillator_phases(
         c = frequency_hz[k] if k == 0 else c + frequency_hz[k]
         ph = phase0_rad + TWO_PI * c * dt
         phase_rad[k] = ph
-        wrapped[k] = mod_two_pi(ph if harmonic == 1.0 else ph * harmonic)
+        wrapped[k] = (ph if harmonic == 1.0 else ph * harmonic) % TWO_PI
 
 
 @njit(cache=True)

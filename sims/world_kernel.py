@@ -1,10 +1,8 @@
 """Compiled (numba) per-step loops of `sims.world.World.advance`: table rate and angle, chamber lags, dither means.
 
-Each loop is the World's documented equation (sims/world.py) evaluated step by step in one pass, with the same
-floating-point operations in the same order as the vectorised numpy expressions they replace (numpy's cumulative
-sums are sequential; the one-pole recursion is scipy.signal.lfilter's direct form II transposed; no fused
-multiply-adds: numba's default fastmath=False), except the ripple's sine and the wander's cosine, which angle
-addition from an anchor evaluates within a stated bound of libm (below):
+Each loop is the World's documented equation (sims/world.py) evaluated step by step in one pass (cumulative sums
+sequential; the one-pole recursion in scipy.signal.lfilter's direct form II transposed; sines and cosines the C
+library's math.sin and math.cos):
 
 * `table_block`: r_k = p_k s (s = 1 + scale error), and with a ripple r != 0, at the ripple-free mid-step angle
   m_k = theta0 + (r_0 + ... + r_k) dt - r_k dt / 2: r_k <- r_k (1 + r sin(radians(m_k + phi_r))); then the step-start
@@ -24,30 +22,6 @@ addition from an anchor evaluates within a stated bound of libm (below):
   each `first_order_lag`, in one interleaved pass.
 * `block_inputs`: one block in one compiled call: `ramp_block` (or a given table profile), `table_block`,
   `chamber_lags` and `dither_grid`.
-
-Two per-step trigonometric terms are evaluated by angle addition from an anchor instead of libm (`_rotation`):
-the ripple's sin(theta_k), theta_k = radians(m_k + phi_r), and the wander's cos(theta_j), theta_j = 2 pi t_j / P.
-The argument theta_k is formed exactly as before, so both evaluate the same number. libm gives cos and sin of an
-anchor argument theta_a (a block's first step, then every `ANCHOR_STEPS` = K steps); in between, with
-D = fl(theta_k - theta_a),
-
-    cos theta_k = cos theta_a cos D - sin theta_a sin D,   sin theta_k = sin theta_a cos D + cos theta_a sin D,
-
-cos D and sin D by their Taylor series to D^6 and D^7 (`_small_angle`, |D| <= 2^-7 rad; a larger D, e.g. a fast
-table, makes theta_k a new anchor instead). No value depends on the previous step's, so no rounding accumulates.
-Error bound against libm's sin/cos of the same theta_k (eps = 2^-52, all values <= 1 in magnitude): the anchor's cos
-and sin are within 1 ulp (<= eps) each, weighted by |cos D| <= 1 and |sin D| <= 2^-7; D is exact where theta_k and
-theta_a are within a factor 2 (Sterbenz), else off by <= eps |D| / 2 <= 2^-8 eps; the series' truncation (D^8/8!,
-D^9/9!) is < 4e-22, the rounding of cos D (1 - D^2 (...), the subtraction from 1 dominating) <= 0.6 eps and of sin D
-<= 3 eps |sin D| <= 0.03 eps; the two products and the sum round by <= 1.5 eps. In all <= (1 + 2^-7) eps +
-2^-8 eps + 0.6 eps + 0.03 eps + 1.5 eps < 3.2 eps of the true sin/cos theta_k, and libm's within eps of it:
-
-    |sin_rec(theta_k) - sin_libm(theta_k)| <= 5 eps = `ROTATION_BOUND` (1.1e-15),
-
-the same for cos. Effects: the ripple's factor 1 + r sin moves by <= |r| 5 eps (r = 1e-4: 1.1e-19, below
-the factor's own rounding of eps/2, so a delivered rate moves by at most one rounding of that factor, |r_k| eps);
-the DS345 time tau moves by <= (e_w P / 2 pi) 5 eps (e_w = 0.5 ppm, P = 3600 s: 3.2e-19 s, below half an
-ulp of tau for t > 0.004 s, so tau and the phase move by at most one rounding, ulp(tau) and f ulp(tau)).
 """
 
 from __future__ import annotations
@@ -58,48 +32,9 @@ import numpy as np
 from numba import njit
 
 DITHER_SINE, DITHER_SQUARE, DITHER_TRIANGLE, DITHER_RAMP = 0, 1, 2, 3
-ANCHOR_STEPS = 64  # K: libm evaluates an anchor every K steps (module docstring)
-ROTATION_BOUND = 5 * 2.0**-52  # |angle addition - libm| for the same argument (module docstring)
-SMALL_ANGLE_RAD = 2.0**-7  # |D| up to which `_small_angle` uses the Taylor series (truncation < 4e-22)
 
 
 @njit(cache=True, inline="always")
-def _small_angle(d: float) -> tuple[float, float]:
-    """(cos d, sin d) of |d| <= 2^-7 rad by the Taylor series 1 - d^2/2! + d^4/4! - d^6/6! and
-    d - d^3/3! + d^5/5! - d^7/7! in Horner form (the first dropped terms: d^8/8! < 4e-22, d^9/9! < 3e-25)."""
-    d2 = d * d
-    c = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0)))
-    s = d - d * d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 * (1.0 / 5040.0)))
-    return c, s
-
-
-@njit(cache=True, inline="always")
-def _rotation(
-    theta: float, anchor: float, cos_a: float, sin_a: float, since_anchor: int
-) -> tuple[float, float, float, float, float, int]:
-    """(cos theta, sin theta) and the new anchor state (its argument, cos, sin, steps since it): angle addition
-    from the anchor, or libm at theta as a new anchor when `since_anchor` reached K or |theta - anchor| > 2^-7
-    (module docstring: bound `ROTATION_BOUND`)."""
-    d = theta - anchor
-    if since_anchor >= ANCHOR_STEPS or abs(d) > SMALL_ANGLE_RAD:
-        c, s = math.cos(theta), math.sin(theta)
-        return c, s, theta, c, s, 1
-    cd, sd = _small_angle(d)
-    return cos_a * cd - sin_a * sd, sin_a * cd + cos_a * sd, anchor, cos_a, sin_a, since_anchor + 1
-
-
-@njit(cache=True)
-def rotation_sequence(theta: np.ndarray, cos_out: np.ndarray, sin_out: np.ndarray) -> None:
-    """cos and sin of the arguments `theta` (rad) as `table_block` and `dither_grid` evaluate them (libm at the
-    anchors, angle addition in between: module docstring), into `cos_out` and `sin_out`."""
-    anchor, ca, sa, since = 0.0, 1.0, 0.0, ANCHOR_STEPS
-    for k in range(theta.shape[0]):
-        c, s, anchor, ca, sa, since = _rotation(theta[k], anchor, ca, sa, since)
-        cos_out[k] = c
-        sin_out[k] = s
-
-
-@njit(cache=True)
 def table_block(
     profile_mid_dps: np.ndarray,
     scale: float,
@@ -115,14 +50,12 @@ def table_block(
     n = profile_mid_dps.shape[0]
     deg = math.pi / 180.0
     cum = 0.0
-    anchor, ca, sa, since = 0.0, 1.0, 0.0, ANCHOR_STEPS  # the ripple's anchor (the first step is one)
     for k in range(n):
         r = profile_mid_dps[k] * scale
         if ripple != 0.0:
             cum = r if k == 0 else cum + r
             mid = angle0_deg + cum * dt - 0.5 * r * dt
-            _, s, anchor, ca, sa, since = _rotation((mid + ripple_phase_deg) * deg, anchor, ca, sa, since)
-            r = r * (1.0 + ripple * s)
+            r = r * (1.0 + ripple * math.sin((mid + ripple_phase_deg) * deg))
         rate_dps[k] = r
     if n > 0:
         angle_deg[0] = 0.0 + angle0_deg
@@ -146,7 +79,7 @@ def first_order_lag(u: np.ndarray, y0: float, a: float, y: np.ndarray) -> None:
         z = x * b1 - yk * a1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def chamber_lags(
     setpoint_c: np.ndarray,
     air0_c: float,
@@ -191,7 +124,7 @@ def _wave_integral(fn: int, u: float) -> float:
     return (1.0 - math.cos(2 * math.pi * u)) / (2 * math.pi)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def dither_grid(
     t_bounds_s: np.ndarray,
     e0: float,
@@ -209,11 +142,9 @@ def dither_grid(
 ) -> None:
     """Phases `u` (cycles) and W(u) `w` at the n + 1 step boundaries, and the n exact step means `means_v` (V).
     wander_amp_s = e_w P / (2 pi); half_vpp = Vpp / 2 (module docstring)."""
-    anchor, ca, sa, since = 0.0, 1.0, 0.0, ANCHOR_STEPS  # the wander's anchor (the first step is one)
     for j in range(t_bounds_s.shape[0]):
         t = t_bounds_s[j]
-        c, _, anchor, ca, sa, since = _rotation(2 * math.pi * t / wander_period_s, anchor, ca, sa, since)
-        tau = t * (1.0 + e0) + wander_amp_s * (1.0 - c)
+        tau = t * (1.0 + e0) + wander_amp_s * (1.0 - math.cos(2 * math.pi * t / wander_period_s))
         uj = frequency_hz * (tau - tau_origin_s) + phase_cycles
         u[j] = uj
         w[j] = _wave_integral(function, uj)
@@ -240,7 +171,7 @@ def dither_window_means(
         means_v[k] = offset_v + half_vpp * (w[k + 1] - w0) / du
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def ramp_block(
     t0_s: float,
     dt: float,

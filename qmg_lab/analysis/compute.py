@@ -52,11 +52,10 @@ from qmg_lab.analysis.characterize import (
     moving_average,
     settling_time_s,
 )
+from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
 from qmg_lab.campaign.plan import dither_amplitude_vpp
-from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.config.schema import Config
-from qmg_lab.storage.reader import stored_config
-from qmg_lab.storage.summary import EDGE_CHUNK_SAMPLES, analysis_settle_s, read_summary
+from qmg_lab.config.schema import Config, ConfigError, parse_config
+from qmg_lab.storage.study_level import read_summary
 from qmg_lab.storage.writer import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
@@ -164,6 +163,15 @@ class _Found:
 # ---------------------------------------------------------------------------------------------------------------
 
 
+def stored_config(run: RunData) -> tuple[Config, str | None]:
+    """The configuration the run was made with (its config_toml attribute), validated; if it cannot be used
+    (an older schema, a damaged attribute), the defaults and a note saying so, for the analysis to report."""
+    try:
+        return parse_config(str(run.attrs.get("config_toml", "")), f"{run.path}:config_toml"), None
+    except ConfigError as exc:
+        return Config(), f"stored configuration not usable ({exc}); defaults assumed"
+
+
 @dataclass
 class _Ctx:
     run: RunData
@@ -174,9 +182,9 @@ class _Ctx:
     steps: dict[int, dict[str, Any]]  # completed steps by index
     notes: list[str]
     dither_rising_s: np.ndarray | None = None  # rising edges of the recorded dither, s
-    rate_integral: np.ndarray | None = None  # trapezoid integral of /lockin/rate_output at the sample times, V s
-    edge_integral: np.ndarray | None = None  # study level: that integral at each rising edge (/edges), V s
-    windows: dict[int, dict[str, float]] | None = None  # study level: /windows by step index
+    edge_integral: np.ndarray | None = None  # the rate output's trapezoid integral at each rising edge, V s
+    windows: dict[int, dict[str, float]] | None = None  # the truth over each step's window (/windows), by index
+    study_level: bool = False  # a study-level file: edges and windows from its /edges and /windows
 
 
 def _load(path: str | Path) -> _Ctx:
@@ -197,21 +205,21 @@ def _load(path: str | Path) -> _Ctx:
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
     lk = run.groups["lockin"]
     summary = read_summary(run.path)
-    if summary is not None:  # study storage level (qmg_lab/storage/summary.py): the writer's reductions
+    if summary is not None:  # study storage level (qmg_lab/analysis/study_writer.py): the reductions as written
+        ctx.study_level = True
         ctx.windows = summary.window_rows()
         if cfg.clsf.mode != "off":
             ctx.dither_rising_s = summary.edges["time"]
             ctx.edge_integral = summary.edges["rate_integral"]
         notes.append("study-level file: step means from /edges and /windows, settling from its one raw step")
-    elif cfg.clsf.mode != "off" and "dither" in lk:
-        # the same edge location and 32-edge line fit as the CLSF estimator
-        tracker = EdgeTracker(min_step_v=0.5 * dither_amplitude_vpp(cfg), compiled=False)  # no numba to load
-        n = EDGE_CHUNK_SAMPLES
-        ctx.dither_rising_s = np.concatenate(
-            [np.empty(0)] + [tracker.process(t[i : i + n], lk["dither"][i : i + n])[0] for i in range(0, t.shape[0], n)]
+        return ctx
+    if cfg.clsf.mode != "off" and "dither" in lk:  # the same reductions over the whole columns
+        ctx.dither_rising_s, ctx.edge_integral = edges_and_integrals(
+            t, lk["dither"], lk["rate_output"], 0.5 * dither_amplitude_vpp(cfg)
         )
-        ro = lk["rate_output"]
-        ctx.rate_integral = np.concatenate(([0.0], np.cumsum(0.5 * np.diff(t) * (ro[1:] + ro[:-1]))))
+    truth = run.groups.get("truth")
+    if truth is not None:
+        ctx.windows = {i: _truth_window(truth, i, *_window(ctx, step)) for i, step in steps.items()}
     return ctx
 
 
@@ -219,25 +227,25 @@ def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple
     return float(step["t_start"]) + ctx.settle_s + extra_settle, float(step["t_end"])
 
 
+def _truth_window(truth: dict[str, np.ndarray], index: int, t0: float, t1: float) -> dict[str, float]:
+    """A step's /windows row from a full file's /truth: its samples in [t0, t1] (the study level's reduction)."""
+    i0, i1 = np.searchsorted(truth["time"], t0, side="left"), np.searchsorted(truth["time"], t1, side="right")
+    sums = WindowSums(start_s=t0)
+    sums.add(truth["time"][i0:i1], truth["scale_factor"][i0:i1], truth["temperature"][i0:i1])
+    return sums.row(index, t1)
+
+
 def _mean_whole_periods(ctx: _Ctx, t0: float, t1: float) -> tuple[float, int]:
     """Mean rate output over [t0, t1] cut to a whole number of dither periods: (V, samples used)."""
-    if ctx.edge_integral is not None and ctx.dither_rising_s is not None:  # study level: the integral at the edges
-        dt = 1.0 / ctx.fs_hz
-        inside = np.flatnonzero((ctx.dither_rising_s >= t0 + dt) & (ctx.dither_rising_s <= t1 - dt))
-        if inside.size < 2:
-            return float("nan"), 0
-        a, b = inside[0], inside[-1]
-        e, m = ctx.dither_rising_s, ctx.edge_integral
-        return float((m[b] - m[a]) / (e[b] - e[a])), round((t1 - t0) * ctx.fs_hz)
+    if ctx.dither_rising_s is not None and ctx.edge_integral is not None:
+        mean = mean_between_edges(ctx.dither_rising_s, ctx.edge_integral, t0, t1, 1.0 / ctx.fs_hz)
+        if not math.isnan(mean):
+            return mean, round((t1 - t0) * ctx.fs_hz)
+    if ctx.study_level:  # no samples to fall back on
+        return float("nan"), 0
     lk = ctx.run.groups["lockin"]
     i0, i1 = np.searchsorted(lk["time"], [t0, t1])
     n = int(i1 - i0)
-    if ctx.dither_rising_s is not None and ctx.rate_integral is not None:
-        dt = 1.0 / ctx.fs_hz  # an edge's interpolation reaches one sample either side: stay inside the window
-        e = ctx.dither_rising_s[(ctx.dither_rising_s >= t0 + dt) & (ctx.dither_rising_s <= t1 - dt)]
-        if e.size >= 2:
-            m0, m1 = np.interp([e[0], e[-1]], lk["time"], ctx.rate_integral)
-            return float((m1 - m0) / (e[-1] - e[0])), n
     if ctx.period_samples > 1 and n >= ctx.period_samples:
         n = (n // ctx.period_samples) * ctx.period_samples
     if n <= 0:
@@ -269,10 +277,10 @@ def _mean_in(group: dict[str, np.ndarray] | None, col: str, windows: list[tuple[
     return float(np.mean(np.concatenate(parts))) if parts else float("nan")
 
 
-def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...], windows: list[tuple[float, float]]) -> float:
-    """Mean of a /truth column over the steps' analysis windows (study level: from their /windows rows)."""
+def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...]) -> float:
+    """Mean of a /truth column over the steps' analysis windows, from their /windows rows (NaN without them)."""
     if ctx.windows is None:
-        return _mean_in(ctx.run.groups.get("truth"), col, windows)
+        return float("nan")
     rows = [ctx.windows.get(i) for i in indices]
     n = sum(r["truth_samples"] for r in rows if r is not None)
     if any(r is None for r in rows) or n == 0:
@@ -327,8 +335,8 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
             output_minus_v=om,
         )
         pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
-        pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1), [wp, wm])  # raw SF for now
-        pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1), [wp, wm])
+        pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1))  # raw SF for now
+        pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1))
         found.pairs.append(pair)
     found.values["n_step_pairs"] = len(found.pairs)
     if not found.pairs:
@@ -575,7 +583,7 @@ def analyze(path: str | Path) -> AnalysisResult:
         notes=[*ctx.notes, *unclosed],
     )
     res = _completeness(ctx, res).applied_to(res)
-    if ctx.run.groups["lockin"]["time"].shape[0] == 0 and ctx.windows is None:
+    if ctx.run.groups["lockin"]["time"].shape[0] == 0 and not ctx.study_level:
         return replace(res, notes=[*res.notes, "no lock-in samples in the file"])
     res = _pairs(ctx, res).applied_to(res)
     res = _clsf_adev(ctx, res).applied_to(res)

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import expm
 
+from qmg_lab.analysis.reductions import analysis_settle_s
 from qmg_lab.campaign.plan import Step, build_plan
 from qmg_lab.config.schema import Config
 
@@ -121,12 +122,6 @@ class _Window:
     t1_s: float
     angle0_deg: float
     angle1_deg: float
-
-
-def analysis_settle_s(cfg: Config) -> float:
-    """The settle time qmg_lab/analysis/compute.py discards after each step: max(plan settle, 5 rate-loop time
-    constants)."""
-    return max(cfg.plan.settle_s, 5.0 / (2.0 * math.pi * cfg.loops.rate_bandwidth_hz))
 
 
 def _windows(cfg: Config, steps: list[Step]) -> list[_Window]:

@@ -221,12 +221,13 @@ def _execute(
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
     configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
     or change the file. The file's final close is protected from a second Ctrl-C."""
+    from qmg_lab.analysis.study_writer import create_run_writer
     from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.cli.progress import ProgressView
     from qmg_lab.storage.resume import ends_short
-    from qmg_lab.storage.summary import create_run_writer, refuse_study_resume
+    from qmg_lab.storage.study_level import refuse_study_resume
     from qmg_lab.storage.writer import RunWriter, StorageError
 
     try:

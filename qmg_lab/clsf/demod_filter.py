@@ -12,10 +12,11 @@ Two exact forms are needed by the CLSF estimator (qmg_lab/clsf/estimator.py):
 
       R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_{j<n} (n - j) (tau/tc)^j / j!      (tau >= 0).
 
-  Its steady state tau - n tc is the filter's group delay n tc at low frequency.
+  Its steady state tau - n tc is the filter's group delay n tc at low frequency (evaluated by
+  qmg_lab/clsf/kernels.ramp_response, inside the estimator's compiled loop).
 * A discrete filter for inputs known only at the sample instants and linear between them (first-order hold):
   the exact FOH discretization of the state-space chain, as second-order sections (the layout of
-  scipy.signal.sosfilt; run by qmg_lab/clsf/kernels.sosfilt_inplace), in closed form with numpy alone (see
+  scipy.signal.sosfilt; run by qmg_lab/clsf/kernels.sosfilt), in closed form with numpy alone (see
   DemodFilter.foh_sos), and the sections' steady state for a constant input (sos_steady_state).
 
 tc = 0 means no filter (H = 1).
@@ -57,25 +58,6 @@ class DemodFilter:
         if self.tc_s == 0.0:
             return math.inf
         return math.sqrt(2.0 ** (1.0 / self.order) - 1.0) / (2 * math.pi * self.tc_s)
-
-    def ramp_response(self, tau: np.ndarray) -> np.ndarray:
-        """R_n(tau) for tau >= 0 (0 for tau < 0): the output for a unit-slope ramp input starting at tau = 0.
-
-        The transient term is evaluated only for tau < 60 tc: beyond, it is below 1e-17 tc for n <= 8."""
-        tau = np.asarray(tau, dtype=float)
-        if self.tc_s == 0.0:
-            return np.maximum(tau, 0.0)
-        n, tc = self.order, self.tc_s
-        out = np.where(tau > 0.0, tau - n * tc, 0.0)
-        near = (tau > 0.0) & (tau < 60.0 * tc)
-        x = tau[near] / tc
-        acc = np.zeros_like(x)
-        term = np.ones_like(x)  # x^j / j!
-        for j in range(n):
-            acc += (n - j) * term
-            term = term * x / (j + 1)
-        out[near] += tc * np.exp(-x) * acc
-        return out
 
     def foh_sos(self, dt_s: float) -> np.ndarray | None:
         """Second-order sections of the exact first-order-hold discretization at step dt_s (None: no filter).

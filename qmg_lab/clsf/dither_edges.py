@@ -24,9 +24,7 @@ that lies more than a quarter period off the line (the generator was reprogramme
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
@@ -34,50 +32,137 @@ INTERMEDIATE = 0.02  # a sample within 2 % of either level counts as that level
 HYSTERESIS = 0.25  # high above 1 - this fraction of the step, low below it, else the previous side
 
 
-class EdgeKernels(Protocol):
-    """The tracker's per-sample work: qmg_lab/clsf/kernels.py (numba) or qmg_lab/clsf/edges_numpy.py (numpy),
-    which give the same results bit for bit (read-only members: module functions and numba dispatchers both fit)."""
-
-    @property
-    def plateau_levels(self) -> Callable[[np.ndarray, float, float], tuple[float, float]]: ...
-    @property
-    def level_crossings(
-        self,
-    ) -> Callable[
-        [np.ndarray, np.ndarray, float, float, tuple[float, float, int], float, float, float],
-        tuple[np.ndarray, np.ndarray, float, bool],
-    ]: ...
-    @property
-    def line_at(self) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]: ...
-    @property
-    def continue_fit(
-        self,
-    ) -> Callable[[np.ndarray, np.ndarray, np.ndarray, float, int], tuple[bool, np.ndarray, np.ndarray]]: ...
+def plateau_levels(d: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """(lo, hi) updated from a block of readings d: the means of the readings above mid + 0.45 span and below
+    mid - 0.45 span (mid, span of the current levels: plateau readings only, an edge's intermediate reading is
+    excluded); a level with no such reading is kept."""
+    mid = 0.5 * (lo + hi)
+    span = hi - lo
+    high = d[d > mid + 0.45 * span]
+    low = d[d < mid - 0.45 * span]
+    new_hi = float(np.sum(high)) / high.size if high.size else hi
+    new_lo = float(np.sum(low)) / low.size if low.size else lo
+    return new_lo, new_hi
 
 
-def edge_kernels(compiled: bool) -> EdgeKernels:
-    """The numba kernels (a campaign streams small blocks and loads numba anyway) or their numpy forms (one pass
-    over a whole file, in a process that need not pay numba's ~1 s start-up: `qmg-lab analyze`)."""
-    if compiled:
-        from qmg_lab.clsf import kernels
+def level_crossings(
+    t: np.ndarray,
+    d: np.ndarray,
+    lo: float,
+    hi: float,
+    prev: tuple[float, float, int],
+    window_s: float,
+    hysteresis: float,
+    intermediate: float,
+) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The edges in a block of dither readings d at times t (module docstring): (rising times, falling times, the
+    last reading's fraction s, its side). prev = (time, s, side 0/1) of the previous block's last reading, side -1
+    when there is none (then its time and s are not used).
 
-        return kernels
-    from qmg_lab.clsf import edges_numpy
+    With s_k = (d_k - lo) / (hi - lo): a reading is high above 1 - hysteresis, low below hysteresis, else on the
+    side of the last clear one (the clear readings' sides carried forward); the first reading's side is the
+    previous block's, or its own (s > 1/2 if unclear). At each change of side, k the first reading on the new side:
+    the edge is at the middle of the gap t_e = (t_(k-1) + t_k - W) / 2, unless a window holds it:
+    t_e = t_(k-1) - W f_old if window k-1 has a fraction f_old > intermediate on the new level, and
+    t_e = t_k - W f_new if window k has intermediate < f_new < 1 - intermediate (the latter wins)."""
+    prev_t, prev_s, prev_side = prev
+    ss = (d - lo) / (hi - lo)
+    tt = t
+    if prev_side >= 0:
+        tt = np.concatenate(([prev_t], t))
+        ss = np.concatenate(([prev_s], ss))
+        first = prev_side == 1
+    elif ss[0] > 1.0 - hysteresis:
+        first = True
+    elif ss[0] < hysteresis:
+        first = False
+    else:
+        first = bool(ss[0] > 0.5)
+    state = np.full(ss.size, -1, dtype=np.int8)  # -1: unclear, keeps the side before it
+    state[ss < hysteresis] = 0
+    state[ss > 1.0 - hysteresis] = 1
+    state[0] = first
+    last_clear = np.where(state >= 0, np.arange(ss.size), 0)
+    np.maximum.accumulate(last_clear, out=last_clear)
+    side = state[last_clear] == 1
+    k = np.flatnonzero(side[1:] != side[:-1]) + 1
+    now = side[k]
+    frac_new = np.where(now, ss[k], 1.0 - ss[k])
+    frac_old = np.where(now, ss[k - 1], 1.0 - ss[k - 1])
+    e = 0.5 * (tt[k - 1] + tt[k] - window_s)
+    if window_s > 0.0:
+        e = np.where(frac_old > intermediate, tt[k - 1] - window_s * frac_old, e)
+        inside = (frac_new > intermediate) & (frac_new < 1.0 - intermediate)
+        e = np.where(inside, tt[k] - window_s * frac_new, e)
+    return e[now], e[~now], float(ss[-1]), bool(side[-1])
 
-    return edges_numpy
+
+def line_at(hist_t: np.ndarray, hist_j: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """The least-squares line t = a + b j through the pairs (hist_j, hist_t), at the indices j: about the last pair
+    (t0, j0), x = j - j0, y = t - t0, slope = sum (x - xm)(y - ym) / sum (x - xm)^2 (0 if the latter is 0),
+    t(j) = t0 + ym + slope (j - j0 - xm); the last time when fewer than two pairs."""
+    n = hist_t.size
+    if n < 2:
+        return np.full(j.size, hist_t[n - 1])
+    t0, j0 = hist_t[n - 1], hist_j[n - 1]
+    x = hist_j - j0
+    y = hist_t - t0
+    xm = x.sum() / n
+    ym = y.sum() / n
+    dx = x - xm
+    sxx = float(dx @ dx)
+    slope = float(dx @ (y - ym)) / sxx if sxx > 0 else 0.0
+    return (j - (j0 + xm)) * slope + (t0 + ym)
+
+
+def rolling_line_fit(all_t: np.ndarray, all_j: np.ndarray, start_new: int, fit_edges: int) -> np.ndarray:
+    """For each point from start_new on, the least-squares line through it and the fit_edges - 1 points before
+    (fewer at the start), evaluated at its own index; the point itself where fewer than 4 points are fitted.
+
+    About the first point (t0, j0): x = j - j0, y = t - t0; with window sums n, Sx, Sy, Sxx, Sxy (differences of
+    running sums), slope = (n Sxy - Sx Sy) / (n Sxx - Sx^2) (0 if that is <= 0), intercept = (Sy - slope Sx) / n,
+    t = t0 + intercept + slope x."""
+    t0, j0 = all_t[0], all_j[0]
+    c = np.zeros((5, all_t.size + 1))
+    c[0, 1:] = 1.0
+    np.subtract(all_j, j0, out=c[1, 1:])
+    np.subtract(all_t, t0, out=c[2, 1:])
+    np.multiply(c[1, 1:], c[1, 1:], out=c[3, 1:])
+    np.multiply(c[1, 1:], c[2, 1:], out=c[4, 1:])
+    np.cumsum(c, axis=1, out=c)
+    end = np.arange(start_new + 1, all_t.size + 1)
+    n, sx, sy, sxx, sxy = c[:, end] - c[:, np.maximum(0, end - fit_edges)]
+    den = n * sxx - sx * sx
+    slope = np.zeros(end.size)
+    np.divide(n * sxy - sx * sy, den, out=slope, where=den > 0)
+    icpt = (sy - slope * sx) / n
+    return np.where(n >= 4, t0 + icpt + slope * (all_j[start_new:] - j0), all_t[start_new:])
+
+
+def continue_fit(
+    hist_t: np.ndarray, hist_j: np.ndarray, te: np.ndarray, period: float, fit_edges: int
+) -> tuple[bool, np.ndarray, np.ndarray]:
+    """New edges of one kind continuing a fit's history (the last fit_edges edges, times hist_t at cycle indices
+    hist_j): (they follow the line, their cycle indices, their smoothed times).
+
+    Each new edge's index advances by max(1, rint(gap / period)) cycles from the previous edge; when any lies more
+    than a quarter period off the history's line (line_at) they do not follow it (the generator was reprogrammed);
+    otherwise each is replaced by rolling_line_fit's value."""
+    steps = np.maximum(1.0, np.rint(np.diff(te, prepend=hist_t[-1]) / period))
+    j = np.int64(hist_j[-1]) + np.cumsum(steps.astype(np.int64))
+    jf = j.astype(np.float64)
+    if (np.abs(te - line_at(hist_t, hist_j, jf)) > 0.25 * period).any():
+        return False, j, te
+    return True, j, rolling_line_fit(np.concatenate((hist_t, te)), np.concatenate((hist_j, jf)), hist_t.size, fit_edges)
 
 
 @dataclass
 class EdgeTracker:
-    """Streams dither samples in; returns the smoothed times of the rising and falling edges found.
-
-    compiled: run the per-sample work in numba's kernels (True) or in their numpy forms (False: same edges,
-    bit for bit, without importing numba)."""
+    """Streams dither samples in; returns the smoothed times of the rising and falling edges found."""
 
     window_s: float = 0.0  # the AuxIn averaging window W, s
     fit_edges: int = 32
     min_step_v: float = 0.0  # the smallest level step taken for a running dither, V
-    compiled: bool = True
     lo: float | None = None
     hi: float | None = None
     _prev_t: float | None = None
@@ -86,9 +171,6 @@ class EdgeTracker:
     # each kind's edge history: row 0 the times (s), row 1 the cycle indices, in the first _count columns
     _hist: dict[int, np.ndarray] = field(default_factory=lambda: {1: np.empty((2, 0)), -1: np.empty((2, 0))})
     _count: dict[int, int] = field(default_factory=lambda: {1: 0, -1: 0})
-
-    def __post_init__(self) -> None:
-        self._k = edge_kernels(self.compiled)
 
     def reset(self) -> None:
         """Forget the sample history and the fits (after a gap in the stream)."""
@@ -103,7 +185,7 @@ class EdgeTracker:
                 return
             self.lo, self.hi = lo_b, hi_b
         # plateau readings only (beyond mid +- 0.45 span): an edge's intermediate reading is excluded
-        self.lo, self.hi = self._k.plateau_levels(d, self.lo, self.hi)
+        self.lo, self.hi = plateau_levels(d, self.lo, self.hi)
 
     def process(self, t: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(rising, falling) smoothed edge times located in this block of samples (times t_k, values d_k)."""
@@ -117,7 +199,7 @@ class EdgeTracker:
             prev = (self._prev_t, self._prev_s, int(self._prev_high))
         else:
             prev = (0.0, 0.0, -1)
-        rising, falling, last_s, last_high = self._k.level_crossings(
+        rising, falling, last_s, last_high = level_crossings(
             t, d, self.lo, self.hi, prev, self.window_s, HYSTERESIS, INTERMEDIATE
         )
         self._prev_t, self._prev_s, self._prev_high = float(t[-1]), float(last_s), bool(last_high)
@@ -129,7 +211,7 @@ class EdgeTracker:
         return self._hist[kind][0, :n], self._hist[kind][1, :n]
 
     def _smooth_all(self, kind: int, te: np.ndarray) -> np.ndarray:
-        """Smoothed times of a block's new edges of one kind (a rolling least-squares line; kernels.continue_fit).
+        """Smoothed times of a block's new edges of one kind (a rolling least-squares line; continue_fit).
 
         The history of each kind: the edges' times and their cycle indices (whole numbers, held as floats, the
         fits' abscissae), up to 4 fit_edges of them (then cut to the last fit_edges)."""
@@ -143,7 +225,7 @@ class EdgeTracker:
             period = float(np.median(np.diff(np.concatenate((hist_t, te))))) if hist_t.size + te.size >= 2 else 0.0
         if raw.size == 0 or period <= 0.0:
             return np.asarray([self._smooth(kind, float(x)) for x in te])
-        follows, j, fitted = self._k.continue_fit(hist_t, hist_j, te, period, self.fit_edges)
+        follows, j, fitted = continue_fit(hist_t, hist_j, te, period, self.fit_edges)
         if not follows:  # the generator was reprogrammed: edge by edge
             return np.asarray([self._smooth(kind, float(x)) for x in te])
         self._remember(kind, te, j)
@@ -188,5 +270,5 @@ class EdgeTracker:
         return self._line(raw, idx, j)
 
     def _line(self, raw: np.ndarray, idx: np.ndarray, j: float) -> float:
-        """The least-squares line through the last fit_edges (index, time) pairs, at index j (kernels.line_at)."""
-        return float(self._k.line_at(raw[-self.fit_edges :], idx[-self.fit_edges :], np.array([j]))[0])
+        """The least-squares line through the last fit_edges (index, time) pairs, at index j (line_at)."""
+        return float(line_at(raw[-self.fit_edges :], idx[-self.fit_edges :], np.array([j]))[0])

@@ -66,17 +66,13 @@ import numpy as np
 
 from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
 from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.clsf.kernels import (
-    evaluate_periods,
-    integrate_block,
-    median_spacing,
-    median_spacing_after,
-    period_estimates,
-)
+from qmg_lab.clsf.kernels import integrate_block
+from qmg_lab.clsf.periods import evaluate_periods
 
 MIN_PERIOD_SAMPLES = 8  # a period's window needs at least this many samples
 MAX_HELD_SAMPLES = 100_000  # samples kept while no edge has been found
-BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (kernels.integrate_block)
+BUF_T, BUF_Y, BUF_MF, BUF_MR = range(4)  # the rows of the sample buffer (ClsfEstimator._append)
+SPACING_SAMPLES = 65  # the sample interval is the median of (at most) this many first spacings of a block
 NO_SECTIONS = np.empty((0, 6))  # the filter's sections when there is no filter (tc = 0)
 NO_HOLDS = np.empty((0, 2))
 
@@ -188,21 +184,25 @@ class ClsfEstimator:
         return self._periods()
 
     def _sample_dt(self, t: np.ndarray) -> float:
-        """The sample interval: the median spacing of (at most) the first 65 samples, s."""
+        """The sample interval: the median spacing of (at most) the first SPACING_SAMPLES samples, s."""
         if len(t) >= 2:
-            return float(median_spacing(t, 65))
+            return _median(np.diff(t[:SPACING_SAMPLES]))
         return self._sos_dt if self._sos_dt > 0 else 1.0
 
     def _append(self, t: np.ndarray, x: np.ndarray, aux: np.ndarray) -> None:
-        """Extend the buffer by y = x + (1/tau) int x, H m_r and m_r (trapezoid rule; AuxIn values sit at
-        t_k - W/2; kernels.integrate_block)."""
+        """Extend the buffer by t, y = x + (1/tau) int x, H m_r and m_r (kernels.integrate_block: the trapezoid
+        rule; AuxIn values sit at t_k - W/2), the filter's section states carried from block to block (at a first
+        block, or after a redesign, the states at rest for the first m_r)."""
         last = self._last  # None before the first block (and after a gap)
         before = (float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0) if last is None else last
         # the samples' spacings start from the previous block's last time (or, for a first block, a repeat of its
         # first); a first block of 1-2 samples cannot outvote that zero spacing in the median, so its interval
         # comes from its own samples (one sample: the last design, or 1 s; a single sample's filter output is its
         # steady state whatever dt is, and the next block redesigns)
-        dt = self._sample_dt(t) if last is None and len(t) < 3 else float(median_spacing_after(before[0], t, 65))
+        if last is None and len(t) < 3:
+            dt = self._sample_dt(t)
+        else:
+            dt = _median(np.diff(t[: SPACING_SAMPLES - 1], prepend=before[0]))
         if (self._sos is None and self.demod_filter.tc_s > 0.0) or (
             self._sos is not None and abs(dt - self._sos_dt) > 1e-9 * dt
         ):
@@ -214,11 +214,10 @@ class ClsfEstimator:
         if self._zi is None:
             self._zi = sos_steady_state(sos)
         start = self._reserve(t.size)
-        ix_end = integrate_block(
-            t, x, aux, before, self.auxin_window_s, self.tau_s, sos, self._zi, zi_per_unit, self._buf, start
-        )
         self._n = start + t.size
-        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), ix_end, float(self._buf[BUF_MR, self._n - 1]))
+        rows = self._buf[:, start : self._n]
+        ix = integrate_block(t, x, aux, before, self.auxin_window_s, self.tau_s, sos, self._zi, zi_per_unit, rows)
+        self._last = (float(t[-1]), float(x[-1]), float(aux[-1]), float(ix), float(rows[BUF_MR, -1]))
 
     def _reserve(self, samples: int) -> int:
         """Room for `samples` more columns after the held ones: those move to the buffer's start (into a buffer
@@ -236,7 +235,7 @@ class ClsfEstimator:
 
     def _periods(self) -> ClsfPeriods:
         """Evaluate every complete period [R_i, R_(i+1)) whose previous period's edges are known too
-        (kernels.evaluate_periods: rho of the periods' windows, their mean rate output, holds and failed ratios
+        (periods.evaluate_periods: rho of the periods' windows, their mean rate output, holds and failed ratios
         left out).
 
         The sums run over the samples of [R_i + D, R_(i+1) + D), D = n tc the filter's delay: there the filtered
@@ -252,17 +251,24 @@ class ClsfEstimator:
             return ClsfPeriods.empty()
         filt = self.demod_filter
         holds = np.array(self._holds) if self._holds else NO_HOLDS
-        done, usable, first_needed, falling_needed, kept = evaluate_periods(
-            rising, falling, self._buf, (self._lo, self._n), lo, hi, filt.order, filt.tc_s, MIN_PERIOD_SAMPLES, holds
+        res = evaluate_periods(
+            rising,
+            falling,
+            self._buf[:, self._lo : self._n],
+            (lo, hi),
+            filt.order,
+            filt.tc_s,
+            MIN_PERIOD_SAMPLES,
+            holds,
         )
-        if done < 0:  # no window complete in the buffer
+        if res.done < 0:  # no window complete in the buffer
             self._cap_samples()
             return ClsfPeriods.empty()
-        self._rising = rising[done:]  # forget what the periods up to `done` no longer need
-        self._falling = falling[:falling_needed]
-        self._lo += first_needed
-        t0, t1, rho, rate = kept[0], kept[1], kept[2], kept[3]
-        if usable == 0:
+        self._rising = rising[res.done :]  # forget what the periods up to `done` no longer need
+        self._falling = res.falling_needed
+        self._lo += res.first_needed
+        t0, t1, rho, rate = res.kept
+        if res.usable == 0:
             return ClsfPeriods.empty()
         t_end = self._buf[BUF_T, self._n - 1]
         self._holds = [h for h in self._holds if h[1] >= t_end - 10.0]
@@ -273,16 +279,25 @@ class ClsfEstimator:
             if len(self._ref_acc) < self.reference_periods:
                 return ClsfPeriods.empty()
             self.rho_ref = float(np.mean(self._ref_acc))
-        out = period_estimates(rho, self.rho_ref, self.gain_correction)  # rows: eta, SF change, gain
-        eta = out[0]
+        eta = rho / self.rho_ref - 1.0
+        gain = np.full(eta.size, self.gain_correction)  # the gain in force while the block was taken
         if self.mode == "correct" and eta.size:
             self.gain_correction *= math.exp(-float(np.sum((t1 - t0) * eta)) / self.time_constant_s)
-        return ClsfPeriods(time=t1, eta=eta, sf_change_estimate=out[1], gain_correction=out[2], rate_output_mean=rate)
+        return ClsfPeriods(
+            time=t1, eta=eta, sf_change_estimate=1.0 / (1.0 + eta) - 1.0, gain_correction=gain, rate_output_mean=rate
+        )
 
     def _cap_samples(self) -> None:
         """While no edge is known, keep at most the last MAX_HELD_SAMPLES samples."""
         if self._rising.size == 0 and self._n - self._lo > MAX_HELD_SAMPLES:
             self._lo = self._n - MAX_HELD_SAMPLES
+
+
+def _median(v: np.ndarray) -> float:
+    """The median of a short array (np.median's value, without its general machinery: a few spacings per block)."""
+    v = np.sort(v)
+    m = v.size // 2
+    return float(v[m] if v.size % 2 else 0.5 * (v[m - 1] + v[m]))
 
 
 def observe_sensitivity(loop_bandwidth_hz: float, dither_hz: float, harmonics: int = 199) -> float:

@@ -11,7 +11,6 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.config.schema import Config, ConfigError, parse_config
 from qmg_lab.storage.h5clear import writer_flags_set
 from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, STEPS_UNITS, DamagedFileError, StorageError
 from qmg_lab.storage.superblock import check_file_end
@@ -49,15 +48,6 @@ class RunData:
             return [str(k) for k in json.loads(self.attrs.get("planned_step_kinds", "[]"))]
         except (TypeError, ValueError):
             return []
-
-
-def stored_config(run: RunData) -> tuple[Config, str | None]:
-    """The configuration the run was made with (its config_toml attribute), validated; if it cannot be used
-    (an older schema, a damaged attribute), the defaults and a note saying so, for the analysis to report."""
-    try:
-        return parse_config(str(run.attrs.get("config_toml", "")), f"{run.path}:config_toml"), None
-    except ConfigError as exc:
-        return Config(), f"stored configuration not usable ({exc}); defaults assumed"
 
 
 def _py(value: Any) -> Any:

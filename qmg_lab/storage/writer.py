@@ -244,7 +244,7 @@ class RunWriter:
         `planned_steps`, `planned_step_kinds` as a JSON list); may also be set later with `set_plan`.
         extra_attrs: further root attributes (scalars or strings), written before SWMR starts.
         extra_layout: called with the open file before SWMR starts, to lay out further groups (SWMR cannot create
-        objects later): the study storage level's summaries (qmg_lab/storage/summary.py).
+        objects later): the study storage level (qmg_lab/storage/study_level.py).
         """
         p = Path(path)
         if mode not in MODES:

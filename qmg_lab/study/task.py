@@ -121,10 +121,10 @@ def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
 def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], float]:
     """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s)."""
     from qmg_lab.analysis.compute import analyze
+    from qmg_lab.analysis.study_writer import create_run_writer
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignRunner
     from qmg_lab.station import build_station
-    from qmg_lab.storage.summary import create_run_writer
     from qmg_lab.storage.writer import read_run, status_detail
 
     cfg = parse_config(config_text, "point configuration")

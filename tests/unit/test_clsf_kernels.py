@@ -1,99 +1,41 @@
-"""The CLSF estimator's compiled kernels (qmg_lab/clsf/kernels.py) against the numpy and scipy forms they replace.
+"""The CLSF estimator's per-block computations against independent numpy references written here from their
+equations: the period ratios (qmg_lab/clsf/kernels.py), the periods' selection and bookkeeping
+(qmg_lab/clsf/periods.py) and the sample buffer's integrals and filter (ClsfEstimator._append).
 
-Each kernel promises the same operations in the same order as a vectorised form, so the comparisons are exact
-(bit for bit), on data spread over six decades so that any change of summation order would show. The line fits
-are checked against the least-squares equations as well.
-"""
+Floating-point results are compared to derived bounds, never bit for bit: the references sum in another order
+(math.fsum, numpy's pairwise sums) and call other code (numpy's exp, scipy's filters)."""
 
 from __future__ import annotations
 
-from fractions import Fraction
+import math
 
 import numpy as np
 import pytest
 from scipy import signal
 
-from qmg_lab.clsf import kernels
-from qmg_lab.clsf.demod_filter import DemodFilter, sos_steady_state
+from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.estimator import BUF_MF, BUF_MR, BUF_T, BUF_Y, ClsfEstimator
+from qmg_lab.clsf.kernels import period_ratios
+from qmg_lab.clsf.periods import complete_periods, evaluate_periods
 
 RNG = np.random.default_rng(20131)
+EPS = np.finfo(float).eps
+SIGNS = np.array([1.0, -1.0, 1.0, -1.0, 1.0])
 
 
 def _spread(n: int) -> np.ndarray:
     return RNG.standard_normal(n) * 10.0 ** RNG.uniform(-3.0, 3.0, n)
 
 
-def test_pairwise_sum_is_numpys_sum_bit_for_bit() -> None:
-    # below 8 terms, one block (<= 128 terms), and one to ten levels of halving
-    work = kernels.pairwise_workspace()
-    for n in [*range(0, 300), 463, 464, 465, 911, 912, 913, 1807, 1808, 1809, 3600, 100_003]:
-        a = _spread(n + 5)
-        assert kernels.pairwise_sum(a, 5, n, work) == np.sum(a[5 : 5 + n]), n
-
-
-def test_reduceat_sum_is_numpys_reduceat_bit_for_bit() -> None:
-    a = _spread(4000)
-    starts = np.array([0, 1, 9, 137, 394, 651, 1900, 3999])
-    expected = np.add.reduceat(a, starts)
-    ends = np.append(starts[1:], a.size)
-    work = kernels.pairwise_workspace()
-    got = [kernels.reduceat_sum(a, int(s), int(e - s), work) for s, e in zip(starts, ends, strict=True)]
-    np.testing.assert_array_equal(got, expected)
-
-
-@pytest.mark.parametrize("count", [2, 3, 64, 65, 300])
-def test_median_spacing_is_the_median_of_the_first_spacings(count: int) -> None:
-    t = np.cumsum(RNG.uniform(0.5, 1.5, 300)) / 1800.0
-    assert kernels.median_spacing(t[:count], 65) == np.median(np.diff(t[:count][:65]))
-
-
-@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 8])
-def test_sosfilt_inplace_is_scipys_sosfilt_bit_for_bit(order: int) -> None:
-    sos = DemodFilter(order, 3e-4).foh_sos(1 / 1800)
-    x = np.cumsum(_spread(3600))
-    zi0 = signal.sosfilt_zi(sos) * x[0]
-    expected, zf = signal.sosfilt(sos, x, zi=zi0)
-    got, zi = x.copy(), zi0.copy()
-    kernels.sosfilt_inplace(sos, got, zi)
-    np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(zi, zf)
-
-
-@pytest.mark.parametrize("count", [1, 2, 3, 64, 65, 300])
-def test_median_spacing_after_a_time_is_the_median_of_the_first_spacings(count: int) -> None:
-    t = np.cumsum(RNG.uniform(0.5, 1.5, 301)) / 1800.0
-    expected = np.median(np.diff(t[: count + 1][:65]))
-    assert kernels.median_spacing_after(float(t[0]), t[1 : count + 1], 65) == expected
-
-
-@pytest.mark.parametrize(("order", "window"), [(0, 0.0), (1, 2.5e-6), (2, 0.0), (3, 1e-4), (4, 2.5e-6), (8, 1e-4)])
-def test_integrate_block_is_the_trapezoid_integrals_and_scipys_sosfilt(order: int, window: float) -> None:
-    n, offset, tau = 3600, 37, 173.6
-    t = 50.0 + np.cumsum(RNG.uniform(0.5, 1.5, n)) / 1800.0
-    x, aux = _spread(n), _spread(n)
-    for before in ((float(t[0]), float(x[0]), float(aux[0]), 0.0, 0.0), (49.9995, 0.3, -0.2, 1.5, 2.5)):
-        t_prev, x_prev, a_prev, ix0, mr0 = before
-        h = np.diff(np.concatenate(([t_prev], t)))  # a first block repeats its first sample: h_0 = 0
-        shift = np.divide(0.5 * window, h, out=np.zeros(n), where=h > 0)
-        ix = ix0 + np.cumsum(0.5 * h * (x + np.concatenate(([x_prev], x[:-1]))))
-        a_before = np.concatenate(([a_prev], aux[:-1]))
-        mr = mr0 + np.cumsum(h * (0.5 * (aux + a_before) + (aux - a_before) * shift))
-        sos = DemodFilter(order, 3e-4).foh_sos(1 / 1800) if order else np.empty((0, 6))
-        zi = sos_steady_state(sos)
-        mf, zf = signal.sosfilt(sos, mr, zi=zi * mr[0]) if order else (mr, zi)
-        buf = np.full((4, n + 2 * offset), np.nan)
-        ix_end = kernels.integrate_block(t, x, aux, before, window, tau, sos, zi, True, buf, offset)
-        np.testing.assert_array_equal(buf[:, offset : offset + n], [t, x + ix / tau, mf, mr])
-        np.testing.assert_array_equal(zi, zf)  # the sections' states at the block's end
-        assert ix_end == ix[-1]
-        assert np.isnan(buf[:, :offset]).all() and np.isnan(buf[:, offset + n :]).all()
-        # the next block continues the same states (zi_per_unit False)
-        more = np.full((4, n), np.nan)
-        kernels.integrate_block(
-            t + 2.0, x, aux, (t[-1], x[-1], aux[-1], ix[-1], mr[-1]), window, tau, sos, zi, False, more, 0
-        )
-        if order:
-            np.testing.assert_array_equal(more[2], signal.sosfilt(sos, more[3], zi=zf)[0])
+def _ramp(tau: np.ndarray, order: int, tc: float) -> np.ndarray:
+    """R_n(tau) = tau - n tc + tc e^(-tau/tc) sum_(j<n) (n - j) (tau/tc)^j / j! for tau > 0, else 0 (the closed form
+    of the filter's ramp response; math.factorial, no cut-off of the transient)."""
+    tau = np.asarray(tau, dtype=float)
+    if tc == 0.0:
+        return np.maximum(tau, 0.0)
+    x = np.maximum(tau, 0.0) / tc
+    poly = sum((order - j) * x**j / math.factorial(j) for j in range(order))
+    return np.where(tau > 0.0, tau - order * tc + tc * np.exp(-x) * poly, 0.0)
 
 
 def _window_edges(t: np.ndarray, tc: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -111,66 +53,34 @@ def _window_edges(t: np.ndarray, tc: float) -> tuple[np.ndarray, np.ndarray, np.
     return k0, k1, edges
 
 
-@pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
-def test_ramp_column_is_the_filters_ramp_response(order: int, tc: float) -> None:
-    t = np.arange(2000) / 1800.0
-    k0, k1, edges = _window_edges(t, tc)
-    filt = DemodFilter(order, tc)
-    for a, b, row in zip(k0, k1, edges, strict=True):
-        for e in row:
-            got = np.full(b - a + 3, np.nan)
-            kernels.ramp_column(t[a:b], e, order, tc, got)
-            # Both forms evaluate R_n(tau) = tau - n tc + tc e^(-tau/tc) acc with acc <= n e^(tau/tc), so every term
-            # is at most |tau| + n tc in size. Each side's exp is within 1 ulp (numpy's own SIMD exp need not be
-            # the C library's), and the sum takes three roundings: 4 eps times that magnitude bounds the difference.
-            tau = t[a:b] - e
-            bound = 4 * np.finfo(float).eps * (np.abs(tau) + 2 * order * tc)
-            assert np.all(np.abs(got[: b - a] - filt.ramp_response(tau)) <= bound)
-            assert np.isnan(got[b - a :]).all()  # nothing written beyond the window
+def _ratio_and_bound(
+    t: np.ndarray, y: np.ndarray, mf: np.ndarray, e: np.ndarray, lo: float, hi: float, order: int, tc: float
+) -> tuple[float, float]:
+    """rho of one window by period_ratios' equations, its sums correctly rounded (math.fsum), and a bound on the
+    difference from any evaluation that rounds each operation and sums in any order.
 
-
-def _exact_signed_sum(r: np.ndarray, step: float) -> float:
-    """signed_ramp_sum's definition in exact rational arithmetic: each rounding written out (round = float())."""
-    p = [float(Fraction(x) * Fraction(s * step)) for x, s in zip(r[:4], (1.0, -1.0, 1.0, -1.0), strict=True)]
-    inner = (p[0] + p[2]) + (p[1] + p[3])
-    return float(Fraction(r[4]) * Fraction(step) + Fraction(inner))  # the fused multiply-add: one rounding
-
-
-def test_signed_ramp_sum_rounds_as_defined_and_as_a_matrix_vector_product() -> None:
-    rows = _spread(5 * 4000).reshape(4000, 5)
-    rows[RNG.random(rows.shape) < 0.2] = 0.0  # ramps that have not started
-    step = 0.6123456789
-    got = np.array([kernels.signed_ramp_sum(*r, step) for r in rows])
-    np.testing.assert_array_equal(got, [_exact_signed_sum(r, step) for r in rows])
-    # any BLAS's order of the same five products is within a few roundings of their magnitude
-    product = rows @ (np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * step)
-    magnitude = np.abs(rows) @ np.full(5, step)
-    assert np.all(np.abs(got - product) <= 4 * np.finfo(float).eps * magnitude)
-
-
-def _ratios_by_equations(
-    rows: tuple[np.ndarray, np.ndarray, np.ndarray],
-    edges: np.ndarray,
-    windows: tuple[np.ndarray, np.ndarray],
-    levels: tuple[float, float],
-    filt: DemodFilter,
-) -> np.ndarray:
-    """period_ratios' docstring in numpy, window by window (its sums are np.add.reduceat's); rows: t, y, H m_r."""
-    t, y, mf = rows
-    k0, k1 = windows
-    lo, hi = levels
-    rho = []
-    for a, b, e in zip(k0, k1, edges, strict=True):
-        ramps = np.stack([filt.ramp_response(t[a:b] - ej) for ej in e], axis=1)
-        md = lo * (t[a:b] - e[0] - filt.delay_s) + np.array([_exact_signed_sum(r, hi - lo) for r in ramps])
-        tc = t[a:b] - np.add.reduceat(t[a:b], [0])[0] / (b - a)
-        vc = md - np.add.reduceat(md, [0])[0] / (b - a)
-        stt = np.add.reduceat(tc * tc, [0])[0]
-        slope = np.add.reduceat(tc * vc, [0])[0] / stt if stt > 0 else 0.0
-        r = vc - tc * slope
-        den = np.add.reduceat((mf[a:b] + md) * r, [0])[0]
-        rho.append(np.add.reduceat(y[a:b] * r, [0])[0] / den if den != 0.0 else np.nan)
-    return np.array(rho)
+    Each computed quantity of the chain (H m_d, the means, t', v', the slope, r, the products) carries a relative
+    error of a few eps of the magnitudes it is formed from, and a sum of n terms adds n eps times the sum of their
+    magnitudes. The numerator and the denominator then differ from the exact ones by at most
+    c n eps sum_k |a_k| (|v'_k| + |b| (|t'_k| + |mean t|) + |mean v|) with a_k = y_k or (H m)_k: the magnitudes
+    that enter r_k and its product. c = 8 covers the ramps' exp and polynomial (4 eps of |tau| + 2 n tc each), the
+    means, the slope and the product; relative to |num| and |den| this bounds rho's relative error."""
+    n = t.size
+    md = lo * (t - e[0] - order * tc) + (hi - lo) * sum(
+        s * _ramp(t - ej, order, tc) for s, ej in zip(SIGNS, e, strict=True)
+    )
+    mt, mv = math.fsum(t) / n, math.fsum(md) / n
+    tcen, vcen = t - mt, md - mv
+    stt = math.fsum(tcen * tcen)
+    slope = math.fsum(tcen * vcen) / stt if stt > 0 else 0.0
+    r = vcen - slope * tcen
+    hm = mf + md
+    num, den = math.fsum(y * r), math.fsum(hm * r)
+    size = np.abs(vcen) + abs(slope) * (np.abs(tcen) + abs(mt)) + abs(mv) + (hi - lo) * 2 * order * tc
+    err_num = 8 * n * EPS * float(np.sum(np.abs(y) * size))
+    err_den = 8 * n * EPS * float(np.sum(np.abs(hm) * size))
+    rho = num / den
+    return rho, abs(rho) * (err_num / abs(num) + err_den / abs(den))
 
 
 @pytest.mark.parametrize(("order", "tc"), [(1, 1e-4), (4, 1e-3), (8, 1e-3), (1, 0.0)])
@@ -179,48 +89,66 @@ def test_period_ratios_are_their_equations(order: int, tc: float) -> None:
     k0, k1, edges = _window_edges(t, tc)
     y = np.cumsum(_spread(t.size))
     mf = np.cumsum(_spread(t.size))
-    filt = DemodFilter(order, tc)
-    got = kernels.period_ratios(t, y, mf, edges, k0, k1, -0.3, 0.29, order, tc)
-    np.testing.assert_array_equal(got, _ratios_by_equations((t, y, mf), edges, (k0, k1), (-0.3, 0.29), filt))
+    got = period_ratios(t, y, mf, edges, k0, k1, -0.3, 0.29, order, tc)
+    for p, (a, b) in enumerate(zip(k0, k1, strict=True)):
+        rho, bound = _ratio_and_bound(t[a:b], y[a:b], mf[a:b], edges[p], -0.3, 0.29, order, tc)
+        assert abs(got[p] - rho) <= bound, (p, got[p], rho, bound)
+        assert bound < 1e-6 * abs(rho)  # the bound itself is tight enough to mean something
 
 
 def test_period_ratio_is_the_gain_of_a_signal_that_follows_the_forcer_input() -> None:
-    # y = beta H m + a + b t with H m_r = 0: the line is projected out and rho = beta (to rounding)
+    # y = beta H m + a + b t with H m_r = 0: the line is projected out and rho = beta, to the rounding bound
     t = np.arange(2000) / 1800.0
     k0, k1, edges = _window_edges(t, 1e-4)
     lo, hi, beta = -0.3, 0.3, 0.0137
-    filt = DemodFilter(1, 1e-4)
     hm = np.zeros(t.size)
     for a, b, e in zip(k0, k1, edges, strict=True):
-        ramps = np.stack([filt.ramp_response(t[a:b] - ej) for ej in e], axis=1)
-        hm[a:b] = lo * (t[a:b] - e[0] - filt.delay_s) + ramps @ (np.array([1.0, -1.0, 1.0, -1.0, 1.0]) * (hi - lo))
+        ramps = sum(s * _ramp(t[a:b] - ej, 1, 1e-4) for s, ej in zip(SIGNS, e, strict=True))
+        hm[a:b] = lo * (t[a:b] - e[0] - 1e-4) + (hi - lo) * ramps
     y = beta * hm + 0.02 - 0.5 * t
-    got = kernels.period_ratios(t, y, np.zeros(t.size), edges, k0, k1, lo, hi, 1, 1e-4)
-    np.testing.assert_allclose(got, beta, rtol=1e-12)
+    got = period_ratios(t, y, np.zeros(t.size), edges, k0, k1, lo, hi, 1, 1e-4)
+    for p, (a, b) in enumerate(zip(k0, k1, strict=True)):
+        _, bound = _ratio_and_bound(t[a:b], y[a:b], np.zeros(b - a), edges[p], lo, hi, 1, 1e-4)
+        assert abs(got[p] - beta) <= bound + 2 * EPS * beta  # plus the rounding of beta H m itself
 
 
-def test_interp_sorted_is_numpys_interp() -> None:
-    xp = np.cumsum(RNG.uniform(1e-4, 1e-3, 500)) + 12.0
-    fp = np.cumsum(_spread(500))
-    x = np.concatenate((RNG.uniform(xp[0] - 0.01, xp[-1] + 0.01, 200), xp[[0, 1, 250, -1]]))
-    got = [kernels.interp_sorted(float(v), xp, fp) for v in x]
-    np.testing.assert_array_equal(got, np.interp(x, xp, fp))
+Row = tuple[tuple[float, ...], int, int]
 
 
-def test_line_fits_are_the_least_squares_lines() -> None:
-    j = np.arange(40, dtype=float) * 2.0 + np.repeat([0.0, 1.0], 20)  # uneven index steps
-    t = 3.0 + 0.142857 * j + 1e-5 * RNG.standard_normal(j.size)
-    # line_at: the least-squares line through all pairs, at new indices
-    slope, icpt = np.polyfit(j[:32], t[:32], 1)
-    at = np.array([j[31] + 1.0, j[31] + 5.0])
-    np.testing.assert_allclose(kernels.line_at(t[:32], j[:32], at), icpt + slope * at, rtol=0, atol=1e-12)
-    # rolling_line_fit: each point from the 10th on, from the line through it and the (up to) 7 points before
-    fit = kernels.rolling_line_fit(t, j, 10, 8)
-    for i in range(10, j.size):
-        s, c = np.polyfit(j[i - 7 : i + 1], t[i - 7 : i + 1], 1)
-        assert fit[i - 10] == pytest.approx(c + s * j[i], abs=1e-12)
-    # fewer than 4 points in a window: the point itself
-    np.testing.assert_array_equal(kernels.rolling_line_fit(t[:3], j[:3], 0, 8), t[:3])
+def _complete_periods_loop(
+    rising: np.ndarray, falling: np.ndarray, t: np.ndarray, delay: float, min_samples: int
+) -> tuple[int, list[Row]]:
+    """complete_periods' docstring as a loop over the periods."""
+    done = -1
+    rows: list[Row] = []
+    for i in range(1, rising.size - 1):
+        r_prev, r0, r1 = rising[i - 1], rising[i], rising[i + 1]
+        if r1 + delay > t[-1]:
+            continue
+        done = i
+        inside = falling[(falling > r_prev) & (falling < r1)]
+        if inside.size != 2 or not (inside[0] < r0 < inside[1]) or r0 + delay < t[0]:
+            continue
+        a, b = np.searchsorted(t, r0 + delay), np.searchsorted(t, r1 + delay)
+        if b - a >= min_samples:
+            rows.append(((r_prev, inside[0], r0, inside[1], r1), int(a), int(b)))
+    return done, rows
+
+
+def test_complete_periods_are_the_usable_windows() -> None:
+    t = 3.0 + np.arange(2 * 1800) / 1800.0
+    period = 1.0 / 7.0003
+    rising = 2.95 + period * np.arange(16)
+    falling = rising + 0.5 * period + 1e-4
+    falling = np.delete(falling, 6)  # a period without its falling edge
+    falling = np.sort(np.append(falling, rising[9] + 0.1 * period))  # and one with three
+    w = complete_periods(rising, falling, t, 2e-4 * 2, 8)
+    done, rows = _complete_periods_loop(rising, falling, t, 2e-4 * 2, 8)
+    assert w.done == done
+    assert [(tuple(e), a, b) for e, a, b in zip(w.edges, w.k0, w.k1, strict=True)] == rows  # selections: exact
+    assert 5 < len(rows) < done - 2  # some periods usable, some not
+    empty = complete_periods(rising[:2], falling, t, 0.0, 8)
+    assert empty.done == -1 and empty.edges.shape == (0, 5)
 
 
 def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still_needed() -> None:
@@ -228,38 +156,70 @@ def test_evaluate_periods_keeps_the_finite_unheld_periods_and_says_what_is_still
     period = 1.0 / 7.0003
     rising = 3.0013 + period * np.arange(14)
     falling = rising + 0.5 * period + 1e-4
-    buf = np.stack((t, np.cumsum(_spread(t.size)), np.cumsum(_spread(t.size)), np.cumsum(_spread(t.size))))
-    buf[1, 1000] = np.nan  # the period around sample 1000 has no finite rho
+    rate_v, offset_vs = 0.3217, 5.0
+    rows = np.stack((t, np.cumsum(_spread(t.size)), np.cumsum(_spread(t.size)), offset_vs + rate_v * t))
+    rows[1, 1000] = np.nan  # the period around sample 1000 has no finite rho
     order, tc, lo, hi = 2, 2e-4, -0.3, 0.3
     holds = np.array([[rising[5] + 0.01, rising[5] + 0.02], [rising[9] - 0.01, rising[9] + 0.001]])
-    falling_in = falling.copy()  # the kernel moves the falling edges still needed to the front
-    padded = np.full((4, t.size + 50), np.nan)  # the samples held are columns 20:20 + n of the buffer
-    padded[:, 20 : 20 + t.size] = buf
-    done, usable, first_needed, falling_needed, (r0, r1, rho, rate) = kernels.evaluate_periods(
-        rising, falling_in, padded, (20, 20 + t.size), lo, hi, order, tc, 8, holds
-    )
-    # the same from the parts, with the estimator's earlier numpy bookkeeping
-    done_p, edges, k0, k1 = kernels.complete_periods(rising, falling, t, order * tc, 8)
-    rho_p = kernels.period_ratios(t, buf[1], buf[2], edges, k0, k1, lo, hi, order, tc)
-    rate_p = kernels.mean_rates(edges, t, buf[3])
-    held = np.zeros(edges.shape[0], dtype=bool)
+    res = evaluate_periods(rising, falling, rows, (lo, hi), order, tc, 8, holds)
+    w = complete_periods(rising, falling, t, order * tc, 8)
+    rho = period_ratios(t, rows[1], rows[2], w.edges, w.k0, w.k1, lo, hi, order, tc)
+    held = np.zeros(w.edges.shape[0], dtype=bool)
     for h0, h1 in holds:
-        held |= (h0 <= edges[:, 4]) & (edges[:, 2] <= h1)
-    ok = np.isfinite(rho_p) & ~held
-    assert (done, usable) == (done_p, edges.shape[0])
-    assert usable > ok.sum() + 2 > 2  # some periods held, one not finite, others kept
-    np.testing.assert_array_equal(r0, edges[ok, 2])
-    np.testing.assert_array_equal(r1, edges[ok, 4])
-    np.testing.assert_array_equal(rho, rho_p[ok])
-    np.testing.assert_array_equal(rate, rate_p[ok])
-    # still needed: rising edges from `done` on, falling edges after R_done, samples from two before R_(done+1) + D
-    np.testing.assert_array_equal(falling_in[:falling_needed], falling[falling > rising[done]])
-    assert first_needed == np.searchsorted(t, rising[done + 1] + order * tc) - 2
+        held |= (h0 <= w.edges[:, 4]) & (w.edges[:, 2] <= h1)
+    ok = np.isfinite(rho) & ~held
+    assert (res.done, res.usable) == (w.done, w.edges.shape[0])
+    assert res.usable > ok.sum() + 2 > 2  # some periods held, one not finite, others kept
+    r0, r1, kept_rho, rate = res.kept
+    np.testing.assert_array_equal(r0, w.edges[ok, 2])  # selections of the same numbers: exact
+    np.testing.assert_array_equal(r1, w.edges[ok, 4])
+    np.testing.assert_array_equal(kept_rho, rho[ok])  # the same kernel on the same rows: the same numbers
+    # m_r = offset + rate t: the mean rate output over any period is the rate, to the roundings of interpolating
+    # two values near offset + rate t (a few eps of them) divided by a period's length
+    mag = offset_vs + rate_v * t[-1]
+    assert np.all(np.abs(rate - rate_v) <= 8 * EPS * mag / period)
+    # still needed: falling edges after R_done, samples from two before R_(done+1) + D
+    np.testing.assert_array_equal(res.falling_needed, falling[falling > rising[res.done]])
+    assert res.first_needed == np.searchsorted(t, rising[res.done + 1] + order * tc) - 2
 
 
-def test_period_estimates_are_the_numpy_expressions() -> None:
-    rho = 0.0137 * (1.0 + 1e-3 * _spread(500))
-    eta, sf_change, gain = kernels.period_estimates(rho, 0.01371, 1.0025)
-    np.testing.assert_array_equal(eta, rho / 0.01371 - 1.0)
-    np.testing.assert_array_equal(sf_change, 1.0 / (1.0 + (rho / 0.01371 - 1.0)) - 1.0)
-    np.testing.assert_array_equal(gain, np.full(rho.size, 1.0025))
+@pytest.mark.parametrize(
+    ("order", "window"), [(0, 0.0), (1, 2.5e-6), (2, 0.0), (3, 1e-4), (4, 2.5e-6), (5, 0.0), (8, 1e-4)]
+)
+def test_the_buffer_is_the_trapezoid_integrals_and_the_filtered_rate_integral(order: int, window: float) -> None:
+    """ClsfEstimator._append (kernels.integrate_block) over blocks of several sizes against the whole record done
+    at once in numpy: the
+    trapezoid integrals (module docstring of qmg_lab/clsf/estimator.py) as np.cumsum, the filter as scipy's sosfilt
+    from the state at rest. Bound: each running sum's terms are rounded within eps of their size and a sum of k
+    terms adds k eps sum |terms|, so at sample k both differ by at most 2 k eps sum_(i<=k) |term_i|; the filter is
+    a stable linear map whose output moves by at most its l1 gain sum |h| times that (taken <= 4 for these
+    FOH sections: their step responses do not overshoot), plus its own roundings (a few eps of the output times
+    the number of samples its memory spans, within the same margin)."""
+    n, tau = 5000, 173.6
+    t = 50.0 + np.arange(n) / 1800.0  # a steady stream: one filter design (a new sample interval redesigns it)
+    x, aux = RNG.standard_normal(n), 0.3 + 0.01 * RNG.standard_normal(n)
+    filt = DemodFilter(max(order, 1), 3e-4 if order else 0.0)
+    est = ClsfEstimator(tau_s=tau)
+    est.set_stream_timing(filt, window)
+    for a, b in ((0, 3), (3, 900), (900, 901), (901, 902), (902, 4000), (4000, n)):
+        est._append(t[a:b], x[a:b], aux[a:b])
+    buf = est._buf[:, est._lo : est._n]
+    h = np.diff(np.concatenate(([t[0]], t)))  # the first block repeats its first sample: h_0 = 0
+    shift = np.divide(0.5 * window, h, out=np.zeros(n), where=h > 0)
+    x_prev, a_prev = np.concatenate(([x[0]], x[:-1])), np.concatenate(([aux[0]], aux[:-1]))
+    dx = 0.5 * h * (x + x_prev)
+    dm = h * (0.5 * (aux + a_prev) + (aux - a_prev) * shift)
+    ix, mr = np.cumsum(dx), np.cumsum(dm)
+    k = np.arange(1, n + 1)
+    bound_ix = 2 * k * EPS * np.cumsum(np.abs(dx))
+    bound_mr = 2 * k * EPS * np.cumsum(np.abs(dm))
+    np.testing.assert_array_equal(buf[BUF_T], t)  # the times as given
+    assert np.all(np.abs(buf[BUF_MR] - mr) <= bound_mr)
+    assert np.all(np.abs(buf[BUF_Y] - (x + ix / tau)) <= bound_ix / tau + 2 * EPS * np.abs(x + ix / tau))
+    if order == 0:
+        np.testing.assert_array_equal(buf[BUF_MF], buf[BUF_MR])  # no filter: the same array's values
+        return
+    assert est._sos_dt == pytest.approx(1 / 1800.0, rel=1e-9)  # one design, at the stream's sample interval
+    sos = filt.foh_sos(est._sos_dt)
+    mf = signal.sosfilt(sos, mr, zi=signal.sosfilt_zi(sos) * mr[0])[0]
+    assert np.all(np.abs(buf[BUF_MF] - mf) <= 4 * (bound_mr + 16 * EPS * np.abs(mr)))

@@ -130,10 +130,22 @@ def test_dither_origin_follows_new_frequencies_and_timebase_parameters():
         lambda: w.set_dither(frequency_hz=7.0),
         lambda: setattr(w.params, "ds345_timebase_offset_ppm", 3.0),
     ]
+    eps = np.finfo(float).eps
     for change in changes:
         change()
         expected = _step_means_from_the_phase(w, 700)
-        np.testing.assert_array_equal(w.advance(700, DT).dither_v, expected)
+        got = w.advance(700, DT).dither_v
+        # The World's kernel takes the wander's cosine from the C library, the reference from numpy (SIMD code,
+        # within 4 ulp): the two cosines differ by at most 5 eps / 2, so each phase u by at most
+        # delta = f (e_w P / 2 pi) 5 eps / 2 plus a rounding of tau (eps t) and of u (eps |u|). A step mean
+        # A (W(u1) - W(u0)) / (u1 - u0) with |W'| <= 1 and |W(u1) - W(u0)| <= u1 - u0 then moves by at most
+        # 4 A delta / (u1 - u0), A = Vpp / 2 (plus its own few roundings, 8 eps A / (u1 - u0)).
+        p, d = w.params, w.dither
+        u = w._dither_phase(w.t - DT * np.arange(701)[::-1])
+        wander_s = p.ds345_timebase_wander_ppm * 1e-6 * p.ds345_timebase_wander_period_s / (2 * math.pi)
+        delta = d.frequency_hz * (wander_s * 2.5 * eps + eps * w.t) + eps * np.max(np.abs(u))
+        amp = 0.5 * d.amplitude_vpp
+        assert np.all(np.abs(got - expected) <= (4 * amp * delta + 8 * eps * amp) / np.diff(u))
 
 
 def test_sine_dither_step_means_and_mute():
