@@ -41,12 +41,12 @@ from typing import Any
 import numpy as np
 import tomlkit
 
-from qmg_lab.analysis.study_writer import create_run_writer
+from qmg_lab.campaign.pipeline import new_run_file
 from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.runner import CampaignRunner
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import ClsfEstimator, ClsfPeriods
-from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.station import build_station, make_world
 
@@ -107,17 +107,7 @@ def record(text: str) -> tuple[list[Call], dict[str, Any], float]:
     plan = checked_plan(cfg)
     station = build_station(cfg, make_world(cfg))
     with tempfile.TemporaryDirectory(prefix="qmg-clsf-bench-") as tmp:
-        writer = create_run_writer(  # as a study task writes its run file (qmg_lab.study.task)
-            Path(tmp) / "run.h5",
-            cfg,
-            plan.steps,
-            config_text=text,
-            config_sha256=config_fingerprint(text),
-            mode="sim",
-            software_version="bench",
-            t0_unix=0.0,
-            instrument_modes=dict.fromkeys(INSTRUMENT_NAMES, "twin"),
-        )
+        writer = new_run_file(Path(tmp) / "run.h5", cfg, text, plan, t0_unix=0.0, software_version="bench")
         runner = CampaignRunner(cfg, station, writer, plan=plan)
         est = runner.clsf
         kwargs = {

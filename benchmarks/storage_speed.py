@@ -40,7 +40,7 @@ import h5py
 import numpy as np
 import tomlkit
 
-from qmg_lab.analysis.study_writer import create_run_writer
+from qmg_lab.campaign.pipeline import new_run_file
 from qmg_lab.campaign.plan import checked_plan
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.clsf.estimator import ClsfPeriods
@@ -162,17 +162,7 @@ def record_per_block(level: str, n_blocks: int, d: Path) -> dict[str, float]:
     cfg = parse_config(text, "paper_campaign.toml")
     path = d / f"per_block_{level}.h5"
     path.unlink(missing_ok=True)
-    writer = create_run_writer(
-        path,
-        cfg,
-        checked_plan(cfg).steps,
-        config_text=text,
-        config_sha256=hashlib.sha256(text.encode()).hexdigest(),
-        mode="sim",
-        software_version="bench",
-        t0_unix=time.time(),
-        instrument_modes=dict.fromkeys(INSTRUMENT_NAMES, "twin"),
-    )
+    writer = new_run_file(path, cfg, text, checked_plan(cfg), software_version="bench")
     recorder = BlockRecorder(writer)
     t_step = 0.0
     start = _clocks()

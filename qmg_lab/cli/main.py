@@ -221,8 +221,8 @@ def _execute(
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
     configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
     or change the file. The file's final close is protected from a second Ctrl-C."""
-    from qmg_lab.analysis.study_writer import create_run_writer
     from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
+    from qmg_lab.campaign.pipeline import new_run_file
     from qmg_lab.campaign.plan import checked_plan
     from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
     from qmg_lab.cli.progress import ProgressView
@@ -236,7 +236,6 @@ def _execute(
         fail(EXIT_BAD_INPUT, str(exc))
     sha = config_fingerprint(text)
     modes = cfg.instrument_modes()
-    mode = "sim" if cfg.all_sim else "hardware"
     with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
         if resume is not None:
             if output is not None and output.resolve() != resume.resolve():
@@ -275,17 +274,7 @@ def _execute(
                 else:
                     if path.exists():
                         path.unlink()  # --overwrite, now that the station answered
-                    writer = create_run_writer(
-                        path,
-                        cfg,
-                        plan.steps,
-                        config_text=text,
-                        config_sha256=sha,
-                        mode=mode,
-                        software_version=__version__,
-                        t0_unix=datetime.now(UTC).timestamp(),
-                        instrument_modes=modes,
-                    )
+                    writer = new_run_file(path, cfg, text, plan)
             except StorageError as exc:
                 fail(EXIT_BAD_INPUT, str(exc))
             except OSError as exc:

@@ -34,8 +34,7 @@ from typing import Any
 
 from filelock import FileLock
 
-from qmg_lab import __version__
-from qmg_lab.config.schema import config_fingerprint, parse_config
+from qmg_lab.config.schema import parse_config
 
 #: analyze --json keys that are not results (the point's run file lives in a temporary directory)
 NOT_METRICS = ("file",)
@@ -121,31 +120,16 @@ def metrics_of(result: dict[str, Any]) -> dict[str, Any]:
 def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], float]:
     """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s)."""
     from qmg_lab.analysis.compute import analyze
-    from qmg_lab.analysis.study_writer import create_run_writer
+    from qmg_lab.campaign.pipeline import run_campaign as run_into
     from qmg_lab.campaign.plan import checked_plan
-    from qmg_lab.campaign.runner import CampaignRunner
     from qmg_lab.station import build_station
     from qmg_lab.storage.writer import read_run, status_detail
 
     cfg = parse_config(config_text, "point configuration")
-    plan = checked_plan(cfg)
+    plan = checked_plan(cfg)  # before any twin is built: a point outside the limits fails here
     station = build_station(cfg)
     try:
-        writer = create_run_writer(
-            run_file,
-            cfg,
-            plan.steps,
-            config_text=config_text,
-            config_sha256=config_fingerprint(config_text),
-            mode="sim",
-            software_version=__version__,
-            t0_unix=datetime.now(UTC).timestamp(),
-            instrument_modes=cfg.instrument_modes(),
-        )
-        try:
-            summary = CampaignRunner(cfg, station, writer, plan=plan).run()
-        finally:
-            writer.close()
+        summary = run_into(cfg, config_text, station, run_file, plan=plan)
     finally:
         station.close()
     result = analyze(run_file).to_json()
