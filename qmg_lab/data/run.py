@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.layout import FORMAT, StorageError
+from qmg_lab.storage.reader import attr_value
 
 if TYPE_CHECKING:  # pandas and xarray are imported when a table is asked for: `import qmg_lab` stays light
     import pandas as pd
@@ -49,14 +50,6 @@ class Column:
     values: np.ndarray
     units: str
     description: str
-
-
-def _text(value: Any) -> Any:
-    if isinstance(value, bytes):
-        return value.decode("utf-8", "replace")
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def _open(path: Path) -> h5py.File:
@@ -94,7 +87,9 @@ def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) 
         values = ds[:n]
         if values.dtype.kind == "S":
             values = np.array([v.decode("utf-8", "replace") for v in values], dtype=str)
-        out[c] = Column(values, str(_text(ds.attrs.get("units", ""))), str(_text(ds.attrs.get("description", ""))))
+        out[c] = Column(
+            values, str(attr_value(ds.attrs.get("units", ""))), str(attr_value(ds.attrs.get("description", "")))
+        )
     return out
 
 
@@ -269,7 +264,7 @@ def open_run(path: str | Path) -> Run:
 
     p = Path(path)
     with _open(p) as h5:
-        attrs = {k: _text(v) for k, v in h5.attrs.items()}
+        attrs = {k: attr_value(v) for k, v in h5.attrs.items()}
         if attrs.get("format") != FORMAT:
             raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
         try:

@@ -50,7 +50,8 @@ class RunData:
             return []
 
 
-def _py(value: Any) -> Any:
+def attr_value(value: Any) -> Any:
+    """An HDF5 attribute as a Python value: bytes decoded as UTF-8, numpy scalars as Python scalars."""
     if isinstance(value, bytes):
         return value.decode("utf-8", "replace")
     if isinstance(value, np.generic):
@@ -106,7 +107,7 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
             else:
                 wanted[g] = None
     with h5:
-        attrs = {k: _py(v) for k, v in h5.attrs.items()}
+        attrs = {k: attr_value(v) for k, v in h5.attrs.items()}
         if attrs.get("format") != FORMAT:
             raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
         if "steps" not in h5:
@@ -125,7 +126,7 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
             if absent:
                 raise StorageError(f"{p}: /{g} lacks the datasets {absent}")
             for c in cols:
-                units[f"{g}/{c}"] = _py(grp[c].attrs.get("units", ""))
+                units[f"{g}/{c}"] = attr_value(grp[c].attrs.get("units", ""))
             n = min(grp[c].shape[0] for c in cols)
             rows_cut[g] = max(grp[c].shape[0] for c in cols) - n
             if g != "steps" and wanted is not None:
