@@ -34,6 +34,7 @@ import numpy as np
 from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard
 from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.campaign.recovery import RecoveryPolicy
@@ -92,7 +93,7 @@ class RunSummary:
     samples_lost: int
     suspensions: int
     recoveries: int
-    last_sf_change_ppm: float
+    sf_change_mean_ppm: float  # the CLSF SF-change estimate over the last SF_MEAN_WINDOW_S of run time, ppm
     gain_correction: float
     abort_reason: str = ""
     resumed: bool = False
@@ -139,6 +140,7 @@ class CampaignRunner:
         self._t = 0.0  # file time of the last sample, s
         self._dt = 1.0 / self.cfg.lockin.demod_rate_hz
         self._read = _Readings()
+        self._sf_mean = MovingMean(SF_MEAN_WINDOW_S)  # the summary's SF change, over the periods
         self._wall0 = time.monotonic()
         self._blocks = self._samples = self._lost = self._suspensions = 0
         self._suspended = ""
@@ -245,7 +247,7 @@ class CampaignRunner:
             samples_lost=self._lost,
             suspensions=self._suspensions,
             recoveries=self._recovery.recoveries,
-            last_sf_change_ppm=self._read.sf_change * 1e6,
+            sf_change_mean_ppm=self._sf_mean.mean * 1e6,
             gain_correction=self.clsf.gain_correction,
             abort_reason=reason,
             resumed=self.resume,
@@ -460,6 +462,8 @@ class CampaignRunner:
             )
         if len(periods):
             self._read.sf_change = float(periods.sf_change_estimate[-1])
+            for t_k, sf_k in zip(periods.time.tolist(), periods.sf_change_estimate.tolist(), strict=True):
+                self._sf_mean.add(t_k, sf_k)
         self._t = t_end
         if tab is not None:
             self._read.table_rate = tab.rate_dps

@@ -328,7 +328,7 @@ def _print_summary(summary: Any) -> None:
         ("wall time", f"{summary.wall_s:.1f} s ({summary.simulated_s / max(summary.wall_s, 1e-9):.0f}x real time)"),
         ("samples", f"{summary.samples} ({summary.samples_lost} lost)"),
         ("suspensions / recoveries", f"{summary.suspensions} / {summary.recoveries}"),
-        ("last CLSF SF change", f"{summary.last_sf_change_ppm:.1f} ppm"),
+        ("CLSF SF change, last 60 s mean", f"{summary.sf_change_mean_ppm:.1f} ppm"),
         ("CLSF gain correction", f"{summary.gain_correction:.6f}"),
     ]
     for r in rows:

@@ -13,21 +13,19 @@ the expected duration, instead of showing "0x real time" in silence.
 from __future__ import annotations
 
 import contextlib
-import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 
+from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 from qmg_lab.campaign.runner import Progress
 
 REFRESH_S = 0.25  # terminal panel refresh
 LINE_EVERY_S = 10.0  # plain-text line interval (logs, CI)
-SF_MEAN_WINDOW_S = 60.0  # run time over which the SF estimate is averaged, s
 COMPILE_NOTICE_AFTER_S = 3.0  # wall time waiting for a block before the view says why, s
 COMPILE_BLOCKS = 20  # the blocks during which numba may still be compiling (a later wait is not a compile)
 # with a cold numba cache (a fresh environment) a short twin campaign took 87 s longer than with a warm one on a
@@ -40,33 +38,6 @@ def _fmt_s(seconds: float) -> str:
     h, rem = divmod(int(round(seconds)), 3600)
     m, s = divmod(rem, 60)
     return f"{h:d}:{m:02d}:{s:02d}"
-
-
-class MovingMean:
-    """Mean of (run time, value) samples over the last `window_s` of run time; non-finite values are skipped, and
-    a run time that goes back (a new run) starts the window afresh."""
-
-    def __init__(self, window_s: float) -> None:
-        self.window_s = window_s
-        self._samples: deque[tuple[float, float]] = deque()
-
-    def add(self, t_s: float, value: float) -> None:
-        if self._samples and t_s < self._samples[-1][0]:
-            self._samples.clear()
-        if math.isfinite(value):
-            self._samples.append((t_s, value))
-        while self._samples and self._samples[0][0] < t_s - self.window_s:
-            self._samples.popleft()
-
-    @property
-    def count(self) -> int:
-        return len(self._samples)
-
-    @property
-    def mean(self) -> float:
-        """The window's mean (math.fsum / n), NaN when the window holds no estimate."""
-        n = len(self._samples)
-        return math.fsum(v for _, v in self._samples) / n if n else float("nan")
 
 
 def compile_notice(waited_s: float, first: bool) -> str:
