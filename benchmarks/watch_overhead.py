@@ -6,7 +6,7 @@ first step to the file's close, without the process's start-up). Watched: `qmg-l
 first in its own process, with its page open in headless Chromium (the system's, through selenium and
 /usr/bin/chromedriver) before the campaign starts, as a user at the bench would have it; with `--no-browser`
 (or without Chromium) a process that runs the page's update (qmg_lab.watch.page.WatchPage.update: the file
-reads, decimation and models) once a second instead, without a websocket and a browser.
+reads, decimation and models) at the page's own period instead, without a websocket and a browser.
 A first unwatched run warms numba's cache and is not counted.
 
     python benchmarks/watch_overhead.py [--json] [--pairs N] [--ramp-divisor K] [--no-browser]
@@ -40,11 +40,11 @@ WALL = re.compile(r"wall time\s*│\s*([0-9.]+) s")
 PAGE_LOOP = """
 import sys, time
 from pathlib import Path
-from qmg_lab.watch.page import WatchPage
+from qmg_lab.watch.page import POLL_MS, WatchPage
 page = WatchPage(Path(sys.argv[1]))
 while True:
     page.update()
-    time.sleep(1.0)
+    time.sleep(POLL_MS / 1000.0)
 """
 
 

@@ -44,7 +44,10 @@ from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 
 MAX_POINTS = 1000  # about a plot's width in pixels
 CHUNK_BINS = MAX_POINTS // 5
-POLL_MS = 1000
+#: the page reads the file and redraws every 1.5 s: a block is on the page within 1.5 s of the writer's flush plus
+#: the draw (under 2 s), and a software-drawn browser on the campaign's own two cores costs it under 10 % (once a
+#: second cost about 14 %: docs/performance.md)
+POLL_MS = 1500
 STEP_FAMILIES = ("lock", "dither", "soak", "rate", "hold", "sine", "level", "return")
 PLOTS = ("sf", "gain", "temp", "table", "drive", "pll", "steps", "events")  # model names: plot_<name>
 
