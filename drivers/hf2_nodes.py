@@ -110,10 +110,6 @@ class MixerLayout:
     drive: int  # mixer channel of drive_sigout carrying the drive
     forcer: int  # mixer channel of forcer_sigout carrying the forcer carrier
 
-    @property
-    def multi_frequency(self) -> bool:
-        return len(self.channels) > len(NON_MF_OUTPUT_MIXER_CHANNELS)
-
 
 def mixer_layout(options: tuple[str, ...], wiring: LockInWiring) -> MixerLayout:
     """The mixer channels from the options (module doc) and the wiring, with the [lockin] drive_mixer_channel /

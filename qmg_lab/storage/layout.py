@@ -9,8 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from qmg_lab.instruments import INSTRUMENT_NAMES
-
 FORMAT = "qmg-lab/1"
 
 LOCKIN_UNITS = {
@@ -130,8 +128,6 @@ GZIP_LEVEL = 1
 #: their raw size at level 6 for ~4 ns per byte more, where the noisy columns gain under 1 % for 2-10x the cost
 GZIP_LEVELS = {"time": 6}
 MODES = ("sim", "hardware")
-#: instruments of a station, each run on its twin or on the hardware (root attribute instrument_modes)
-INSTRUMENTS = INSTRUMENT_NAMES
 STATUSES = ("running", "completed", "aborted")
 
 

@@ -16,7 +16,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import GROUP_UNITS, INSTRUMENTS, DamagedFileError, StorageError, whole_chunk_layout
+from qmg_lab.instruments import INSTRUMENT_NAMES
+from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
@@ -115,11 +116,11 @@ def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
     if raw:
         try:
             modes = json.loads(raw)
-            if isinstance(modes, dict) and set(modes) == set(INSTRUMENTS):
-                return {n: str(modes[n]) for n in INSTRUMENTS}
+            if isinstance(modes, dict) and set(modes) == set(INSTRUMENT_NAMES):
+                return {n: str(modes[n]) for n in INSTRUMENT_NAMES}
         except (TypeError, ValueError):
             pass
-    return {n: ("twin" if attrs.get("mode") == "sim" else "hardware") for n in INSTRUMENTS}
+    return {n: ("twin" if attrs.get("mode") == "sim" else "hardware") for n in INSTRUMENT_NAMES}
 
 
 def status_detail(run: RunData) -> str:
@@ -138,7 +139,7 @@ def status_detail(run: RunData) -> str:
 
 def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> None:
     """Refuse a station whose instruments are not twin/hardware as the file's were, saying how to match it."""
-    diff = [n for n in INSTRUMENTS if recorded.get(n) != now.get(n)]
+    diff = [n for n in INSTRUMENT_NAMES if recorded.get(n) != now.get(n)]
     if not diff:
         return
     what = ", ".join(f"{n} was {recorded.get(n)}, now {now.get(n)}" for n in diff)
@@ -149,7 +150,7 @@ def _check_modes(path: Path, recorded: dict[str, str], now: dict[str, str]) -> N
     else:
         hint = (
             "set sim = true for exactly the instruments that were twins ("
-            + ", ".join(n for n in INSTRUMENTS if recorded.get(n) == "twin")
+            + ", ".join(n for n in INSTRUMENT_NAMES if recorded.get(n) == "twin")
             + ") and do not pass --sim"
         )
     raise StorageError(

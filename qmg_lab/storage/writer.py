@@ -54,7 +54,7 @@ import h5py
 import numpy as np
 from h5py import h5s
 
-from qmg_lab.instruments import INSTRUMENT_MODES
+from qmg_lab.instruments import INSTRUMENT_MODES, INSTRUMENT_NAMES
 from qmg_lab.storage.background import BackgroundWrites
 from qmg_lab.storage.deflate import shuffled_deflate
 from qmg_lab.storage.h5clear import clear_superblock_flags, writer_flags_set
@@ -72,7 +72,6 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
     GROUP_UNITS,
     GZIP_LEVEL,
     GZIP_LEVELS,
-    INSTRUMENTS,
     KIND_BYTES,
     LOCKIN_UNITS,
     MODES,
@@ -254,11 +253,11 @@ class RunWriter:
         modes = (
             dict(instrument_modes)
             if instrument_modes is not None
-            else {n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENTS}
+            else {n: ("twin" if mode == "sim" else "hardware") for n in INSTRUMENT_NAMES}
         )
-        if set(modes) != set(INSTRUMENTS) or not set(modes.values()) <= set(INSTRUMENT_MODES):
+        if set(modes) != set(INSTRUMENT_NAMES) or not set(modes.values()) <= set(INSTRUMENT_MODES):
             raise StorageError(
-                f"{p}: instrument_modes must give each of {INSTRUMENTS} one of {INSTRUMENT_MODES}, got {modes!r}"
+                f"{p}: instrument_modes must give each of {INSTRUMENT_NAMES} one of {INSTRUMENT_MODES}, got {modes!r}"
             )
         if not np.isfinite(t0_unix):
             raise StorageError(f"{p}: t0_unix must be a finite number of seconds, got {t0_unix!r}")
@@ -358,7 +357,7 @@ class RunWriter:
         a["resume_count"] = 0
         a["planned_steps"] = int(planned_steps)
         a["planned_step_kinds"] = json.dumps(list(planned_step_kinds))
-        a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENTS})
+        a["instrument_modes"] = json.dumps({n: modes[n] for n in INSTRUMENT_NAMES})
         a["compression"] = compression
         a["flush_interval_s"] = float(flush_interval_s)
         a["writer_pid"] = os.getpid()

@@ -38,7 +38,6 @@ from qmg_lab.config.schema import ConfigError, parse_config, stream_timing_probl
 from qmg_lab.instruments import INSTRUMENT_NAMES, LimitError
 
 Scalar = bool | int | float | str
-INSTRUMENT_SECTIONS = INSTRUMENT_NAMES  # every point runs each of them on its twin
 
 
 class StudyError(ValueError):
@@ -162,7 +161,7 @@ def load_study(path: str | Path) -> Study:
         raise StudyError(f"{p}: base configuration {base_path}: {exc}") from None
     for key, value in spec.set.items():
         _set_key(base, key, value, f"{p} [set]")
-    for name in INSTRUMENT_SECTIONS:
+    for name in INSTRUMENT_NAMES:  # every point runs each of them on its twin
         _set_key(base, f"{name}.sim", True, str(p))
     _set_key(base, "storage.level", spec.study.storage_level, str(p))
     points, problems = [], []
