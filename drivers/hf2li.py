@@ -158,6 +158,7 @@ class HF2LI(LockIn):
         self._t0_ticks: int | None = None  # the stream's time origin and last sample, device clock ticks
         self._carry: list[dict[str, np.ndarray] | None] = [None, None]  # unpaired stream tails held for next poll
         self._pair_tolerance_ticks = 0.0  # half a sample period (start_stream)
+        self._measured_offset: int | None = None  # sense minus drive timestamp of the last pair, ticks
         self._last_ts: int | None = None
         self._attach()
 
@@ -284,10 +285,12 @@ class HF2LI(LockIn):
         }
 
     def demod_timestamp_offset(self) -> int | None:
-        """Timestamp of the sense demodulator's last sample minus the drive demodulator's (clockbase ticks, from
-        ``demods/n/sample`` read once each; None when either has no sample yet or they run at different rates).
-        Only the offset modulo one sample period is meaningful: the two reads need not see the same sample, so
-        the result is folded into [-T/2, T/2), T = clockbase / rate."""
+        """Timestamp of a sense sample minus that of the drive sample it pairs with, clockbase ticks: from the last
+        pair the stream delivered, else from ``demods/n/sample`` read once each (None when either demodulator has
+        no sample, e.g. both disabled, or they run at different rates). The two reads need not see the same
+        sample, so that offset is folded into [-T/2, T/2), T = clockbase / rate: the pairing's own window."""
+        if self._measured_offset is not None:
+            return self._measured_offset
         d, s = self._demods
         try:
             rate = float(self._get(f"demods/{s}/rate"))
@@ -298,7 +301,7 @@ class HF2LI(LockIn):
         except Exception as exc:
             log.info("HF2LI %s: demod timestamps not readable: %s", self.device_id, exc)
             return None
-        if any(len(t) == 0 or int(t[-1]) == 0 for t in ts):
+        if any(len(t) == 0 for t in ts):
             return None
         period = self._clockbase / rate
         diff = float(int(ts[1][-1]) - int(ts[0][-1]))
@@ -419,6 +422,8 @@ class HF2LI(LockIn):
         i_d, i_s = pair_nearest(d_ts, s_ts, self._pair_tolerance_ticks)
         self._keep_unpaired_tail(drive, sense, d_ts, s_ts, i_d, i_s)
         ticks = s_ts[i_s]
+        if len(ticks):
+            self._measured_offset = int(ticks[-1]) - int(d_ts[i_d][-1])
         lost = self._count_lost(ticks)
         if flag and lost == 0:
             lost = 1

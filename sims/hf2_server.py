@@ -300,7 +300,13 @@ class HF2DataServerTwin:
             raise NodeError(f"ZIAPIException: node {p} is not a demodulator sample node")
         if p in self._last_sample:
             return {k: v[-1:].copy() for k, v in self._last_sample[p].items()}
-        return {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
+        d = int(p.split("/")[3])
+        if not int(self.nodes.peek(f"demods/{d}/enable")):  # *assumed*: a disabled demod sends no sample
+            raise NodeError(f"ZIAPITimeoutException: no sample of {p} (the demodulator is disabled)")
+        sample = {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
+        ticks = int(round(self.world.now() * self.clockbase_hz)) + (self.timestamp_offset_ticks if d else 0)
+        sample["timestamp"] = np.array([ticks], dtype=np.uint64)  # an enabled demod's latest: stamped about now
+        return sample
 
     def get(self, paths: str, *args: Any, flat: bool = False, settingsonly: bool = True, **kwargs: Any) -> dict:
         """Values of the matching nodes: flat {path: array([v])} or nested {dev: {branch: ...}}. Streams are
