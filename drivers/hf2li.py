@@ -30,9 +30,13 @@ derives the output mixer channels from the options (drivers/hf2_nodes.py ``mixer
 
 Versions: zhinst-core refuses, by default, a data server of another LabOne version ("ZIAPIVersionMismatchException
 ... The server is at LabOne version 'A' but the client is at LabOne version 'B'", zhinst-toolkit issues #291 and
-#294); ``allow_version_mismatch`` is passed to ``Session`` ([lockin] allow_version_mismatch) and a refusal is
-reported with both versions and the two ways out (``version_mismatch_message``). ``reconnect()`` opens a new
-session: a new data-server connection on hardware, a new Session over the same twin otherwise.
+#294; zhinst-core 26.x also says "Incompatible server version. Please ensure the client and server run on the
+same LabOne version.", naming neither, and "The server/client version is too old ..."); ``allow_version_mismatch``
+is passed to ``Session`` ([lockin] allow_version_mismatch) and a refusal is reported with both versions (the
+server's read over a mismatch-allowing connection when the text names none) and the two ways out, the install as
+``zhinst-core==X.Y.*`` (``zhinst_core_pin``: zhinst-core releases have four-part versions, 25.1.0.834).
+``reconnect()`` opens a new session: a new data-server connection on hardware, a new Session over the same twin
+otherwise.
 """
 
 from __future__ import annotations
@@ -80,24 +84,75 @@ log = logging.getLogger(__name__)
 PLL_LOCKED_BITS = (1 << 20, 1 << 21)  # status/flags/binary "b20": PLL 1 locked, "b21": PLL 2 locked (nodedoc)
 N_PLLS = 2  # the HF2-PLL option's two PLLs (HF2 user manual, PLL tab)
 DEFAULT_HF2_PORT = 8005
-_SERVER_VERSION = re.compile(r"server is at LabOne version '([^']*)'", re.IGNORECASE)
+# zhinst-core's refusals of a data server of another LabOne version (strings of zhinst-core 26.7's _core.so; the
+# first as zhinst-toolkit issues #291 and #294 quote it), each with the server's version where the text has one
+_MISMATCH_TEXTS = (
+    "version mismatch",  # "Version mismatch detected. The server is at LabOne version 'A' but the client is at ..."
+    "versionmismatch",  # "ZIAPIVersionMismatchException ..."
+    "incompatible server version",  # 26.x: "Incompatible server version. Please ensure the client and server run
+    # on the same LabOne version." (no version named)
+    "server version is too old",  # "The server version is too old. The server runs on version 'A' but ..."
+    "client version is too old",  # "The client version is too old ... The client is on version B while the
+    # server is on version A"
+)
+_SERVER_VERSION = (
+    re.compile(r"server is at LabOne version '([^']*)'", re.IGNORECASE),
+    re.compile(r"server runs on version '([^']*)'", re.IGNORECASE),
+    re.compile(r"while the server is on version '?([0-9][0-9.]*[0-9])", re.IGNORECASE),
+)
+_RELEASE = re.compile(r"^\s*v?(\d+)\.(\d+)")
 
 
-def version_mismatch_message(host: str, port: int, error: str) -> str | None:
-    """The explanation of a data server's refusal for a LabOne version mismatch (None for any other error):
-    both versions (the server's from zhinst-core's message, the client's = the installed zhinst-core) and the two
-    ways out: install the zhinst-core of the server's LabOne version, or allow the mismatch."""
-    if "version mismatch" not in error.lower() and "versionmismatch" not in error.lower():
+def zhinst_core_pin(labone_version: str) -> str | None:
+    """The pip requirement of the zhinst-core that matches a LabOne version: ``zhinst-core==X.Y.*`` from its first
+    two numbers (leading zeros dropped: LabOne says "26.07", PyPI has 26.7.2.5). zhinst-core's releases have three
+    or four parts (24.10.65175, 25.1.0.834), so an exact ``==25.1.0`` matches none; ``==25.1.*`` matches every
+    release of that LabOne version (PEP 440 prefix match). None for a text that is not a version."""
+    found = _RELEASE.match(labone_version)
+    if found is None:
         return None
-    found = _SERVER_VERSION.search(error)
-    server = found.group(1) if found else "(see the message below)"
+    return f"zhinst-core=={int(found.group(1))}.{int(found.group(2))}.*"
+
+
+def server_labone_version(host: str, port: int) -> str | None:
+    """The data server's LabOne version (``/zi/about/version``), read over a connection that allows the mismatch
+    and is closed at once; None when that fails too. For a refusal that does not name the server's version."""
+    try:
+        daq = zhinst.core.ziDAQServer(host, port, 1, allow_version_mismatch=True)
+    except Exception:
+        return None
+    try:
+        return str(daq.getString("/zi/about/version"))
+    except Exception:
+        return None
+    finally:
+        with contextlib.suppress(Exception):
+            daq.disconnect()
+
+
+def is_version_refusal(error: str) -> bool:
+    """Whether zhinst-core's error text is one of its LabOne version refusals (``_MISMATCH_TEXTS``)."""
+    text = error.lower()
+    return any(t in text for t in _MISMATCH_TEXTS)
+
+
+def version_mismatch_message(host: str, port: int, error: str, server_version: str | None = None) -> str | None:
+    """The explanation of a data server's refusal for a LabOne version mismatch (None for any other error):
+    both versions (the server's from zhinst-core's message, else `server_version` as read otherwise; the
+    client's = the installed zhinst-core) and the two ways out: install the zhinst-core of the server's LabOne
+    version (``zhinst_core_pin``), or allow the mismatch."""
+    if not is_version_refusal(error):
+        return None
+    found = next((m.group(1) for rx in _SERVER_VERSION if (m := rx.search(error))), None) or server_version
+    server = found or "(unknown: see the message below)"
     client = str(getattr(zhinst.core, "__version__", "unknown"))
-    wanted = server if found else "<LabOne version of the data server>"
+    pin = zhinst_core_pin(found) if found else None
+    install = f'pip install "{pin}"' if pin else 'pip install "zhinst-core==<X.Y of the server\'s LabOne>.*"'
     return (
         f"the HF2 data server at {host}:{port} runs LabOne {server}, but the installed zhinst-core is {client}: "
-        "zhinst-core refuses a data server of another LabOne version. Either install the matching client "
-        f'(pip install "zhinst-core=={wanted}"), or set allow_version_mismatch = true in [lockin] '
-        f"(the connection is then made; the two versions may not agree on every node). zhinst-core said: {error}"
+        f"zhinst-core refuses a data server of another LabOne version. Either install the matching client ({install}"
+        "), or set allow_version_mismatch = true in [lockin] (the connection is then made; the two versions may not "
+        f"agree on every node). zhinst-core said: {error}"
     )
 
 
@@ -113,7 +168,10 @@ def open_hf2_session(host: str, port: int, allow_version_mismatch: bool = False)
     try:
         return data_server_session(host, port, allow_version_mismatch)
     except Exception as exc:  # zhinst.core raises RuntimeError (or its CoreError subclasses)
-        explained = version_mismatch_message(host, port, str(exc))
+        error = str(exc)
+        named = any(rx.search(error) for rx in _SERVER_VERSION)
+        probed = server_labone_version(host, port) if is_version_refusal(error) and not named else None
+        explained = version_mismatch_message(host, port, error, probed)
         raise InstrumentError(explained or f"cannot reach the HF2 data server at {host}:{port}: {exc}") from exc
 
 
