@@ -1,5 +1,6 @@
-"""A campaign on an HF2LI without the MF option (issue 24): `qmg-lab run CONFIG --sim` with `[sim] hf2_options =
-["PLL", "PID"]` completes, the driver drives mixer channels 6 and 7, and the results match the MF run within noise.
+"""A campaign on an HF2LI without the MF option: `qmg-lab run CONFIG --sim` with `[sim] hf2_options = ["PLL", "PID"]`
+completes, the driver drives mixer channels 6 and 7, locks oscillator 2 (which channel 7 runs on in the twin, as
+the HF2 manual has it) to the drive with PLL 2, and the results match the MF run within noise.
 
 The two runs share the seed, so the twin's noise is the same realisation in both and only the instrument's option
 set differs. The tolerance is nevertheless the noise the comparison would have with independent realisations, so
@@ -8,6 +9,10 @@ the white noise q / sqrt(T) (q from the noise budget, docs/noise-budget.md; T = 
 of two such means is within 4 sqrt(2) q / sqrt(T) (4 sigma). A wrong mixer channel is far outside: a forcer carrier
 on a channel the output does not use opens the rate loop (no lock, or an SF off by 100 %), and a 1 % carrier
 amplitude error shifts the estimate by 1e4 ppm.
+
+The analysis's CLSF accuracy (RMS over the pairs of the estimate's error against the truth) of the two runs then
+differs by at most the same bound: |rms(a) - rms(b)| <= rms(a - b) <= max |a_i - b_i| (triangle inequality), and
+the truth is the same in both runs (same seed, same world), so a_i - b_i is the difference of the pair means.
 """
 
 from __future__ import annotations
@@ -100,6 +105,15 @@ def test_the_run_without_mf_used_mixer_channels_6_and_7(runs: tuple[Path, Path])
     assert lockin_snapshot(mf)["state"]["mixer_channels"] == {"drive": 0, "forcer": 1}
 
 
+def test_the_forcer_without_mf_ran_on_oscillator_2_locked_by_pll_2(runs: tuple[Path, Path]) -> None:
+    mf, no_mf = runs
+    carriers = lockin_snapshot(no_mf)["state"]["carriers"]
+    assert carriers["forcer_oscillator"] == 1 and carriers["tracking_plls"] == [1]
+    pll2 = lockin_snapshot(no_mf)["state"]["tracking_plls"]["1"]
+    assert pll2["enable"] == 1 and pll2["oscselect"] == 1
+    assert lockin_snapshot(mf)["state"]["carriers"]["tracking_plls"] == []
+
+
 def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path]) -> None:
     from qmg_lab.budget.noise import noise_budget
     from qmg_lab.config.schema import load_config
@@ -112,3 +126,18 @@ def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path
     assert len(mf) == len(no_mf) >= 3
     assert np.max(np.abs(no_mf - mf)) <= tolerance, (no_mf - mf, tolerance)
     assert tolerance < 1e-3  # the bound is tight enough to see a 0.1 % carrier error
+
+
+def test_the_analysis_accuracy_without_mf_matches_the_mf_run_within_the_same_bound(runs: tuple[Path, Path]) -> None:
+    from qmg_lab.analysis.compute import analyze
+    from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.config.schema import load_config
+
+    cfg, _ = load_config(PAPER)
+    q = math.sqrt(sum(s.white_ppm_rt_s**2 for s in noise_budget(cfg, sim_blocks=True).sources))  # ppm sqrt(s)
+    tolerance_ppm = 4.0 * math.sqrt(2.0) * q / math.sqrt(2.0 * (float(SHORT_PLAN["dwell_s"]) - cfg.plan.settle_s))
+    mf, no_mf = (analyze(p).to_json() for p in runs)
+    assert mf["n_step_pairs"] == no_mf["n_step_pairs"] >= 3
+    a, b = mf["clsf_accuracy_rms_ppm"], no_mf["clsf_accuracy_rms_ppm"]
+    assert a is not None and b is not None
+    assert abs(a - b) <= tolerance_ppm, (a, b, tolerance_ppm)
