@@ -303,6 +303,7 @@ class HF2LI(LockIn):
             "device": self.device_id,
             "devtype": self.devtype,
             "options": list(self.options),
+            "demod_timestamp_offset_ticks": self.demod_timestamp_offset(),  # None while the demods are off
             "mixer_channels": {"drive": self.layout.drive, "forcer": self.layout.forcer},
             "carriers": {
                 "reference_oscillator": self.carriers.ref_osc,
@@ -311,7 +312,6 @@ class HF2LI(LockIn):
                 "tracking_plls": list(self.carriers.tracking_plls),
                 "demods": {"drive": self.carriers.drive_demod, "sense": self.carriers.sense_demod},
             },
-            "demod_timestamp_offset_ticks": self.demod_timestamp_offset(),
             "clockbase_hz": self._clockbase,
             "streaming": self._streaming,
             "pll": self._pll_state(DRIVE_PLL),
@@ -482,7 +482,9 @@ class HF2LI(LockIn):
         ticks = s_ts[i_s]
         if len(ticks):
             self._measured_offset = int(ticks[-1]) - int(d_ts[i_d][-1])
-        lost = self._count_lost(ticks)
+            lost = self._count_lost(ticks)
+        else:  # nothing paired: every sample it did not hold back is lost, and the stream's clock moves past them
+            lost = self._lost_unpaired(d_ts, s_ts)
         if flag and lost == 0:
             lost = 1
         if len(ticks):
@@ -534,6 +536,22 @@ class HF2LI(LockIn):
             tail = tail[ts[tail] > other[-1] - tol]
             if len(tail):
                 self._carry[k] = {key: np.asarray(v)[tail] for key, v in data.items()}
+
+    def _lost_unpaired(self, d_ts: np.ndarray, s_ts: np.ndarray) -> int:
+        """Samples lost in a block where no sample paired: the gap count up to the last sample either stream
+        delivered and did not hold back for the next poll (its timestamp then stands for the block's end), so that
+        the next block's first gap does not count them again. 0 for a block that delivered nothing."""
+        held = [0 if c is None else len(c["timestamp"]) for c in self._carry]
+        ends = [int(ts[len(ts) - h - 1]) for ts, h in ((d_ts, held[0]), (s_ts, held[1])) if len(ts) > h]
+        if not ends:
+            return 0
+        end = max(ends)
+        if self._last_ts is None:  # the stream's first block: count from its first delivered sample
+            first = min(int(ts[0]) for ts in (d_ts, s_ts) if len(ts))
+            self._last_ts = first - int(round(self._ticks_per_sample))
+        lost = max(int(np.rint((end - self._last_ts) / self._ticks_per_sample)), 0)
+        self._last_ts = end
+        return lost
 
     def _samples(self, raw: Any, demod: int) -> dict[str, np.ndarray]:
         key = f"/{self.device_id}/demods/{demod}/sample"

@@ -88,3 +88,15 @@ def test_a_sample_whose_partner_comes_with_the_next_poll_waits_for_it() -> None:
     t = np.concatenate([b.time for b in blocks])
     assert np.allclose(np.diff(t), 1 / RATE, rtol=0, atol=1e-12)
     assert li.demod_timestamp_offset() == offset - T  # sense minus the (next) drive sample
+
+
+def test_a_block_where_nothing_pairs_is_empty_and_counts_every_sample_lost() -> None:
+    # the drive demodulator's stream delivers nothing for one poll: no sense sample has a partner
+    twin, li = streaming(30_000)
+    li.poll(0.5)
+    twin.unsubscribe("/dev1234/demods/0/sample")
+    b = li.poll(0.5)
+    assert len(b) == 0 and b.samples_lost == PER_POLL
+    twin.subscribe("/dev1234/demods/0/sample")
+    after = li.poll(0.5)
+    assert len(after) == PER_POLL and after.samples_lost == 0  # the lost ones are not counted twice
