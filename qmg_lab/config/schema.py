@@ -249,8 +249,10 @@ class LockInSection(_Section):
         description="output mixer channel carrying the forcer carrier; unset = from the HF2's options (MF: 1; "
         "without MF: 6 on output 1, 7 on output 2)",
     )
-    fixed_channel_oscillators: tuple[int, int] = Field(
-        (0, 1),
+    fixed_channel_oscillators: list[Annotated[int, Field(ge=0, le=5)]] = Field(
+        default_factory=lambda: [0, 1],
+        min_length=2,
+        max_length=2,
         description="oscillator indices (0-based) of output mixer channels 6 and 7, which have no demodulator to "
         "choose one: HF2 user manual, External Reference tutorial (Output 2 runs on oscillator 2); the driver locks "
         "a carrier on an oscillator other than PLL 1's with the PLL that drives it (docs/wiring.md)",

@@ -39,7 +39,7 @@ SHORT_PLAN = {  # the paper campaign cut to a few minutes of simulated time: 25 
 }
 
 
-def short_config(tmp: Path, options: list[str] | None) -> Path:
+def short_config(tmp: Path, options: list[str] | None, lockin_line: str = "") -> Path:
     text = PAPER.read_text(encoding="utf-8")
     for key, value in SHORT_PLAN.items():
         text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
@@ -47,7 +47,10 @@ def short_config(tmp: Path, options: list[str] | None) -> Path:
     if options is not None:
         text, n = re.subn(r"(?m)^(\[sim\][^\n]*)$", rf"\1\nhf2_options = {json.dumps(options)}", text)
         assert n == 1
-    name = "short_" + ("_".join(options) if options else "mf") + ".toml"
+    if lockin_line:
+        text, n = re.subn(r"(?m)^(\[lockin\][^\n]*)$", rf"\1\n{lockin_line}", text)
+        assert n == 1
+    name = "short_" + ("_".join(options) if options else "mf") + ("_edited" if lockin_line else "") + ".toml"
     (tmp / name).write_text(text, encoding="utf-8")
     return tmp / name
 
@@ -126,6 +129,22 @@ def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path
     assert len(mf) == len(no_mf) >= 3
     assert np.max(np.abs(no_mf - mf)) <= tolerance, (no_mf - mf, tolerance)
     assert tolerance < 1e-3  # the bound is tight enough to see a 0.1 % carrier error
+
+
+def test_a_driver_that_leaves_oscillator_2_alone_gets_no_rebalance_in_the_campaign(
+    runs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # the driver is told channel 7 runs on PLL 1's oscillator, so it neither sets nor locks oscillator 2: in the
+    # twin (channel 7 on oscillator 2, as the manual has it) the forcer carrier exerts no force, so the dither
+    # (which enters the forcer path) does not come through and the CLSF estimate is far from the MF run's
+    from qmg_lab.config.schema import load_config
+
+    settle = load_config(PAPER)[0].plan.settle_s
+    wrong = tmp_path / "wrong.h5"
+    run(short_config(tmp_path, ["PLL", "PID"], "fixed_channel_oscillators = [0, 0]"), wrong)
+    assert lockin_snapshot(wrong)["state"]["carriers"]["tracking_plls"] == []
+    mf = pair_means(runs[0], settle)
+    assert np.min(np.abs(pair_means(wrong, settle) - mf)) > 0.5  # an SF change estimate off by more than 50 %
 
 
 def test_the_analysis_accuracy_without_mf_matches_the_mf_run_within_the_same_bound(runs: tuple[Path, Path]) -> None:
