@@ -355,7 +355,10 @@ class HF2LI(LockIn):
             if rate <= 0 or rate != float(self._get(f"demods/{d}/rate")):
                 return None
             server = self._session.daq_server
-            ts = [server.getSample(f"/{self.device_id}/demods/{k}/sample")["timestamp"] for k in (d, s)]
+            ts = [
+                np.atleast_1d(np.asarray(server.getSample(f"/{self.device_id}/demods/{k}/sample")["timestamp"]))
+                for k in (d, s)
+            ]
         except Exception as exc:
             log.info("HF2LI %s: demod timestamps not readable: %s", self.device_id, exc)
             return None

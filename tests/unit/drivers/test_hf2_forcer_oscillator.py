@@ -14,6 +14,7 @@ coherent forcer the sense mode runs open: dX/dt = -k R_d Omega = -0.8 * 0.5 * (5
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -23,7 +24,7 @@ from zhinst.toolkit import Session
 from drivers.hf2li import HF2LI
 from qmg_lab.campaign.loops import lockin_setup
 from qmg_lab.config.schema import Config
-from qmg_lab.instruments import InstrumentError, LockInBlock
+from qmg_lab.instruments import InstrumentError, LockInBlock, LockInSetup
 from qmg_lab.station import hf2_wiring
 from sims.hf2_server import HF2DataServerTwin
 from sims.world import World
@@ -44,7 +45,9 @@ def non_mf_config(**lockin: object) -> Config:
     )
 
 
-def bench(cfg: Config, setup_edit=None) -> tuple[World, HF2DataServerTwin, HF2LI]:  # type: ignore[no-untyped-def]
+def bench(
+    cfg: Config, setup_edit: Callable[[LockInSetup], LockInSetup] | None = None
+) -> tuple[World, HF2DataServerTwin, HF2LI]:
     world = paper_world()
     twin = HF2DataServerTwin(
         world, paper_gyro_params(), seed=5, wiring=hf2_wiring(cfg), **hf2_twin_settings(options=NON_MF)
