@@ -21,8 +21,25 @@ Mixer channels (``mixer_layout``), from the instrument's ``features/options``:
   (zhinst-utils ``default_output_mixer_channel``; zhinst-toolkit's HF2 PID-advisor example uses
   ``OUT_MIXER_CHANNEL = 6``); the outputs list only channels 6 and 7 (a recorded non-MF HF2, dev1492, in the
   public qudi-iqo-modules HF2 driver: ``{'/dev1492/sigouts/0/enables/6': 0, '/dev1492/sigouts/0/enables/7': 0}``).
-  Which oscillator channels 6 and 7 run on is not a node of a non-MF HF2; *unconfirmed*: the PLL's (check the
-  output frequency at bring-up, docs/bench-bringup.md).
+* channels 6 and 7 have no demodulator whose oscillator could be chosen: their oscillators are fixed
+  (``carrier_plan``). Channel 7 runs on oscillator 2 (index 1): the HF2 user manual's External Reference tutorial
+  generates Output 2's signal with "Demodulator 8 Amplitude 2 ... Oscillator 2 frequency" (channel 7 is
+  "Demodulator 8" counted from 1); channel 6 on oscillator 1 (index 0) by the same construction (*inferred*: the
+  tutorial shows Output 2 only). ``[lockin] fixed_channel_oscillators`` (default [0, 1]) holds the two indices, to
+  be changed if the scope at bring-up shows otherwise (docs/wiring.md).
+
+Carrier coherence (``carrier_plan``): the drive and the forcer carrier must run at the drive frequency in phase
+with the PLL. PLL 1 (``plls/0``) locks oscillator ``plls/0/oscselect`` to the drive pickoff; every demodulator the
+loops use runs on it. A carrier channel on another oscillator is made coherent by the second PLL (the HF2-PLL
+option has two independent PLLs, HF2 user manual, PLL tab): PLL n, the one whose ``plls/n/oscselect`` (read-only,
+"Index of the oscillator used", nodedoc_hf2.json, read at connect) is that oscillator, is set up exactly like
+PLL 1 on the drive input (same centre, range, gains and phase setpoint), so both oscillators lock to the same
+signal with the same phase. Without MF that is the forcer carrier on channel 7: oscillator 2, PLL 2. A PLL uses a
+demodulator of its own (``plls/n/demodselect``, read-only, "Source demodulator"; the manual: "Demodulators that
+are used by an active PLL are set to read-only values"): the sense demodulator is the first one no such PLL uses.
+*Unconfirmed on an instrument*: that PLL 2 drives oscillator 2 (the driver reads it and refuses a layout where
+no PLL drives the carrier's oscillator) and the phase of the two PLLs' oscillators at equal setpoints (check on a
+scope: docs/wiring.md).
 * ``[lockin] drive_mixer_channel`` / ``forcer_mixer_channel`` override the derived channel for a bench wired
   otherwise (it must be one the instrument lists).
 * PLL and PID are required options (the PLL closes the drive loop, the PIDs the AGC, rate and quadrature loops):
@@ -38,7 +55,9 @@ from typing import Any, Protocol
 
 from qmg_lab.instruments import InstrumentError, LimitError, LockInSetup, PidGains, check_limit
 
-DRIVE_DEMOD, SENSE_DEMOD = 0, 1
+DRIVE_DEMOD, SENSE_DEMOD = 0, 1  # SENSE_DEMOD: unless a tracking PLL uses it (carrier_plan)
+DRIVE_PLL = 0
+FIXED_CHANNEL_OSCILLATORS = (0, 1)  # oscillators of mixer channels 6 and 7 (module doc; [lockin] key's default)
 AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
 # AuxIn ADC sample rate, Sa/s. *Assumed*: the HF2 documentation says the AuxIns average 2^n (1..32768) ADC
 # samples and align the result by timestamp with the demodulator sample, but the ADC rate was not found. With the
@@ -140,6 +159,63 @@ def mixer_layout(options: tuple[str, ...], wiring: LockInWiring) -> MixerLayout:
     return MixerLayout(channels=channels, drive=drive, forcer=forcer)
 
 
+@dataclass(frozen=True)
+class CarrierPlan:
+    """Which oscillator each carrier runs on, which PLLs lock them to the drive, and the demodulators the loops
+    use (module doc: carrier coherence)."""
+
+    ref_osc: int  # PLL 1's oscillator: the demodulators' reference
+    drive_osc: int  # oscillator of the drive mixer channel
+    forcer_osc: int  # oscillator of the forcer mixer channel
+    tracking_plls: tuple[int, ...]  # PLLs besides PLL 1 set up on the drive input (each locks one carrier's osc)
+    drive_demod: int
+    sense_demod: int
+
+
+def fixed_channel_oscillators(wiring: LockInWiring) -> dict[int, int]:
+    """{6: oscillator of channel 6, 7: oscillator of channel 7} from [lockin] fixed_channel_oscillators."""
+    pair = getattr(wiring, "fixed_channel_oscillators", None) or FIXED_CHANNEL_OSCILLATORS
+    return {NON_MF_OUTPUT_MIXER_CHANNELS[0]: int(pair[0]), NON_MF_OUTPUT_MIXER_CHANNELS[1]: int(pair[1])}
+
+
+def carrier_plan(
+    layout: MixerLayout, wiring: LockInWiring, pll_oscs: tuple[int, ...], pll_demods: tuple[int, ...]
+) -> CarrierPlan:
+    """The carriers' oscillators and the PLLs that lock them (module doc) from the instrument's read-only
+    ``plls/n/oscselect`` (`pll_oscs`) and ``plls/n/demodselect`` (`pll_demods`); ValueError when a carrier's
+    oscillator is driven by no PLL or no demodulator is left for the sense pickoff."""
+    ref = pll_oscs[DRIVE_PLL]
+    fixed = fixed_channel_oscillators(wiring)
+
+    def osc_of(m: int) -> int:  # a channel with a demodulator runs on it, which setup_nodes puts on PLL 1's osc
+        return fixed[m] if m >= N_DEMODS else ref
+
+    drive_osc, forcer_osc = osc_of(layout.drive), osc_of(layout.forcer)
+    tracking: list[int] = []
+    for name, osc in (("drive", drive_osc), ("forcer", forcer_osc)):
+        if osc == ref:
+            continue
+        owners = [n for n, o in enumerate(pll_oscs) if o == osc and n != DRIVE_PLL]
+        if not owners:
+            raise ValueError(
+                f"the {name} carrier's mixer channel runs on oscillator {osc + 1} (index {osc}, [lockin] "
+                f"fixed_channel_oscillators), but no PLL drives that oscillator (plls/n/oscselect = "
+                f"{list(pll_oscs)}): the carrier cannot be locked to the drive"
+            )
+        if owners[0] not in tracking:
+            tracking.append(owners[0])
+    busy = {pll_demods[n] for n in tracking}
+    drive_demod = DRIVE_DEMOD
+    free = [d for d in range(N_DEMODS) if d != drive_demod and d not in busy]
+    if drive_demod in busy or not free:
+        raise ValueError(
+            f"the PLLs {[n + 1 for n in tracking]} use demodulators {sorted(busy)} (plls/n/demodselect): no "
+            "demodulator is left for the drive or the sense pickoff"
+        )
+    sense_demod = SENSE_DEMOD if SENSE_DEMOD in free else free[0]
+    return CarrierPlan(ref, drive_osc, forcer_osc, tuple(tracking), drive_demod, sense_demod)
+
+
 def check_wiring(wiring: LockInWiring) -> None:
     """Raise ValueError naming the first impossible wiring field."""
     for name, hi in (
@@ -159,6 +235,9 @@ def check_wiring(wiring: LockInWiring) -> None:
         m = getattr(wiring, name, None)
         if m is not None and (not isinstance(m, int) or not 0 <= m < N_MIXER_CHANNELS):
             raise ValueError(f"lock-in wiring: {name} = {m!r} must be an integer in [0, 7] (or unset)")
+    fixed = getattr(wiring, "fixed_channel_oscillators", None)
+    if fixed is not None and (len(fixed) != 2 or any(not isinstance(o, int) or not 0 <= o < 6 for o in fixed)):
+        raise ValueError(f"lock-in wiring: fixed_channel_oscillators = {fixed!r} must be two oscillator indices 0..5")
     if not 0.0 < float(wiring.forcer_carrier_amplitude) <= 1.0:
         raise ValueError(
             f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
@@ -245,40 +324,11 @@ def _pid_nodes(n: int, g: PidGains, inp: int, inch: int, out: int, outch: int) -
     ]
 
 
-def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int, layout: MixerLayout) -> list[tuple[str, Any]]:
-    """The (relative path, value) pairs of a full configuration, loops enabled last. Call check_setup first.
-    Only nodes the instrument of ``layout`` lists are named (its mixer channels)."""
-    w = wiring
-    dm, fm = layout.drive, layout.forcer
-    drange = drive_output_range(setup.agc)
-    s: list[tuple[str, Any]] = [
-        ("pids/*/enable", 0),
-        ("plls/0/enable", 0),
-        (f"sigins/{w.drive_sigin}/range", SIGIN_RANGE_V),
-        (f"sigins/{w.sense_sigin}/range", SIGIN_RANGE_V),
-        (f"oscs/{pll_osc}/freq", setup.f0_hz),
-    ]
-    for d, sigin in ((DRIVE_DEMOD, w.drive_sigin), (SENSE_DEMOD, w.sense_sigin)):
-        b = f"demods/{d}/"
-        s += [
-            (b + "adcselect", sigin),
-            (b + "oscselect", pll_osc),
-            (b + "harmonic", 1),
-            (b + "phaseshift", 0.0),
-            (b + "order", int(setup.demod_order)),
-            (b + "timeconstant", setup.demod_timeconstant_s),
-            (b + "sinc", 0),
-            (b + "trigger", 0),
-            (b + "rate", setup.demod_rate_hz),
-            (b + "enable", 1),
-        ]
-    for m in sorted({dm, fm} - {DRIVE_DEMOD, SENSE_DEMOD}):  # an output channel's oscillator must be the PLL's
-        if m < N_DEMODS:  # channels 6 and 7 have no demodulator whose oscillator could be chosen (module doc)
-            s += [(f"demods/{m}/oscselect", pll_osc), (f"demods/{m}/harmonic", 1), (f"demods/{m}/phaseshift", 0.0)]
-    s += [("auxins/0/averaging", int(setup.auxin_averaging))]
-    b = "plls/0/"
-    s += [
-        (b + "adcselect", w.drive_sigin),
+def _pll_nodes(n: int, setup: LockInSetup, wiring: LockInWiring) -> list[tuple[str, Any]]:
+    """PLL n on the drive input: centre f0, range, gains, phase setpoint and filter of the configuration."""
+    b = f"plls/{n}/"
+    return [
+        (b + "adcselect", wiring.drive_sigin),
         (b + "harmonic", 1),
         (b + "freqcenter", setup.f0_hz),
         (b + "freqrange", setup.pll_range_hz),
@@ -292,6 +342,46 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int, layout: 
         (b + "timeconstant", setup.demod_timeconstant_s),
         (b + "order", int(setup.demod_order)),
     ]
+
+
+def setup_nodes(
+    setup: LockInSetup, wiring: LockInWiring, carriers: CarrierPlan, layout: MixerLayout
+) -> list[tuple[str, Any]]:
+    """The (relative path, value) pairs of a full configuration, loops enabled last. Call check_setup first.
+    Only nodes the instrument of ``layout`` lists are named (its mixer channels); the PLLs and demodulators are
+    those of ``carriers`` (carrier_plan)."""
+    w = wiring
+    dm, fm = layout.drive, layout.forcer
+    pll_osc, drive_demod, sense_demod = carriers.ref_osc, carriers.drive_demod, carriers.sense_demod
+    drange = drive_output_range(setup.agc)
+    plls = (DRIVE_PLL, *carriers.tracking_plls)
+    s: list[tuple[str, Any]] = [("pids/*/enable", 0)]
+    s += [(f"plls/{n}/enable", 0) for n in plls]
+    s += [
+        (f"sigins/{w.drive_sigin}/range", SIGIN_RANGE_V),
+        (f"sigins/{w.sense_sigin}/range", SIGIN_RANGE_V),
+    ]
+    s += [(f"oscs/{o}/freq", setup.f0_hz) for o in sorted({pll_osc, carriers.drive_osc, carriers.forcer_osc})]
+    for d, sigin in ((drive_demod, w.drive_sigin), (sense_demod, w.sense_sigin)):
+        b = f"demods/{d}/"
+        s += [
+            (b + "adcselect", sigin),
+            (b + "oscselect", pll_osc),
+            (b + "harmonic", 1),
+            (b + "phaseshift", 0.0),
+            (b + "order", int(setup.demod_order)),
+            (b + "timeconstant", setup.demod_timeconstant_s),
+            (b + "sinc", 0),
+            (b + "trigger", 0),
+            (b + "rate", setup.demod_rate_hz),
+            (b + "enable", 1),
+        ]
+    for m in sorted({dm, fm} - {drive_demod, sense_demod}):  # an output channel's oscillator must be the PLL's
+        if m < N_DEMODS:  # channels 6 and 7 have no demodulator whose oscillator could be chosen (module doc)
+            s += [(f"demods/{m}/oscselect", pll_osc), (f"demods/{m}/harmonic", 1), (f"demods/{m}/phaseshift", 0.0)]
+    s += [("auxins/0/averaging", int(setup.auxin_averaging))]
+    for n in plls:
+        s += _pll_nodes(n, setup, w)
     # outputs: drive channel and forcer carrier; every other mixer channel of the used outputs off
     used = {(w.drive_sigout, dm), (w.forcer_sigout, fm)}
     for out in sorted({w.drive_sigout, w.forcer_sigout}):
@@ -319,14 +409,14 @@ def setup_nodes(setup: LockInSetup, wiring: LockInWiring, pll_osc: int, layout: 
     ]
     for ch, g in ((w.rate_auxout, setup.rate), (w.quadrature_auxout, setup.quadrature)):
         s += [(f"auxouts/{ch}/outputselect", -1), (f"auxouts/{ch}/scale", 1.0), (f"auxouts/{ch}/offset", g.center)]
-    s += _pid_nodes(AGC_PID, setup.agc, 2, DRIVE_DEMOD, w.drive_sigout, dm)
-    s += _pid_nodes(RATE_PID, setup.rate, 0, SENSE_DEMOD, 3, w.rate_auxout)
-    s += _pid_nodes(QUAD_PID, setup.quadrature, 1, SENSE_DEMOD, 3, w.quadrature_auxout)
-    # switch on: outputs, PLL, then the loops
+    s += _pid_nodes(AGC_PID, setup.agc, 2, drive_demod, w.drive_sigout, dm)
+    s += _pid_nodes(RATE_PID, setup.rate, 0, sense_demod, 3, w.rate_auxout)
+    s += _pid_nodes(QUAD_PID, setup.quadrature, 1, sense_demod, 3, w.quadrature_auxout)
+    # switch on: outputs, PLLs, then the loops
     s += [
         (f"sigouts/{w.drive_sigout}/on", 1),
         (f"sigouts/{w.forcer_sigout}/on", 1),
-        ("plls/0/enable", 1),
+        *[(f"plls/{n}/enable", 1) for n in plls],
         (f"pids/{AGC_PID}/enable", 1),
         (f"pids/{RATE_PID}/enable", 1),
         (f"pids/{QUAD_PID}/enable", 1),

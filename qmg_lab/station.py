@@ -315,6 +315,7 @@ class _Bench:
                 port=lk.port,
                 rate_set=self.cfg.sim.hf2_rate_set,
                 options=tuple(self.cfg.sim.hf2_options),
+                timestamp_offset_ticks=self.cfg.sim.hf2_timestamp_offset_ticks,
             )
             if faults is not None:
                 faults.attach_hf2(twin)
@@ -565,6 +566,7 @@ def open_raw_hf2(cfg: Config) -> tuple[Any, str, Callable[[], None]]:
             port=lk.port,
             rate_set=cfg.sim.hf2_rate_set,
             options=tuple(cfg.sim.hf2_options),
+            timestamp_offset_ticks=cfg.sim.hf2_timestamp_offset_ticks,
         )
         twin.connectDevice(SIM_DEVICE_ID, "USB")
         return twin, SIM_DEVICE_ID, lambda: None

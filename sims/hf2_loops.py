@@ -18,22 +18,37 @@ Rules (HF2 node semantics from the nodedoc and docs/wiring.md; the twin's readin
   enabled on that output, whose demod m uses the reference oscillator, with the output on. Open: the drive
   voltage is the sum over such channels of amplitudes/m * range (V), times sigouts/<drive>/on.
 * Mixer channels 6 and 7 have no demodulator of their own (6 demods); on an HF2 without MF they are the outputs'
-  only channels (output 1 -> 6, output 2 -> 7, zhinst-utils default_output_mixer_channel). The twin takes them
-  as running on the reference oscillator: *unconfirmed* (no node of a non-MF HF2 selects their oscillator).
+  only channels (output 1 -> 6, output 2 -> 7, zhinst-utils default_output_mixer_channel). Their oscillators are
+  fixed (``FIXED_CHANNEL_OSCILLATORS``): channel 7 ("Demodulator 8") runs on oscillator 2 (index 1), as the HF2
+  user manual's External Reference tutorial generates Output 2's signal with "Demodulator 8 Amplitude 2 ...
+  Oscillator 2 frequency"; channel 6 ("Demodulator 7") on oscillator 1 (index 0) by the same construction
+  (*inferred*: the tutorial shows Output 2 only). No node selects them.
+* Coherence of an output channel with the drive (``oscillator_coherence``): its oscillator is the reference, or
+  it is the oscillator of another PLL n (``plls/n/oscselect``, read-only: "Index of the oscillator used",
+  nodedoc_hf2.json) that is enabled on the drive input with harmonic 1 (the HF2 has two independent PLLs with the
+  PLL option, HF2 user manual, PLL tab). Such a PLL locks its oscillator to the same pickoff signal, so its phase
+  is the reference's plus the setpoint difference d = plls/n/setpoint - plls/0/setpoint; the carrier's in-phase
+  part is cos(d) of its amplitude. It tracks while the drive frequency (the reference oscillator's) lies within
+  freqcenter +- freqrange, checked at the start of every poll; out of range it does not lock, its oscillator is
+  not coherent and the channel drives nothing coherent. The demodulator it uses (``plls/n/demodselect``; the
+  manual: "Demodulators that are used by an active PLL are set to read-only values") demodulates the drive input
+  on its oscillator, so it cannot be the sense demodulator. Any other oscillator runs at its fixed ``oscs/n/freq``:
+  a carrier there is not coherent with the mode and averages out (gain 0).
 * A branch the instrument does not list (no PLL or PID option) counts as open.
 * Rate loop closed: an enabled PID with input 0 (X), inputchannel = a sense demod, setpointselect 0, output 3
   (AuxOut offset), outputchannel = rate_auxout, and that AuxOut in manual mode (outputselect = -1). Quadrature:
   the same with input 1 (Y) and quadrature_auxout. Open: the AuxOut's own offset in manual mode, else 0 V
   (the twin does not model an AuxOut showing a demod quantity).
-* Forcer-path gain = sigouts/<forcer_sigout>/amplitudes/m / forcer_carrier_amplitude * on * enables/m, with
-  m = wiring.forcer_mixer_channel (default 1: demod 1's oscillator, which the driver sets to the reference);
-  0 if demod m does not run on the reference oscillator (the carrier would not be coherent with the mode).
+* Forcer-path gain = sigouts/<forcer_sigout>/amplitudes/m / forcer_carrier_amplitude * on * enables/m * cos(d),
+  with m = wiring.forcer_mixer_channel and d the phase offset of m's oscillator (above); 0 if that oscillator is
+  not coherent with the drive.
 * The demod filter the physics applies (time constant, order) is that of the sense demod used by the rate PID
   (else the first sense demod, else demod 1).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -49,10 +64,62 @@ class NodeReader(Protocol):
     def has(self, rel_or_abs: str) -> bool: ...
 
 
-def channel_on_reference(nodes: NodeReader, m: int, ref_osc: int) -> bool:
-    """Whether output mixer channel m runs on the reference oscillator: that of demod m, and for the channels
-    without a demodulator (6, 7) the reference itself (module doc, unconfirmed)."""
-    return m >= N_DEMODS or int(nodes.peek(f"demods/{m}/oscselect")) == ref_osc
+FIXED_CHANNEL_OSCILLATORS = {6: 0, 7: 1}  # mixer channel -> oscillator index (module doc: HF2 user manual)
+N_PLLS = 2
+
+
+def channel_oscillator(nodes: NodeReader, m: int) -> int:
+    """The oscillator output mixer channel m runs on: that of demod m, or the fixed one of channels 6 and 7."""
+    return FIXED_CHANNEL_OSCILLATORS[m] if m >= N_DEMODS else int(nodes.peek(f"demods/{m}/oscselect"))
+
+
+@dataclass(frozen=True)
+class TrackingPll:
+    """A PLL other than the reference's, locked on the drive input: its oscillator follows the drive."""
+
+    index: int
+    osc: int
+    demod: int  # plls/n/demodselect: the demodulator the PLL takes over (its input and oscillator)
+    center_hz: float
+    range_hz: float
+    offset_deg: float  # its setpoint minus the reference PLL's
+
+    def tracks(self, drive_hz: float) -> bool:
+        """Whether the drive frequency lies within the PLL's output range (it can lock)."""
+        return abs(drive_hz - self.center_hz) <= self.range_hz
+
+
+def tracking_plls(nodes: NodeReader, wiring: HF2Wiring, ref_osc: int, pll_closed: bool) -> dict[int, TrackingPll]:
+    """The PLLs besides PLL 1 enabled on the drive input with harmonic 1, by the oscillator they drive (none if
+    PLL 1 is not closed: there is no drive-locked reference to be coherent with)."""
+    out: dict[int, TrackingPll] = {}
+    for n in range(1, N_PLLS):
+        b = f"plls/{n}/"
+        if not pll_closed or not nodes.has(b + "enable") or not int(nodes.peek(b + "enable")):
+            continue
+        if int(nodes.peek(b + "adcselect")) != wiring.drive_sigin or int(nodes.peek(b + "harmonic")) != 1:
+            continue
+        osc = int(nodes.peek(b + "oscselect"))
+        if osc == ref_osc:
+            continue
+        out[osc] = TrackingPll(
+            index=n,
+            osc=osc,
+            demod=int(nodes.peek(b + "demodselect")),
+            center_hz=float(nodes.peek(b + "freqcenter")),
+            range_hz=float(nodes.peek(b + "freqrange")),
+            offset_deg=float(nodes.peek(b + "setpoint")) - float(nodes.peek("plls/0/setpoint")),
+        )
+    return out
+
+
+def oscillator_coherence(osc: int, ref_osc: int, trackers: dict[int, TrackingPll]) -> float | None:
+    """The phase offset (deg) of oscillator `osc` from the reference when it is coherent with the drive (0 for
+    the reference itself), None when it runs at a fixed frequency (module doc)."""
+    if osc == ref_osc:
+        return 0.0
+    tracker = trackers.get(osc)
+    return None if tracker is None else tracker.offset_deg
 
 
 @dataclass
@@ -112,6 +179,8 @@ class LoopPlan:
     open_reasons: dict[str, str] = field(default_factory=dict)
     sense_demod: int = 1
     drive_demod: int = 0
+    trackers: dict[int, TrackingPll] = field(default_factory=dict)  # PLLs besides PLL 1 on the drive, by osc
+    forcer_tracker: TrackingPll | None = None  # the PLL the forcer carrier's coherence depends on (if not PLL 1)
 
 
 def _demod_ok(nodes: NodeReader, d: int, sigin: int, ref_osc: int) -> bool:
@@ -187,17 +256,19 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
     def drive_ok(d: int) -> bool:
         return _demod_ok(nodes, d, wiring.drive_sigin, ref_osc)
 
-    def sense_ok(d: int) -> bool:
-        return _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)
-
     dso = wiring.drive_sigout
+    trackers = tracking_plls(nodes, wiring, ref_osc, pll_closed)
+    pll_demods = {t.demod for t in trackers.values()}
+
+    def sense_ok(d: int) -> bool:  # a demodulator a tracking PLL uses demodulates the drive input on its osc
+        return d not in pll_demods and _demod_ok(nodes, d, wiring.sense_sigin, ref_osc)
 
     def drive_channel_ok(m: int) -> bool:
         return (
             nodes.has(f"sigouts/{dso}/enables/{m}")
             and int(nodes.peek(f"sigouts/{dso}/on")) == 1
             and int(nodes.peek(f"sigouts/{dso}/enables/{m}")) in (1, 3)
-            and channel_on_reference(nodes, m, ref_osc)
+            and oscillator_coherence(channel_oscillator(nodes, m), ref_osc, trackers) == 0.0
         )
 
     # AGC
@@ -255,20 +326,23 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
 
     fso, m = wiring.forcer_sigout, wiring.forcer_mixer_channel
     listed = nodes.has(f"sigouts/{fso}/enables/{m}")
-    coherent = listed and channel_on_reference(nodes, m, ref_osc)
+    forcer_osc = channel_oscillator(nodes, m) if listed else -1
+    offset_deg = oscillator_coherence(forcer_osc, ref_osc, trackers) if listed else None
     if not listed:
         reasons["forcer"] = f"the forcer output lists no mixer channel {m}"
-    elif not coherent:
-        reasons["forcer"] = f"mixer channel {m} of the forcer output does not run on the reference oscillator"
+    elif offset_deg is None:
+        reasons["forcer"] = (
+            f"mixer channel {m} of the forcer output runs on oscillator {forcer_osc}, which no PLL locks to the drive"
+        )
     gain = (
         0.0
-        if not listed
+        if offset_deg is None
         else (
             float(nodes.peek(f"sigouts/{fso}/amplitudes/{m}"))
             / wiring.forcer_carrier_amplitude
             * int(nodes.peek(f"sigouts/{fso}/on"))
             * (int(nodes.peek(f"sigouts/{fso}/enables/{m}")) in (1, 3))
-            * coherent
+            * math.cos(math.radians(offset_deg))
         )
     )
 
@@ -289,4 +363,6 @@ def identify_loops(nodes: NodeReader, wiring: HF2Wiring) -> LoopPlan:
         open_reasons=reasons,
         sense_demod=sense_demod,
         drive_demod=drive_demod,
+        trackers=trackers,
+        forcer_tracker=trackers.get(forcer_osc) if offset_deg is not None else None,
     )

@@ -224,7 +224,10 @@ class HF2NodeTree:
         self.poke("features/options", "\n".join(self.options))  # "newline-separated list" (nodedoc)
         self.poke("system/properties/timebase", 1.0 / clockbase_hz)
         for n in self.instances["plls/n"]:
-            # Each PLL writes the oscillator and uses the demodulator of its own index (twin's assumption).
+            # Each PLL writes the oscillator and uses the demodulator of its own index. *Assumed*: both nodes are
+            # read-only ("Index of the oscillator used", "Source demodulator", nodedoc_hf2.json) and the HF2 user
+            # manual's PLL tab maps "the frequency of an external signal ... onto one of the instrument's internal
+            # oscillators" without naming which; the driver reads plls/n/oscselect, it never assumes this value.
             self.poke(f"plls/{n}/oscselect", n)
             self.poke(f"plls/{n}/demodselect", n)
         for n in self.instances["auxouts/n"]:

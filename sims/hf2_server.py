@@ -20,8 +20,11 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
 2. ``world.advance(n, dt)`` gives the per-step inputs; ``identify_loops`` reads the node values into
    LoopSettings (sims/hf2_loops.py); ``GyroSim.run`` integrates the block (re-created when dt changes).
 3. Every subscribed and enabled demod gets n samples: timestamp = clockbase ticks of the world time at the end
-   of each step; x, y from the physics for drive/sense demods (rotated by exp(-i(phi_osc + phaseshift - phi_ref))
-   if the demod's oscillator is not the reference); frequency and phase (rad) of its oscillator;
+   of each step (plus ``timestamp_offset_ticks`` for every demod but demods/0, the [sim]
+   hf2_timestamp_offset_ticks key: no source says two HF2 demodulators stamp their samples identically, so the
+   twin can play an offset); x, y from the physics for drive/sense demods (rotated by
+   exp(-i(phi_osc + phaseshift - phi_ref)) if the demod's oscillator is not the reference); frequency and phase
+   (rad) of its oscillator;
    auxin[rate_auxin] = the rate AuxOut looped to the AuxIn, auxin[dither_auxin] = the DS345 output, each as the
    AuxIn reports it: the mean of the input over the AuxIn averaging window W = 2^auxins/0/averaging /
    AUXIN_ADC_RATE_HZ that ends at the sample's timestamp (the HF2 averages 1..32768 AuxIn ADC samples and aligns
@@ -31,13 +34,16 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
    HF2 documentation); with the default averaging 0 the window is one ADC sample and its value hardly matters.
    Each reading then gets the AuxIn's own white noise (GyroParams.auxin_noise_v_rms) and is rounded to its ADC
    step (auxin_bits over +-auxin_range_v) and clipped to the range (docs/noise-budget.md).
-4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; pids/n/error (= setpoint -
+4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; plls/1/locked, freqdelta of
+   a PLL that tracks the drive for another oscillator (sims/hf2_loops.py: the forcer carrier without MF), bit 21
+   of status/flags/binary (PLL 2 locked); pids/n/error (= setpoint -
    input), shift (= output - center); auxouts/n/value; auxins/0/values/k; status/flags/binary bit 20 (PLL 1
    locked); status/flags/demodsampleloss; status/time. The truth of the block goes to ``world.record_truth``.
 
-Fault hooks: ``drop_samples(n)`` removes n samples from the middle of the next poll (timestamp gap + sample-loss
-flag); ``force_pll_unlock(duration_s)`` opens the PLL (frequency held at its centre) and reports unlock for that
-much world time from now; ``run_unobserved(seconds)`` runs the instrument on while its host link is down.
+Fault hooks: ``drop_samples(n, demod=None)`` removes n samples from the middle of the next poll, from every demod
+or from one (timestamp gap + sample-loss flag); ``force_pll_unlock(duration_s)`` opens the PLL (frequency held at
+its centre) and reports unlock for that much world time from now; ``run_unobserved(seconds)`` runs the instrument
+on while its host link is down.
 """
 
 from __future__ import annotations
@@ -56,7 +62,7 @@ from sims.noise import NormalStream
 from sims.world import BlockInputs, TruthRecord, World
 
 if TYPE_CHECKING:
-    from sims.gyro import GyroBlock, GyroParams
+    from sims.gyro import GyroBlock, GyroParams, LoopSettings
 
 __all__ = ["HF2DataServerTwin", "HF2Wiring", "NodeError"]
 
@@ -168,12 +174,14 @@ class HF2DataServerTwin:
         clockbase_hz: float = 210e6,
         host: str = "localhost",
         port: int = 8005,
+        timestamp_offset_ticks: int = 0,
     ) -> None:
         if clockbase_hz <= 0:
             raise ValueError(f"clockbase_hz = {clockbase_hz!r} must be positive")
         if rate_set not in RATE_SETS:
             raise ValueError(f"rate_set = {rate_set!r} must be one of {RATE_SETS}")
         self.rate_set = rate_set
+        self.timestamp_offset_ticks = int(timestamp_offset_ticks)  # added to every demod's but demods/0's ([sim])
         self._auxout_prev: float | None = None  # the rate AuxOut voltage at the previous sample instant
         self.world, self.gyro_params, self.seed, self.wiring = world, gyro_params, int(seed), wiring
         # the AuxIn readings' own noise: a stream of its own, independent of the gyro's (spawn key 7)
@@ -197,6 +205,7 @@ class HF2DataServerTwin:
             0.0
         ] * self.nodes.n_oscillators  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
         self._drop_next = 0
+        self._drop_demod: int | None = None  # the demod the next drop applies to (None: every demod)
         self._unlock_until: float | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
         self.last_plan: LoopPlan | None = None
@@ -291,7 +300,13 @@ class HF2DataServerTwin:
             raise NodeError(f"ZIAPIException: node {p} is not a demodulator sample node")
         if p in self._last_sample:
             return {k: v[-1:].copy() for k, v in self._last_sample[p].items()}
-        return {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
+        d = int(p.split("/")[3])
+        if not int(self.nodes.peek(f"demods/{d}/enable")):  # *assumed*: a disabled demod sends no sample
+            raise NodeError(f"ZIAPITimeoutException: no sample of {p} (the demodulator is disabled)")
+        sample = {k: np.zeros(1, dtype=np.uint64 if k == "timestamp" else float) for k in DEMOD_FIELDS}
+        ticks = int(round(self.world.now() * self.clockbase_hz)) + (self.timestamp_offset_ticks if d else 0)
+        sample["timestamp"] = np.array([ticks], dtype=np.uint64)  # an enabled demod's latest: stamped about now
+        return sample
 
     def get(self, paths: str, *args: Any, flat: bool = False, settingsonly: bool = True, **kwargs: Any) -> dict:
         """Values of the matching nodes: flat {path: array([v])} or nested {dev: {branch: ...}}. Streams are
@@ -416,11 +431,13 @@ class HF2DataServerTwin:
         return nested
 
     # ================================================================== fault hooks
-    def drop_samples(self, n: int) -> None:
-        """The next poll loses n samples from the middle of its block (timestamp gap, sample-loss flag)."""
+    def drop_samples(self, n: int, demod: int | None = None) -> None:
+        """The next poll loses n samples from the middle of its block (timestamp gap, sample-loss flag): from every
+        demodulator's stream, or from demodulator `demod`'s only."""
         if int(n) < 0:
             raise ValueError(f"drop_samples: n = {n!r} must be >= 0")
         self._drop_next += int(n)
+        self._drop_demod = None if demod is None else int(demod)
 
     def run_unobserved(self, seconds: float) -> None:
         """The instrument runs on for `seconds` of world time while no client sees it (a dropped host link,
@@ -500,12 +517,12 @@ class HF2DataServerTwin:
             self._gyro_count += 1
         return self._gyro
 
-    def _run_gyro(self, inputs: BlockInputs, plan: LoopPlan, dt: float) -> tuple[GyroBlock, bool]:
-        """Run the block, split where a forced PLL unlock ends; returns the block and whether the PLL stayed
-        locked (closed and within its lock error) through every step of it."""
+    def _run_gyro(self, inputs: BlockInputs, settings: LoopSettings, dt: float) -> tuple[GyroBlock, bool]:
+        """Run the block under `settings`, split where a forced PLL unlock ends; returns the block and whether the
+        PLL stayed locked (closed and within its lock error) through every step of it."""
         gyro = self._ensure_gyro(dt)
         if self._unlock_until is None:  # the usual poll: one run over the whole block
-            blk = gyro.run(inputs, plan.settings)
+            blk = gyro.run(inputs, settings)
             return blk, blk.pll_locked
         n = len(inputs.t)
         t_end = inputs.t + dt
@@ -514,7 +531,7 @@ class HF2DataServerTwin:
         for a, b, forced in ((0, cut, True), (cut, n, False)):
             if b <= a:
                 continue
-            s = plan.settings
+            s = settings
             if forced:
                 s = replace(s, pll=replace(s.pll, enabled=False))
             blk = gyro.run(_slice_inputs(inputs, slice(a, b)), s)
@@ -587,9 +604,16 @@ class HF2DataServerTwin:
         world_ticks = int(round(self.world.now() * self.clockbase_hz))
         if self._ticks is None or abs(world_ticks - self._ticks) > tps // 2:
             self._ticks = world_ticks
+        # a PLL besides PLL 1 that the forcer carrier depends on tracks only while the drive frequency lies in its
+        # range (checked at the start of the block, sims/hf2_loops.py): out of range its carrier is not coherent
+        settings = plan.settings
+        drive_hz = float(self.nodes.values[layout.paths.ref_osc_freq])
+        tracking = {o: t.tracks(drive_hz) for o, t in plan.trackers.items()}
+        if plan.forcer_tracker is not None and not tracking[plan.forcer_tracker.osc]:
+            settings = replace(settings, forcer_gain=0.0)
         inputs = self.world.advance(n, dt)
-        self.world.set_forcer_gain(plan.settings.forcer_gain)
-        blk, locked = self._run_gyro(inputs, plan, dt)
+        self.world.set_forcer_gain(settings.forcer_gain)
+        blk, locked = self._run_gyro(inputs, settings, dt)
         timestamps, truth_time = np.empty(n, dtype=np.uint64), np.empty(n)
         hk.sample_times(self._ticks, tps, self.clockbase_hz, timestamps, truth_time)
         self._ticks += n * tps
@@ -601,7 +625,8 @@ class HF2DataServerTwin:
             if o not in layout.used_oscs:  # keep its phase running without building arrays (float % is np.mod)
                 self._osc_phase[o] = (self._osc_phase[o] + 2 * np.pi * layout.fixed_osc_hz[o] * n * dt) % (2 * np.pi)
                 continue
-            f_o = blk.frequency_hz if o == plan.ref_osc else np.full(n, layout.fixed_osc_hz[o])
+            follows = o == plan.ref_osc or tracking.get(o, False)  # the reference, or locked by a tracking PLL
+            f_o = blk.frequency_hz if follows else np.full(n, layout.fixed_osc_hz[o])
             ph, wrapped = np.empty(n), np.empty(n)
             hk.oscillator_phases(f_o, self._osc_phase[o], dt, 1.0, ph, wrapped)
             freqs[o], phases[o] = f_o, ph
@@ -609,17 +634,23 @@ class HF2DataServerTwin:
             self._osc_phase[o] = float(ph[-1]) % (2 * np.pi)
         if plan.pll_closed:  # the PLL writes its oscillator's frequency
             self.nodes.values[layout.paths.ref_osc_freq] = float(freqs[plan.ref_osc][-1])
+        for o, on in tracking.items():  # and so does a tracking PLL, while it tracks
+            if on:
+                self.nodes.values[f"/{self.device_id}/oscs/{o}/freq"] = float(blk.frequency_hz[-1])
         wired: list[np.ndarray | None] = [None, None]
         rate_aux, dither_aux = self._auxin_records(blk, dt, layout.auxin_window_s)
         wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
         aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
         keep = None
         dropped = min(self._drop_next, max(0, n - 2))
+        drop_demod, self._drop_demod = self._drop_demod, None
         if dropped:
             keep = np.ones(n, dtype=bool)
             i0 = (n - dropped) // 2
             keep[i0 : i0 + dropped] = False
         self._drop_next = 0
+        offset = self.timestamp_offset_ticks
+        shifted = (timestamps.view(np.int64) + offset).view(np.uint64) if offset else timestamps
         out: dict[str, dict[str, np.ndarray]] = {}
         for spec in layout.demods:
             osc, harmonic = spec.osc, spec.harmonic
@@ -628,8 +659,9 @@ class HF2DataServerTwin:
                 osc_streams[osc, harmonic] = (freqs[osc] * harmonic, wrapped)
             frequency, phase = osc_streams[osc, harmonic]
             x, y = self._demod_xy(blk, spec, plan.ref_osc, phases, n)
+            d = int(spec.path.split("/")[3])
             sample = {
-                "timestamp": timestamps,
+                "timestamp": shifted if d != 0 else timestamps,
                 "x": x,
                 "y": y,
                 "frequency": frequency,
@@ -639,11 +671,11 @@ class HF2DataServerTwin:
                 "auxin0": aux[0],
                 "auxin1": aux[1],
             }
-            if keep is not None:
+            if keep is not None and drop_demod in (None, d):
                 sample = {k: v[keep] for k, v in sample.items()}
             out[spec.path] = sample
             self._last_sample[spec.path] = sample  # getSample copies its last entries
-        self._reflect(layout, blk, locked, aux, dropped)
+        self._reflect(layout, blk, locked, aux, dropped, tracking)
         self.world.record_truth(
             TruthRecord(
                 time=truth_time,
@@ -689,17 +721,35 @@ class HF2DataServerTwin:
             auxin_values=(f"{dev}/auxins/0/values/0", f"{dev}/auxins/0/values/1"),
         )
 
-    def _reflect(self, layout: _PollLayout, blk: GyroBlock, locked: bool, aux: list[np.ndarray], dropped: int) -> None:
+    def _reflect(
+        self,
+        layout: _PollLayout,
+        blk: GyroBlock,
+        locked: bool,
+        aux: list[np.ndarray],
+        dropped: int,
+        tracking: dict[int, bool],
+    ) -> None:
         """Read-only nodes at the end of the block (module docstring, item 4), written straight into the node
-        values under the layout's absolute paths."""
+        values under the layout's absolute paths. A tracking PLL (sims/hf2_loops.py) reports locked while it tracks
+        a drive PLL 1 holds locked (the signal both lock to), with its frequency offset from its own centre."""
         plan, paths, values = layout.plan, layout.paths, self.nodes.values
         pll_locked = bool(plan.pll_closed and blk.pll_locked and locked)
         f_end = float(blk.frequency_hz[-1])
         values[paths.pll_locked] = int(pll_locked)
         values[paths.pll_freqdelta] = f_end - float(values[paths.pll_freqcenter]) if plan.pll_closed else 0.0
         values[paths.pll_error] = float(blk.pll_error_deg[-1]) if plan.pll_closed else 0.0
-        binary = int(values[paths.flags_binary]) & ~PLL_LOCKED_BITS[0]
-        values[paths.flags_binary] = binary | (PLL_LOCKED_BITS[0] if pll_locked else 0)
+        binary = int(values[paths.flags_binary]) & ~(PLL_LOCKED_BITS[0] | PLL_LOCKED_BITS[1])
+        binary |= PLL_LOCKED_BITS[0] if pll_locked else 0
+        dev = f"/{self.device_id}"
+        for n in range(1, len(PLL_LOCKED_BITS)):
+            tracker = next((t for t in plan.trackers.values() if t.index == n), None)
+            on = tracker is not None and pll_locked and tracking[tracker.osc]
+            if self.nodes.has(f"{dev}/plls/{n}/locked"):
+                values[f"{dev}/plls/{n}/locked"] = int(on)
+                values[f"{dev}/plls/{n}/freqdelta"] = f_end - tracker.center_hz if on and tracker else 0.0
+            binary |= PLL_LOCKED_BITS[n] if on else 0
+        values[paths.flags_binary] = binary
         values[paths.flags_sampleloss] = int(dropped > 0)
         values[paths.status_time] = self.world.now()
         ends = {

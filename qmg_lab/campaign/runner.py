@@ -438,15 +438,15 @@ class CampaignRunner:
             raise CampaignInterrupted(self._guard.reason(), self._guard.exit_code() - 128)
         block = self._recovery.call("lockin", lambda: self.station.lockin.poll(want_s))
         n = len(block)
+        self._lost += block.samples_lost  # also an empty block's: samples the lock-in could not pair are lost
+        if block.samples_lost:
+            self.clsf.reset_buffer()
         if n == 0:
             return 0.0
         t = self._file_time(block.time)
         self._log_t = float(t[-1])  # the run log's clock: the block being processed
         self._blocks += 1
         self._samples += n
-        self._lost += block.samples_lost
-        if block.samples_lost:
-            self.clsf.reset_buffer()
         self._last_locked = bool(block.pll_locked)
         periods = self.clsf.process(t, block.x_sense, block.rate_output, block.dither)
         if self.clsf.mode == "correct" and len(periods):

@@ -249,6 +249,14 @@ class LockInSection(_Section):
         description="output mixer channel carrying the forcer carrier; unset = from the HF2's options (MF: 1; "
         "without MF: 6 on output 1, 7 on output 2)",
     )
+    fixed_channel_oscillators: list[Annotated[int, Field(ge=0, le=5)]] = Field(
+        default_factory=lambda: [0, 1],
+        min_length=2,
+        max_length=2,
+        description="oscillator indices (0-based) of output mixer channels 6 and 7, which have no demodulator to "
+        "choose one: HF2 user manual, External Reference tutorial (Output 2 runs on oscillator 2); the driver locks "
+        "a carrier on an oscillator other than PLL 1's with the PLL that drives it (docs/wiring.md)",
+    )
     allow_version_mismatch: bool = Field(
         False,
         description="connect even if the data server's LabOne version differs from the installed zhinst-core "
@@ -522,6 +530,13 @@ class SimSection(_Section):
         description="options of the twin's HF2LI (features/options), any of MF, PLL, PID, MOD; its node tree lists "
         "what such an instrument lists (without MF: 2 oscillators, output mixer channels 6 and 7 only; no plls, "
         "pids, mods branch without PLL, PID, MOD)",
+    )
+    hf2_timestamp_offset_ticks: int = Field(
+        0,
+        ge=-1_000_000,
+        le=1_000_000,
+        description="clockbase ticks the HF2 twin adds to the timestamps of every demodulator but the first (no "
+        "source says two HF2 demodulators stamp their samples identically; the driver pairs nearest samples)",
     )
     hf2_rate_set: Literal["hf2", "ticks"] = Field(
         "hf2",

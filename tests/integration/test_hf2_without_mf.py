@@ -1,5 +1,6 @@
-"""A campaign on an HF2LI without the MF option (issue 24): `qmg-lab run CONFIG --sim` with `[sim] hf2_options =
-["PLL", "PID"]` completes, the driver drives mixer channels 6 and 7, and the results match the MF run within noise.
+"""A campaign on an HF2LI without the MF option: `qmg-lab run CONFIG --sim` with `[sim] hf2_options = ["PLL", "PID"]`
+completes, the driver drives mixer channels 6 and 7, locks oscillator 2 (which channel 7 runs on in the twin, as
+the HF2 manual has it) to the drive with PLL 2, and the results match the MF run within noise.
 
 The two runs share the seed, so the twin's noise is the same realisation in both and only the instrument's option
 set differs. The tolerance is nevertheless the noise the comparison would have with independent realisations, so
@@ -8,6 +9,10 @@ the white noise q / sqrt(T) (q from the noise budget, docs/noise-budget.md; T = 
 of two such means is within 4 sqrt(2) q / sqrt(T) (4 sigma). A wrong mixer channel is far outside: a forcer carrier
 on a channel the output does not use opens the rate loop (no lock, or an SF off by 100 %), and a 1 % carrier
 amplitude error shifts the estimate by 1e4 ppm.
+
+The analysis's CLSF accuracy (RMS over the pairs of the estimate's error against the truth) of the two runs then
+differs by at most the same bound: |rms(a) - rms(b)| <= rms(a - b) <= max |a_i - b_i| (triangle inequality), and
+the truth is the same in both runs (same seed, same world), so a_i - b_i is the difference of the pair means.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ SHORT_PLAN = {  # the paper campaign cut to a few minutes of simulated time: 25 
 }
 
 
-def short_config(tmp: Path, options: list[str] | None) -> Path:
+def short_config(tmp: Path, options: list[str] | None, lockin_line: str = "") -> Path:
     text = PAPER.read_text(encoding="utf-8")
     for key, value in SHORT_PLAN.items():
         text, n = re.subn(rf"(?m)^{key}\s*=\s*[^#\n]*", f"{key} = {value} ", text)
@@ -42,7 +47,10 @@ def short_config(tmp: Path, options: list[str] | None) -> Path:
     if options is not None:
         text, n = re.subn(r"(?m)^(\[sim\][^\n]*)$", rf"\1\nhf2_options = {json.dumps(options)}", text)
         assert n == 1
-    name = "short_" + ("_".join(options) if options else "mf") + ".toml"
+    if lockin_line:
+        text, n = re.subn(r"(?m)^(\[lockin\][^\n]*)$", rf"\1\n{lockin_line}", text)
+        assert n == 1
+    name = "short_" + ("_".join(options) if options else "mf") + ("_edited" if lockin_line else "") + ".toml"
     (tmp / name).write_text(text, encoding="utf-8")
     return tmp / name
 
@@ -100,6 +108,15 @@ def test_the_run_without_mf_used_mixer_channels_6_and_7(runs: tuple[Path, Path])
     assert lockin_snapshot(mf)["state"]["mixer_channels"] == {"drive": 0, "forcer": 1}
 
 
+def test_the_forcer_without_mf_ran_on_oscillator_2_locked_by_pll_2(runs: tuple[Path, Path]) -> None:
+    mf, no_mf = runs
+    carriers = lockin_snapshot(no_mf)["state"]["carriers"]
+    assert carriers["forcer_oscillator"] == 1 and carriers["tracking_plls"] == [1]
+    pll2 = lockin_snapshot(no_mf)["state"]["tracking_plls"]["1"]
+    assert pll2["enable"] == 1 and pll2["oscselect"] == 1
+    assert lockin_snapshot(mf)["state"]["carriers"]["tracking_plls"] == []
+
+
 def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path]) -> None:
     from qmg_lab.budget.noise import noise_budget
     from qmg_lab.config.schema import load_config
@@ -112,3 +129,34 @@ def test_results_without_mf_match_the_mf_run_within_noise(runs: tuple[Path, Path
     assert len(mf) == len(no_mf) >= 3
     assert np.max(np.abs(no_mf - mf)) <= tolerance, (no_mf - mf, tolerance)
     assert tolerance < 1e-3  # the bound is tight enough to see a 0.1 % carrier error
+
+
+def test_a_driver_that_leaves_oscillator_2_alone_gets_no_rebalance_in_the_campaign(
+    runs: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # the driver is told channel 7 runs on PLL 1's oscillator, so it neither sets nor locks oscillator 2: in the
+    # twin (channel 7 on oscillator 2, as the manual has it) the forcer carrier exerts no force, so the dither
+    # (which enters the forcer path) does not come through and the CLSF estimate is far from the MF run's
+    from qmg_lab.config.schema import load_config
+
+    settle = load_config(PAPER)[0].plan.settle_s
+    wrong = tmp_path / "wrong.h5"
+    run(short_config(tmp_path, ["PLL", "PID"], "fixed_channel_oscillators = [0, 0]"), wrong)
+    assert lockin_snapshot(wrong)["state"]["carriers"]["tracking_plls"] == []
+    mf = pair_means(runs[0], settle)
+    assert np.min(np.abs(pair_means(wrong, settle) - mf)) > 0.5  # an SF change estimate off by more than 50 %
+
+
+def test_the_analysis_accuracy_without_mf_matches_the_mf_run_within_the_same_bound(runs: tuple[Path, Path]) -> None:
+    from qmg_lab.analysis.compute import analyze
+    from qmg_lab.budget.noise import noise_budget
+    from qmg_lab.config.schema import load_config
+
+    cfg, _ = load_config(PAPER)
+    q = math.sqrt(sum(s.white_ppm_rt_s**2 for s in noise_budget(cfg, sim_blocks=True).sources))  # ppm sqrt(s)
+    tolerance_ppm = 4.0 * math.sqrt(2.0) * q / math.sqrt(2.0 * (float(SHORT_PLAN["dwell_s"]) - cfg.plan.settle_s))
+    mf, no_mf = (analyze(p).to_json() for p in runs)
+    assert mf["n_step_pairs"] == no_mf["n_step_pairs"] >= 3
+    a, b = mf["clsf_accuracy_rms_ppm"], no_mf["clsf_accuracy_rms_ppm"]
+    assert a is not None and b is not None
+    assert abs(a - b) <= tolerance_ppm, (a, b, tolerance_ppm)

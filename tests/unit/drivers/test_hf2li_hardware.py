@@ -28,7 +28,13 @@ def test_identify_state_and_safe_state_on_the_instrument() -> None:
     )
     assert "HF2" in li.identify()
     st = li.state()
-    assert st["clockbase_hz"] > 0
+    assert st["clockbase_hz"] == 210e6  # the HF2's timestamp clock as third-party HF2 code has it
+    # which oscillator each PLL drives is read, never assumed: the forcer's PLL (none with MF) drives its oscillator
+    assert st["pll"]["oscselect"] == st["carriers"]["reference_oscillator"]
+    for n, pll in st["tracking_plls"].items():
+        assert pll["oscselect"] == st["carriers"]["forcer_oscillator"], n
+    offset = st["demod_timestamp_offset_ticks"]  # None while the demodulators are off
+    assert offset is None or abs(offset) < st["clockbase_hz"] / max(st["demod_rate_hz"]) / 2
     li.safe_state()
     assert all(li.state()["pids"][n]["enable"] == 0 for n in ("agc", "rate", "quadrature"))
     li.close()
