@@ -186,7 +186,8 @@ def table_twin(cfg: Config, world: World) -> RateTableTwin:
 
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
     """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator), answering as [sim]
-    says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings)."""
+    says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings, chamber_powered_at_start,
+    chamber_set_query_while_off, chamber_silent_commands)."""
     c, s = cfg.chamber, cfg.sim
     return ChamberTwin(
         world,
@@ -195,6 +196,9 @@ def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
         status_layout=s.chamber_status_layout,
         self_test=s.chamber_self_test,
         acknowledges_settings=s.chamber_acknowledges_settings,
+        powered_at_start=s.chamber_powered_at_start,
+        set_query_while_off=s.chamber_set_query_while_off,
+        silent_commands=s.chamber_silent_commands,
     )
 
 

@@ -538,6 +538,17 @@ class SimSection(_Section):
     chamber_acknowledges_settings: bool = Field(
         True, description="chamber twin answers OK to settings (false: it answers nothing, as an EC13 on GPIB)"
     )
+    chamber_powered_at_start: bool = Field(
+        True, description="chamber twin's power at start (false: off, the usual morning state, until ON)"
+    )
+    chamber_set_query_while_off: Literal["held", "target"] = Field(
+        "held",
+        description="chamber twin's SET? while the power is off: held = the ramping setpoint where it stopped "
+        "(it does not ramp without power), target = the last SET= value",
+    )
+    chamber_silent_commands: int = Field(
+        0, ge=0, le=100, description="chamber twin ignores its first N command lines (a controller starting up)"
+    )
     table_servo_on_at_start: bool = Field(
         True, description="table twin's servo at power-up (false: JOG/SGO refused, E06, until the servo command)"
     )
