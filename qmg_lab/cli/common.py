@@ -10,6 +10,7 @@ Exit codes: 0 done; 2 bad input (configuration, file, arguments: a message namin
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,6 +26,20 @@ from qmg_lab.instruments import InstrumentError, Station
 
 console = Console(stderr=True)
 out = Console()
+
+#: what an unencodable character becomes on a console or redirected stream that cannot encode it (a Windows
+#: console or file in cp1252 has no ≤, µ or −): its escape (\u2264), never a UnicodeEncodeError
+STREAM_ERRORS = "backslashreplace"
+
+
+def tolerant_streams() -> None:
+    """Make stdout and stderr write every character: keep each stream's encoding (the console's code page, or
+    what PYTHONIOENCODING says), replace what it cannot encode by its backslash escape
+    (io.TextIOWrapper.reconfigure). Called once at the start of the command line."""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)  # a TextIOWrapper; not a test runner's capture
+        if reconfigure is not None:
+            reconfigure(errors=STREAM_ERRORS)
 
 EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 

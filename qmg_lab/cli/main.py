@@ -40,6 +40,7 @@ from qmg_lab.cli.common import (
     fail,
     load,
     out,
+    tolerant_streams,
 )
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, config_fingerprint
@@ -630,6 +631,7 @@ for _commands in (bench, device, files, runs, watch):
 
 def main() -> None:  # pragma: no cover - console entry
     heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
+    tolerant_streams()  # no UnicodeEncodeError on a cp1252 console or redirect (qmg_lab.cli.common)
     from qmg_lab.campaign.interrupts import StopRequested, exit_code
 
     try:
