@@ -41,6 +41,7 @@ def tolerant_streams() -> None:
         if reconfigure is not None:
             reconfigure(errors=STREAM_ERRORS)
 
+
 EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 
 ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]

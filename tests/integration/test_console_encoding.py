@@ -19,9 +19,7 @@ NAME = "cold ≤ 5 °C"
 
 def qmg_cp1252(*args: str) -> subprocess.CompletedProcess[bytes]:
     env = {**os.environ, "PYTHONIOENCODING": "cp1252"}
-    return subprocess.run(
-        [sys.executable, "-m", "qmg_lab", *args], capture_output=True, cwd=ROOT, env=env, timeout=300
-    )
+    return subprocess.run([sys.executable, "-m", "qmg_lab", *args], capture_output=True, cwd=ROOT, env=env, timeout=300)
 
 
 def test_a_character_cp1252_lacks_reaches_stdout_as_its_escape(tmp_path: Path) -> None:
