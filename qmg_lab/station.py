@@ -143,7 +143,28 @@ def _twin_port(
     return _serial_port(path, baudrate, timeout_s)
 
 
-def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], Any]:
+#: what to install when pyvisa finds no VISA library: pyvisa's own "Could not locate a VISA implementation"
+#: (no IVI library and no pyvisa-py), "Could not open VISA library" (the IVI library named or found cannot be
+#: loaded) and "Wrapper not found: No package named pyvisa_py" ("@py" without pyvisa-py) name neither the
+#: instrument nor a vendor (pyvisa.highlevel)
+NO_VISA_LIBRARY = (
+    "no VISA library: install pyvisa-py (`pip install pyvisa-py`: pyvisa takes it when it finds no vendor VISA, "
+    'or set visa_backend = "@py"; RS-232 (ASRL) and TCPIP, GPIB only with gpib-ctypes or linux-gpib) or a '
+    "vendor VISA (NI-VISA or Keysight IO Libraries Suite; a GPIB adapter needs its vendor's)"
+)
+_NO_VISA_SIGNS = ("Could not locate a VISA implementation", "Could not open VISA library", "No package named pyvisa")
+
+
+def visa_failure(instrument: str, resource: str, backend: str, exc: BaseException) -> str:
+    """The message for a VISA resource that could not be opened: the instrument, its address and backend, and,
+    when no VISA library was found, what to install (NO_VISA_LIBRARY) before pyvisa's own words."""
+    where = f"{instrument} at VISA resource {resource!r} (visa_backend {backend or 'default'!r})"
+    if any(sign in str(exc) for sign in _NO_VISA_SIGNS):
+        return f"{where}: {NO_VISA_LIBRARY} (pyvisa: {exc})"
+    return f"cannot open the {where}: {exc}"
+
+
+def _visa_opener(instrument: str, resource: str, backend: str, timeout_ms: int) -> Callable[[], Any]:
     def open_resource() -> Any:
         try:
             rm = pyvisa.ResourceManager(backend) if backend else pyvisa.ResourceManager()
@@ -151,14 +172,11 @@ def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], A
             res.timeout = timeout_ms
             return res
         except (pyvisa.errors.Error, ValueError, OSError) as exc:
-            raise InstrumentError(
-                f"cannot open VISA resource {resource!r} (backend {backend or 'default'}): {exc}"
-            ) from exc
+            raise InstrumentError(visa_failure(instrument, resource, backend, exc)) from exc
 
     return open_resource
 
 
-# ---------------------------------------------------------------------------------------- config -> driver
 def table_framing(cfg: Config) -> Framing:
     """[table] command_terminator, reply_terminator, prompt -> the 1291BR driver's Framing."""
     t = cfg.table
@@ -343,7 +361,7 @@ class _Bench:
                 faults.attach_ds345(ds_twin)
                 open_gen = faults.visa_link("generator", open_gen)
         else:
-            open_gen = _visa_opener(g.resource, g.visa_backend, g.timeout_ms)
+            open_gen = _visa_opener("generator (DS345)", g.resource, g.visa_backend, g.timeout_ms)
         return generator_driver(self.cfg, open_gen)
 
     def _table(self) -> Aerosmith1291BR:
@@ -377,7 +395,7 @@ class _Bench:
                 return lambda: LineTwinVisaResource(twin, c.port)
             return _twin_port(twin, c.sim_transport, c.baudrate, c.timeout_s, self.closers)
         if visa:
-            return _visa_opener(c.port, c.visa_backend, round(c.timeout_s * 1000))
+            return _visa_opener("chamber (EC1x)", c.port, c.visa_backend, round(c.timeout_s * 1000))
         return _serial_port(c.port, c.baudrate, c.timeout_s)
 
     def close(self) -> None:

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -45,10 +45,20 @@ def tolerant_streams() -> None:
 EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 
 ConfigArg = Annotated[Path, typer.Argument(help="campaign configuration (TOML)", show_default=False)]
-SimOpt = Annotated[bool, typer.Option("--sim", help="use every instrument's simulated twin")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="print one JSON object on stdout")]
+
+FLAG_METAVAR = ""  # typer's rich help shows an option's metavar in place of its type; a flag has none
+
+
+def flag(*names: str, help: str) -> Any:
+    """A boolean option that takes no value (`--sim`, not `--sim true`), shown in --help without a value: typer's
+    help writes a bool option's type as `<bool>`, which reads as if it took one; an empty metavar shows none."""
+    return typer.Option(*names, help=help, metavar=FLAG_METAVAR)
+
+
+SimOpt = Annotated[bool, flag("--sim", help="use every instrument's simulated twin")]
+JsonOpt = Annotated[bool, flag("--json", help="print one JSON object on stdout")]
 OutputOpt = Annotated[Path | None, typer.Option("-o", "--output", help="run file to write (HDF5)")]
-QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no live progress")]
+QuietOpt = Annotated[bool, flag("--quiet", "-q", help="no live progress")]
 
 #: `qmg-lab characterize ...`: main.py's campaign characterizations (bandwidth, linearity) and device.py's
 #: device measurements (resonance, ringdown, noise) share this group

@@ -38,6 +38,7 @@ from qmg_lab.cli.common import (
     connected_station,
     console,
     fail,
+    flag,
     load,
     out,
     tolerant_streams,
@@ -590,7 +591,7 @@ def budget(
     config: ConfigArg,
     json_out: JsonOpt = False,
     sim: Annotated[
-        bool, typer.Option("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
+        bool, flag("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
     ] = False,
 ) -> None:
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
