@@ -74,6 +74,16 @@ def fail(code: int, message: str) -> NoReturn:
     raise typer.Exit(code)
 
 
+def warn_network_share(run_file: Path) -> None:
+    """Warn on stderr when the run file's folder is on a network file system (qmg_lab/storage/network_share.py:
+    HDF5 SWMR needs POSIX write semantics); the run goes on."""
+    from qmg_lab.storage.network_share import swmr_warning
+
+    warning = swmr_warning(run_file)
+    if warning is not None:
+        say(console.print, f"[bold yellow]warning:[/] {escape(warning)}", highlight=False, markup=True)
+
+
 def load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:
     """The configuration (every instrument a twin with --sim); campaign=True: also the CLSF's stream timing."""
     try:

@@ -42,6 +42,7 @@ from qmg_lab.cli.common import (
     load,
     out,
     tolerant_streams,
+    warn_network_share,
 )
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, config_fingerprint
@@ -265,6 +266,7 @@ def _execute(
             _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
             if path.exists() and not (overwrite and path.is_file()):
                 fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
+        warn_network_share(path)  # HDF5 SWMR on a network share: readers may see a stale file
         with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg) as station:
             # one guard from here to the file's last close: a stop signal while the station connects or the file is
             # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
@@ -371,7 +373,8 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
             tbl.add_column(col)
         for name, e in report.items():
             state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
-            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
+            identity = e["identity"] or "(not identified)"  # never a bare None in the table
+            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(identity), state)
         out.print(tbl)
     failed = [n for n, e in report.items() if not e["ok"]]
     if failed:
