@@ -9,7 +9,10 @@ World clock: when the lock-in is simulated its polls advance the world (virtual 
 seconds). When only the table, chamber or generator are twins (bring-up one instrument at a time) the world
 follows the wall clock. A mixed bench with the lock-in twin and at least one real instrument runs in real
 time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), so that a 60 s dwell lasts
-60 s on the real table too.
+60 s on the real table too. An all-twin bench runs in real time too when asked (`build_station(cfg,
+pacing=RealTimePacing())`, `qmg-lab run --sim --realtime`): a rehearsal in which the driver path (the
+zhinst-toolkit poll of hardware-length blocks, `[lockin] poll_interval_s`, the estimator, the writer, the
+progress and the watch page) runs at the pace it will have on the bench.
 
 Why one module of this length: it is the only module that imports drivers and sims (an import-linter
 contract); building each instrument, real or twin, over each transport has to happen here and nowhere else.
@@ -306,8 +309,11 @@ class _Bench:
     """What the instruments of one configuration share: the twins' world, the fault injector and the closers
     of the twins' pty/socket servers. Each instrument is connected on its own (`connect(name)`)."""
 
-    def __init__(self, cfg: Config, world: World | None, clock: str | None = None) -> None:
+    def __init__(
+        self, cfg: Config, world: World | None, clock: str | None = None, pacing: RealTimePacing | None = None
+    ) -> None:
         self.cfg = cfg
+        self.pacing = pacing
         if world is None and cfg.any_sim:
             world = make_world(cfg, clock)
         self.world = world
@@ -340,7 +346,8 @@ class _Bench:
             )
             if faults is not None:
                 faults.attach_hf2(twin)
-            connection: Any = twin if self.cfg.all_sim else RealTimePacedConnection(twin, world)
+            paced = self.pacing is not None or not self.cfg.all_sim
+            connection: Any = RealTimePacedConnection(twin, world, self.pacing) if paced else twin
             return lockin_driver(self.cfg, Session(lk.host, lk.port, hf2=True, connection=connection), SIM_DEVICE_ID)
         return lockin_driver(self.cfg, hf2_session(self.cfg), lk.device)
 
@@ -405,26 +412,47 @@ class _Bench:
         self.closers.clear()
 
 
+@dataclass
+class RealTimePacing:
+    """An all-twin bench paced to the wall clock (a rehearsal), and what the pacing measured: the HF2 twin's own
+    CPU time (`twin_cpu_s`: thread CPU time, time.thread_time, spent inside its polls, which run on the calling
+    thread), the polls, the wall time waited for the clock (`waited_s`), and the largest lag of the twin's clock
+    behind the wall clock when a poll returned (`max_late_s`: the host could not keep up when it grows)."""
+
+    twin_cpu_s: float = 0.0
+    polls: int = 0
+    waited_s: float = 0.0
+    max_late_s: float = 0.0
+
+
 class RealTimePacedConnection:
     """The HF2 twin's data-server connection, paced to the wall clock (a mixed bench: real instruments beside
-    the lock-in twin must see real time). `poll(recording_time_s, ...)` advances the twin's world as usual,
-    then returns only once that much wall time has passed since the first poll; every other call goes to the
-    twin unchanged."""
+    the lock-in twin must see real time; an all-twin rehearsal, `RealTimePacing`). `poll(recording_time_s, ...)`
+    advances the twin's world as usual, then returns only once that much wall time has passed since the first
+    poll, as a data server answers; every other call goes to the twin unchanged."""
 
-    def __init__(self, twin: HF2DataServerTwin, world: World) -> None:
+    def __init__(self, twin: HF2DataServerTwin, world: World, pacing: RealTimePacing | None = None) -> None:
         self._twin = twin
         self._world = world
         self._wall0: float | None = None
+        self.pacing = pacing if pacing is not None else RealTimePacing()
 
     def poll(
         self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False, group_id: int = 1
     ) -> dict[str, Any]:
         if self._wall0 is None:
             self._wall0 = time.monotonic() - self._world.t
+        cpu0 = time.thread_time()
         data = self._twin.poll(recording_time_s, timeout_ms, flags, flat, group_id)
+        pacing = self.pacing
+        pacing.twin_cpu_s += time.thread_time() - cpu0
+        pacing.polls += 1
         lag = self._world.t - (time.monotonic() - self._wall0)
         if lag > 0:
             time.sleep(lag)  # real time, as a data server answers
+            pacing.waited_s += lag
+        else:
+            pacing.max_late_s = max(pacing.max_late_s, -lag)
         return data
 
     def __getattr__(self, name: str) -> Any:
@@ -469,11 +497,16 @@ def connect_instrument(cfg: Config, name: str, world: World | None = None) -> Co
     return Connected(name=name, instrument=inst, simulated=bool(getattr(cfg, name).sim), _bench=bench)
 
 
-def build_station(cfg: Config, world: World | None = None) -> Station:
+def build_station(cfg: Config, world: World | None = None, pacing: RealTimePacing | None = None) -> Station:
     """Connect every instrument of the configuration (twins where `sim = true`). `world`: the twins' shared
-    world (default: a new one from [sim]; tests pass their own to look at the physical state). If one
-    instrument cannot be connected, those already connected are closed and the InstrumentError names it."""
-    bench = _Bench(cfg, world)
+    world (default: a new one from [sim]; tests pass their own to look at the physical state). `pacing`: pace
+    the lock-in twin to the wall clock and poll hardware-length blocks ([lockin] poll_interval_s) even when every
+    instrument is a twin (a rehearsal at real time; the object collects what the pacing measured); a bench with
+    real instruments is paced anyway. If one instrument cannot be connected, those already connected are
+    closed and the InstrumentError names it."""
+    if pacing is not None and not cfg.lockin.sim:
+        raise ValueError("real-time pacing applies to the lock-in twin: [lockin] sim is false (hardware is real time)")
+    bench = _Bench(cfg, world, pacing=pacing)
     world = bench.world
     connected: dict[str, Instrument] = {}
     try:
@@ -507,7 +540,8 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
         restore=(lambda state: restore_world(world, state)) if world is not None else None,
     )
     # a paced twin (mixed bench) polls like the hardware: short blocks in real time
-    station.poll_interval_s = lk.sim_poll_interval_s if (lk.sim and cfg.all_sim) else lk.poll_interval_s
+    twin_blocks = lk.sim and cfg.all_sim and pacing is None
+    station.poll_interval_s = lk.sim_poll_interval_s if twin_blocks else lk.poll_interval_s
     station.on_close.append(bench.close)
     faults = bench.faults
     if faults is not None:

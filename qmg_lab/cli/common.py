@@ -99,12 +99,15 @@ def load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:
 
 
 @contextmanager
-def connected_station(cfg: Config) -> Iterator[Station]:
-    """Build the station; on the way out every instrument is made safe and closed."""
-    from qmg_lab.station import build_station
+def connected_station(cfg: Config, realtime: bool = False) -> Iterator[Station]:
+    """Build the station; on the way out every instrument is made safe and closed. realtime: the lock-in twin
+    paced to the wall clock (`run --sim --realtime`, a rehearsal: qmg_lab.station.RealTimePacing)."""
+    from qmg_lab.station import RealTimePacing, build_station
 
+    if realtime and not cfg.lockin.sim:
+        fail(EXIT_BAD_INPUT, "--realtime paces the lock-in twin, and [lockin] sim is false: hardware runs in real time")
     try:
-        station = build_station(cfg)
+        station = build_station(cfg, pacing=RealTimePacing() if realtime else None)
     except (InstrumentError, OSError) as exc:
         fail(EXIT_FAULT, f"could not connect the station: {exc}")
     try:

@@ -205,6 +205,9 @@ def run(
     watch_page: Annotated[
         bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
     ] = False,
+    realtime: Annotated[
+        bool, flag("--realtime", help="pace the twins at wall-clock speed: a rehearsal of the bench's timing")
+    ] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
@@ -213,12 +216,19 @@ def run(
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
     with watch_beside((resume or output) if watch_page else None):
-        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, realtime=realtime)
     _print_summary(summary)
 
 
 def _execute(
-    cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
+    cfg: Config,
+    text: str,
+    *,
+    output: Path | None,
+    resume: Path | None,
+    quiet: bool,
+    overwrite: bool = False,
+    realtime: bool = False,
 ) -> Any:
     """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
@@ -267,7 +277,7 @@ def _execute(
             if path.exists() and not (overwrite and path.is_file()):
                 fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
         warn_network_share(path)  # HDF5 SWMR on a network share: readers may see a stale file
-        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg) as station:
+        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg, realtime) as station:
             # one guard from here to the file's last close: a stop signal while the station connects or the file is
             # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
             try:
