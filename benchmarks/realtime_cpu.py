@@ -3,7 +3,8 @@ twins' own cost: what the lab PC will spend on the driver path at the bench (iss
 
 The campaign: configs/paper_campaign.toml (HF2 demodulators at 1800 Sa/s, 0.5 s polls as on hardware, the table
 stepping +-5 deg/s every 60 s, CLSF observing, gzip run file) with the chamber held at 25 deg C for `--seconds`
-after the lock and the reference (no 40-minute ramp), run in this process on the twins, paced to the wall clock by
+after the lock and the reference (no 40-minute ramp; the plan rounds the hold up to pairs of 60 s table steps:
+0 and 60 s give 141 s of campaign, 300 s give 381 s), run in this process on the twins, paced to the wall clock by
 `build_station(cfg, pacing=RealTimePacing())`, the progress view drawing as on a terminal (to /dev/null).
 
 Method (one process, the twins subtracted by measurement):
