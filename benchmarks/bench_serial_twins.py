@@ -54,7 +54,16 @@ def main() -> None:
         world = make_world(Config(), clock="virtual")  # the default configuration's stand
         tport, tstop = open_port(RateTableTwin(world, servo_on=True), transport)
         cport, cstop = open_port(
-            ChamberTwin(world, status_layout="flags16", self_test=0, acknowledges_settings=True), transport
+            ChamberTwin(
+                world,
+                status_layout="flags16",
+                self_test=0,
+                acknowledges_settings=True,
+                powered_at_start=True,
+                set_query_while_off="held",
+                silent_commands=0,
+            ),
+            transport,
         )
         table = Aerosmith1291BR(tport, max_rate_dps=100.0, max_accel_dps2=500.0)
         chamber = SunEC1xChamber(cport, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)

@@ -48,9 +48,21 @@ SET=, ON) is written again by the driver at connect and at each setpoint. 3 (ROM
 digit are faults (InstrumentError at identify): a controller whose program memory fails its own test cannot be
 trusted with the chamber.
 
-Sequences: set_setpoint(c, r) = RATE=r, SET=c, ON. read() = C1?, SET?, STATUS?. safe_state() = SET=safe, ON
-(the chamber stays on so that it actively goes to the safe setpoint). write_limits() = LTL=min, UTL=max (the
-controller's own protection; the station calls it once after identify()).
+Power before setpoint. SET? answers the ramping setpoint, and a controller whose power is off does not ramp: a
+SET= sent while the power is off (the usual state of a chamber in the morning) cannot show in SET? nor in the
+ramping flag, so it could not be confirmed. The sequences therefore switch the power on first:
+set_setpoint(c, r) = RATE=r, ON, SET=c; safe_state() = ON, SET=safe (the chamber stays on so that it actively
+goes to the safe setpoint). A SET= read back while STATUS? says the power is off is refused with a message that
+says so. Between ON and SET= the controller heads for its stored setpoint for one transaction (milliseconds).
+read() = C1?, SET?, STATUS?. write_limits() = LTL=min, UTL=max (the controller's own protection; the station
+calls it once after identify()).
+
+First contact. The public EC13 driver reads C1? and STATUS? twice before it reads the STATUS? it uses, "because
+sometimes the chamber needs a bit till it is responding". identify() asks STATUS? up to
+`first_contact_attempts` times (default FIRST_CONTACT_ATTEMPTS = 4, the four queries of that driver; each silent
+attempt costs one link timeout) and takes the first reply in EC1x form; a silent or garbled controller after the
+last attempt is an InstrumentError naming every attempt. A refusal (``?...``) is an answer, not silence: it is
+not retried.
 """
 
 from __future__ import annotations
@@ -80,6 +92,7 @@ UPPER_LIMIT_FORMAT = "UTL={:.2f}"  # deg C
 STATUS_POWER_CHAR = 0
 STATUS_RAMPING_CHAR = 8
 IDENTIFY_QUERY = "STATUS?"  # no identity query is public: STATUS? checks the controller answers in EC1x form
+FIRST_CONTACT_ATTEMPTS = 4  # STATUS? queries at first contact: the public EC13 driver's four (module docstring)
 SELF_TEST: dict[int, str] = {  # the EC13's self-test digit (achim1/skippylab, climate_chambers.py)
     0: "system self test ok",
     1: "battery RAM error (check default settings)",
@@ -92,6 +105,10 @@ _FLOAT = re.compile(r"^[+-]?\d+(\.\d+)?$")
 _STATUS = re.compile(r"^([YN]{9,32})([0-9]?)$")
 
 log = logging.getLogger(__name__)
+
+
+class CommandRefused(InstrumentError):
+    """The controller answered ``?`` + a reason: it heard the command and refused it."""
 
 
 @dataclass(frozen=True)
@@ -151,7 +168,8 @@ class SunEC1xChamber(ThermalChamber):
     link: a `LineTransport` (serial or VISA), or an open pyserial-like port (wrapped with `framing` and
     `port_factory`). min_c/max_c: setpoint limits (deg C); max_ramp_c_per_min: ramp limit; safe_setpoint_c:
     where safe_state() sends the chamber. ack: how settings are acknowledged ("auto", "ok", "none": see the
-    module docstring).
+    module docstring). first_contact_attempts: STATUS? queries identify() makes before a silent controller is a
+    fault (>= 1).
     """
 
     NAME = "EC1x chamber"
@@ -167,6 +185,7 @@ class SunEC1xChamber(ThermalChamber):
         port_factory: Callable[[], SerialPort] | None = None,
         framing: Framing | None = None,
         ack: SettingAck = "auto",
+        first_contact_attempts: int = FIRST_CONTACT_ATTEMPTS,
     ) -> None:
         for name, v in (
             ("min_c", min_c),
@@ -184,6 +203,9 @@ class SunEC1xChamber(ThermalChamber):
             raise ValueError(f"safe_setpoint_c ({safe_setpoint_c}) must lie in [{min_c}, {max_c}]")
         if ack not in ("auto", "ok", "none"):
             raise ValueError(f"ack must be auto, ok or none, got {ack!r}")
+        if int(first_contact_attempts) < 1:
+            raise ValueError(f"first_contact_attempts must be at least 1, got {first_contact_attempts!r}")
+        self.first_contact_attempts = int(first_contact_attempts)
         self.min_c, self.max_c = float(min_c), float(max_c)
         self.max_ramp_c_per_min = float(max_ramp_c_per_min)
         self.safe_setpoint_c = float(safe_setpoint_c)
@@ -206,7 +228,7 @@ class SunEC1xChamber(ThermalChamber):
 
     def _checked(self, text: str, line: str) -> str:
         if line.startswith(ERROR_PREFIX):
-            raise InstrumentError(f"{self.NAME}: {text!r} refused: {line!r}")
+            raise CommandRefused(f"{self.NAME}: {text!r} refused: {line!r}")
         return line
 
     def _command(self, text: str) -> None:
@@ -247,8 +269,13 @@ class SunEC1xChamber(ThermalChamber):
             if status.ramping:  # SET? reports the ramping setpoint: on its way to the new target (watched)
                 self._heading = (float(value), abs(read_back - float(value)))
                 return
+            why = (
+                "the power is off (STATUS? char 0 N): SET? holds the ramping setpoint until ON"
+                if not status.power
+                else "not ramping"
+            )
             raise InstrumentError(
-                f"{self.NAME}: {text!r} not taken: SET? = {read_back:g} and STATUS? = {status.text!r} (not ramping)"
+                f"{self.NAME}: {text!r} not taken: SET? = {read_back:g} and STATUS? = {status.text!r} ({why})"
             )
         raise InstrumentError(f"{self.NAME}: {text!r} not taken: {name}? = {read_back:g}")
 
@@ -264,14 +291,14 @@ class SunEC1xChamber(ThermalChamber):
 
     # ------------------------------------------------------------------ ThermalChamber
     def set_setpoint(self, setpoint_c: float, ramp_c_per_min: float) -> None:
-        """RATE=ramp, SET=setpoint, ON. min_c <= setpoint <= max_c, 0 < ramp <= max_ramp_c_per_min, checked on
-        the values as sent (SET= 2 decimals, RATE= 3 decimals)."""
+        """RATE=ramp, ON, SET=setpoint (power first: module docstring). min_c <= setpoint <= max_c,
+        0 < ramp <= max_ramp_c_per_min, checked on the values as sent (SET= 2 decimals, RATE= 3 decimals)."""
         setpoint_c, ramp_c_per_min = _as_sent(SETPOINT_FORMAT, setpoint_c), _as_sent(RATE_FORMAT, ramp_c_per_min)
         check_limit("chamber setpoint", setpoint_c, self.min_c, self.max_c, "deg C")
         self._check_ramp(ramp_c_per_min)
         self._command(RATE_FORMAT.format(ramp_c_per_min))
-        self._command(SETPOINT_FORMAT.format(setpoint_c))
         self._command("ON")
+        self._command(SETPOINT_FORMAT.format(setpoint_c))
         self._target_c, self._ramp_c_per_min = float(setpoint_c), float(ramp_c_per_min)
 
     def read(self) -> ChamberReading:
@@ -316,8 +343,9 @@ class SunEC1xChamber(ThermalChamber):
 
     # ------------------------------------------------------------------ Instrument
     def identify(self) -> str:
-        """STATUS? in EC1x form; a failed self-test is a fault (3, undocumented) or a warning (1, 2)."""
-        status = self._status()
+        """STATUS? in EC1x form, asked up to first_contact_attempts times (module docstring); a failed self-test
+        is a fault (3, undocumented) or a warning (1, 2)."""
+        status = self._first_status()
         self._self_test = status.self_test
         code = status.self_test
         if code is not None and code != 0:
@@ -329,6 +357,23 @@ class SunEC1xChamber(ThermalChamber):
             )
         test = "" if code is None else f"; self-test {code} ({SELF_TEST.get(code, 'undocumented')})"
         return f"Sun Electronic Systems EC1x (ASCII protocol; STATUS={status.text}{test})"
+
+    def _first_status(self) -> ChamberStatus:
+        """STATUS? until a reply in EC1x form, at most first_contact_attempts times (silent or garbled: again)."""
+        failures: list[str] = []
+        for attempt in range(1, self.first_contact_attempts + 1):
+            try:
+                return self._status()
+            except CommandRefused:
+                raise
+            except InstrumentError as exc:
+                failures.append(f"{attempt}: {exc}")
+                log.info("%s: first contact, STATUS? attempt %d failed: %s", self.NAME, attempt, exc)
+        raise InstrumentError(
+            f"{self.NAME}: no STATUS? reply in EC1x form after {self.first_contact_attempts} attempts ("
+            + "; ".join(failures)
+            + ")"
+        )
 
     def state(self) -> dict[str, Any]:
         reading = self.read()
@@ -365,9 +410,9 @@ class SunEC1xChamber(ThermalChamber):
         }
 
     def safe_state(self) -> None:
-        """SET=safe_setpoint_c, ON: the chamber goes actively to its safe setpoint at the last ramp rate."""
-        self._command(SETPOINT_FORMAT.format(self.safe_setpoint_c))
+        """ON, SET=safe_setpoint_c: the chamber goes actively to its safe setpoint at the last ramp rate."""
         self._command("ON")
+        self._command(SETPOINT_FORMAT.format(self.safe_setpoint_c))
         self._target_c = self.safe_setpoint_c
 
     def close(self) -> None:

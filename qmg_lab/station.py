@@ -9,7 +9,10 @@ World clock: when the lock-in is simulated its polls advance the world (virtual 
 seconds). When only the table, chamber or generator are twins (bring-up one instrument at a time) the world
 follows the wall clock. A mixed bench with the lock-in twin and at least one real instrument runs in real
 time: the twin's polls are paced to the wall clock (`RealTimePacedConnection`), so that a 60 s dwell lasts
-60 s on the real table too.
+60 s on the real table too. An all-twin bench runs in real time too when asked (`build_station(cfg,
+pacing=RealTimePacing())`, `qmg-lab run --sim --realtime`): a rehearsal in which the driver path (the
+zhinst-toolkit poll of hardware-length blocks, `[lockin] poll_interval_s`, the estimator, the writer, the
+progress and the watch page) runs at the pace it will have on the bench.
 
 Why one module of this length: it is the only module that imports drivers and sims (an import-linter
 contract); building each instrument, real or twin, over each transport has to happen here and nowhere else.
@@ -143,7 +146,28 @@ def _twin_port(
     return _serial_port(path, baudrate, timeout_s)
 
 
-def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], Any]:
+#: what to install when pyvisa finds no VISA library: pyvisa's own "Could not locate a VISA implementation"
+#: (no IVI library and no pyvisa-py), "Could not open VISA library" (the IVI library named or found cannot be
+#: loaded) and "Wrapper not found: No package named pyvisa_py" ("@py" without pyvisa-py) name neither the
+#: instrument nor a vendor (pyvisa.highlevel)
+NO_VISA_LIBRARY = (
+    "no VISA library: install pyvisa-py (`pip install pyvisa-py`: pyvisa takes it when it finds no vendor VISA, "
+    'or set visa_backend = "@py"; RS-232 (ASRL) and TCPIP, GPIB only with gpib-ctypes or linux-gpib) or a '
+    "vendor VISA (NI-VISA or Keysight IO Libraries Suite; a GPIB adapter needs its vendor's)"
+)
+_NO_VISA_SIGNS = ("Could not locate a VISA implementation", "Could not open VISA library", "No package named pyvisa")
+
+
+def visa_failure(instrument: str, resource: str, backend: str, exc: BaseException) -> str:
+    """The message for a VISA resource that could not be opened: the instrument, its address and backend, and,
+    when no VISA library was found, what to install (NO_VISA_LIBRARY) before pyvisa's own words."""
+    where = f"{instrument} at VISA resource {resource!r} (visa_backend {backend or 'default'!r})"
+    if any(sign in str(exc) for sign in _NO_VISA_SIGNS):
+        return f"{where}: {NO_VISA_LIBRARY} (pyvisa: {exc})"
+    return f"cannot open the {where}: {exc}"
+
+
+def _visa_opener(instrument: str, resource: str, backend: str, timeout_ms: int) -> Callable[[], Any]:
     def open_resource() -> Any:
         try:
             rm = pyvisa.ResourceManager(backend) if backend else pyvisa.ResourceManager()
@@ -151,14 +175,11 @@ def _visa_opener(resource: str, backend: str, timeout_ms: int) -> Callable[[], A
             res.timeout = timeout_ms
             return res
         except (pyvisa.errors.Error, ValueError, OSError) as exc:
-            raise InstrumentError(
-                f"cannot open VISA resource {resource!r} (backend {backend or 'default'}): {exc}"
-            ) from exc
+            raise InstrumentError(visa_failure(instrument, resource, backend, exc)) from exc
 
     return open_resource
 
 
-# ---------------------------------------------------------------------------------------- config -> driver
 def table_framing(cfg: Config) -> Framing:
     """[table] command_terminator, reply_terminator, prompt -> the 1291BR driver's Framing."""
     t = cfg.table
@@ -186,7 +207,8 @@ def table_twin(cfg: Config, world: World) -> RateTableTwin:
 
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
     """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator), answering as [sim]
-    says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings)."""
+    says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings, chamber_powered_at_start,
+    chamber_set_query_while_off, chamber_silent_commands)."""
     c, s = cfg.chamber, cfg.sim
     return ChamberTwin(
         world,
@@ -195,6 +217,9 @@ def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
         status_layout=s.chamber_status_layout,
         self_test=s.chamber_self_test,
         acknowledges_settings=s.chamber_acknowledges_settings,
+        powered_at_start=s.chamber_powered_at_start,
+        set_query_while_off=s.chamber_set_query_while_off,
+        silent_commands=s.chamber_silent_commands,
     )
 
 
@@ -284,8 +309,11 @@ class _Bench:
     """What the instruments of one configuration share: the twins' world, the fault injector and the closers
     of the twins' pty/socket servers. Each instrument is connected on its own (`connect(name)`)."""
 
-    def __init__(self, cfg: Config, world: World | None, clock: str | None = None) -> None:
+    def __init__(
+        self, cfg: Config, world: World | None, clock: str | None = None, pacing: RealTimePacing | None = None
+    ) -> None:
         self.cfg = cfg
+        self.pacing = pacing
         if world is None and cfg.any_sim:
             world = make_world(cfg, clock)
         self.world = world
@@ -319,7 +347,8 @@ class _Bench:
             )
             if faults is not None:
                 faults.attach_hf2(twin)
-            connection: Any = twin if self.cfg.all_sim else RealTimePacedConnection(twin, world)
+            paced = self.pacing is not None or not self.cfg.all_sim
+            connection: Any = RealTimePacedConnection(twin, world, self.pacing) if paced else twin
             return lockin_driver(self.cfg, Session(lk.host, lk.port, hf2=True, connection=connection), SIM_DEVICE_ID)
         return lockin_driver(self.cfg, hf2_session(self.cfg), lk.device)
 
@@ -340,7 +369,7 @@ class _Bench:
                 faults.attach_ds345(ds_twin)
                 open_gen = faults.visa_link("generator", open_gen)
         else:
-            open_gen = _visa_opener(g.resource, g.visa_backend, g.timeout_ms)
+            open_gen = _visa_opener("generator (DS345)", g.resource, g.visa_backend, g.timeout_ms)
         return generator_driver(self.cfg, open_gen)
 
     def _table(self) -> Aerosmith1291BR:
@@ -374,7 +403,7 @@ class _Bench:
                 return lambda: LineTwinVisaResource(twin, c.port)
             return _twin_port(twin, c.sim_transport, c.baudrate, c.timeout_s, self.closers)
         if visa:
-            return _visa_opener(c.port, c.visa_backend, round(c.timeout_s * 1000))
+            return _visa_opener("chamber (EC1x)", c.port, c.visa_backend, round(c.timeout_s * 1000))
         return _serial_port(c.port, c.baudrate, c.timeout_s)
 
     def close(self) -> None:
@@ -384,26 +413,47 @@ class _Bench:
         self.closers.clear()
 
 
+@dataclass
+class RealTimePacing:
+    """An all-twin bench paced to the wall clock (a rehearsal), and what the pacing measured: the HF2 twin's own
+    CPU time (`twin_cpu_s`: thread CPU time, time.thread_time, spent inside its polls, which run on the calling
+    thread), the polls, the wall time waited for the clock (`waited_s`), and the largest lag of the twin's clock
+    behind the wall clock when a poll returned (`max_late_s`: the host could not keep up when it grows)."""
+
+    twin_cpu_s: float = 0.0
+    polls: int = 0
+    waited_s: float = 0.0
+    max_late_s: float = 0.0
+
+
 class RealTimePacedConnection:
     """The HF2 twin's data-server connection, paced to the wall clock (a mixed bench: real instruments beside
-    the lock-in twin must see real time). `poll(recording_time_s, ...)` advances the twin's world as usual,
-    then returns only once that much wall time has passed since the first poll; every other call goes to the
-    twin unchanged."""
+    the lock-in twin must see real time; an all-twin rehearsal, `RealTimePacing`). `poll(recording_time_s, ...)`
+    advances the twin's world as usual, then returns only once that much wall time has passed since the first
+    poll, as a data server answers; every other call goes to the twin unchanged."""
 
-    def __init__(self, twin: HF2DataServerTwin, world: World) -> None:
+    def __init__(self, twin: HF2DataServerTwin, world: World, pacing: RealTimePacing | None = None) -> None:
         self._twin = twin
         self._world = world
         self._wall0: float | None = None
+        self.pacing = pacing if pacing is not None else RealTimePacing()
 
     def poll(
         self, recording_time_s: float, timeout_ms: int = 500, flags: int = 0, flat: bool = False, group_id: int = 1
     ) -> dict[str, Any]:
         if self._wall0 is None:
             self._wall0 = time.monotonic() - self._world.t
+        cpu0 = time.thread_time()
         data = self._twin.poll(recording_time_s, timeout_ms, flags, flat, group_id)
+        pacing = self.pacing
+        pacing.twin_cpu_s += time.thread_time() - cpu0
+        pacing.polls += 1
         lag = self._world.t - (time.monotonic() - self._wall0)
         if lag > 0:
             time.sleep(lag)  # real time, as a data server answers
+            pacing.waited_s += lag
+        else:
+            pacing.max_late_s = max(pacing.max_late_s, -lag)
         return data
 
     def __getattr__(self, name: str) -> Any:
@@ -448,11 +498,16 @@ def connect_instrument(cfg: Config, name: str, world: World | None = None) -> Co
     return Connected(name=name, instrument=inst, simulated=bool(getattr(cfg, name).sim), _bench=bench)
 
 
-def build_station(cfg: Config, world: World | None = None) -> Station:
+def build_station(cfg: Config, world: World | None = None, pacing: RealTimePacing | None = None) -> Station:
     """Connect every instrument of the configuration (twins where `sim = true`). `world`: the twins' shared
-    world (default: a new one from [sim]; tests pass their own to look at the physical state). If one
-    instrument cannot be connected, those already connected are closed and the InstrumentError names it."""
-    bench = _Bench(cfg, world)
+    world (default: a new one from [sim]; tests pass their own to look at the physical state). `pacing`: pace
+    the lock-in twin to the wall clock and poll hardware-length blocks ([lockin] poll_interval_s) even when every
+    instrument is a twin (a rehearsal at real time; the object collects what the pacing measured); a bench with
+    real instruments is paced anyway. If one instrument cannot be connected, those already connected are
+    closed and the InstrumentError names it."""
+    if pacing is not None and not cfg.lockin.sim:
+        raise ValueError("real-time pacing applies to the lock-in twin: [lockin] sim is false (hardware is real time)")
+    bench = _Bench(cfg, world, pacing=pacing)
     world = bench.world
     connected: dict[str, Instrument] = {}
     try:
@@ -486,7 +541,8 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
         restore=(lambda state: restore_world(world, state)) if world is not None else None,
     )
     # a paced twin (mixed bench) polls like the hardware: short blocks in real time
-    station.poll_interval_s = lk.sim_poll_interval_s if (lk.sim and cfg.all_sim) else lk.poll_interval_s
+    twin_blocks = lk.sim and cfg.all_sim and pacing is None
+    station.poll_interval_s = lk.sim_poll_interval_s if twin_blocks else lk.poll_interval_s
     station.on_close.append(bench.close)
     faults = bench.faults
     if faults is not None:

@@ -11,8 +11,18 @@ It plays the instrument (no code shared with the driver) against the shared Worl
 * power on: the world's chamber target is the SET= value at the RATE= ramp (world.set_chamber); power off: the
   world is driven to ambient (WorldParams.initial_temperature_c) through the same ramp and lag, and the stored
   SET= value waits for ON.
-* SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on; the
-  stored SET= value while off. STATUS? layout (`status_layout`):
+* SET? answers the controller's current (ramping) setpoint, world.chamber.controller_setpoint_c, while on. While
+  the power is off (`set_query_while_off`, unconfirmed, so a choice): "held" answers the ramping setpoint as it
+  was when the power went off (a controller that is off does not ramp: SET? stays where it was, whatever SET=
+  arrives meanwhile; the public EC1x set documents SET? as the setpoint and nothing makes it move without
+  power); "target" answers the last SET= value (a controller whose SET? echoes the stored target).
+* power at start (`powered_at_start`): True, the controller is on and holding the world's initial temperature;
+  False, the usual morning state: off, SET? held at the world's initial temperature, the STATUS? power and
+  heat/cool flags N, until ON.
+* silence at first contact (`silent_commands`): the first N command lines get no reply at all and are not
+  executed (a controller still starting up; the public EC13 driver reads STATUS? several times at first
+  contact "because sometimes the chamber needs a bit till it is responding").
+* STATUS? layout (`status_layout`):
   - "flags16": 16 Y/N flags: 0 power, 1 heat enabled, 2 cool enabled, 8 ramping (on and
     the setpoint has not reached the target), the rest N;
   - "ec13": what the public Sun EC13 driver (achim1/skippylab, skippylab/instruments/climate_chambers.py)
@@ -22,9 +32,10 @@ It plays the instrument (no code shared with the driver) against the shared Worl
 * acknowledgements (`acknowledges_settings`): True answers every setting/action OK; False plays a
   controller that answers settings with nothing at all (as that public driver expects: it never reads one),
   refusals included: a refused setting then only shows in the read-back and in the last-command-error flag.
-* `status_layout`, `self_test` and `acknowledges_settings` have no default here: the station passes [sim]
-  chamber_status_layout, chamber_self_test and chamber_acknowledges_settings, whose defaults
-  live in the configuration schema only.
+* `status_layout`, `self_test`, `acknowledges_settings`, `powered_at_start`, `set_query_while_off` and
+  `silent_commands` have no default here: the station passes [sim] chamber_status_layout, chamber_self_test,
+  chamber_acknowledges_settings, chamber_powered_at_start, chamber_set_query_while_off and
+  chamber_silent_commands, whose defaults live in the configuration schema only.
 * framing options (the real framing is unconfirmed): `command_end` (CR LF by default; CR or LF) and
   `reply_end` (CR LF by default; CR or LF).
 """
@@ -40,6 +51,7 @@ from sims.world import World
 REPLY_END = b"\r\n"
 STATUS_FLAGS = 16
 STATUS_LAYOUTS = ("flags16", "ec13")
+SET_QUERY_WHILE_OFF = ("held", "target")
 EC13_FLAGS = 18
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 
@@ -63,6 +75,9 @@ class ChamberTwin(FaultableTwin):
         status_layout: str,
         self_test: int,
         acknowledges_settings: bool,
+        powered_at_start: bool,
+        set_query_while_off: str,
+        silent_commands: int,
     ) -> None:
         if command_end not in (b"\r", b"\n", b"\r\n") or reply_end not in (b"\r", b"\n", b"\r\n"):
             raise ValueError("command_end and reply_end must be CR, LF or CR LF")
@@ -70,6 +85,12 @@ class ChamberTwin(FaultableTwin):
             raise ValueError(f"status_layout must be one of {', '.join(STATUS_LAYOUTS)}, got {status_layout!r}")
         if not 0 <= self_test <= 9:
             raise ValueError(f"self_test must be one digit 0-9, got {self_test!r}")
+        if set_query_while_off not in SET_QUERY_WHILE_OFF:
+            raise ValueError(f"set_query_while_off must be held or target, got {set_query_while_off!r}")
+        if int(silent_commands) < 0:
+            raise ValueError(f"silent_commands must be >= 0, got {silent_commands!r}")
+        self.set_query_while_off = set_query_while_off
+        self.silent_commands = int(silent_commands)
         self.status_layout, self.self_test = status_layout, int(self_test)
         self.acknowledges_settings = bool(acknowledges_settings)
         self.last_command_error = False
@@ -80,9 +101,12 @@ class ChamberTwin(FaultableTwin):
         self.max_ramp_c_per_min = float(max_ramp_c_per_min)
         self.ltl_c, self.utl_c = self.hardware_min_c, self.hardware_max_c
         with world.lock:
+            if not powered_at_start:
+                world.chamber.heater_on = False
             self._power = world.chamber.heater_on
             self._target = world.chamber.target_c
             self._ramp = world.chamber.ramp_c_per_min
+            self._held_setpoint = world.chamber.controller_setpoint_c  # SET? while off ("held")
         self.commands_seen = 0
         self._settings = {"SET": self._set, "RATE": self._rate, "LTL": self._ltl, "UTL": self._utl}
         self._queries = {
@@ -96,6 +120,8 @@ class ChamberTwin(FaultableTwin):
 
     def execute(self, line: bytes) -> bytes:
         self.commands_seen += 1
+        if self.commands_seen <= self.silent_commands:
+            return b""  # still starting up: the line is neither answered nor executed
         query = False  # a query answers even when settings are not acknowledged
         try:
             body = self.command_body(line)
@@ -168,13 +194,17 @@ class ChamberTwin(FaultableTwin):
         self._apply()
 
     def _power_off(self) -> None:
+        if self._power:
+            self._held_setpoint = self.world.chamber.controller_setpoint_c
         self._power = False
         self.world.chamber.heater_on = False
         self.world.set_chamber(self.world.params.initial_temperature_c, self._ramp)
 
     # ---------------------------------------------------------------- queries
     def _q_set(self) -> str:
-        return f"{self.world.chamber.controller_setpoint_c if self._power else self._target:.2f}"
+        if self._power:
+            return f"{self.world.chamber.controller_setpoint_c:.2f}"
+        return f"{self._held_setpoint if self.set_query_while_off == 'held' else self._target:.2f}"
 
     def _status(self) -> str:
         ramping = self._power and self.world.chamber.controller_setpoint_c != self.world.chamber.target_c

@@ -38,8 +38,11 @@ from qmg_lab.cli.common import (
     connected_station,
     console,
     fail,
+    flag,
     load,
     out,
+    tolerant_streams,
+    warn_network_share,
 )
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, config_fingerprint
@@ -202,6 +205,9 @@ def run(
     watch_page: Annotated[
         bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
     ] = False,
+    realtime: Annotated[
+        bool, flag("--realtime", help="pace the twins at wall-clock speed: a rehearsal of the bench's timing")
+    ] = False,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
@@ -210,12 +216,19 @@ def run(
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
     with watch_beside((resume or output) if watch_page else None):
-        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, realtime=realtime)
     _print_summary(summary)
 
 
 def _execute(
-    cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
+    cfg: Config,
+    text: str,
+    *,
+    output: Path | None,
+    resume: Path | None,
+    quiet: bool,
+    overwrite: bool = False,
+    realtime: bool = False,
 ) -> Any:
     """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
@@ -263,7 +276,8 @@ def _execute(
             _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
             if path.exists() and not (overwrite and path.is_file()):
                 fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
-        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg) as station:
+        warn_network_share(path)  # HDF5 SWMR on a network share: readers may see a stale file
+        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg, realtime) as station:
             # one guard from here to the file's last close: a stop signal while the station connects or the file is
             # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
             try:
@@ -369,7 +383,8 @@ def instruments(config: ConfigArg, sim: SimOpt = False, json_out: JsonOpt = Fals
             tbl.add_column(col)
         for name, e in report.items():
             state = e.get("error") or ", ".join(f"{k}={v}" for k, v in list((e.get("state") or {}).items())[:6])
-            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(e["identity"]), state)
+            identity = e["identity"] or "(not identified)"  # never a bare None in the table
+            tbl.add_row(name, "twin" if e["simulated"] else "hardware", str(identity), state)
         out.print(tbl)
     failed = [n for n, e in report.items() if not e["ok"]]
     if failed:
@@ -589,7 +604,7 @@ def budget(
     config: ConfigArg,
     json_out: JsonOpt = False,
     sim: Annotated[
-        bool, typer.Option("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
+        bool, flag("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
     ] = False,
 ) -> None:
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
@@ -630,6 +645,7 @@ for _commands in (bench, device, files, runs, watch):
 
 def main() -> None:  # pragma: no cover - console entry
     heap.quiet_start()  # no cyclic collection while the command starts (qmg_lab.cli.heap)
+    tolerant_streams()  # no UnicodeEncodeError on a cp1252 console or redirect (qmg_lab.cli.common)
     from qmg_lab.campaign.interrupts import StopRequested, exit_code
 
     try:

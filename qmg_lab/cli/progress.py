@@ -24,7 +24,8 @@ from rich.table import Table
 from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 from qmg_lab.campaign.runner import Progress
 
-REFRESH_S = 0.25  # terminal panel refresh
+REFRESH_S = 1.0  # terminal panel refresh, s: the live panel is rebuilt and redrawn once a second (a redraw costs
+# about 1.5 % of a core at 4 a second on a real-time run: benchmarks/realtime_cpu.py)
 LINE_EVERY_S = 10.0  # plain-text line interval (logs, CI)
 COMPILE_NOTICE_AFTER_S = 3.0  # wall time waiting for a block before the view says why, s
 COMPILE_BLOCKS = 20  # the blocks during which numba may still be compiling (a later wait is not a compile)
@@ -67,7 +68,7 @@ class ProgressView:
     def __enter__(self) -> ProgressView:
         self._last_block = self._clock()
         if self.enabled and self.console.is_terminal:
-            self.live = Live(self, console=self.console, refresh_per_second=4, transient=True)
+            self.live = Live(self, console=self.console, refresh_per_second=1.0 / REFRESH_S, transient=True)
             self.live.__enter__()
         elif self.enabled:
             self._arm_notice()

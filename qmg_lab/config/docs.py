@@ -48,7 +48,12 @@ def reference_markdown() -> str:
             args = getattr(ann, "__args__", ())
             if getattr(ann, "__origin__", None) is Literal:
                 bounds.append(" \\| ".join(repr(a) for a in args))
-            lines.append(f"| `{key}` | `{default!r}` | {', '.join(bounds) or '—'} | {f.description or ''} |")
+            extra = f.json_schema_extra if isinstance(f.json_schema_extra, dict) else {}
+            per_os = extra.get("default_per_os")  # a default that depends on the OS: each, not this machine's
+            shown = (
+                ", ".join(f"`{v!r}` ({k})" for k, v in per_os.items()) if isinstance(per_os, dict) else f"`{default!r}`"
+            )
+            lines.append(f"| `{key}` | {shown} | {', '.join(bounds) or '—'} | {f.description or ''} |")
         lines.append("")
 
     for name, f in Config.model_fields.items():

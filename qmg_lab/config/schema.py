@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import sys
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
@@ -52,6 +53,26 @@ def _limited_by(*keys: str) -> dict[str, JsonValue]:
     two keys, the value lies in [low, high]; one key, |value| <= it (for a list, every item). `Config` checks
     them when it is validated, and the error and docs/configuration.md name the keys (`plan_limit_problems`)."""
     return {"limited_by": list(keys)}
+
+
+#: the serial ports of the table and the chamber by default, per OS (`sys.platform`): a USB-serial adapter is
+#: /dev/ttyUSB<n> on Linux (the kernel's usbserial naming) and COM<n> on Windows, where COM1 and COM2 are
+#: usually the board's own ports and the first adapter gets COM3 (Device Manager, "Ports (COM & LPT)").
+#: Every other OS takes the POSIX names.
+SERIAL_PORT_DEFAULTS: dict[str, dict[str, str]] = {
+    "win32": {"table": "COM3", "chamber": "COM4"},
+    "posix": {"table": "/dev/ttyUSB0", "chamber": "/dev/ttyUSB1"},
+}
+
+
+def default_serial_port(instrument: Literal["table", "chamber"], platform: str = sys.platform) -> str:
+    """The default [table]/[chamber] port on `platform` (SERIAL_PORT_DEFAULTS: the one place of these names)."""
+    return SERIAL_PORT_DEFAULTS["win32" if platform == "win32" else "posix"][instrument]
+
+
+def _per_os_port(instrument: Literal["table", "chamber"]) -> dict[str, JsonValue]:
+    """json_schema_extra of a port field: its per-OS defaults, for docs/configuration.md (qmg_lab.config.docs)."""
+    return {"default_per_os": {os_name: ports[instrument] for os_name, ports in SERIAL_PORT_DEFAULTS.items()}}
 
 
 def _transport_on_this_system(value: str) -> str:
@@ -288,7 +309,12 @@ class TableSection(_Section):
     """Ideal Aerosmith 1291BR rate table, over a pyserial URL."""
 
     sim: bool = Field(False)
-    port: str = Field("/dev/ttyUSB0", min_length=1, description="pyserial URL: /dev/ttyUSB0, socket://h:p, ...")
+    port: str = Field(
+        default_factory=lambda: default_serial_port("table"),
+        min_length=1,
+        description="pyserial URL: COM3, /dev/ttyUSB0, socket://h:p, ...",
+        json_schema_extra=_per_os_port("table"),
+    )
     baudrate: int = Field(9600, ge=300, le=115200)
     timeout_s: float = Field(1.0, gt=0.0, le=30.0)
     max_rate_dps: float = Field(100.0, gt=0.0, le=1000.0, description="refuse commands above this rate")
@@ -324,10 +350,11 @@ class ChamberSection(_Section):
 
     sim: bool = Field(False)
     port: str = Field(
-        "/dev/ttyUSB1",
+        default_factory=lambda: default_serial_port("chamber"),
         min_length=1,
-        description="pyserial URL (/dev/ttyUSB1, COM3, socket://h:p) or, if it contains '::', a VISA resource "
+        description="pyserial URL (COM4, /dev/ttyUSB1, socket://h:p) or, if it contains '::', a VISA resource "
         "(GPIB0::6::INSTR) opened through pyvisa",
+        json_schema_extra=_per_os_port("chamber"),
     )
     visa_backend: str = Field("", description="VISA address only: pyvisa backend: '' default, '@py', 'file.yaml@sim'")
     baudrate: int = Field(9600, ge=300, le=115200, description="serial URL only")
@@ -552,6 +579,17 @@ class SimSection(_Section):
     chamber_self_test: int = Field(0, ge=0, le=9, description="chamber twin's self-test digit (ec13 layout)")
     chamber_acknowledges_settings: bool = Field(
         True, description="chamber twin answers OK to settings (false: it answers nothing, as an EC13 on GPIB)"
+    )
+    chamber_powered_at_start: bool = Field(
+        True, description="chamber twin's power at start (false: off, the usual morning state, until ON)"
+    )
+    chamber_set_query_while_off: Literal["held", "target"] = Field(
+        "held",
+        description="chamber twin's SET? while the power is off: held = the ramping setpoint where it stopped "
+        "(it does not ramp without power), target = the last SET= value",
+    )
+    chamber_silent_commands: int = Field(
+        0, ge=0, le=100, description="chamber twin ignores its first N command lines (a controller starting up)"
     )
     table_servo_on_at_start: bool = Field(
         True, description="table twin's servo at power-up (false: JOG/SGO refused, E06, until the servo command)"

@@ -55,14 +55,17 @@ def table_twin_settings(**overrides: Any) -> dict[str, Any]:
 
 
 def chamber_twin_settings(**overrides: Any) -> dict[str, Any]:
-    """The EC1x twin's `status_layout`, `self_test` and `acknowledges_settings` keywords of the default
-    configuration ([sim] chamber_status_layout, chamber_self_test, chamber_acknowledges_settings), with
-    `overrides` changed."""
+    """The EC1x twin's keywords of the default configuration ([sim] chamber_status_layout, chamber_self_test,
+    chamber_acknowledges_settings, chamber_powered_at_start, chamber_set_query_while_off,
+    chamber_silent_commands), with `overrides` changed."""
     sim = Config().sim
     return {
         "status_layout": sim.chamber_status_layout,
         "self_test": sim.chamber_self_test,
         "acknowledges_settings": sim.chamber_acknowledges_settings,
+        "powered_at_start": sim.chamber_powered_at_start,
+        "set_query_while_off": sim.chamber_set_query_while_off,
+        "silent_commands": sim.chamber_silent_commands,
         **overrides,
     }
 

@@ -62,10 +62,10 @@ def no_ack_setpoint_30_at_2() -> list[tuple[bytes, bytes | None]]:
     return [
         (b"RATE=2.000\r\n", None),
         (b"RATE?\r\n", b"2.000\r\n"),
-        (b"SET=30.00\r\n", None),
-        (b"SET?\r\n", b"30.00\r\n"),
         (b"ON\r\n", None),
         (b"STATUS?\r\n", ON_IDLE),
+        (b"SET=30.00\r\n", None),
+        (b"SET?\r\n", b"30.00\r\n"),
     ]
 
 
@@ -92,15 +92,15 @@ def test_identifies_sets_and_reads_an_ec13_that_acknowledges_nothing(ack: str) -
 
 
 def test_an_ok_that_does_come_is_consumed_and_nothing_is_read_back() -> None:
-    pairs = [(b"RATE=2.000\r\n", b"OK\r\n"), (b"SET=30.00\r\n", b"OK\r\n"), (b"ON\r\n", b"OK\r\n")]
+    pairs = [(b"RATE=2.000\r\n", b"OK\r\n"), (b"ON\r\n", b"OK\r\n"), (b"SET=30.00\r\n", b"OK\r\n")]
     with expected_protocol(ec13(), pairs) as chamber:
         chamber.set_setpoint(30.0, 2.0)
     assert chamber.unacknowledged == 0
 
 
 def test_set_read_back_on_the_ramping_setpoint_is_confirmed_by_the_ramping_flag() -> None:
-    pairs = [(b"SET=25.00\r\n", None), (b"SET?\r\n", b"27.31\r\n"), (b"STATUS?\r\n", ON_RAMPING)]
-    pairs += [(b"ON\r\n", None), (b"STATUS?\r\n", ON_RAMPING)]
+    pairs = [(b"ON\r\n", None), (b"STATUS?\r\n", ON_RAMPING)]
+    pairs += [(b"SET=25.00\r\n", None), (b"SET?\r\n", b"27.31\r\n"), (b"STATUS?\r\n", ON_RAMPING)]
     with expected_protocol(ec13(), pairs) as chamber:
         chamber.safe_state()
 
@@ -114,8 +114,7 @@ def test_set_read_back_on_the_ramping_setpoint_is_confirmed_by_the_ramping_flag(
         ),
         (
             [
-                (b"RATE=2.000\r\n", None),
-                (b"RATE?\r\n", b"2.000\r\n"),
+                *no_ack_setpoint_30_at_2()[:4],
                 (b"SET=30.00\r\n", None),
                 (b"SET?\r\n", b"25.00\r\n"),
                 (b"STATUS?\r\n", ON_IDLE),
@@ -123,15 +122,15 @@ def test_set_read_back_on_the_ramping_setpoint_is_confirmed_by_the_ramping_flag(
             r"'SET=30\.00' not taken: SET\? = 25 and STATUS\? = 'YNNNYYYNNNNNNNNNNN0' \(not ramping\)",
         ),
         (
-            [*no_ack_setpoint_30_at_2()[:5], (b"STATUS?\r\n", OFF_IDLE)],
+            [*no_ack_setpoint_30_at_2()[:3], (b"STATUS?\r\n", OFF_IDLE)],
             r"'ON' not taken: STATUS\? = 'NNNNNNYNNNNNNNNNNN0'",
         ),
         (
-            [(b"RATE=2.000\r\n", None), (b"RATE?\r\n", b"2.000\r\n"), (b"SET=30.00\r\n", b"?LIMIT\r\n")],
+            [*no_ack_setpoint_30_at_2()[:4], (b"SET=30.00\r\n", b"?LIMIT\r\n")],
             r"'SET=30\.00' refused: '\?LIMIT'",
         ),
         (
-            [(b"RATE=2.000\r\n", None), (b"RATE?\r\n", b"2.000\r\n"), (b"SET=30.00\r\n", b"0K\r\n")],
+            [*no_ack_setpoint_30_at_2()[:4], (b"SET=30.00\r\n", b"0K\r\n")],
             r"garbled reply to 'SET=30\.00': received '0K' instead of 'OK'",
         ),
     ],
@@ -203,7 +202,7 @@ def test_twin_as_ec13_identifies_sets_and_reads(twin_bench: tuple[ChamberTwin, S
     reading = chamber.read()
     assert reading.ramping and reading.setpoint_c == pytest.approx(25.0, abs=0.005)  # no virtual time has passed
     assert chamber.ramp_rate() == 2.0 and chamber.power_on()
-    assert chamber.unacknowledged == 5  # LTL=, UTL=, RATE=, SET=, ON: all confirmed by read-back
+    assert chamber.unacknowledged == 5  # LTL=, UTL=, RATE=, ON, SET=: all confirmed by read-back
 
 
 def test_twin_refusal_without_a_reply_shows_in_the_read_back_and_the_error_flag(
@@ -218,12 +217,12 @@ def test_twin_refusal_without_a_reply_shows_in_the_read_back_and_the_error_flag(
 
 
 def watched_safe_state() -> list[tuple[bytes, bytes | None]]:
-    """safe_state() (SET=25.00, ON) while the chamber ramps: SET? = 27.31, confirmed by the ramping flag only."""
+    """safe_state() (ON, SET=25.00) while the chamber ramps: SET? = 27.31, confirmed by the ramping flag only."""
     return [
+        (b"ON\r\n", None),
+        (b"STATUS?\r\n", ON_RAMPING),
         (b"SET=25.00\r\n", None),
         (b"SET?\r\n", b"27.31\r\n"),
-        (b"STATUS?\r\n", ON_RAMPING),
-        (b"ON\r\n", None),
         (b"STATUS?\r\n", ON_RAMPING),
     ]
 

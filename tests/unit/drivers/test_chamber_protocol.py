@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.chamber import SunEC1xChamber
+from drivers.chamber import FIRST_CONTACT_ATTEMPTS, SunEC1xChamber
 from qmg_lab.instruments import ChamberReading, InstrumentError, LimitError
 from tests.support.protocol_serial import ProtocolPort, expected_protocol
 
@@ -33,13 +33,13 @@ def chamber(port: ProtocolPort) -> SunEC1xChamber:
     return SunEC1xChamber(port, min_c=-40.0, max_c=85.0, max_ramp_c_per_min=5.0, safe_setpoint_c=25.0)
 
 
-def test_set_setpoint_sends_rate_set_on() -> None:
-    with expected_protocol(chamber, [(b"RATE=2.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)]) as c:
+def test_set_setpoint_sends_rate_on_set() -> None:
+    with expected_protocol(chamber, [(b"RATE=2.000\r\n", OK), (b"ON\r\n", OK), (b"SET=30.00\r\n", OK)]) as c:
         c.set_setpoint(30.0, 2.0)
 
 
 def test_set_setpoint_negative_and_fractional() -> None:
-    with expected_protocol(chamber, [(b"RATE=0.250\r\n", OK), (b"SET=-12.35\r\n", OK), (b"ON\r\n", OK)]) as c:
+    with expected_protocol(chamber, [(b"RATE=0.250\r\n", OK), (b"ON\r\n", OK), (b"SET=-12.35\r\n", OK)]) as c:
         c.set_setpoint(-12.345, 0.25)
 
 
@@ -52,8 +52,8 @@ def test_read_parses_c1_set_status() -> None:
         assert c.read().ramping is False
 
 
-def test_safe_state_sets_safe_setpoint_and_stays_on() -> None:
-    with expected_protocol(chamber, [(b"SET=25.00\r\n", OK), (b"ON\r\n", OK)] * 2) as c:
+def test_safe_state_powers_on_then_sets_the_safe_setpoint() -> None:
+    with expected_protocol(chamber, [(b"ON\r\n", OK), (b"SET=25.00\r\n", OK)] * 2) as c:
         c.safe_state()
         c.safe_state()
 
@@ -76,7 +76,7 @@ def test_write_limits_identify_power() -> None:
 
 
 def test_refusal_names_the_command() -> None:
-    port = ProtocolPort([(b"RATE=2.000\r\n", OK), (b"SET=30.00\r\n", b"?LIMIT\r\n")])
+    port = ProtocolPort([(b"RATE=2.000\r\n", OK), (b"ON\r\n", OK), (b"SET=30.00\r\n", b"?LIMIT\r\n")])
     with pytest.raises(InstrumentError, match=r"'SET=30\.00' refused: '\?LIMIT'"):
         chamber(port).set_setpoint(30.0, 2.0)
     port.assert_complete()
@@ -108,11 +108,16 @@ def test_bad_query_replies(reply: bytes | None, match: str) -> None:
 def test_bad_status(reply: bytes, match: str) -> None:
     port = ProtocolPort([(b"STATUS?\r\n", reply)])
     with pytest.raises(InstrumentError, match=match):
+        chamber(port).power_on()
+    # at first contact, a garbled STATUS? is asked again, FIRST_CONTACT_ATTEMPTS times in all
+    port = ProtocolPort([(b"STATUS?\r\n", reply)] * FIRST_CONTACT_ATTEMPTS)
+    with pytest.raises(InstrumentError, match=f"after {FIRST_CONTACT_ATTEMPTS} attempts .*" + match):
         chamber(port).identify()
+    port.assert_complete()
 
 
 def test_setting_not_acknowledged_ok() -> None:
-    port = ProtocolPort([(b"SET=25.00\r\n", b"0K\r\n")])
+    port = ProtocolPort([(b"ON\r\n", OK), (b"SET=25.00\r\n", b"0K\r\n")])
     with pytest.raises(InstrumentError, match=r"garbled reply to 'SET=25\.00'.*'0K'"):
         chamber(port).safe_state()
 
@@ -145,15 +150,15 @@ def test_constructor_rejects_inconsistent_limits() -> None:
 
 
 def test_reconnect_identifies_rewrites_limits_and_restores_setpoint() -> None:
-    first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"SET=30.00\r\n", OK), (b"ON\r\n", OK)])
+    first = ProtocolPort([(b"RATE=1.000\r\n", OK), (b"ON\r\n", OK), (b"SET=30.00\r\n", OK)])
     second = ProtocolPort(
         [
             (b"STATUS?\r\n", b"YYYNNNNNYNNNNNNN\r\n"),
             (b"LTL=-40.00\r\n", OK),
             (b"UTL=85.00\r\n", OK),
             (b"RATE=1.000\r\n", OK),
-            (b"SET=30.00\r\n", OK),
             (b"ON\r\n", OK),
+            (b"SET=30.00\r\n", OK),
         ]
     )
     c = SunEC1xChamber(

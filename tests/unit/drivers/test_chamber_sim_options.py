@@ -41,7 +41,7 @@ def test_settings_unacknowledged_are_read_back(transport: str) -> None:
     try:
         chamber.set_setpoint(30.0, 2.0)
         assert chamber.ramp_rate() == 2.0 and chamber.read().ramping
-        assert chamber.unacknowledged == 5  # LTL=, UTL= at connect; RATE=, SET=, ON
+        assert chamber.unacknowledged == 5  # LTL=, UTL= at connect; RATE=, ON, SET=
     finally:
         conn.close()
 

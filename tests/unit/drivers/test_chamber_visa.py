@@ -57,7 +57,7 @@ def test_ec13_through_pyvisa_identifies_sets_and_reads(resource: str, ack: str) 
         assert chamber.ramp_rate() == 2.0
         snapshot = chamber.snapshot()
         assert snapshot["settings"]["framing"]["transport"] == "visa"
-        assert snapshot["settings"]["settings_confirmed_by_read_back"] == 5  # LTL=, UTL=, RATE=, SET=, ON
+        assert snapshot["settings"]["settings_confirmed_by_read_back"] == 5  # LTL=, UTL=, RATE=, ON, SET=
     finally:
         conn.close()
 
