@@ -21,10 +21,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
-from qmg_lab.cli import bench, device, files, heap, runs, watch
+from qmg_lab.cli import bench, device, files, heap, runs, sfcal, watch
 from qmg_lab.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAULT,
@@ -443,6 +444,10 @@ def analyze(
     fmt: Annotated[
         str, typer.Option("--format", help="figure file format: png, svg or pdf", show_default=True)
     ] = "png",
+    sf_model: Annotated[
+        Path | None,
+        typer.Option("--sf-model", help="pickoff-ratio model (characterize sf-model): the calibrated SF beside CLSF"),
+    ] = None,
 ) -> None:
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
@@ -469,8 +474,24 @@ def analyze(
     from qmg_lab.analysis.render import render_table
     from qmg_lab.storage.writer import read_run, status_detail
 
+    model = None
+    if sf_model is not None:
+        from qmg_lab.clsf.pickoff_model import PickoffRatioModel
+
+        try:
+            model = PickoffRatioModel.load(sf_model)
+        except ValueError as exc:
+            fail(EXIT_BAD_INPUT, str(exc))
+    calibrated = None
     try:
         result = run_analysis(run_file)
+        if model is not None:
+            from qmg_lab.analysis.calibrated_sf import evaluate
+
+            try:
+                calibrated = evaluate(run_file, model, result)
+            except ValueError as exc:
+                fail(EXIT_BAD_INPUT, str(exc))
         detail = status_detail(read_run(run_file, select=()))
         written = []
         if figures is not None:
@@ -486,9 +507,15 @@ def analyze(
         data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
         if figures is not None:
             data["figures"] = [str(p) for p in written]
+        if calibrated is not None:
+            data["calibrated_sf"] = {**calibrated.to_json(), "model_file": str(sf_model)}
         out.print_json(json.dumps(data, default=float))
     else:
         out.print(render_table(dataclasses.replace(result, status=detail)))
+        if calibrated is not None:
+            out.print(sfcal.render_calibrated(calibrated))
+            for w in calibrated.warnings:
+                out.print(f"[bold yellow]warning:[/] {escape(w)}")
         for p in written:
             out.print(f"figure: {p}")
 
@@ -624,7 +651,7 @@ def version() -> None:
 
 
 # the bring-up, device, file, run-list and watch commands, after this module's own (the order of `--help`)
-for _commands in (bench, device, files, runs, watch):
+for _commands in (bench, device, files, runs, sfcal, watch):
     _commands.register(app)
 
 
