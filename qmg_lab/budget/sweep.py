@@ -401,8 +401,19 @@ PICKOFF_SOURCES = ("pickoff_electronics", "pickoff_transducer", "pickoff_quadrat
 ACCURACY_SOURCES = (*PICKOFF_SOURCES, "mode_split", "damping", "feedthrough", "forcer_cubic", "table_ripple")
 
 
-def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm) and the pairs' gyro temperatures."""
+@dataclass(frozen=True)
+class PairErrors:
+    """The predicted c_i - e_i of every step pair per source (rows in ACCURACY_SOURCES order, ppm), each pair's
+    analysis windows [(t0, t1) of the + step, of the - step] (s from the plan's start) and the ramp's start (s)."""
+
+    rows_ppm: np.ndarray
+    windows_s: list[list[tuple[float, float]]]
+    ramp_start_s: float
+    temperatures_c: np.ndarray
+
+
+def pair_errors(cfg: Config) -> PairErrors:
+    """The per-source pair errors of a temperature sweep (module docstring), with the windows they are taken over."""
     sweep = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": "temperature_sweep"})})
     steps = build_plan(sweep)
     wins = {w.index: w for w in _windows(sweep, steps)}
@@ -414,7 +425,7 @@ def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
         if k + 1 in wins and wins[k].rate_dps > 0 > wins[k + 1].rate_dps and steps[k].kind == "rate"
     ]
     if not pairs:
-        return dict.fromkeys(ACCURACY_SOURCES, float("nan")), np.zeros((len(ACCURACY_SOURCES), 0)), np.zeros(0)
+        return PairErrors(np.zeros((len(ACCURACY_SOURCES), 0)), [], ramp_start, np.zeros(0))
     grids = np.array(
         [np.concatenate([np.linspace(wp.t0_s, wp.t1_s, 64), np.linspace(wm.t0_s, wm.t1_s, 64)]) for wp, wm in pairs]
     )
@@ -438,7 +449,14 @@ def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
         d = deltas.get(name, np.zeros_like(temp))
         e = eps.get(name, np.zeros_like(temp))
         rows.append(((d[0] - d) - (e - e[0])) * PPM)
-    err = np.array(rows)
+    windows = [[(wp.t0_s, wp.t1_s), (wm.t0_s, wm.t1_s)] for wp, wm in pairs]
+    return PairErrors(np.array(rows), windows, ramp_start, temp)
+
+
+def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm) and the pairs' gyro temperatures."""
+    pe = pair_errors(cfg)
+    err, temp = pe.rows_ppm, pe.temperatures_c
     terms = {
         n: float(np.sqrt(np.mean(r[1:] ** 2))) if r.size > 1 else float("nan")
         for n, r in zip(ACCURACY_SOURCES, err, strict=True)

@@ -618,6 +618,13 @@ def budget(
     sim: Annotated[
         bool, typer.Option("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
     ] = False,
+    sf_characterisation: Annotated[
+        Path | None,
+        typer.Option(
+            "--sf-characterisation",
+            help="the characterisation run's configuration: also the calibrated SF's residual, term by term",
+        ),
+    ] = None,
 ) -> None:
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
     the accuracy and linearity terms of a temperature sweep."""
@@ -626,8 +633,16 @@ def budget(
 
     cfg, _ = load(config, sim=False)
     result = noise_budget(cfg, sim_blocks=sim)
+    calibrated = None
+    if sf_characterisation is not None:
+        from qmg_lab.budget.calibrated import calibrated_accuracy
+
+        calibrated = calibrated_accuracy(cfg, load(sf_characterisation, sim=False)[0])
     if json_out:
-        out.print_json(json.dumps(result.to_json(), default=float))
+        data = result.to_json()
+        if calibrated is not None:
+            data["calibrated_accuracy"] = calibrated.to_json()
+        out.print_json(json.dumps(data, default=float))
         return
     out.print(budget_table(result, out.width))
     acc = result.accuracy
@@ -637,6 +652,13 @@ def budget(
         + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
         + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
     )
+    if calibrated is not None:
+        out.print(
+            f"whole-SF calibration (qmg_lab/budget/calibrated.py, model from {sf_characterisation}): residual "
+            f"{calibrated.total_ppm:.1f} ppm RMS against the table steps (CLSF alone {calibrated.clsf_total_ppm:.0f}): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in calibrated.terms_ppm.items())
+            + f" ppm; fitted front-end lag {calibrated.lag_tau_s:.0f} s"
+        )
     out.print(f"dominant at 60 s: {result.dominant(60.0)}. The values and their origins:")
     for s in result.sources:
         out.print(f"  {s.name} = {s.value:.3g} {s.unit}: {s.origin}")

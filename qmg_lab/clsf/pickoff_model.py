@@ -182,14 +182,14 @@ def fit_pickoff_model(
     y = np.asarray(y, dtype=np.float64)
     anchor = float(f_hz[0])
     x = np.asarray(f_hz, dtype=np.float64) - anchor
-    best: tuple[float, float, np.ndarray, np.ndarray] | None = None
     scores: dict[float, float] = {}
-    for tau in tau_grid_s:
+
+    def solve(tau: float) -> tuple[float, np.ndarray, np.ndarray] | None:
         feats = window_means(t_s, features(t_s, x, tau), windows)
         ok = np.all(np.isfinite(feats), axis=1) & np.isfinite(y)
         a = np.column_stack([np.ones(int(ok.sum())), feats[ok]])
         if a.shape[0] < a.shape[1] + 2:
-            continue
+            return None
         # columns scaled to unit norm: x and L_tau[x] are nearly collinear for a small tau
         norms = np.linalg.norm(a, axis=0)
         norms[norms == 0.0] = 1.0
@@ -198,11 +198,21 @@ def fit_pickoff_model(
         res = y[ok] - a @ coef
         score = float(np.sum(res**2) / (a.shape[0] - a.shape[1])) * 1e12
         scores[tau] = score
-        if best is None or score < best[0]:
-            best = (score, tau, coef, res)
-    if best is None:
+        return score, coef, res
+
+    grid = [(tau, r) for tau in tau_grid_s if (r := solve(tau)) is not None]
+    if not grid:
         raise ValueError(f"{len(y)} step pairs: too few to fit the pickoff-ratio model (at least 6 needed)")
-    _, tau, coef, res = best
+    k = min(range(len(grid)), key=lambda j: grid[j][1][0])
+    tau, (score, coef, res) = grid[k]
+    if tau > 0.0 and 0 < k < len(grid) - 1 and grid[k - 1][0] > 0.0:
+        from scipy.optimize import minimize_scalar  # only the characterisation needs it
+
+        lo, hi = math.log(grid[k - 1][0]), math.log(grid[k + 1][0])
+        opt = minimize_scalar(lambda u: solve(math.exp(u))[0], bounds=(lo, hi), method="bounded")  # type: ignore[index]
+        refined = solve(math.exp(float(opt.x)))
+        if refined is not None and refined[0] < score:
+            tau, (score, coef, res) = math.exp(float(opt.x)), refined
     pair_x = window_means(t_s, x[np.newaxis, :], windows)[:, 0]
     pair_x = pair_x[np.isfinite(pair_x)]
     model = PickoffRatioModel(
