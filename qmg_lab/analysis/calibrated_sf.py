@@ -38,7 +38,6 @@ RANGE_MARGIN = 0.1  # of the characterised span: how far outside it an evaluated
 class CalibratedSF:
     """The calibrated SF of one run beside the CLSF-only one (ppm; NaN where not available)."""
 
-    model_file: str
     pair_changes_ppm: list[float]  # calibrated SF change of each step pair, against pair 0
     accuracy_vs_table_ppm: float
     accuracy_vs_table_ppm_mean_removed: float
@@ -183,7 +182,6 @@ def evaluate(run_file: str | Path, model: PickoffRatioModel, result: AnalysisRes
             "lagging board, or f0 moved for a reason other than temperature)"
         )
     return CalibratedSF(
-        model_file=str(model.source.get("model_file", "")),
         pair_changes_ppm=[float(v) for v in cal],
         accuracy_vs_table_ppm=acc,
         accuracy_vs_table_ppm_mean_removed=acc_mr,

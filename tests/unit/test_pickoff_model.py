@@ -98,3 +98,20 @@ def test_budget_front_end_lag_follows_its_equation() -> None:
     ref = first_order_lag(t, die, tau)
     assert np.max(np.abs(board - ref)) < 1e-9
     assert math.isclose(board[0], die[0])
+
+
+def test_characterize_sf_model_refuses_a_missing_run(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "qmg_lab", "characterize", "sf-model", str(tmp_path / "none.h5"), "-o", "m.json"],
+        check=False,
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "no such run file" in " ".join(proc.stderr.split())  # rich wraps long lines
+    assert "Traceback" not in proc.stderr
