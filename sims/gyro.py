@@ -46,8 +46,9 @@ INPUT_NAMES = ("gyro_c", "table_rate_dps", "dither_v")
 CHUNK_STEPS = 1 << 13  # 8192 steps: the chunk's noise draws (192 kB) stay in the L2 cache
 
 
-def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
-    """GyroParams as the float64 vector the kernels read (indices P_* in sims/gyro_kernel.py)."""
+def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int, output_step_s: float | None = None) -> np.ndarray:
+    """GyroParams as the float64 vector the kernels read (indices P_* in sims/gyro_kernel.py); output_step_s is the
+    interval between outputs (the controller step; dt_s if None), over which the front-end board's lag advances."""
     v = np.zeros(gk.N_PARAMS)
     two_t = 2.0 * p.damping_axis_deg * RAD_PER_DEG
     two_w = 2.0 * p.stiffness_axis_deg * RAD_PER_DEG
@@ -64,7 +65,12 @@ def pack_params(p: GyroParams, dt_s: float, steps_per_gm: int) -> np.ndarray:
     v[gk.P_AOLSB] = p.auxout_lsb_v
     v[gk.P_AF] = p.forcer_tempco_ppm_per_c * 1e-6
     v[gk.P_AW] = p.frequency_tempco_ppm_per_c * 1e-6
-    v[gk.P_AP] = p.pickoff_ratio_tempco_ppm_per_c * 1e-6
+    v[gk.P_AP] = p.pickoff_transducer_tempco_ppm_per_c * 1e-6
+    v[gk.P_AE] = p.pickoff_electronics_tempco_ppm_per_c * 1e-6
+    v[gk.P_A2] = p.pickoff_ratio_tempco2_ppm_per_c2 * 1e-6
+    tau_fe = p.frontend_thermal_tau_s
+    step = dt_s if output_step_s is None else output_step_s
+    v[gk.P_FEA] = math.exp(-step / tau_fe) if tau_fe > 0.0 else 0.0
     v[gk.P_TREF] = p.reference_temperature_c
     v[gk.P_DELAY] = p.loop_delay_us * 1e-6
     v[gk.P_KD] = p.k_drive
@@ -158,7 +164,7 @@ class _TwinBase:
         self.dt_s = float(dt_s)
         self.step_s = float(step_s)
         self.gm_steps = gm_steps(self.step_s)
-        self._P = pack_params(params, self.dt_s, self.gm_steps)
+        self._P = pack_params(params, self.dt_s, self.gm_steps, self.step_s)
         self._gm_a, self._gm_b = gm_coefficients(params.bias_instability_deg_per_h, self.gm_steps * self.step_s)
         self._noise = NoiseStream(seed, gk.NOISE_PER_STEP, gk.N_GM)
         self._step_noise_on = (
@@ -220,6 +226,7 @@ class _TwinBase:
         """Apply the pending reset mode at the first step of the first run after reset()."""
         s, p = self._S, self.params
         pll = loops.pll
+        s[gk.S_TFE] = temp0  # the front-end board starts in equilibrium with the die
         if self._pending == "rest":
             s[gk.S_FREF] = pll.center_hz
             self._init_filters()

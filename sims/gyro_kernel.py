@@ -84,7 +84,10 @@ P_AF, P_AW, P_AP, P_TREF, P_DELAY, P_KD, P_KF, P_A0, P_DT, P_GMSTEPS, P_SF, P_R0
 # 2-omega ripple switch (carrier model)
 P_AQ, P_ADM, P_ADW, P_BETA, P_FTC, P_FTS, P_RIP = 23, 24, 25, 26, 27, 28, 29
 P_FNOISE, P_AOLSB = 30, 31  # forcer-path voltage noise (V/sqrt(Hz), one-sided); AuxOut DAC step (V, 0 = ideal)
-N_PARAMS = 32
+# pickoff ratio (P_AP: the transducer's linear part at the die): the front end's linear part at the board
+# temperature, the quadratic part at the die (1/degC^2), the board's lag factor per output step e^(-dt/tau_fe)
+P_AE, P_A2, P_FEA = 32, 33, 34
+N_PARAMS = 35
 
 # ---- loop vector L (sims/gyro_params.pack_loops)
 L_PLL = 0  # enabled, p, i, setpoint, center, range
@@ -104,7 +107,8 @@ FILT_STRIDE = 10
 S_PLLE = S_FILT + 4 * FILT_STRIDE
 S_QX, S_QY, S_UX, S_UY, S_PHI = S_PLLE + 1, S_PLLE + 2, S_PLLE + 3, S_PLLE + 4, S_PLLE + 5
 S_VRP = S_PHI + 1  # the rate PID value of the sample before (the AuxOut ramps from it to S_VR)
-N_STATE = S_VRP + 1
+S_TFE = S_VRP + 1  # the front-end board temperature, degC (first-order lag of the die temperature)
+N_STATE = S_TFE + 1
 
 # ---- output rows
 O_XD, O_YD, O_XS, O_YS, O_F, O_VD, O_VR, O_VQ, O_PLLE, O_SF, O_AUX = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
@@ -346,6 +350,14 @@ def _lowpass_sections(P, L, dt):
     return fj, fs, fr, order, a_d, c_d, sections
 
 
+@njit(cache=True, inline="always")
+def _pickoff_ratio(a_t, a_2, a_e, dtemp, dtemp_fe):
+    """G_py/G_px = 1 + a_t dT + a_2 dT^2 + a_e dT_fe: the transducer's parts at the die, the front end's at its board.
+    The board temperature advances per output step as T_fe <- T + e^(-dt/tau_fe) (T_fe - T), the exact step of
+    dT_fe/dt = (T - T_fe)/tau_fe with T held over the step."""
+    return 1.0 + a_t * dtemp + a_2 * dtemp * dtemp + a_e * dtemp_fe
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_noise, out):
     """Advance the averaged model by len(temp_c) steps of P[P_DT]; write outputs (rows O_*) into `out`.
@@ -373,6 +385,7 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
     a_w, q0, a_q, dmis, a_dm, dw0, a_dw = P[P_AW], P[P_Q], P[P_AQ], P[P_DMIS], P[P_ADM], P[P_DW], P[P_ADW]
     k_d, k_f, a_f, a_p, beta, sf0 = P[P_KD], P[P_KF], P[P_AF], P[P_AP], P[P_BETA], P[P_SF]
     ftc, fts = P[P_FTC], P[P_FTS]
+    a_e, a_2, fe_a = P[P_AE], P[P_A2], P[P_FEA]
     arw_f = k * a0 * w0 * sig_arw  # ARW force times omega_r (divided by omega_r per step)
     inv_sqrt2 = 1.0 / SQRT2
     sf_scale = sf0 / (w0 * a0 * gain)
@@ -435,7 +448,8 @@ def averaged_kernel(S, P, L, gm_a, gm_b, temp_c, rate_dps, dither_v, noise, gm_n
         zy_new = p21 * zx + p22 * zy + zy_in
         S[S_CX], S[S_SX] = zx_new.real, zx_new.imag
         S[S_CY], S[S_SY] = zy_new.real, zy_new.imag
-        g_py = (1.0 + a_p * dtemp) * inv_sqrt2
+        S[S_TFE] = temp_c[i] + fe_a * (S[S_TFE] - temp_c[i])
+        g_py = _pickoff_ratio(a_p, a_2, a_e, dtemp, S[S_TFE] - tref) * inv_sqrt2
         ft_c = ftc * u_c - fts * u_s  # _feedthrough
         ft_s = ftc * u_s + fts * u_c
         raws[0] = zx_new.real * inv_sqrt2 + sig_pick * noise[i, 2]
@@ -564,7 +578,8 @@ def carrier_kernel(S, P, L, gm_a, gm_b, m_per, temp_c, rate_dps, dither_v, noise
         # forces (held over the demod sample), sinc-compensated, modulated at mid-sample phase
         wr = TWO_PI * S[S_FREF]
         g_f = 1.0 + P[P_AF] * dtemp
-        g_py = 1.0 + P[P_AP] * dtemp
+        S[S_TFE] = temp_c[i] + P[P_FEA] * (S[S_TFE] - temp_c[i])
+        g_py = _pickoff_ratio(P[P_AP], P[P_A2], P[P_AE], dtemp, S[S_TFE] - tref)
         fn = 2.0 * w0 * k * a0 * sig_arw
         fxs = -P[P_KD] * S[S_VD]
         u_s = gain * (0.5 * (S[S_VRP] + S[S_VR]) + dither_v[i])

@@ -67,7 +67,10 @@ class GyroParams:
     auxin_noise_v_rms: float  # white noise of one AuxIn reading (assumed)
     forcer_tempco_ppm_per_c: float
     frequency_tempco_ppm_per_c: float
-    pickoff_ratio_tempco_ppm_per_c: float
+    pickoff_electronics_tempco_ppm_per_c: float  # G_py/G_px at the front-end board temperature T_fe
+    pickoff_transducer_tempco_ppm_per_c: float  # G_py/G_px at the die temperature T
+    pickoff_ratio_tempco2_ppm_per_c2: float  # quadratic part at the die temperature
+    frontend_thermal_tau_s: float  # T_fe follows T through this first-order lag (0: T_fe = T)
     reference_temperature_c: float
     loop_delay_us: float
     drive_voltage_v: float  # sustains drive_amplitude_vrms at T_ref
@@ -161,7 +164,10 @@ class GyroParams:
             "stiffness_axis_deg",
             "forcer_tempco_ppm_per_c",
             "frequency_tempco_ppm_per_c",
-            "pickoff_ratio_tempco_ppm_per_c",
+            "pickoff_electronics_tempco_ppm_per_c",
+            "pickoff_transducer_tempco_ppm_per_c",
+            "pickoff_ratio_tempco2_ppm_per_c2",
+            "frontend_thermal_tau_s",
             "reference_temperature_c",
             "q_tempco_ppm_per_c",
             "damping_mismatch_tempco_per_c",
@@ -290,9 +296,17 @@ class GyroParams:
         """G_f(T) = 1 + alpha_f (T - T_ref)."""
         return 1.0 + self.forcer_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
 
-    def sense_pickoff_gain(self, temperature_c: float) -> float:
-        """G_py(T) = 1 + alpha_p (T - T_ref) (G_px = 1)."""
-        return 1.0 + self.pickoff_ratio_tempco_ppm_per_c * 1e-6 * (temperature_c - self.reference_temperature_c)
+    def sense_pickoff_gain(self, temperature_c: float, frontend_c: float | None = None) -> float:
+        """G_py = 1 + alpha_t dT + alpha_2 dT^2 + alpha_e dT_fe (G_px = 1), dT = T - T_ref at the die, dT_fe at the
+        front-end board (frontend_c; None: the board at the die temperature, the steady state)."""
+        d = temperature_c - self.reference_temperature_c
+        d_fe = d if frontend_c is None else frontend_c - self.reference_temperature_c
+        return (
+            1.0
+            + self.pickoff_transducer_tempco_ppm_per_c * 1e-6 * d
+            + self.pickoff_ratio_tempco2_ppm_per_c2 * 1e-6 * d * d
+            + self.pickoff_electronics_tempco_ppm_per_c * 1e-6 * d_fe
+        )
 
     def true_scale_factor(
         self, temperature_c: float, forcer_gain: float = 1.0, drive_amplitude_vrms: float | None = None

@@ -155,7 +155,9 @@ def accuracy_tempco_window(cfg: Config, split_hz: float, axis_deg: float, bound_
 NO_TEMPCOS: dict[str, float] = {
     "forcer_tempco_ppm_per_c": 0.0,
     "frequency_tempco_ppm_per_c": 0.0,
-    "pickoff_ratio_tempco_ppm_per_c": 0.0,
+    "pickoff_electronics_tempco_ppm_per_c": 0.0,
+    "pickoff_transducer_tempco_ppm_per_c": 0.0,
+    "pickoff_ratio_tempco2_ppm_per_c2": 0.0,
     "q_tempco_ppm_per_c": 0.0,
     "damping_mismatch_tempco_per_c": 0.0,
     "freq_mismatch_tempco_hz_per_c": 0.0,

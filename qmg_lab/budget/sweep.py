@@ -10,7 +10,10 @@
   error delta(T); the table measurement a relative error eps; to first order
       c_i - e_i = (delta_0 - delta_i) - (eps_i - eps_0).
   Sources (each evaluated at the gyro temperature of each pair, T(t) from the chamber's two first-order lags):
-  - pickoff ratio:  delta = alpha_p (T - T_ref)                       (CLSF sees G_py, the true SF does not)
+  - pickoff ratio (CLSF sees G_py/G_px, the true SF does not), three terms:
+                    electronics delta = alpha_e (T_fe - T_ref), T_fe the front-end board: T through one more
+                    first-order lag tau_fe (frontend_temperature_c); transducer delta = alpha_t (T - T_ref);
+                    quadratic delta = alpha_2 (T - T_ref)^2 (each the mean over the pair's windows)
   - mode split:     delta = d^2 P[-s^2 / ((s + g)^2 (s + w_q)(s + w_c))],  d = 2 pi df(T) cos 2 theta_w
                     eps = the slow closed-loop tail the split leaves in each step's window (loop_tail_errors)
   - damping (Q(T), damping-mismatch drift):
@@ -45,7 +48,9 @@ from qmg_lab.config.schema import Config
 
 PPM = 1e6
 DETERMINISTIC_OFF: dict[str, float] = {
-    "pickoff_ratio_tempco_ppm_per_c": 0.0,
+    "pickoff_electronics_tempco_ppm_per_c": 0.0,
+    "pickoff_transducer_tempco_ppm_per_c": 0.0,
+    "pickoff_ratio_tempco2_ppm_per_c2": 0.0,
     "q_tempco_ppm_per_c": 0.0,
     "damping_mismatch_tempco_per_c": 0.0,
     "freq_mismatch_hz": 0.0,
@@ -193,9 +198,34 @@ def loop_bandwidths_rad_s(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, 
     """The rate and quadrature loops' actual crossover w_c, w_q at T: the design bandwidth times the plant's actual
     gain over the nominal one the PIs were designed on, b/b_nom = (k/k_nom)(SF_nom/SF(T)) G_py(T)."""
     s, d, lp = cfg.sim, cfg.device, cfg.loops
-    g_py = 1.0 + s.pickoff_ratio_tempco_ppm_per_c * 1e-6 * (temp_c - s.reference_temperature_c)
+    dt = temp_c - s.reference_temperature_c
+    g_py = 1.0 + pickoff_linear_ppm_per_c(cfg) * 1e-6 * dt + s.pickoff_ratio_tempco2_ppm_per_c2 * 1e-6 * dt * dt
     ratio = (s.angular_gain / d.angular_gain) * (d.sf_nominal_v_per_dps * DEG_PER_RAD / _sf_rad(cfg, temp_c)) * g_py
     return 2.0 * math.pi * lp.rate_bandwidth_hz * ratio, 2.0 * math.pi * lp.quadrature_bandwidth_hz * ratio
+
+
+def pickoff_linear_ppm_per_c(cfg: Config) -> float:
+    """The pickoff ratio's linear tempco in a steady state (the board at the die temperature): alpha_e + alpha_t."""
+    return cfg.sim.pickoff_electronics_tempco_ppm_per_c + cfg.sim.pickoff_transducer_tempco_ppm_per_c
+
+
+def frontend_temperature_c(cfg: Config, t_s: np.ndarray, ramp_start_s: float, grid_step_s: float = 1.0) -> np.ndarray:
+    """The front-end board temperature: the gyro temperature (gyro_temperature_c) through a first-order lag
+    tau_fe = [sim] frontend_thermal_tau_s, in equilibrium at t = 0. Stepped exactly for T linear between the points
+    of a grid_step_s grid (first-order hold), T_fe <- T_b - a (T_b - T_fe) ... (a = e^(-h/tau)), then interpolated."""
+    tau = cfg.sim.frontend_thermal_tau_s
+    if tau <= 0.0:
+        return gyro_temperature_c(cfg, t_s, ramp_start_s)
+    t_end = float(np.max(t_s)) if np.size(t_s) else 0.0
+    grid = np.arange(0.0, t_end + 2.0 * grid_step_s, grid_step_s)
+    temp = gyro_temperature_c(cfg, grid, ramp_start_s)
+    a = math.exp(-grid_step_s / tau)
+    ramp_gain = 1.0 - tau * (1.0 - a) / grid_step_s  # response to the ramp part of a first-order hold
+    out = np.empty_like(temp)
+    out[0] = temp[0]
+    for k in range(1, temp.shape[0]):
+        out[k] = a * out[k - 1] + (1.0 - a) * temp[k - 1] + ramp_gain * (temp[k] - temp[k - 1])
+    return np.interp(t_s, grid, out)
 
 
 def projection(cfg: Config, f: Any, wc: float) -> float:
@@ -259,7 +289,6 @@ def sense_axis(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, np.ndarray]:
     """Relative error delta of the CLSF ratio rho at each temperature, per source (table step at rate_dps)."""
     s = cfg.sim
-    dt = temp_c - s.reference_temperature_c
     wc_t, wq_t = loop_bandwidths_rad_s(cfg, temp_c)
     gamma_y, split = sense_axis(cfg, temp_c)
     g0 = 2.0 * math.pi * s.f0_hz / (2.0 * s.q_factor)
@@ -279,11 +308,23 @@ def _clsf_deltas(cfg: Config, temp_c: np.ndarray, rate_dps: float) -> dict[str, 
     u_op = rate_dps * _sf_rad(cfg, temp_c) / DEG_PER_RAD
     u_d = cfg.dither.virtual_rate_dps * cfg.device.sf_nominal_v_per_dps
     return {
-        "pickoff_ratio": s.pickoff_ratio_tempco_ppm_per_c * 1e-6 * dt,
         "mode_split": split**2 * p_split,
         "damping": (1.0 / tau_n - gamma_y) * p_damp,
         "feedthrough": kappa_x / b * p_ft,
         "forcer_cubic": beta * (3.0 * u_op**2 + u_d**2),
+    }
+
+
+def pickoff_deltas(cfg: Config, t_die: np.ndarray, t_fe: np.ndarray) -> dict[str, np.ndarray]:
+    """The pickoff ratio's three parts of the CLSF error delta per pair: the mean over each row's samples (a pair's
+    windows) of alpha_e dT_fe, alpha_t dT and alpha_2 dT^2 (dT = T - T_ref at the die, dT_fe at the board)."""
+    s = cfg.sim
+    d = t_die - s.reference_temperature_c
+    d_fe = t_fe - s.reference_temperature_c
+    return {
+        "pickoff_electronics": s.pickoff_electronics_tempco_ppm_per_c * 1e-6 * d_fe.mean(axis=-1),
+        "pickoff_transducer": s.pickoff_transducer_tempco_ppm_per_c * 1e-6 * d.mean(axis=-1),
+        "pickoff_quadratic": s.pickoff_ratio_tempco2_ppm_per_c2 * 1e-6 * (d * d).mean(axis=-1),
     }
 
 
@@ -356,11 +397,23 @@ def sweep_accuracy(cfg: Config) -> SweepAccuracy:
     )
 
 
-ACCURACY_SOURCES = ("pickoff_ratio", "mode_split", "damping", "feedthrough", "forcer_cubic", "table_ripple")
+PICKOFF_SOURCES = ("pickoff_electronics", "pickoff_transducer", "pickoff_quadratic")
+ACCURACY_SOURCES = (*PICKOFF_SOURCES, "mode_split", "damping", "feedthrough", "forcer_cubic", "table_ripple")
 
 
-def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm) and the pairs' gyro temperatures."""
+@dataclass(frozen=True)
+class PairErrors:
+    """The predicted c_i - e_i of every step pair per source (rows in ACCURACY_SOURCES order, ppm), each pair's
+    analysis windows [(t0, t1) of the + step, of the - step] (s from the plan's start) and the ramp's start (s)."""
+
+    rows_ppm: np.ndarray
+    windows_s: list[list[tuple[float, float]]]
+    ramp_start_s: float
+    temperatures_c: np.ndarray
+
+
+def pair_errors(cfg: Config) -> PairErrors:
+    """The per-source pair errors of a temperature sweep (module docstring), with the windows they are taken over."""
     sweep = cfg.model_copy(update={"campaign": cfg.campaign.model_copy(update={"kind": "temperature_sweep"})})
     steps = build_plan(sweep)
     wins = {w.index: w for w in _windows(sweep, steps)}
@@ -372,14 +425,16 @@ def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
         if k + 1 in wins and wins[k].rate_dps > 0 > wins[k + 1].rate_dps and steps[k].kind == "rate"
     ]
     if not pairs:
-        return dict.fromkeys(ACCURACY_SOURCES, float("nan")), np.zeros((len(ACCURACY_SOURCES), 0)), np.zeros(0)
-    temps = []
-    for wp, wm in pairs:
-        grid = np.concatenate([np.linspace(wp.t0_s, wp.t1_s, 64), np.linspace(wm.t0_s, wm.t1_s, 64)])
-        temps.append(float(np.mean(gyro_temperature_c(sweep, grid, ramp_start))))
-    temp = np.array(temps)
+        return PairErrors(np.zeros((len(ACCURACY_SOURCES), 0)), [], ramp_start, np.zeros(0))
+    grids = np.array(
+        [np.concatenate([np.linspace(wp.t0_s, wp.t1_s, 64), np.linspace(wm.t0_s, wm.t1_s, 64)]) for wp, wm in pairs]
+    )
+    t_die = gyro_temperature_c(sweep, grids, ramp_start)
+    t_fe = frontend_temperature_c(sweep, grids.ravel(), ramp_start).reshape(grids.shape)
+    temp = t_die.mean(axis=1)
     rate = pairs[0][0].rate_dps
     deltas = _clsf_deltas(sweep, temp, rate)
+    deltas.update(pickoff_deltas(sweep, t_die, t_fe))
     u_d = sweep.dither.virtual_rate_dps * sweep.device.sf_nominal_v_per_dps
     u_op = rate * _sf_rad(sweep, temp) / DEG_PER_RAD
     tail_split, tail_damp = _tails(sweep, steps, pairs, ramp_start)
@@ -394,7 +449,14 @@ def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
         d = deltas.get(name, np.zeros_like(temp))
         e = eps.get(name, np.zeros_like(temp))
         rows.append(((d[0] - d) - (e - e[0])) * PPM)
-    err = np.array(rows)
+    windows = [[(wp.t0_s, wp.t1_s), (wm.t0_s, wm.t1_s)] for wp, wm in pairs]
+    return PairErrors(np.array(rows), windows, ramp_start, temp)
+
+
+def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm) and the pairs' gyro temperatures."""
+    pe = pair_errors(cfg)
+    err, temp = pe.rows_ppm, pe.temperatures_c
     terms = {
         n: float(np.sqrt(np.mean(r[1:] ** 2))) if r.size > 1 else float("nan")
         for n, r in zip(ACCURACY_SOURCES, err, strict=True)

@@ -21,10 +21,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from qmg_lab import __version__
-from qmg_lab.cli import bench, device, files, heap, runs, watch
+from qmg_lab.cli import bench, device, files, heap, runs, sfcal, watch
 from qmg_lab.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_FAULT,
@@ -458,6 +459,10 @@ def analyze(
     fmt: Annotated[
         str, typer.Option("--format", help="figure file format: png, svg or pdf", show_default=True)
     ] = "png",
+    sf_model: Annotated[
+        Path | None,
+        typer.Option("--sf-model", help="pickoff-ratio model (characterize sf-model): the calibrated SF beside CLSF"),
+    ] = None,
 ) -> None:
     """The paper's results from a run file: true vs CLSF scale factor, accuracy, Allan deviation, figures."""
     import dataclasses
@@ -484,8 +489,24 @@ def analyze(
     from qmg_lab.analysis.render import render_table
     from qmg_lab.storage.writer import read_run, status_detail
 
+    model = None
+    if sf_model is not None:
+        from qmg_lab.clsf.pickoff_model import PickoffRatioModel
+
+        try:
+            model = PickoffRatioModel.load(sf_model)
+        except ValueError as exc:
+            fail(EXIT_BAD_INPUT, str(exc))
+    calibrated = None
     try:
         result = run_analysis(run_file)
+        if model is not None:
+            from qmg_lab.analysis.calibrated_sf import evaluate
+
+            try:
+                calibrated = evaluate(run_file, model, result)
+            except ValueError as exc:
+                fail(EXIT_BAD_INPUT, str(exc))
         detail = status_detail(read_run(run_file, select=()))
         written = []
         if figures is not None:
@@ -501,9 +522,15 @@ def analyze(
         data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
         if figures is not None:
             data["figures"] = [str(p) for p in written]
+        if calibrated is not None:
+            data["calibrated_sf"] = {**calibrated.to_json(), "model_file": str(sf_model)}
         out.print_json(json.dumps(data, default=float))
     else:
         out.print(render_table(dataclasses.replace(result, status=detail)))
+        if calibrated is not None:
+            out.print(sfcal.render_calibrated(calibrated))
+            for w in calibrated.warnings:
+                out.print(f"[bold yellow]warning:[/] {escape(w)}")
         for p in written:
             out.print(f"figure: {p}")
 
@@ -606,6 +633,13 @@ def budget(
     sim: Annotated[
         bool, flag("--sim", help="the twins' block length (lockin.sim_poll_interval_s) sets the loop delay")
     ] = False,
+    sf_characterisation: Annotated[
+        Path | None,
+        typer.Option(
+            "--sf-characterisation",
+            help="the characterisation run's configuration: also the calibrated SF's residual, term by term",
+        ),
+    ] = None,
 ) -> None:
     """Predict from the configuration the CLSF Allan deviation (1-3000 s), each noise source and the total, and
     the accuracy and linearity terms of a temperature sweep."""
@@ -614,8 +648,16 @@ def budget(
 
     cfg, _ = load(config, sim=False)
     result = noise_budget(cfg, sim_blocks=sim)
+    calibrated = None
+    if sf_characterisation is not None:
+        from qmg_lab.budget.calibrated import calibrated_accuracy
+
+        calibrated = calibrated_accuracy(cfg, load(sf_characterisation, sim=False)[0])
     if json_out:
-        out.print_json(json.dumps(result.to_json(), default=float))
+        data = result.to_json()
+        if calibrated is not None:
+            data["calibrated_accuracy"] = calibrated.to_json()
+        out.print_json(json.dumps(data, default=float))
         return
     out.print(budget_table(result, out.width))
     acc = result.accuracy
@@ -625,6 +667,13 @@ def budget(
         + ", ".join(f"{k} {v:.1f}" for k, v in acc.terms_ppm.items())
         + f" ppm; linearity {acc.nonlinearity_rms_pct_fs:.2g} % FS RMS, dominated by {acc.dominant_nonlinearity_source}"
     )
+    if calibrated is not None:
+        out.print(
+            f"whole-SF calibration (qmg_lab/budget/calibrated.py, model from {sf_characterisation}): residual "
+            f"{calibrated.total_ppm:.1f} ppm RMS against the table steps (CLSF alone {calibrated.clsf_total_ppm:.0f}): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in calibrated.terms_ppm.items())
+            + f" ppm; fitted front-end lag {calibrated.lag_tau_s:.0f} s"
+        )
     out.print(f"dominant at 60 s: {result.dominant(60.0)}. The values and their origins:")
     for s in result.sources:
         out.print(f"  {s.name} = {s.value:.3g} {s.unit}: {s.origin}")
@@ -639,7 +688,7 @@ def version() -> None:
 
 
 # the bring-up, device, file, run-list and watch commands, after this module's own (the order of `--help`)
-for _commands in (bench, device, files, runs, watch):
+for _commands in (bench, device, files, runs, sfcal, watch):
     _commands.register(app)
 
 

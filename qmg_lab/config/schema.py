@@ -18,7 +18,7 @@ import os
 import sys
 import tomllib
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
 
@@ -510,8 +510,33 @@ class SimSection(_Section):
     )
     forcer_tempco_ppm_per_c: float = Field(-1000.0, ge=-1e5, le=1e5, description="forcer gain, what CLSF removes")
     frequency_tempco_ppm_per_c: float = Field(-30.0, ge=-1e4, le=1e4)
-    pickoff_ratio_tempco_ppm_per_c: float = Field(
-        60.0, ge=-1e4, le=1e4, description="residual G_py/G_px drift: what CLSF cannot see"
+    # the pickoff-gain ratio G_py/G_px, what CLSF cannot see, in its physical parts (docs/accuracy-budget.md)
+    pickoff_electronics_tempco_ppm_per_c: float = Field(
+        40.0,
+        ge=-1e4,
+        le=1e4,
+        description="G_py/G_px drift of the two front ends' gain-setting parts at the front-end board temperature, "
+        "ppm/degC (assumed: two class-I C0G capacitors, 0 +- 30 ppm/degC each, bound 60)",
+    )
+    pickoff_transducer_tempco_ppm_per_c: float = Field(
+        20.0,
+        ge=-1e4,
+        le=1e4,
+        description="G_py/G_px drift of the sense and drive electrodes and gaps at the die temperature, ppm/degC "
+        "(assumed: the two pickoffs share one die; a residual of asymmetric package stress)",
+    )
+    pickoff_ratio_tempco2_ppm_per_c2: float = Field(
+        0.5,
+        ge=-1e3,
+        le=1e3,
+        description="quadratic part of the G_py/G_px drift at the die temperature, ppm/degC^2 (assumed)",
+    )
+    frontend_thermal_tau_s: float = Field(
+        300.0,
+        ge=0.0,
+        le=1e5,
+        description="the front-end board's first-order lag behind the gyro die temperature, s (assumed: a board "
+        "beside the package in the chamber; 0 = at the die temperature)",
     )
     reference_temperature_c: float = Field(25.0, ge=-100.0, le=200.0)
     thermal_lag_s: float = Field(600.0, gt=0.0, le=1e6, description="chamber air -> gyro first-order lag, s")
@@ -595,6 +620,19 @@ class SimSection(_Section):
         True, description="table twin's servo at power-up (false: JOG/SGO refused, E06, until the servo command)"
     )
     faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired_pickoff_key(cls, data: Any) -> Any:
+        """The single pickoff-ratio coefficient is split into its physical parts; a file that still sets it gets
+        a message naming them (a silent mapping would have to guess the split, and the lag depends on it)."""
+        if isinstance(data, dict) and "pickoff_ratio_tempco_ppm_per_c" in data:
+            raise ValueError(
+                "pickoff_ratio_tempco_ppm_per_c is retired: set pickoff_electronics_tempco_ppm_per_c (front-end "
+                "board, lagging the die by frontend_thermal_tau_s) and pickoff_transducer_tempco_ppm_per_c (die); "
+                "their sum is the old coefficient; pickoff_ratio_tempco2_ppm_per_c2 adds a quadratic part"
+            )
+        return data
 
 
 class Config(_Section):

@@ -32,7 +32,9 @@ SIM_HEADER = "[sim]                          # the simulated twins (used with --
 QUIET = {"arw_deg_per_rt_h": 0.0, "bias_instability_deg_per_h": 0.0, "pickoff_noise_vrms_per_rt_hz": 0.0}
 # each source alone, at a size that stands well above the twin's 0.5 ppm floor
 SOURCES: dict[str, dict[str, float]] = {
-    "pickoff_ratio": {"pickoff_ratio_tempco_ppm_per_c": 60.0},
+    "pickoff_electronics": {"pickoff_electronics_tempco_ppm_per_c": 60.0, "frontend_thermal_tau_s": 600.0},
+    "pickoff_transducer": {"pickoff_transducer_tempco_ppm_per_c": 60.0},
+    "pickoff_quadratic": {"pickoff_ratio_tempco2_ppm_per_c2": 3.0},
     # on the sense axis (theta_w = 0): the budget's tail model has no drive-sense stiffness coupling
     "mode_split": {"freq_mismatch_hz": 0.05, "freq_mismatch_tempco_hz_per_c": 0.01, "stiffness_axis_deg": 0.0},
     "damping": {"q_tempco_ppm_per_c": -20000.0, "damping_mismatch_tempco_per_c": 0.002},

@@ -72,7 +72,7 @@ def test_dither_response_scales_as_gpy_gf_g_over_omega() -> None:
     hot = np.mean(np.abs(_half_period_swings(t_hot, g)))
     d = t_hot - p.reference_temperature_c
     expected = (
-        (1 + p.pickoff_ratio_tempco_ppm_per_c * 1e-6 * d)
+        p.sense_pickoff_gain(t_hot)  # the front-end board in equilibrium at the held temperature
         * (1 + p.forcer_tempco_ppm_per_c * 1e-6 * d)
         * g
         / (1 + p.frequency_tempco_ppm_per_c * 1e-6 * d)
