@@ -56,7 +56,7 @@ from sims.gyro_params import GyroParams
 from sims.hf2_loops import HF2Wiring
 from sims.hf2_server import HF2DataServerTwin
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket, terminator
-from sims.table_twin import RateTableTwin
+from sims.table_twin import RateTableTwin, TableEncoder
 from sims.visa_line_twin import LineTwinVisaResource
 from sims.world import World, WorldParams
 
@@ -181,6 +181,20 @@ def table_twin(cfg: Config, world: World) -> RateTableTwin:
         reply_end=terminator(t.sim_reply_terminator),
         prompt_end=b"" if t.sim_prompt_terminator == "none" else terminator(t.sim_prompt_terminator),
         servo_on=cfg.sim.table_servo_on_at_start,
+    )
+
+
+def table_encoder(cfg: Config, world: World) -> TableEncoder | None:
+    """The 1291BR twin's encoder A/B on the HF2 twin's DIO, on the bits [table] says it is cabled to, with the
+    [sim] table_encoder_lines_per_rev of the twin's own table; None if [table] encoder_on_dio is off."""
+    t = cfg.table
+    if not t.encoder_on_dio:
+        return None
+    return TableEncoder(
+        world,
+        lines_per_rev=cfg.sim.table_encoder_lines_per_rev,
+        a_bit=t.encoder_a_dio_bit,
+        b_bit=t.encoder_b_dio_bit,
     )
 
 
@@ -316,6 +330,7 @@ class _Bench:
                 rate_set=self.cfg.sim.hf2_rate_set,
                 options=tuple(self.cfg.sim.hf2_options),
             )
+            twin.table_encoder = table_encoder(self.cfg, world)
             if faults is not None:
                 faults.attach_hf2(twin)
             connection: Any = twin if self.cfg.all_sim else RealTimePacedConnection(twin, world)

@@ -31,6 +31,9 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
    HF2 documentation); with the default averaging 0 the window is one ADC sample and its value hardly matters.
    Each reading then gets the AuxIn's own white noise (GyroParams.auxin_noise_v_rms) and is rounded to its ADC
    step (auxin_bits over +-auxin_range_v) and clipped to the range (docs/noise-budget.md).
+   dio = the DIO input word at the sample's timestamp: the rate table's encoder A/B (``table_encoder``,
+   sims/table_twin.TableEncoder) at the table angle of that instant, 0 with nothing wired (the node doc's
+   demod sample carries the DIO state in its ``dio`` field).
 4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; pids/n/error (= setpoint -
    input), shift (= output - center); auxouts/n/value; auxins/0/values/k; status/flags/binary bit 20 (PLL 1
    locked); status/flags/demodsampleloss; status/time. The truth of the block goes to ``world.record_truth``.
@@ -53,6 +56,7 @@ from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
 from sims.hf2_nodetree import HF2NodeTree, NodeError
 from sims.noise import NormalStream
+from sims.table_twin import TableEncoder
 from sims.world import BlockInputs, TruthRecord, World
 
 if TYPE_CHECKING:
@@ -198,6 +202,8 @@ class HF2DataServerTwin:
         ] * self.nodes.n_oscillators  # each oscillator's phase at the end of the last block, rad in [0, 2 pi)
         self._drop_next = 0
         self._unlock_until: float | None = None
+        # the rate table's encoder on the DIO input (sims/table_twin.TableEncoder; None: nothing wired, DIO reads 0)
+        self.table_encoder: TableEncoder | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
         self.last_plan: LoopPlan | None = None
         self._settings_version = 0  # bumped by every client set: the loop plan is re-read only then
@@ -613,6 +619,7 @@ class HF2DataServerTwin:
         rate_aux, dither_aux = self._auxin_records(blk, dt, layout.auxin_window_s)
         wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
         aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
+        dio = self._dio_inputs(inputs, dt)
         keep = None
         dropped = min(self._drop_next, max(0, n - 2))
         if dropped:
@@ -634,7 +641,7 @@ class HF2DataServerTwin:
                 "y": y,
                 "frequency": frequency,
                 "phase": phase,
-                "dio": np.zeros(n, dtype=np.uint32),
+                "dio": dio,
                 "trigger": np.zeros(n, dtype=np.uint32),
                 "auxin0": aux[0],
                 "auxin1": aux[1],
@@ -653,6 +660,13 @@ class HF2DataServerTwin:
             )
         )
         return out
+
+    def _dio_inputs(self, inputs: BlockInputs, dt: float) -> np.ndarray:
+        """The DIO input word of each sample: the table encoder's A/B at the sample instant, the end of its step
+        (angle at the step start + the step's mean delivered rate x dt); zeros with nothing wired."""
+        if self.table_encoder is None:
+            return np.zeros(inputs.t.shape[0], dtype=np.uint32)
+        return self.table_encoder.dio_word(inputs.table_angle_deg + inputs.table_rate_dps * dt)
 
     def _demod_xy(
         self, blk: GyroBlock, spec: _DemodSpec, ref_osc: int, phases: dict[int, np.ndarray], n: int

@@ -52,6 +52,7 @@ from qmg_lab.analysis.characterize import (
     moving_average,
     settling_time_s,
 )
+from qmg_lab.analysis.encoder import EncoderTrack, Plateau, decode_quadrature, plateau, rate_over
 from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
 from qmg_lab.campaign.plan import dither_amplitude_vpp
 from qmg_lab.config.schema import Config, ConfigError, parse_config
@@ -185,10 +186,15 @@ class _Ctx:
     edge_integral: np.ndarray | None = None  # the rate output's trapezoid integral at each rising edge, V s
     windows: dict[int, dict[str, float]] | None = None  # the truth over each step's window (/windows), by index
     study_level: bool = False  # a study-level file: edges and windows from its /edges and /windows
+    encoder: EncoderTrack | None = None  # the table's encoder (/lockin/table_encoder), decoded
+    plateaus: dict[int, Plateau] = field(default_factory=dict)  # each moving step's plateau, by index
 
 
 def _load(path: str | Path) -> _Ctx:
-    run = read_run(path, select=["lockin/rate_output", "lockin/dither", "clsf", "table", "chamber", "truth"])
+    run = read_run(
+        path,
+        select=["lockin/rate_output", "lockin/dither", "lockin/table_encoder", "clsf", "table", "chamber", "truth"],
+    )
     cfg, note = stored_config(run)
     notes: list[str] = [note] if note else []
     t = run.groups["lockin"]["time"]
@@ -217,13 +223,42 @@ def _load(path: str | Path) -> _Ctx:
         ctx.dither_rising_s, ctx.edge_integral = edges_and_integrals(
             t, lk["dither"], lk["rate_output"], 0.5 * dither_amplitude_vpp(cfg)
         )
+    _find_plateaus(ctx)
     truth = run.groups.get("truth")
     if truth is not None:
         ctx.windows = {i: _truth_window(truth, i, *_window(ctx, step)) for i, step in steps.items()}
     return ctx
 
 
+def _find_plateaus(ctx: _Ctx) -> None:
+    """The table encoder's plateau of every completed rate/level step that moves the table (encoder.py), when
+    [table] encoder_on_dio says the encoder is cabled and the file has its column; otherwise a note."""
+    lk, tab = ctx.run.groups["lockin"], ctx.cfg.table
+    if not tab.encoder_on_dio or "table_encoder" not in lk:
+        ctx.notes.append("step windows on the host's step times (no table encoder in the file)")
+        return
+    track = decode_quadrature(
+        lk["time"], lk["table_encoder"], tab.encoder_a_dio_bit, tab.encoder_b_dio_bit, tab.encoder_lines_per_rev
+    )
+    ctx.encoder = track
+    for i, step in ctx.steps.items():
+        if step["kind"] in ("rate", "level") and step["table_rate"] != 0:
+            p = plateau(track, float(step["t_start"]), float(step["t_end"]))
+            if p is not None and p.rate_dps * float(step["table_rate"]) > 0:
+                ctx.plateaus[i] = p
+    moving = sum(1 for s in ctx.steps.values() if s["kind"] in ("rate", "level") and s["table_rate"] != 0)
+    ctx.notes.append(
+        f"step windows on the HF2's clock from the table encoder: {len(ctx.plateaus)} of {moving} moving steps"
+        + (f"; {track.skipped} encoder counts skipped (too fast for the demod rate)" if track.skipped else "")
+    )
+
+
 def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple[float, float]:
+    """A step's analysis window: [start + settle, end], start and end the table encoder's plateau of the step when
+    it has one (on the HF2's clock), else the host's step times."""
+    p = ctx.plateaus.get(int(step["index"]))
+    if p is not None:
+        return p.start_s + ctx.settle_s + extra_settle, p.end_s
     return float(step["t_start"]) + ctx.settle_s + extra_settle, float(step["t_end"])
 
 
@@ -289,7 +324,13 @@ def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...]) -> float:
 
 
 def _commanded(ctx: _Ctx, step: dict[str, Any], win: tuple[float, float]) -> float:
-    """Median /table/rate_command in the window (robust to a reading taken on the step boundary)."""
+    """The table's rate over the window: the encoder's (its count's slope over the window, encoder.rate_over)
+    when the step has an encoder plateau, else the median /table/rate_command in the window (robust to a reading
+    taken on the step boundary)."""
+    if ctx.encoder is not None and int(step["index"]) in ctx.plateaus:
+        rate = rate_over(ctx.encoder, *win)
+        if math.isfinite(rate):
+            return rate
     tab = ctx.run.groups.get("table")
     if tab is not None:
         m = (tab["time"] >= win[0]) & (tab["time"] <= win[1])
