@@ -81,6 +81,53 @@ class StepPair:
     rate_minus_dps: float = float("nan")
     output_plus_v: float = float("nan")
     output_minus_v: float = float("nan")
+    window_plus_s: tuple[float, float] = (float("nan"), float("nan"))  # the two analysis windows, s
+    window_minus_s: tuple[float, float] = (float("nan"), float("nan"))
+
+
+@dataclass(frozen=True)
+class SeriesAccuracy:
+    """How well a series of relative SF changes follows the table steps and the twin's truth (`series_accuracy`),
+    ppm; None where there is no truth. n_pairs: the step pairs compared (pair 0 is the reference)."""
+
+    n_pairs: int
+    rms_vs_table_ppm: float
+    rms_vs_table_ppm_mean_removed: float
+    rms_vs_truth_ppm: float | None
+    change_ppm: list[float]  # the series' change at each pair, referred to pair 0
+
+
+def series_accuracy(pairs: list[StepPair], time_s: np.ndarray, sf_change: np.ndarray) -> SeriesAccuracy:
+    """Judge an SF-change series (SF/SF0 - 1 at the instants time_s, s on the file's time axis: /clsf's
+    sf_change_estimate, or any calibrated series) by the step pairs of `analyze` (AnalysisResult.pairs).
+
+    The table judges and does not teach: the series is taken as given, the steps only read. For each pair i,
+    s_i = mean of the series over its two windows (the encoder-timed ones when the file has the encoder),
+    c_i = (1 + s_i)/(1 + s_0) - 1; against the table e_i (true_change_ppm), RMS(c_i - e_i) over pairs 1..n-1,
+    with and without its mean; against the twin's truth t_i (truth_change_ppm), RMS(c_i - t_i).
+    """
+    group = {"time": np.asarray(time_s, dtype=np.float64), "s": np.asarray(sf_change, dtype=np.float64)}
+    raw = np.array([_mean_in(group, "s", [p.window_plus_s, p.window_minus_s]) for p in pairs])
+    if raw.size == 0:
+        return SeriesAccuracy(0, float("nan"), float("nan"), None, [])
+    c = ((1 + raw) / (1 + raw[0]) - 1) * PPM
+    e = np.array([p.true_change_ppm for p in pairs])
+    tr = np.array([p.truth_change_ppm for p in pairs])
+    d = (c - e)[1:]
+    d = d[np.isfinite(d)]
+    vs_truth = _rms((c - tr)[1:]) if np.all(np.isfinite(tr)) else None
+    return SeriesAccuracy(
+        n_pairs=len(pairs),
+        rms_vs_table_ppm=_rms(d) if d.size else float("nan"),
+        rms_vs_table_ppm_mean_removed=_rms(d - d.mean()) if d.size else float("nan"),
+        rms_vs_truth_ppm=vs_truth,
+        change_ppm=[float(x) for x in c],
+    )
+
+
+def evaluate_sf_series(path: str | Path, time_s: np.ndarray, sf_change: np.ndarray) -> SeriesAccuracy:
+    """`series_accuracy` of a series against the step pairs `analyze(path)` finds in a run file."""
+    return series_accuracy(analyze(path).pairs, time_s, sf_change)
 
 
 @dataclass(frozen=True)
@@ -374,8 +421,9 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
             rate_minus_dps=rm,
             output_plus_v=op,
             output_minus_v=om,
+            window_plus_s=wp,
+            window_minus_s=wm,
         )
-        pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
         pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1))  # raw SF for now
         pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1))
         found.pairs.append(pair)
@@ -383,25 +431,31 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
     if not found.pairs:
         return found
     ref = found.pairs[0]
-    sf_ref, s_ref, tr_ref = ref.sf_v_per_dps, ref.clsf_change_ppm, ref.truth_change_ppm
+    sf_ref, tr_ref = ref.sf_v_per_dps, ref.truth_change_ppm
     for p in found.pairs:
         p.true_change_ppm = (p.sf_v_per_dps / sf_ref - 1) * PPM
-        p.clsf_change_ppm = ((1 + p.clsf_change_ppm) / (1 + s_ref) - 1) * PPM
         p.truth_change_ppm = (p.truth_change_ppm / tr_ref - 1) * PPM
     found.values["sf_measured_v_per_dps"] = sf_ref
     e = np.array([p.true_change_ppm for p in found.pairs])
-    c = np.array([p.clsf_change_ppm for p in found.pairs])
     tr = np.array([p.truth_change_ppm for p in found.pairs])
     found.values["sf_true_change_ppm"] = float(np.ptp(e))
     found.notes.append("relative SF changes are referred to the first step pair (SF_ref = pair 0)")
-    d = (c - e)[1:]
-    d = d[np.isfinite(d)]
-    if d.size:
-        found.values["clsf_accuracy_rms_ppm"] = _rms(d)
-        found.values["clsf_accuracy_rms_ppm_mean_removed"] = _rms(d - d.mean())
-    if (ctx.run.has_truth or ctx.windows is not None) and np.all(np.isfinite(tr)):
+    have_truth = (ctx.run.has_truth or ctx.windows is not None) and bool(np.all(np.isfinite(tr)))
+    empty = np.empty(0)
+    acc = series_accuracy(
+        found.pairs,
+        clsf["time"] if clsf is not None else empty,
+        clsf["sf_change_estimate"] if clsf is not None else empty,
+    )
+    for p, c_i in zip(found.pairs, acc.change_ppm, strict=True):
+        p.clsf_change_ppm = c_i
+    c = np.array(acc.change_ppm)
+    if math.isfinite(acc.rms_vs_table_ppm):
+        found.values["clsf_accuracy_rms_ppm"] = acc.rms_vs_table_ppm
+        found.values["clsf_accuracy_rms_ppm_mean_removed"] = acc.rms_vs_table_ppm_mean_removed
+    if have_truth:
         found.values["truth_check_rms_ppm"] = _rms(e - tr)
-        found.values["clsf_vs_truth_rms_ppm"] = _rms((c - tr)[1:])
+        found.values["clsf_vs_truth_rms_ppm"] = acc.rms_vs_truth_ppm
     temps = np.array([p.temperature_c for p in found.pairs])
     ok = np.isfinite(temps)
     if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:
