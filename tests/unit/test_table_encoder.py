@@ -3,9 +3,9 @@ sample grid (sims/table_twin.TableEncoder), decoded and timed by qmg_lab/analysi
 
 Bounds come from the quantisation: a transition placed at the middle of its sample interval is off by at most
 dt/2, so the slope over a window of length T is off by at most 1.5 dt / T of itself (encoder.py: the worst case,
-which a count period commensurate with the sample grid, 5 deg/s here, can approach). The plateau starts with the motion (a ramp from rest whose lag behind the final line,
-Omega^2 / (2 a), is under PLATEAU_TOL_COUNTS, belongs to it) and no later than PLATEAU_TOL_COUNTS + 1 counts after
-the ramp's end.
+which a count period commensurate with the sample grid, 5 deg/s here, can approach). The plateau starts with the
+motion (a ramp from rest whose lag behind the final line, Omega^2 / (2 a), is under PLATEAU_TOL_COUNTS, belongs to
+it) and no later than PLATEAU_TOL_COUNTS + 1 counts after the ramp's end.
 """
 
 from __future__ import annotations
