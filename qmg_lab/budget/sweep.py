@@ -107,6 +107,7 @@ class SweepAccuracy:
             "nonlinearity_rms_pct_fs": self.nonlinearity_rms_pct_fs,
             "dominant_nonlinearity_source": self.dominant_nonlinearity_source,
             "linearity_rates_dps": list(self.linearity_rates_dps),
+            "table_errors_ppm": list(self.table_errors_ppm),
         }
 
 
