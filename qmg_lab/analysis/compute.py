@@ -3,7 +3,10 @@
 Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
 
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
-  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods.
+  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods. For a
+  rate or level step that moves the table, t_start and t_end are the ends of the table's constant-rate plateau
+  seen by its encoder on the HF2's clock (/lockin/table_encoder, qmg_lab/analysis/encoder.py) when the file has
+  it and [table] encoder_on_dio is on; otherwise the host's step times.
   Means of the rate output are taken over a whole number of dither periods, from a rising edge of the recorded
   dither to a later one (edges located as the CLSF estimator locates them, qmg_lab/clsf/dither_edges.py: within the
   gap between two readings, then refined by a line through 32 edges; the rate output
@@ -12,13 +15,16 @@ Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
   DS345 and the HF2 share no clock.
 * True SF from a step pair (a completed "rate" step with Omega > 0 followed by the next-index "rate" step with
   Omega < 0): SF = (O+ - O-)/(Omega+ - Omega-), bias = (O+ + O-)/2; O = mean /lockin/rate_output (V), Omega =
-  mean /table/rate_command over the window (deg/s; the step's table_rate if no table row falls inside).
+  the encoder's rate over the window (the slope of its count against time), else the median /table/rate_command
+  over the window (deg/s; the step's table_rate if no table row falls inside).
 * Relative changes against the first pair (SF_ref = SF of pair 0): true e_i = SF_i/SF_ref - 1; CLSF
   c_i = (1 + s_i)/(1 + s_0) - 1 with s_i the mean /clsf/sf_change_estimate over the same two windows; twin truth
   t_i = mean /truth/scale_factor re-referenced the same way. CLSF accuracy = RMS(c_i - e_i) over pairs 1..n-1
   (pair 0 is zero by construction), reported with and without the mean of (c - e) removed.
   truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin; clsf_vs_truth_rms_ppm =
   RMS(c_i - t_i) over pairs 1..n-1: the estimator against the twin's truth, without the table steps' noise.
+  The c_i and both RMS figures are `series_accuracy` of /clsf/sf_change_estimate: any other SF-change series
+  (a calibrated one) is judged by the same function, and no table step enters the series it judges.
 * CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
   closed up), in ppm, with 68 % confidence bounds (qmg_lab/analysis/adev.py). In correct mode the same series is the
   residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
