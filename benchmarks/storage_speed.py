@@ -57,7 +57,8 @@ POOL_BLOCKS = 10
 
 
 def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndarray]:
-    """The /lockin columns at times t: noisy demodulator and AuxIn readings, a +-0.3 V 7 Hz square dither."""
+    """The /lockin columns at times t: noisy demodulator and AuxIn readings, a +-0.3 V 7 Hz square dither, the
+    table encoder's A/B word at 200 counts/s."""
     n = t.shape[0]
     return dict(
         time=t,
@@ -67,6 +68,7 @@ def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndar
         drive_amplitude=0.5 + 1e-6 * rng.standard_normal(n),
         drive_frequency=2200.0 + 1e-4 * rng.standard_normal(n),
         dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(n),
+        table_encoder=np.array([0.0, 1.0, 3.0, 2.0])[np.floor(200.0 * t).astype(np.int64) % 4],  # 5 deg/s A/B
     )
 
 

@@ -505,6 +505,7 @@ class HF2LI(LockIn):
             drive_amplitude=np.hypot(np.asarray(drive["x"])[i_d], np.asarray(drive["y"])[i_d]),
             drive_frequency=np.asarray(drive["frequency"])[i_d],
             dither=np.asarray(sense[dither_key])[i_s],
+            table_encoder=np.asarray(sense["dio"], dtype=np.float64)[i_s],  # the DIO word (the table encoder)
             pll_locked=locked and binary & self._locked_mask == self._locked_mask,
             samples_lost=int(lost),
         )
@@ -563,7 +564,7 @@ class HF2LI(LockIn):
         except KeyError:
             return {
                 k: np.zeros(0, dtype=np.uint64 if k == "timestamp" else float)
-                for k in ("timestamp", "x", "y", "frequency", "auxin0", "auxin1")
+                for k in ("timestamp", "x", "y", "frequency", "dio", "auxin0", "auxin1")
             }
         return {k: np.asarray(v) for k, v in data.items() if k != "time"}
 

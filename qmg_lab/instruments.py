@@ -104,7 +104,9 @@ class LockInBlock:
 
     x_sense/y_sense: c_y/s_y of the sense demod (Vrms); rate_output: the rate PID output recorded on an AuxIn
     (V); drive_amplitude: R of the drive demod (Vrms); drive_frequency: PLL oscillator (Hz); dither: the DS345
-    output recorded on the other AuxIn (V). pll_locked: False if the PLL reported unlock during the block.
+    output recorded on the other AuxIn (V); table_encoder: the HF2 DIO input word of each sample (the table
+    encoder's A/B bits as cabled, docs/wiring.md; an integer held in a float). pll_locked: False if the PLL
+    reported unlock during the block.
     samples_lost: number of samples the stream says were dropped (gaps in the timestamps).
     """
 
@@ -115,13 +117,23 @@ class LockInBlock:
     drive_amplitude: np.ndarray
     drive_frequency: np.ndarray
     dither: np.ndarray
+    table_encoder: np.ndarray
     pll_locked: bool = True
     samples_lost: int = 0
 
     def __len__(self) -> int:
         return int(self.time.shape[0])
 
-    FIELDS = ("time", "x_sense", "y_sense", "rate_output", "drive_amplitude", "drive_frequency", "dither")
+    FIELDS = (
+        "time",
+        "x_sense",
+        "y_sense",
+        "rate_output",
+        "drive_amplitude",
+        "drive_frequency",
+        "dither",
+        "table_encoder",
+    )
 
 
 class Instrument(abc.ABC):

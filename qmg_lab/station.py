@@ -59,7 +59,7 @@ from sims.gyro_params import GyroParams
 from sims.hf2_loops import HF2Wiring
 from sims.hf2_server import HF2DataServerTwin
 from sims.serial_twin import InProcessSerial, serve_pty, serve_socket, terminator
-from sims.table_twin import RateTableTwin
+from sims.table_twin import RateTableTwin, TableEncoder
 from sims.visa_line_twin import LineTwinVisaResource
 from sims.world import World, WorldParams
 
@@ -205,6 +205,20 @@ def table_twin(cfg: Config, world: World) -> RateTableTwin:
     )
 
 
+def table_encoder(cfg: Config, world: World) -> TableEncoder | None:
+    """The 1291BR twin's encoder A/B on the HF2 twin's DIO, on the bits [table] says it is cabled to, with the
+    [sim] table_encoder_lines_per_rev of the twin's own table; None if [table] encoder_on_dio is off."""
+    t = cfg.table
+    if not t.encoder_on_dio:
+        return None
+    return TableEncoder(
+        world,
+        lines_per_rev=cfg.sim.table_encoder_lines_per_rev,
+        a_bit=t.encoder_a_dio_bit,
+        b_bit=t.encoder_b_dio_bit,
+    )
+
+
 def chamber_twin(cfg: Config, world: World) -> ChamberTwin:
     """The EC1x twin, framed as [chamber] says (command terminator, sim_reply_terminator), answering as [sim]
     says (chamber_status_layout, chamber_self_test, chamber_acknowledges_settings, chamber_powered_at_start,
@@ -345,6 +359,7 @@ class _Bench:
                 options=tuple(self.cfg.sim.hf2_options),
                 timestamp_offset_ticks=self.cfg.sim.hf2_timestamp_offset_ticks,
             )
+            twin.table_encoder = table_encoder(self.cfg, world)
             if faults is not None:
                 faults.attach_hf2(twin)
             paced = self.pacing is not None or not self.cfg.all_sim

@@ -34,6 +34,9 @@ Physics coupling (protocol of one ``poll(rec_s, ...)``):
    HF2 documentation); with the default averaging 0 the window is one ADC sample and its value hardly matters.
    Each reading then gets the AuxIn's own white noise (GyroParams.auxin_noise_v_rms) and is rounded to its ADC
    step (auxin_bits over +-auxin_range_v) and clipped to the range (docs/noise-budget.md).
+   dio = the DIO input word at the sample's timestamp: the rate table's encoder A/B (``table_encoder``,
+   sims/table_twin.TableEncoder) at the table angle of that instant, 0 with nothing wired (the node doc's
+   demod sample carries the DIO state in its ``dio`` field).
 4. Read-only nodes reflect the end of the block: plls/0/freqdelta, locked, error; plls/1/locked, freqdelta of
    a PLL that tracks the drive for another oscillator (sims/hf2_loops.py: the forcer carrier without MF), bit 21
    of status/flags/binary (PLL 2 locked); pids/n/error (= setpoint -
@@ -59,6 +62,7 @@ from sims import hf2_kernel as hk
 from sims.hf2_loops import HF2Wiring, LoopPlan, identify_loops
 from sims.hf2_nodetree import HF2NodeTree, NodeError
 from sims.noise import NormalStream
+from sims.table_twin import TableEncoder
 from sims.world import BlockInputs, TruthRecord, World
 
 if TYPE_CHECKING:
@@ -207,6 +211,8 @@ class HF2DataServerTwin:
         self._drop_next = 0
         self._drop_demod: int | None = None  # the demod the next drop applies to (None: every demod)
         self._unlock_until: float | None = None
+        # the rate table's encoder on the DIO input (sims/table_twin.TableEncoder; None: nothing wired, DIO reads 0)
+        self.table_encoder: TableEncoder | None = None
         self._last_sample: dict[str, dict[str, np.ndarray]] = {}
         self.last_plan: LoopPlan | None = None
         self._settings_version = 0  # bumped by every client set: the loop plan is re-read only then
@@ -641,6 +647,7 @@ class HF2DataServerTwin:
         rate_aux, dither_aux = self._auxin_records(blk, dt, layout.auxin_window_s)
         wired[self.wiring.rate_auxin], wired[self.wiring.dither_auxin] = rate_aux, dither_aux
         aux = [a if a is not None else np.zeros(n) for a in wired]  # an AuxIn with nothing wired reads 0 V
+        dio = self._dio_inputs(inputs, dt)
         keep = None
         dropped = min(self._drop_next, max(0, n - 2))
         drop_demod, self._drop_demod = self._drop_demod, None
@@ -666,7 +673,7 @@ class HF2DataServerTwin:
                 "y": y,
                 "frequency": frequency,
                 "phase": phase,
-                "dio": np.zeros(n, dtype=np.uint32),
+                "dio": dio,
                 "trigger": np.zeros(n, dtype=np.uint32),
                 "auxin0": aux[0],
                 "auxin1": aux[1],
@@ -685,6 +692,13 @@ class HF2DataServerTwin:
             )
         )
         return out
+
+    def _dio_inputs(self, inputs: BlockInputs, dt: float) -> np.ndarray:
+        """The DIO input word of each sample: the table encoder's A/B at the sample instant, the end of its step
+        (angle at the step start + the step's mean delivered rate x dt); zeros with nothing wired."""
+        if self.table_encoder is None:
+            return np.zeros(inputs.t.shape[0], dtype=np.uint32)
+        return self.table_encoder.dio_word(inputs.table_angle_deg + inputs.table_rate_dps * dt)
 
     def _demod_xy(
         self, blk: GyroBlock, spec: _DemodSpec, ref_osc: int, phases: dict[int, np.ndarray], n: int

@@ -29,6 +29,8 @@ from __future__ import annotations
 import math
 import re
 
+import numpy as np
+
 from sims.serial_twin import FaultableTwin
 from sims.world import World
 
@@ -216,3 +218,46 @@ class RateTableTwin(FaultableTwin):
             raise _Refused(3, "RANGE")
         self._motion_allowed()
         self.world.set_table_sine(self._amplitude, self._frequency)
+
+
+class TableEncoder:
+    """The 1291BR's own measure of its motion as it leaves the controller: a TTL quadrature pair (A, B) from its
+    angle encoder, `lines_per_rev` quadrature cycles per revolution after the controller's divider, landing on
+    HF2 DIO input bits `a_bit` and `b_bit` (docs/wiring.md, "The table's encoder on the DIO").
+
+    Sourced: none of it (the 1291BR manual is not public). Assumed, each a configuration key: that the controller
+    offers its encoder as TTL A/B (the usual form of a servo table's position output), the divider
+    ([sim] table_encoder_lines_per_rev) and the bits ([table] encoder_a_dio_bit / encoder_b_dio_bit).
+
+    The encoder reads the angle the servo holds. The world's delivered angle theta (sims/world.py) carries the
+    once-per-revolution ripple of the rate, r sin(theta + phi_r) (encoder eccentricity: the servo holds the
+    encoder's rate); integrated over the turn that is the encoder reading
+        theta_e = theta + r (180/pi) cos(theta + phi_r)        deg (first order in r; constant dropped)
+    The encoder counts c = floor(theta_e 4 L / 360) (L = lines_per_rev, 4 counts per quadrature cycle) and puts
+    c mod 4 on the pair as the Gray sequence (A, B) = 00, 01, 11, 10.
+    """
+
+    GRAY = (0b00, 0b01, 0b11, 0b10)  # (A << 1) | B for c mod 4 = 0, 1, 2, 3
+
+    def __init__(self, world: World, *, lines_per_rev: int, a_bit: int, b_bit: int) -> None:
+        if lines_per_rev < 1:
+            raise ValueError("lines_per_rev must be >= 1")
+        if not (0 <= a_bit < 32 and 0 <= b_bit < 32) or a_bit == b_bit:
+            raise ValueError("a_bit and b_bit must be two different DIO bits 0-31")
+        self.world = world
+        self.lines_per_rev, self.a_bit, self.b_bit = int(lines_per_rev), int(a_bit), int(b_bit)
+
+    def counts(self, angle_deg: np.ndarray) -> np.ndarray:
+        """Encoder counts at the delivered table angles `angle_deg` (class docstring)."""
+        p = self.world.params
+        theta = np.asarray(angle_deg, dtype=np.float64)
+        r = p.table_rate_ripple_ppm * 1e-6
+        theta_e = theta + r * (180.0 / math.pi) * np.cos(np.deg2rad(theta + p.table_ripple_phase_deg))
+        return np.floor(theta_e * (4 * self.lines_per_rev / 360.0)).astype(np.int64)
+
+    def dio_word(self, angle_deg: np.ndarray) -> np.ndarray:
+        """The DIO input word (uint32) at the angles: A on a_bit, B on b_bit, every other bit 0."""
+        gray = np.asarray(self.GRAY, dtype=np.uint32)[np.mod(self.counts(angle_deg), 4)]
+        a = (gray >> np.uint32(1)) & np.uint32(1)
+        b = gray & np.uint32(1)
+        return (a << np.uint32(self.a_bit)) | (b << np.uint32(self.b_bit))

@@ -3,7 +3,10 @@
 Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
 
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
-  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods.
+  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods. For a
+  rate or level step that moves the table, t_start and t_end are the ends of the table's constant-rate plateau
+  seen by its encoder on the HF2's clock (/lockin/table_encoder, qmg_lab/analysis/encoder.py) when the file has
+  it and [table] encoder_on_dio is on; otherwise the host's step times.
   Means of the rate output are taken over a whole number of dither periods, from a rising edge of the recorded
   dither to a later one (edges located as the CLSF estimator locates them, qmg_lab/clsf/dither_edges.py: within the
   gap between two readings, then refined by a line through 32 edges; the rate output
@@ -12,13 +15,16 @@ Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
   DS345 and the HF2 share no clock.
 * True SF from a step pair (a completed "rate" step with Omega > 0 followed by the next-index "rate" step with
   Omega < 0): SF = (O+ - O-)/(Omega+ - Omega-), bias = (O+ + O-)/2; O = mean /lockin/rate_output (V), Omega =
-  mean /table/rate_command over the window (deg/s; the step's table_rate if no table row falls inside).
+  the encoder's rate over the window (the slope of its count against time), else the median /table/rate_command
+  over the window (deg/s; the step's table_rate if no table row falls inside).
 * Relative changes against the first pair (SF_ref = SF of pair 0): true e_i = SF_i/SF_ref - 1; CLSF
   c_i = (1 + s_i)/(1 + s_0) - 1 with s_i the mean /clsf/sf_change_estimate over the same two windows; twin truth
   t_i = mean /truth/scale_factor re-referenced the same way. CLSF accuracy = RMS(c_i - e_i) over pairs 1..n-1
   (pair 0 is zero by construction), reported with and without the mean of (c - e) removed.
   truth_check_rms_ppm = RMS(e_i - t_i): the analysis itself checked against the twin; clsf_vs_truth_rms_ppm =
   RMS(c_i - t_i) over pairs 1..n-1: the estimator against the twin's truth, without the table steps' noise.
+  The c_i and both RMS figures are `series_accuracy` of /clsf/sf_change_estimate: any other SF-change series
+  (a calibrated one) is judged by the same function, and no table step enters the series it judges.
 * CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
   closed up), in ppm, with 68 % confidence bounds (qmg_lab/analysis/adev.py). In correct mode the same series is the
   residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
@@ -52,6 +58,7 @@ from qmg_lab.analysis.characterize import (
     moving_average,
     settling_time_s,
 )
+from qmg_lab.analysis.encoder import EncoderTrack, Plateau, decode_quadrature, plateau, rate_over
 from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
 from qmg_lab.campaign.plan import dither_amplitude_vpp
 from qmg_lab.config.schema import Config, ConfigError, parse_config
@@ -80,6 +87,53 @@ class StepPair:
     rate_minus_dps: float = float("nan")
     output_plus_v: float = float("nan")
     output_minus_v: float = float("nan")
+    window_plus_s: tuple[float, float] = (float("nan"), float("nan"))  # the two analysis windows, s
+    window_minus_s: tuple[float, float] = (float("nan"), float("nan"))
+
+
+@dataclass(frozen=True)
+class SeriesAccuracy:
+    """How well a series of relative SF changes follows the table steps and the twin's truth (`series_accuracy`),
+    ppm; None where there is no truth. n_pairs: the step pairs compared (pair 0 is the reference)."""
+
+    n_pairs: int
+    rms_vs_table_ppm: float
+    rms_vs_table_ppm_mean_removed: float
+    rms_vs_truth_ppm: float | None
+    change_ppm: list[float]  # the series' change at each pair, referred to pair 0
+
+
+def series_accuracy(pairs: list[StepPair], time_s: np.ndarray, sf_change: np.ndarray) -> SeriesAccuracy:
+    """Judge an SF-change series (SF/SF0 - 1 at the instants time_s, s on the file's time axis: /clsf's
+    sf_change_estimate, or any calibrated series) by the step pairs of `analyze` (AnalysisResult.pairs).
+
+    The table judges and does not teach: the series is taken as given, the steps only read. For each pair i,
+    s_i = mean of the series over its two windows (the encoder-timed ones when the file has the encoder),
+    c_i = (1 + s_i)/(1 + s_0) - 1; against the table e_i (true_change_ppm), RMS(c_i - e_i) over pairs 1..n-1,
+    with and without its mean; against the twin's truth t_i (truth_change_ppm), RMS(c_i - t_i).
+    """
+    group = {"time": np.asarray(time_s, dtype=np.float64), "s": np.asarray(sf_change, dtype=np.float64)}
+    raw = np.array([_mean_in(group, "s", [p.window_plus_s, p.window_minus_s]) for p in pairs])
+    if raw.size == 0:
+        return SeriesAccuracy(0, float("nan"), float("nan"), None, [])
+    c = ((1 + raw) / (1 + raw[0]) - 1) * PPM
+    e = np.array([p.true_change_ppm for p in pairs])
+    tr = np.array([p.truth_change_ppm for p in pairs])
+    d = (c - e)[1:]
+    d = d[np.isfinite(d)]
+    vs_truth = _rms((c - tr)[1:]) if np.all(np.isfinite(tr)) else None
+    return SeriesAccuracy(
+        n_pairs=len(pairs),
+        rms_vs_table_ppm=_rms(d) if d.size else float("nan"),
+        rms_vs_table_ppm_mean_removed=_rms(d - d.mean()) if d.size else float("nan"),
+        rms_vs_truth_ppm=vs_truth,
+        change_ppm=[float(x) for x in c],
+    )
+
+
+def evaluate_sf_series(path: str | Path, time_s: np.ndarray, sf_change: np.ndarray) -> SeriesAccuracy:
+    """`series_accuracy` of a series against the step pairs `analyze(path)` finds in a run file."""
+    return series_accuracy(analyze(path).pairs, time_s, sf_change)
 
 
 @dataclass(frozen=True)
@@ -185,10 +239,15 @@ class _Ctx:
     edge_integral: np.ndarray | None = None  # the rate output's trapezoid integral at each rising edge, V s
     windows: dict[int, dict[str, float]] | None = None  # the truth over each step's window (/windows), by index
     study_level: bool = False  # a study-level file: edges and windows from its /edges and /windows
+    encoder: EncoderTrack | None = None  # the table's encoder (/lockin/table_encoder), decoded
+    plateaus: dict[int, Plateau] = field(default_factory=dict)  # each moving step's plateau, by index
 
 
 def _load(path: str | Path) -> _Ctx:
-    run = read_run(path, select=["lockin/rate_output", "lockin/dither", "clsf", "table", "chamber", "truth"])
+    run = read_run(
+        path,
+        select=["lockin/rate_output", "lockin/dither", "lockin/table_encoder", "clsf", "table", "chamber", "truth"],
+    )
     cfg, note = stored_config(run)
     notes: list[str] = [note] if note else []
     t = run.groups["lockin"]["time"]
@@ -217,13 +276,42 @@ def _load(path: str | Path) -> _Ctx:
         ctx.dither_rising_s, ctx.edge_integral = edges_and_integrals(
             t, lk["dither"], lk["rate_output"], 0.5 * dither_amplitude_vpp(cfg)
         )
+    _find_plateaus(ctx)
     truth = run.groups.get("truth")
     if truth is not None:
         ctx.windows = {i: _truth_window(truth, i, *_window(ctx, step)) for i, step in steps.items()}
     return ctx
 
 
+def _find_plateaus(ctx: _Ctx) -> None:
+    """The table encoder's plateau of every completed rate/level step that moves the table (encoder.py), when
+    [table] encoder_on_dio says the encoder is cabled and the file has its column; otherwise a note."""
+    lk, tab = ctx.run.groups["lockin"], ctx.cfg.table
+    if not tab.encoder_on_dio or "table_encoder" not in lk:
+        ctx.notes.append("step windows on the host's step times (no table encoder in the file)")
+        return
+    track = decode_quadrature(
+        lk["time"], lk["table_encoder"], tab.encoder_a_dio_bit, tab.encoder_b_dio_bit, tab.encoder_lines_per_rev
+    )
+    ctx.encoder = track
+    for i, step in ctx.steps.items():
+        if step["kind"] in ("rate", "level") and step["table_rate"] != 0:
+            p = plateau(track, float(step["t_start"]), float(step["t_end"]))
+            if p is not None and p.rate_dps * float(step["table_rate"]) > 0:
+                ctx.plateaus[i] = p
+    moving = sum(1 for s in ctx.steps.values() if s["kind"] in ("rate", "level") and s["table_rate"] != 0)
+    ctx.notes.append(
+        f"step windows on the HF2's clock from the table encoder: {len(ctx.plateaus)} of {moving} moving steps"
+        + (f"; {track.skipped} encoder counts skipped (too fast for the demod rate)" if track.skipped else "")
+    )
+
+
 def _window(ctx: _Ctx, step: dict[str, Any], extra_settle: float = 0.0) -> tuple[float, float]:
+    """A step's analysis window: [start + settle, end], start and end the table encoder's plateau of the step when
+    it has one (on the HF2's clock), else the host's step times."""
+    p = ctx.plateaus.get(int(step["index"]))
+    if p is not None:
+        return p.start_s + ctx.settle_s + extra_settle, p.end_s
     return float(step["t_start"]) + ctx.settle_s + extra_settle, float(step["t_end"])
 
 
@@ -289,7 +377,13 @@ def _truth_mean(ctx: _Ctx, col: str, indices: tuple[int, ...]) -> float:
 
 
 def _commanded(ctx: _Ctx, step: dict[str, Any], win: tuple[float, float]) -> float:
-    """Median /table/rate_command in the window (robust to a reading taken on the step boundary)."""
+    """The table's rate over the window: the encoder's (its count's slope over the window, encoder.rate_over)
+    when the step has an encoder plateau, else the median /table/rate_command in the window (robust to a reading
+    taken on the step boundary)."""
+    if ctx.encoder is not None and int(step["index"]) in ctx.plateaus:
+        rate = rate_over(ctx.encoder, *win)
+        if math.isfinite(rate):
+            return rate
     tab = ctx.run.groups.get("table")
     if tab is not None:
         m = (tab["time"] >= win[0]) & (tab["time"] <= win[1])
@@ -333,8 +427,9 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
             rate_minus_dps=rm,
             output_plus_v=op,
             output_minus_v=om,
+            window_plus_s=wp,
+            window_minus_s=wm,
         )
-        pair.clsf_change_ppm = _mean_in(clsf, "sf_change_estimate", [wp, wm])  # raw s_i for now
         pair.truth_change_ppm = _truth_mean(ctx, "scale_factor", (idx, idx + 1))  # raw SF for now
         pair.gyro_temperature_c = _truth_mean(ctx, "temperature", (idx, idx + 1))
         found.pairs.append(pair)
@@ -342,25 +437,31 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
     if not found.pairs:
         return found
     ref = found.pairs[0]
-    sf_ref, s_ref, tr_ref = ref.sf_v_per_dps, ref.clsf_change_ppm, ref.truth_change_ppm
+    sf_ref, tr_ref = ref.sf_v_per_dps, ref.truth_change_ppm
     for p in found.pairs:
         p.true_change_ppm = (p.sf_v_per_dps / sf_ref - 1) * PPM
-        p.clsf_change_ppm = ((1 + p.clsf_change_ppm) / (1 + s_ref) - 1) * PPM
         p.truth_change_ppm = (p.truth_change_ppm / tr_ref - 1) * PPM
     found.values["sf_measured_v_per_dps"] = sf_ref
     e = np.array([p.true_change_ppm for p in found.pairs])
-    c = np.array([p.clsf_change_ppm for p in found.pairs])
     tr = np.array([p.truth_change_ppm for p in found.pairs])
     found.values["sf_true_change_ppm"] = float(np.ptp(e))
     found.notes.append("relative SF changes are referred to the first step pair (SF_ref = pair 0)")
-    d = (c - e)[1:]
-    d = d[np.isfinite(d)]
-    if d.size:
-        found.values["clsf_accuracy_rms_ppm"] = _rms(d)
-        found.values["clsf_accuracy_rms_ppm_mean_removed"] = _rms(d - d.mean())
-    if (ctx.run.has_truth or ctx.windows is not None) and np.all(np.isfinite(tr)):
+    have_truth = (ctx.run.has_truth or ctx.windows is not None) and bool(np.all(np.isfinite(tr)))
+    empty = np.empty(0)
+    acc = series_accuracy(
+        found.pairs,
+        clsf["time"] if clsf is not None else empty,
+        clsf["sf_change_estimate"] if clsf is not None else empty,
+    )
+    for p, c_i in zip(found.pairs, acc.change_ppm, strict=True):
+        p.clsf_change_ppm = c_i
+    c = np.array(acc.change_ppm)
+    if math.isfinite(acc.rms_vs_table_ppm):
+        found.values["clsf_accuracy_rms_ppm"] = acc.rms_vs_table_ppm
+        found.values["clsf_accuracy_rms_ppm_mean_removed"] = acc.rms_vs_table_ppm_mean_removed
+    if have_truth:
         found.values["truth_check_rms_ppm"] = _rms(e - tr)
-        found.values["clsf_vs_truth_rms_ppm"] = _rms((c - tr)[1:])
+        found.values["clsf_vs_truth_rms_ppm"] = acc.rms_vs_truth_ppm
     temps = np.array([p.temperature_c for p in found.pairs])
     ok = np.isfinite(temps)
     if ok.sum() >= 3 and np.ptp(temps[ok]) > 0.5:

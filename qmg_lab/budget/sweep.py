@@ -89,6 +89,7 @@ class SweepAccuracy:
     nonlinearity_terms_pct_fs: dict[str, float]
     nonlinearity_rms_pct_fs: float
     linearity_rates_dps: tuple[float, ...] = field(default=())
+    table_errors_ppm: tuple[float, ...] = field(default=())  # e_i - t_i: the table steps against the true SF
 
     @property
     def dominant_accuracy_source(self) -> str:
@@ -111,6 +112,7 @@ class SweepAccuracy:
             "nonlinearity_rms_pct_fs": self.nonlinearity_rms_pct_fs,
             "dominant_nonlinearity_source": self.dominant_nonlinearity_source,
             "linearity_rates_dps": list(self.linearity_rates_dps),
+            "table_errors_ppm": list(self.table_errors_ppm),
         }
 
 
@@ -379,7 +381,7 @@ def loop_tail_errors(
 
 def sweep_accuracy(cfg: Config) -> SweepAccuracy:
     """The budget of a configuration (module docstring; docs/accuracy-budget.md)."""
-    acc_terms, pair_err, pair_t = _accuracy(cfg)
+    acc_terms, pair_err, pair_t, table_err = _accuracy(cfg)
     nl_terms, nl_total, rates = _nonlinearity(cfg)
     total = pair_err.sum(axis=0) if pair_err.size else np.zeros(0)
     tail = total[1:]
@@ -391,6 +393,7 @@ def sweep_accuracy(cfg: Config) -> SweepAccuracy:
         total_mean_removed_ppm=rms_mr,
         pair_errors_ppm=tuple(float(x) for x in total),
         pair_temperatures_c=tuple(float(x) for x in pair_t),
+        table_errors_ppm=tuple(float(x) for x in table_err),
         nonlinearity_terms_pct_fs=nl_terms,
         nonlinearity_rms_pct_fs=nl_total,
         linearity_rates_dps=rates,
@@ -410,6 +413,7 @@ class PairErrors:
     windows_s: list[list[tuple[float, float]]]
     ramp_start_s: float
     temperatures_c: np.ndarray
+    table_ppm: np.ndarray  # the table steps' own error against the true SF (eps_i - eps_0 summed over the sources)
 
 
 def pair_errors(cfg: Config) -> PairErrors:
@@ -425,7 +429,7 @@ def pair_errors(cfg: Config) -> PairErrors:
         if k + 1 in wins and wins[k].rate_dps > 0 > wins[k + 1].rate_dps and steps[k].kind == "rate"
     ]
     if not pairs:
-        return PairErrors(np.zeros((len(ACCURACY_SOURCES), 0)), [], ramp_start, np.zeros(0))
+        return PairErrors(np.zeros((len(ACCURACY_SOURCES), 0)), [], ramp_start, np.zeros(0), np.zeros(0))
     grids = np.array(
         [np.concatenate([np.linspace(wp.t0_s, wp.t1_s, 64), np.linspace(wm.t0_s, wm.t1_s, 64)]) for wp, wm in pairs]
     )
@@ -445,23 +449,26 @@ def pair_errors(cfg: Config) -> PairErrors:
         "damping": tail_damp,
     }
     rows = []
+    table = np.zeros_like(temp)
     for name in ACCURACY_SOURCES:
         d = deltas.get(name, np.zeros_like(temp))
         e = eps.get(name, np.zeros_like(temp))
         rows.append(((d[0] - d) - (e - e[0])) * PPM)
+        table = table + (e - e[0]) * PPM
     windows = [[(wp.t0_s, wp.t1_s), (wm.t0_s, wm.t1_s)] for wp, wm in pairs]
-    return PairErrors(np.array(rows), windows, ramp_start, temp)
+    return PairErrors(np.array(rows), windows, ramp_start, temp, table)
 
 
-def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm) and the pairs' gyro temperatures."""
+def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray, np.ndarray]:
+    """Per-source RMS (ppm), the per-source pair errors (sources x pairs, ppm), the pairs' gyro temperatures and the
+    table steps' own error against the true SF (ppm)."""
     pe = pair_errors(cfg)
     err, temp = pe.rows_ppm, pe.temperatures_c
     terms = {
         n: float(np.sqrt(np.mean(r[1:] ** 2))) if r.size > 1 else float("nan")
         for n, r in zip(ACCURACY_SOURCES, err, strict=True)
     }
-    return terms, err, temp
+    return terms, err, temp, pe.table_ppm
 
 
 def _tails(

@@ -343,6 +343,25 @@ class TableSection(_Section):
     sim_prompt_terminator: Literal["CR", "LF", "CRLF", "none"] = Field(
         "CR", description="twin only: what follows the twin's prompt (none = a bare prompt)"
     )
+    # the table's own measure of its motion on the HF2 DIO (assumed wiring: docs/wiring.md, "The table's encoder")
+    encoder_on_dio: bool = Field(
+        True,
+        description="the table's encoder A/B is cabled to the HF2 DIO inputs (false: step windows on host time)",
+    )
+    encoder_a_dio_bit: int = Field(0, ge=0, le=31, description="HF2 DIO input bit of the encoder's A channel")
+    encoder_b_dio_bit: int = Field(1, ge=0, le=31, description="HF2 DIO input bit of the encoder's B channel")
+    encoder_lines_per_rev: int = Field(
+        3600,
+        ge=1,
+        le=10**7,
+        description="quadrature cycles per table revolution on A/B after the controller's divider (assumed)",
+    )
+
+    @model_validator(mode="after")
+    def _encoder_bits_differ(self) -> TableSection:
+        if self.encoder_a_dio_bit == self.encoder_b_dio_bit:
+            raise ValueError("[table] encoder_a_dio_bit and encoder_b_dio_bit must be different DIO bits")
+        return self
 
 
 class ChamberSection(_Section):
@@ -548,6 +567,12 @@ class SimSection(_Section):
         100.0, ge=0.0, le=1e5, description="1291BR once-per-revolution rate ripple, ppm of the rate (assumed)"
     )
     table_ripple_phase_deg: float = Field(0.0, ge=-360.0, le=360.0, description="table angle of the ripple's peak")
+    table_encoder_lines_per_rev: int = Field(
+        3600,
+        ge=1,
+        le=10**7,
+        description="the twin table's encoder A/B quadrature cycles per revolution on the DIO (assumed divider)",
+    )
     q_tempco_ppm_per_c: float = Field(-2000.0, ge=-1e5, le=1e5, description="dQ/Q per degC (assumed)")
     damping_mismatch_tempco_per_c: float = Field(
         1e-4, ge=-0.01, le=0.01, description="d(Delta(1/tau)/(1/tau))/dT per degC (assumed)"

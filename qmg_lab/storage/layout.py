@@ -19,6 +19,7 @@ LOCKIN_UNITS = {
     "drive_amplitude": "V",
     "drive_frequency": "Hz",
     "dither": "V",
+    "table_encoder": "1",
 }
 CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
 TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
@@ -51,6 +52,8 @@ DESCRIPTIONS: dict[str, str] = {
     "lockin/drive_amplitude": "drive pickoff amplitude R of the drive demodulator, Vrms",
     "lockin/drive_frequency": "PLL oscillator frequency, Hz",
     "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
+    "lockin/table_encoder": "HF2 DIO input word of the sample: the rate table encoder's A/B bits as cabled "
+    "([table] encoder_a_dio_bit, encoder_b_dio_bit), an integer",
     "clsf/time": "end of the dither period the row describes, s since t0_unix",
     "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
     "change seen by the dither)",
@@ -92,6 +95,9 @@ STEPS_DTYPES: dict[str, Any] = {
 #: Under SWMR, HDF5 never reuses the space of a compressed chunk that is rewritten larger, so every flush that
 #: ends inside a compressed chunk leaves one dead copy of that partial chunk behind. A writer faster than real
 #: time (the twins: one flush carries minutes of data) writes whole chunks and can afford big ones: 16384 rows
+#: columns a reader takes as absent, not as damage, in a file written before they were added (docs/hdf5.md)
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {"lockin": ("table_encoder",)}
+
 #: (11.7 s at 1400 Sa/s, 128 KiB raw) keep an hour of one column to ~310 chunks for readers. A real-time writer
 #: (hardware: a flush every flush_interval_s carries ~1400 rows) uses 2048 rows, about one flush, so the dead
 #: copies stay small (benchmarks/storage_speed.py). Slow groups (a few rows per second) are never compressed:
@@ -106,11 +112,20 @@ CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256,
 #: compresses only the columns that compress well: for the noisy ones the dead copies of their partial chunks
 #: (see CHUNK_ROWS) outweigh what the filter saves.
 COMPRESSED_COLUMNS = {
-    "lockin": ("time", "x_sense", "y_sense", "rate_output", "drive_amplitude", "drive_frequency", "dither"),
+    "lockin": (
+        "time",
+        "x_sense",
+        "y_sense",
+        "rate_output",
+        "drive_amplitude",
+        "drive_frequency",
+        "dither",
+        "table_encoder",
+    ),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_COLUMNS_REALTIME = {
-    "lockin": ("time", "drive_frequency", "dither"),
+    "lockin": ("time", "drive_frequency", "dither", "table_encoder"),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_GROUPS = tuple(COMPRESSED_COLUMNS)

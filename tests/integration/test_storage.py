@@ -32,6 +32,7 @@ CONTRACT = {
         "drive_amplitude": "V",
         "drive_frequency": "Hz",
         "dither": "V",
+        "table_encoder": "1",
     },
     "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"},
     "table": {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"},
@@ -75,6 +76,7 @@ def lockin_block(k: int, n: int = 700) -> dict[str, np.ndarray]:
         "drive_amplitude": 0.5 + 0 * t,
         "drive_frequency": 2200.0 + 1e-3 * t,
         "dither": np.sign(np.sin(2 * np.pi * 7 * t)),
+        "table_encoder": np.floor(200 * t) % 4,
     }
 
 
@@ -322,7 +324,8 @@ CHILD = textwrap.dedent("""
     def block(k, n=700):
         t = (k * n + np.arange(n)) / 1400.0
         return dict(time=t, x_sense=np.sin(t), y_sense=np.cos(t), rate_output=0.3 + 1e-3 * t,
-                    drive_amplitude=0.5 + 0 * t, drive_frequency=2200 + 0 * t, dither=np.sign(np.sin(44 * t)))
+                    drive_amplitude=0.5 + 0 * t, drive_frequency=2200 + 0 * t, dither=np.sign(np.sin(44 * t)),
+                    table_encoder=0 * t)
     k = 0
     if mode == "driven":
         print("ready", flush=True)
@@ -442,6 +445,7 @@ def test_sigkill_mid_write_leaves_a_readable_file_then_resumes(tmp_path: Path, f
         drive_amplitude=0 * t_new,
         drive_frequency=0 * t_new,
         dither=0 * t_new,
+        table_encoder=0 * t_new,
     )
     w.set_status("completed")
     w.close()

@@ -25,7 +25,7 @@ def test_a_block_with_a_lost_sample_is_recorded_group_by_group(tmp_path: Path) -
     k_all = np.arange(n)
     delivered = np.delete(k_all, 4)  # the stream lost the 5th sample; the truth source has all ten
     t = 100.0 + delivered / FS
-    block = LockInBlock(*(t + j for j in range(7)), samples_lost=1)
+    block = LockInBlock(*(t + j for j in range(len(LockInBlock.FIELDS))), samples_lost=1)
     periods = ClsfPeriods(*(np.array([100.001, 100.002]) * (j + 1) for j in range(5)))
     truth_t = 50.0 + k_all / FS  # on the world's clock: another origin, same sample period
     truth = TruthBlock(truth_t, 0.06 + k_all * 1e-6, 25.0 + k_all * 0.01, 5.0 + k_all)
