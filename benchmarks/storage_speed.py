@@ -67,6 +67,7 @@ def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndar
         drive_amplitude=0.5 + 1e-6 * rng.standard_normal(n),
         drive_frequency=2200.0 + 1e-4 * rng.standard_normal(n),
         dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(n),
+        pll_locked=np.ones(n, dtype=np.uint8),
     )
 
 

@@ -19,6 +19,7 @@ LOCKIN_UNITS = {
     "drive_amplitude": "V",
     "drive_frequency": "Hz",
     "dither": "V",
+    "pll_locked": "1",
 }
 CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
 TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
@@ -51,6 +52,8 @@ DESCRIPTIONS: dict[str, str] = {
     "lockin/drive_amplitude": "drive pickoff amplitude R of the drive demodulator, Vrms",
     "lockin/drive_frequency": "PLL oscillator frequency, Hz",
     "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
+    "lockin/pll_locked": "1 if the drive PLL stayed locked through the sample's block (the driver's reading of "
+    "the HF2's PLL lock), else 0; absent from files written before the column existed",
     "clsf/time": "end of the dither period the row describes, s since t0_unix",
     "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
     "change seen by the dither)",
@@ -76,6 +79,17 @@ DESCRIPTIONS: dict[str, str] = {
     "steps/chamber_setpoint": "chamber setpoint during the step, degC",
     "steps/status": "completed | aborted | started | skipped; only completed rows are checkpoints",
 }
+
+#: columns not stored as float64 (every other group column is float64 with NaN as its fill value)
+COLUMN_DTYPES: dict[str, Any] = {"lockin/pll_locked": np.uint8}
+#: columns that files written before they existed lack: readers and a resumed writer do without them
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {"lockin": ("pll_locked",)}
+
+
+def column_dtype(group: str, column: str) -> Any:
+    """The stored dtype of /group/column (float64 unless COLUMN_DTYPES says otherwise)."""
+    return COLUMN_DTYPES.get(f"{group}/{column}", np.float64)
+
 
 KIND_BYTES = 48
 STATUS_BYTES = 16
@@ -106,11 +120,20 @@ CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256,
 #: compresses only the columns that compress well: for the noisy ones the dead copies of their partial chunks
 #: (see CHUNK_ROWS) outweigh what the filter saves.
 COMPRESSED_COLUMNS = {
-    "lockin": ("time", "x_sense", "y_sense", "rate_output", "drive_amplitude", "drive_frequency", "dither"),
+    "lockin": (
+        "time",
+        "x_sense",
+        "y_sense",
+        "rate_output",
+        "drive_amplitude",
+        "drive_frequency",
+        "dither",
+        "pll_locked",
+    ),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_COLUMNS_REALTIME = {
-    "lockin": ("time", "drive_frequency", "dither"),
+    "lockin": ("time", "drive_frequency", "dither", "pll_locked"),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_GROUPS = tuple(COMPRESSED_COLUMNS)

@@ -12,7 +12,14 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.h5clear import writer_flags_set
-from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, STEPS_UNITS, DamagedFileError, StorageError
+from qmg_lab.storage.layout import (
+    FORMAT,
+    GROUP_UNITS,
+    OPTIONAL_COLUMNS,
+    STEPS_UNITS,
+    DamagedFileError,
+    StorageError,
+)
 from qmg_lab.storage.superblock import check_file_end
 
 
@@ -121,7 +128,8 @@ def read_run(path: str | Path, select: Iterable[str] | None = None) -> RunData:
                     raise StorageError(f"{p}: the /{g} group is missing")
                 continue
             grp = h5[g]
-            cols = list(GROUP_UNITS.get(g, STEPS_UNITS))
+            optional = OPTIONAL_COLUMNS.get(g, ())  # an older file lacks them: read without
+            cols = [c for c in GROUP_UNITS.get(g, STEPS_UNITS) if c in grp or c not in optional]
             absent = [c for c in cols if c not in grp]
             if absent:
                 raise StorageError(f"{p}: /{g} lacks the datasets {absent}")

@@ -81,6 +81,7 @@ def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: flo
         drive_amplitude=z + 0.5,
         drive_frequency=z + 2200.0,
         dither=0.6 * sq,
+        pll_locked=z + 1,
     )
 
 
