@@ -202,6 +202,16 @@ def run(
     watch_page: Annotated[
         bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
     ] = False,
+    port: Annotated[
+        int, typer.Option("--port", help="with --watch: the page's TCP port (the next free one if taken)")
+    ] = watch.DEFAULT_PORT,
+    watch_linger: Annotated[
+        float,
+        typer.Option(
+            "--watch-linger",
+            help="with --watch: seconds the page stays up with the final status after the run (Ctrl-C closes it)",
+        ),
+    ] = watch.DEFAULT_LINGER_S,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
@@ -209,9 +219,9 @@ def run(
     cfg, text = load(config, sim, campaign=True)
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
-    with watch_beside((resume or output) if watch_page else None):
+    with watch_beside((resume or output) if watch_page else None, port, watch_linger):
         summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
-    _print_summary(summary)
+        _print_summary(summary)  # before the page's linger
 
 
 def _execute(
