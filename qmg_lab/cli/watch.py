@@ -7,7 +7,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Annotated
 
@@ -89,10 +89,8 @@ def _stop_after_stdin_closes(loop: object, linger_s: float) -> None:
     closes when that process ends, normally or killed (a thread blocks on the read, on Linux and Windows alike)."""
 
     def read_to_end() -> None:
-        try:
+        with suppress(OSError, ValueError):
             sys.stdin.read()
-        except (OSError, ValueError):
-            pass
         loop.add_callback(lambda: loop.call_later(max(linger_s, 0.0), loop.stop))  # type: ignore[attr-defined]
 
     threading.Thread(target=read_to_end, name="qmg-lab watch: run process", daemon=True).start()
@@ -114,13 +112,23 @@ def watch_beside(path: Path | None, port: int = DEFAULT_PORT, linger_s: float = 
         else {"start_new_session": True}
     )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "qmg_lab", "watch", str(path), "--wait", "--port", str(port)]
-        + ["--linger-after-stdin", repr(float(linger_s))],
+        [
+            sys.executable,
+            "-m",
+            "qmg_lab",
+            "watch",
+            str(path),
+            "--wait",
+            "--port",
+            str(port),
+            "--linger-after-stdin",
+            repr(float(linger_s)),
+        ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
-        **group,  # type: ignore[call-overload]
+        **group,
     )
     line = proc.stdout.readline().strip() if proc.stdout is not None else ""
     address = ""
@@ -135,13 +143,10 @@ def watch_beside(path: Path | None, port: int = DEFAULT_PORT, linger_s: float = 
         _close_stdin(proc)  # the run has ended: the page stops itself linger_s s from now
         if address and proc.poll() is None and linger_s > 0:
             console.print(
-                f"the live page stays at {address} with the run's final status for {linger_s:g} s; "
-                "Ctrl-C closes it now"
+                f"the live page stays at {address} with the run's final status for {linger_s:g} s; Ctrl-C closes it now"
             )
-            try:
+            with suppress(subprocess.TimeoutExpired, KeyboardInterrupt):
                 proc.wait(timeout=linger_s + 10.0)
-            except (subprocess.TimeoutExpired, KeyboardInterrupt):
-                pass
         if proc.poll() is None:
             proc.terminate()
             try:
@@ -154,10 +159,8 @@ def watch_beside(path: Path | None, port: int = DEFAULT_PORT, linger_s: float = 
 
 def _close_stdin(proc: subprocess.Popen[str]) -> None:
     if proc.stdin is not None:
-        try:
+        with suppress(OSError):
             proc.stdin.close()
-        except OSError:
-            pass
 
 
 def register(app: typer.Typer) -> None:

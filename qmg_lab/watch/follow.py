@@ -51,7 +51,7 @@ import numpy as np
 from qmg_lab.data.run import MOVING_MEAN_S, window_mean
 
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)
-FIRST_CHUNKS = 120  # ... and on a file's first poll: a finished file's replay shows its whole length
+FIRST_CHUNKS = 40  # ... and on a file's first poll: a finished file's replay shows its whole length, drawn in ~1 s
 STREAM_GROUPS = ("lockin", "truth")
 COLUMNS: dict[str, tuple[str, ...]] = {
     "clsf": ("time", "sf_change_estimate", "gain_correction", "rate_output_mean"),
@@ -80,6 +80,7 @@ class Update:
     groups: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     steps: dict[str, np.ndarray] = field(default_factory=dict)
     events: dict[str, np.ndarray] = field(default_factory=dict)
+    lost_samples: int = 0  # /lockin samples missing inside the stretches this poll read (missing_samples)
     problem: str = ""
 
 
@@ -96,9 +97,11 @@ def _whole(h5: h5py.File, group: str) -> dict[str, np.ndarray]:
     return {c: _decode(g[c][:n]) for c in cols}
 
 
-def _sampled(h5: h5py.File, group: str, cols: tuple[str, ...], a: int, b: int, chunks: int) -> dict[str, np.ndarray]:
-    """Rows [a, b) of a lock-in-rate group, read as at most `chunks` whole chunks (module docstring);
-    /truth's rows carry /lockin's time (row for row)."""
+def _sampled(
+    h5: h5py.File, group: str, cols: tuple[str, ...], a: int, b: int, chunks: int
+) -> tuple[dict[str, np.ndarray], list[tuple[int, int]]]:
+    """Rows [a, b) of a lock-in-rate group, read as at most `chunks` whole chunks (module docstring), and the
+    row spans read; /truth's rows carry /lockin's time (row for row)."""
     ds = h5[group][cols[0]]
     size = int(ds.chunks[0]) if ds.chunks else b - a
     first, last = a // size, (b - 1) // size
@@ -107,7 +110,22 @@ def _sampled(h5: h5py.File, group: str, cols: tuple[str, ...], a: int, b: int, c
     out = {c: np.concatenate([h5[group][c][i:j] for i, j in spans]) for c in cols}
     if group == "truth":
         out["time"] = np.concatenate([h5["lockin/time"][i:j] for i, j in spans])
-    return out
+    return out, spans
+
+
+def missing_samples(t: np.ndarray, spans: list[tuple[int, int]]) -> int:
+    """Samples missing inside the spans read (t: their times end to end): a step dt_k > 1.5 dt_med between
+    neighbours of one span (dt_med its median step) lacks round(dt_k / dt_med) - 1 samples."""
+    lost, at = 0, 0
+    for i, j in spans:
+        dt = np.diff(t[at : at + j - i])
+        at += j - i
+        if dt.shape[0] < 2:
+            continue
+        med = float(np.median(dt))
+        big = dt[dt > 1.5 * med]
+        lost += int(np.sum(np.round(big / med) - 1)) if med > 0 else 0
+    return lost
 
 
 class RunFollower:
@@ -171,7 +189,9 @@ class RunFollower:
                 if b <= a:
                     continue
                 if g in STREAM_GROUPS:
-                    rows = _sampled(h5, g, present[g], a, b, FIRST_CHUNKS if first else SAMPLED_CHUNKS)
+                    rows, spans = _sampled(h5, g, present[g], a, b, FIRST_CHUNKS if first else SAMPLED_CHUNKS)
+                    if g == "lockin":
+                        up.lost_samples = missing_samples(rows["time"], spans)
                 else:
                     rows = {c: h5[g][c][a:b] for c in present[g]}
                 up.groups[g] = rows

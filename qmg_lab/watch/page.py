@@ -19,8 +19,9 @@ data horizon h of the page (follow.py; the header's "data to t = h"):
                 planned durations of the steps after it) and v the run time the page saw pass per wall second over
                 the last minute (1 on the bench in real time, hundreds on the twins); once ended: the file's last
                 modification time, and the steps not run
-    banner      faults, reconnects, suspensions (and whether one is still on), data loss, the abort, and the
-                safe-state outcome, from /events; after a dead writer: the instruments may not be in a safe state
+    banner      faults, reconnects, suspensions (and whether one is still on), the abort, and the safe-state
+                outcome, from /events; data loss (follow.missing_samples); after a dead writer: the instruments
+                may not be in a safe state
 
 Plots (x: run time in s since the file's t0_unix, shared by all but the events' categories):
 
@@ -179,6 +180,10 @@ def _identity(config_toml: str) -> tuple[str, list[float], float]:
     return name, [s.duration_s for s in steps], float(cfg.plan.settle_s)
 
 
+def _degc(v: float | None) -> str:
+    return f"{v:.2f}" if v is not None else "-"
+
+
 def _value(name: str, text: str) -> str:
     """A value of the now panel, findable by its class (the browser test reads them)."""
     return f"<span class='now-{name}'>{html.escape(text)}</span>"
@@ -197,6 +202,7 @@ class WatchPage:
         self.file_steps: dict[str, np.ndarray] = {}  # /steps as last read
         self.status = ""  # the status as the page shows it (_status)
         self.unlocked_at = math.nan  # run time of the last unlocked /lockin row read
+        self.lost = 0  # /lockin samples seen missing in the stretches read (follow.missing_samples)
         self.seen: list[tuple[float, float]] = []  # (wall s, horizon s) of each poll while running
         self.last_poll = -math.inf
         self.doc: Document | None = None
@@ -353,10 +359,12 @@ class WatchPage:
             self.unlocked.data = {"t": [], "y": []}
             self.last_t = self.unlocked_at = math.nan
             self.seen = []
+            self.lost = 0
         if self.durations is None:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
         self.status = self._status(up.attrs)
         self.file_steps = up.steps
+        self.lost += up.lost_samples
         self._feed(up)
         if math.isfinite(up.horizon):
             self.last_t = up.horizon
@@ -504,7 +512,7 @@ class WatchPage:
             f" &middot; {html.escape(str(a.get('mode', '')))}"
             f"<br>status <b>{html.escape(self.status)}</b>{resumed} &middot; steps {done} / {planned}"
             f" &middot; elapsed <b><span class='elapsed'>{_clock(self.last_t)}</span></b> run time"
-            f" (data to t = <span class='last-t'>{self.last_t:.1f}</span> s)"
+            f" (data to t = {self.last_t:.1f} s<span class='last-t' style='display:none'>{self.last_t!r}</span>)"
             f" &middot; started {html.escape(str(a.get('created', '')))}"
         )
 
@@ -526,11 +534,10 @@ class WatchPage:
             sf_line = f"SF change since start {_value('sf', '-')} <small>(no CLSF period yet)</small>"
         cells.append(sf_line)
         ch, tru = latest.get("chamber", {}), latest.get("truth", {})
-        fmt = lambda v: f"{v:.2f}" if v is not None else "-"  # noqa: E731
-        gyro = _value("gyro", fmt(tru.get("temperature"))) + " degC" if "truth" in latest else "not recorded"
+        gyro = _value("gyro", _degc(tru.get("temperature"))) + " degC" if "truth" in latest else "not recorded"
         cells.append(
-            f"chamber setpoint {_value('setpoint', fmt(ch.get('setpoint')))} degC &middot; air "
-            f"{_value('air', fmt(ch.get('temperature')))} degC &middot; gyro {gyro}"
+            f"chamber setpoint {_value('setpoint', _degc(ch.get('setpoint')))} degC &middot; air "
+            f"{_value('air', _degc(ch.get('temperature')))} degC &middot; gyro {gyro}"
         )
         lk = latest.get("lockin", {})
         if "pll_locked" in lk:
@@ -595,15 +602,14 @@ class WatchPage:
                 "the run's process died: the instruments may NOT be in their safe state (table stopped, chamber "
                 f"idle, drive off): check them; continue with qmg-lab run --resume {html.escape(self.path.name)}"
             )
+        if self.lost:
+            notes.append(f"data loss: {_value('lost', str(self.lost))} lock-in samples missing in the stretches read")
         if e and e["time"].shape[0]:
             kinds = [str(k) for k in e["kind"]]
             count = {k: kinds.count(k) for k in ("fault", "reconnect", "suspended")}
             said = [f"{n} {k}{'s' if n > 1 else ''}" for k, n in count.items() if n]
-            lost = [str(m) for m in e["message"] if "lost" in str(m).lower()]
-            if lost:
-                said.append(f"data loss ({len(lost)})")
             if said:
-                last = max(i for i, k in enumerate(kinds) if k in count or "lost" in str(e["message"][i]).lower())
+                last = max(i for i, k in enumerate(kinds) if k in count)
                 said.append(f"last at t = {float(e['time'][last]):.0f} s: {html.escape(str(e['message'][last]))}")
                 notes.append(", ".join(said))
             susp = [i for i, k in enumerate(kinds) if k == "suspended"]

@@ -156,3 +156,15 @@ def test_host_opens_the_page_on_purpose_with_a_warning(tmp_path: Path) -> None:
         proc.terminate()
         _, err = proc.communicate(timeout=30)
     assert "open to every machine" in err and "without a password" in err
+
+
+def test_missing_lockin_samples_are_counted_within_each_stretch_read() -> None:
+    from qmg_lab.watch.follow import missing_samples
+
+    dt = 1 / 1800
+    a = np.arange(100) * dt
+    b = 10.0 + np.delete(np.arange(100), [40, 41, 42, 70]) * dt  # 4 samples lost inside the second stretch
+    t = np.concatenate((a, b))
+    # the jump from the first stretch to the second (chunks not read in between) is no loss
+    assert missing_samples(t, [(0, 100), (5000, 5096)]) == 4
+    assert missing_samples(a, [(0, 100)]) == 0
