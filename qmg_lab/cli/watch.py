@@ -62,8 +62,9 @@ def watch(
         ),
     ] = None,
 ) -> None:
-    """A live page of a run file in the browser: SF, gain, temperatures, table, drive, PLL, plan and events
-    against run time. Follows a running campaign; replays a finished, aborted or resumed one. Read-only."""
+    """A live page of a run file in the browser: what is happening now (status, SF change, temperatures, PLL
+    lock, step, expected end, faults), then SF, gain, temperatures, table, drive, PLL, plan and events against
+    run time. Follows a running campaign; replays a finished, aborted or resumed one. Read-only."""
     if not wait:
         _check_run_file(run_file)
     from qmg_lab.watch.server import free_port, make_server, url
