@@ -597,6 +597,7 @@ class WatchPage:
         """Faults, reconnects, suspensions, data loss, the abort and the safe state (module docstring)."""
         e = up.events
         notes: list[str] = []
+        ok = False  # the safe state confirmed: its note is not an alarm
         if self.status == DIED:
             notes.append(
                 "the run's process died: the instruments may NOT be in their safe state (table stopped, chamber "
@@ -621,8 +622,9 @@ class WatchPage:
                     notes.append(f"{k}: {html.escape(str(e['message'][i]))}")
             safe = [i for i, k in enumerate(kinds) if k == "safe_state"]
             if safe:
-                notes.append(f"safe state {_value('safe', str(e['message'][safe[-1]]))}")
-        if not notes:
-            return ""
-        style = "background:#fde0dc;border-left:4px solid #d62728;padding:2px 6px;margin-top:3px"
-        return "".join(f"<div style='{style}'>{n}</div>" for n in notes)
+                said_safe = str(e["message"][safe[-1]])
+                ok = said_safe == "confirmed"
+                notes.append(f"safe state {_value('safe', said_safe)}")
+        alarm = "background:#fde0dc;border-left:4px solid #d62728;padding:2px 6px;margin-top:3px"
+        calm = "background:#e5f5e0;border-left:4px solid #2ca02c;padding:2px 6px;margin-top:3px"
+        return "".join(f"<div style='{calm if ok and n.startswith('safe state') else alarm}'>{n}</div>" for n in notes)
