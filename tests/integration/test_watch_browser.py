@@ -258,6 +258,7 @@ def test_the_page_of_a_running_campaign_in_chromium(tmp_path: Path) -> None:
                 h = page.horizon(st)
                 late = {n: t for n, t in st["ends"].items() if not h - f["gap"] - 1e-9 <= t <= h + 1e-9}
                 assert not late, (h, f["gap"], late)
+        print(f"completed shown {took:+.2f} s after the run's process ended")  # the figure, with pytest -s
         assert took <= FINAL_WITHIN_S, f"completed shown {took:.2f} s after the run's end"
         end = max(f["ends"].values())
         wait.until(lambda _: page.horizon() == pytest.approx(end, abs=0.05))
@@ -331,6 +332,7 @@ def test_the_page_says_how_a_stopped_run_ended(tmp_path: Path, how: str) -> None
             assert code == -signal.SIGKILL
             assert "may NOT be in their safe state" in page.state()["now"]
             assert page.now("left") is None and page.now("remaining") is None
+        print(f"{how}: the final status shown {took:+.2f} s after the run's process ended")
         assert took <= FINAL_WITHIN_S, f"{how}: the final status shown {took:.2f} s after the run's end"
         assert not page.errors()
     finally:
