@@ -168,3 +168,18 @@ def test_missing_lockin_samples_are_counted_within_each_stretch_read() -> None:
     # the jump from the first stretch to the second (chunks not read in between) is no loss
     assert missing_samples(t, [(0, 100), (5000, 5096)]) == 4
     assert missing_samples(a, [(0, 100)]) == 0
+
+
+def test_the_closed_tab_warning_alone_is_filtered(caplog) -> None:  # type: ignore[no-untyped-def]
+    import logging
+
+    from qmg_lab.watch.server import CLOSED_TAB, quiet_closed_tabs
+
+    quiet_closed_tabs()
+    quiet_closed_tabs()  # once is enough: a second call adds nothing
+    log = logging.getLogger("bokeh.server.views.ws")
+    assert len(log.filters) == 1
+    with caplog.at_level(logging.WARNING, logger="bokeh.server.views.ws"):
+        log.warning(CLOSED_TAB)
+        log.warning("another websocket problem")
+    assert [r.getMessage() for r in caplog.records] == ["another websocket problem"]
