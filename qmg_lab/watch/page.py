@@ -47,8 +47,9 @@ Each trace is a `Trace` (a `Band` for the envelope): new rows are reduced by min
 about 2 x MAX_POINTS points per trace, whatever the run's length.
 
 Timing: the page checks the file's status every CHECK_MS and reads its new rows every POLL_MS; a change of status
-(the run ended, was stopped, or its process died) reads and redraws at once, so the final status is on the page
-within CHECK_MS plus one redraw of the end.
+(the run ended, was stopped, or its process died) is sent to the browser at once, alone (the now panel's text),
+and the file is read and redrawn on the next tick: the final status is on the page within CHECK_MS plus the
+check and one small message.
 """
 
 from __future__ import annotations
@@ -205,6 +206,7 @@ class WatchPage:
         self.lost = 0  # /lockin samples seen missing in the stretches read (follow.missing_samples)
         self.seen: list[tuple[float, float]] = []  # (wall s, horizon s) of each poll while running
         self.last_poll = -math.inf
+        self.last_up: Update | None = None  # the last poll's findings (check shows a new status with them)
         self.doc: Document | None = None
         self.traces = {
             n: Trace(n)
@@ -327,8 +329,20 @@ class WatchPage:
             self.update()
             return
         attrs = self.follower.attrs()
-        if attrs is not None and self._status(attrs) != self.status:
-            self.update()
+        if attrs is None or self.last_up is None:
+            return
+        status = self._status(attrs)
+        if status != self.status:
+            # the new status first, alone (a small message the browser shows at once: text, no plot to draw),
+            # then the whole read and redraw on the next tick
+            self.status = status
+            up = self.last_up
+            up.attrs = attrs
+            self.now.text = self._now(up)
+            if self.doc is not None and self.doc.session_context is not None:
+                self.doc.add_next_tick_callback(self.update)
+            else:
+                self.update()
 
     def update(self) -> None:
         """One poll of the file; every change to the page's models goes to the browser as one message (held
@@ -374,6 +388,7 @@ class WatchPage:
         self._time_axis()
         self._steps(up)
         self._events(up)
+        self.last_up = up
         for div, text in ((self.header, self._header(up)), (self.now, self._now(up))):
             if text != div.text:
                 div.text = text

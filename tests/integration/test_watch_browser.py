@@ -323,6 +323,8 @@ def test_the_page_says_how_a_stopped_run_ended(tmp_path: Path, how: str) -> None
             assert code == 130, run.stderr.read() if run.stderr else ""
             f = _file(run_file)
             assert f["status"] == "aborted"
+            # the status comes first, alone; the page's read of the file's end follows on the next tick
+            wait.until(lambda _: page.now("not-run") == str(f["not_run"]))
             assert page.now("status") == (f"aborted: {f['abort_reason']}" if f["abort_reason"] else "aborted")
             # no "remaining 0:00:00" with steps not run: the steps not run, counted as the file counts them
             assert page.now("left") is None and page.now("remaining") is None
