@@ -69,6 +69,7 @@ def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndar
         drive_frequency=2200.0 + 1e-4 * rng.standard_normal(n),
         dither=0.3 * np.sign(np.sin(2 * np.pi * 7 * t)) + 1e-4 * rng.standard_normal(n),
         table_encoder=np.array([0.0, 1.0, 3.0, 2.0])[np.floor(200.0 * t).astype(np.int64) % 4],  # 5 deg/s A/B
+        pll_locked=np.ones(n, dtype=np.uint8),
     )
 
 

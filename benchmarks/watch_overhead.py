@@ -5,8 +5,9 @@ unwatched and watched, and reads each run's own wall time from its summary ("wal
 first step to the file's close, without the process's start-up). Watched: `qmg-lab watch <tmp> --wait` started
 first in its own process, with its page open in headless Chromium (the system's, through selenium and
 /usr/bin/chromedriver) before the campaign starts, as a user at the bench would have it; with `--no-browser`
-(or without Chromium) a process that runs the page's update (qmg_lab.watch.page.WatchPage.update: the file
-reads, decimation and models) at the page's own period instead, without a websocket and a browser.
+(or without Chromium) a process that runs the page's own timer (qmg_lab.watch.page.WatchPage.check every
+CHECK_MS: the status check, and every POLL_MS the file reads, decimation and models) instead, without a websocket
+and a browser.
 A first unwatched run warms numba's cache and is not counted.
 
     python benchmarks/watch_overhead.py [--json] [--pairs N] [--ramp-divisor K] [--no-browser]
@@ -40,11 +41,11 @@ WALL = re.compile(r"wall time\s*│\s*([0-9.]+) s")
 PAGE_LOOP = """
 import sys, time
 from pathlib import Path
-from qmg_lab.watch.page import POLL_MS, WatchPage
+from qmg_lab.watch.page import CHECK_MS, WatchPage
 page = WatchPage(Path(sys.argv[1]))
 while True:
-    page.update()
-    time.sleep(POLL_MS / 1000.0)
+    page.check()
+    time.sleep(CHECK_MS / 1000.0)
 """
 
 

@@ -2,7 +2,8 @@
 
 The runner hands the recorder what a block produced; the recorder owns the mapping to the "qmg-lab/1" groups:
 
-    /lockin   every streamed sample: the fields the LockInBlock declares (LockInBlock.FIELDS), at file time t
+    /lockin   every streamed sample: the fields the LockInBlock declares (LockInBlock.FIELDS), at file time t, and
+              pll_locked, the block's LockInBlock.pll_locked (1 locked, 0 not) repeated on each of its samples
     /clsf     one row per completed dither period: the fields of ClsfPeriods
     /table    one row per block: the commanded rate, and the TableReading's measured rate and position
     /chamber  one row per block: the ChamberReading's setpoint and air temperature
@@ -49,7 +50,10 @@ class BlockRecorder:
         """The block's rows: lock-in samples at file times `t`; CLSF periods; the table and chamber readings
         (None: not read this block) stamped at the block's last sample; the twin's truth aligned with `t`; the
         CLSF reference level rho_0 (root attribute clsf_reference) once it is formed or whenever it changes."""
-        self.writer.append("lockin", time=t, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]})
+        locked = np.full(t.shape[0], 1 if block.pll_locked else 0, dtype=np.uint8)  # the block's flag, per sample
+        self.writer.append(
+            "lockin", time=t, pll_locked=locked, **{f: getattr(block, f) for f in LockInBlock.FIELDS[1:]}
+        )
         if len(periods):
             self.writer.append("clsf", **{c: getattr(periods, c) for c in CLSF_COLUMNS})
         t_end = float(t[-1])

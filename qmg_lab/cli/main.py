@@ -209,6 +209,16 @@ def run(
     realtime: Annotated[
         bool, flag("--realtime", help="pace the twins at wall-clock speed: a rehearsal of the bench's timing")
     ] = False,
+    port: Annotated[
+        int, typer.Option("--port", help="with --watch: the page's TCP port (the next free one if taken)")
+    ] = watch.DEFAULT_PORT,
+    watch_linger: Annotated[
+        float,
+        typer.Option(
+            "--watch-linger",
+            help="with --watch: seconds the page stays up with the final status after the run (Ctrl-C closes it)",
+        ),
+    ] = watch.DEFAULT_LINGER_S,
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
@@ -216,9 +226,9 @@ def run(
     cfg, text = load(config, sim, campaign=True)
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
-    with watch_beside((resume or output) if watch_page else None):
+    with watch_beside((resume or output) if watch_page else None, port, watch_linger):
         summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, realtime=realtime)
-    _print_summary(summary)
+        _print_summary(summary)  # before the page's linger
 
 
 def _execute(

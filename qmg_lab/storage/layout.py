@@ -20,6 +20,7 @@ LOCKIN_UNITS = {
     "drive_frequency": "Hz",
     "dither": "V",
     "table_encoder": "1",
+    "pll_locked": "1",
 }
 CLSF_UNITS = {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"}
 TABLE_UNITS = {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"}
@@ -54,6 +55,8 @@ DESCRIPTIONS: dict[str, str] = {
     "lockin/dither": "the DS345 dither (virtual rate) as recorded on an AuxIn, V",
     "lockin/table_encoder": "HF2 DIO input word of the sample: the rate table encoder's A/B bits as cabled "
     "([table] encoder_a_dio_bit, encoder_b_dio_bit), an integer",
+    "lockin/pll_locked": "1 if the drive PLL stayed locked through the sample's block (the driver's reading of "
+    "the HF2's PLL lock), else 0; absent from files written before the column existed",
     "clsf/time": "end of the dither period the row describes, s since t0_unix",
     "clsf/eta": "CLSF demodulation level of the period relative to its reference: rho/rho_0 - 1 (forcer-path gain "
     "change seen by the dither)",
@@ -80,6 +83,17 @@ DESCRIPTIONS: dict[str, str] = {
     "steps/status": "completed | aborted | started | skipped; only completed rows are checkpoints",
 }
 
+#: columns not stored as float64 (every other group column is float64 with NaN as its fill value)
+COLUMN_DTYPES: dict[str, Any] = {"lockin/pll_locked": np.uint8}
+#: columns that files written before they existed lack: readers and a resumed writer do without them
+OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {"lockin": ("table_encoder", "pll_locked")}
+
+
+def column_dtype(group: str, column: str) -> Any:
+    """The stored dtype of /group/column (float64 unless COLUMN_DTYPES says otherwise)."""
+    return COLUMN_DTYPES.get(f"{group}/{column}", np.float64)
+
+
 KIND_BYTES = 48
 STATUS_BYTES = 16
 STEPS_DTYPES: dict[str, Any] = {
@@ -95,9 +109,6 @@ STEPS_DTYPES: dict[str, Any] = {
 #: Under SWMR, HDF5 never reuses the space of a compressed chunk that is rewritten larger, so every flush that
 #: ends inside a compressed chunk leaves one dead copy of that partial chunk behind. A writer faster than real
 #: time (the twins: one flush carries minutes of data) writes whole chunks and can afford big ones: 16384 rows
-#: columns a reader takes as absent, not as damage, in a file written before they were added (docs/hdf5.md)
-OPTIONAL_COLUMNS: dict[str, tuple[str, ...]] = {"lockin": ("table_encoder",)}
-
 #: (11.7 s at 1400 Sa/s, 128 KiB raw) keep an hour of one column to ~310 chunks for readers. A real-time writer
 #: (hardware: a flush every flush_interval_s carries ~1400 rows) uses 2048 rows, about one flush, so the dead
 #: copies stay small (benchmarks/storage_speed.py). Slow groups (a few rows per second) are never compressed:
@@ -121,11 +132,12 @@ COMPRESSED_COLUMNS = {
         "drive_frequency",
         "dither",
         "table_encoder",
+        "pll_locked",
     ),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_COLUMNS_REALTIME = {
-    "lockin": ("time", "drive_frequency", "dither", "table_encoder"),
+    "lockin": ("time", "drive_frequency", "dither", "table_encoder", "pll_locked"),
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_GROUPS = tuple(COMPRESSED_COLUMNS)

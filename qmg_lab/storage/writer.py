@@ -75,6 +75,7 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
     KIND_BYTES,
     LOCKIN_UNITS,
     MODES,
+    OPTIONAL_COLUMNS,
     STATUS_BYTES,
     STATUSES,
     STEPS_DTYPES,
@@ -83,6 +84,7 @@ from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part 
     TRUTH_UNITS,
     StorageError,
     _text,
+    column_dtype,
     whole_chunk_layout,
 )
 from qmg_lab.storage.lock import RunFileLock
@@ -173,8 +175,11 @@ class RunWriter:
         self._groups = [g for g in GROUP_UNITS if g in h5]
         # dataset handles looked up once: an h5py lookup by name costs more than a small append
         self._ds: dict[str, list[tuple[str, h5py.Dataset]]] = {
-            g: [(c, h5[g][c]) for c in GROUP_UNITS[g]] for g in self._groups
+            g: [(c, h5[g][c]) for c in GROUP_UNITS[g] if c in h5[g] or c not in OPTIONAL_COLUMNS.get(g, ())]
+            for g in self._groups
         }
+        # each column's stored dtype (layout.COLUMN_DTYPES): appended values are converted to it
+        self._dtypes: dict[str, list[np.dtype[Any]]] = {g: [ds.dtype for _, ds in cols] for g, cols in self._ds.items()}
         # per group: blocks of rows appended as arrays (one array per column, in the group's column order, held by
         # reference until written), and single rows appended as numbers (append_row), joined into a block at the
         # next hand-over or array append of their group
@@ -379,13 +384,15 @@ class RunWriter:
                 continue
             grp = h5.create_group(g)
             for col, unit in units.items():
+                dtype = column_dtype(g, col)
                 ds = grp.create_dataset(
                     col,
                     shape=(0,),
                     maxshape=(None,),
-                    dtype=np.float64,
+                    dtype=dtype,
                     chunks=(rows[g],),
-                    fillvalue=np.nan,  # rows allocated but never written are never data (resume.valid_rows)
+                    # rows allocated but never written are never data (resume.valid_rows reads the time column)
+                    fillvalue=np.nan if np.dtype(dtype).kind == "f" else 0,
                     **(_filter(filt, col) if col in compressed.get(g, ()) else {}),
                 )
                 ds.attrs["units"] = unit
@@ -482,8 +489,9 @@ class RunWriter:
         The arrays are kept by reference until the writer thread has written them: the caller must not write into
         them afterwards (the campaign hands over fresh arrays every block)."""
         self._check_open()
-        expected = self._columns_of(group, columns, "append")
-        arrays = [np.asarray(columns[c], dtype=np.float64) for c in expected]
+        self._columns_of(group, columns, "append")
+        expected = [c for c, _ in self._ds[group]]  # the file's columns (an older file may lack optional ones)
+        arrays = [np.asarray(columns[c], dtype=d) for c, d in zip(expected, self._dtypes[group], strict=True)]
         for i, arr in enumerate(arrays):
             if arr.ndim == 0:
                 arrays[i] = arr.reshape(1)
@@ -518,9 +526,9 @@ class RunWriter:
         group's last. The same rows as `append` with one-element columns, without building an array per value
         (the table and chamber readings of every lock-in block)."""
         self._check_open()
-        expected = self._columns_of(group, values, "append_row")
+        self._columns_of(group, values, "append_row")
         try:
-            row = tuple([float(values[c]) for c in expected])
+            row = tuple([float(values[c]) for c, _ in self._ds[group]])
         except (TypeError, ValueError) as exc:
             raise StorageError(f"{self.path}: /{group} append_row needs a number for every column: {exc}") from None
         t = row[0]
@@ -569,6 +577,7 @@ class RunWriter:
         """Buffer and hand over a further group of the file (laid out by `create`'s extra_layout) like the
         contract's groups, its rows given by `_buffer_block` / `_buffer_row` (no checks: the writer's own data)."""
         self._ds[group] = [(c, self._h5[group][c]) for c in columns]
+        self._dtypes[group] = [ds.dtype for _, ds in self._ds[group]]
         self._buffer[group], self._rows[group] = [], []
         self._handed[group] = int(self._h5[group][columns[0]].shape[0])
         self._direct_chunk_rows.update({(group, c): 0 for c in columns})

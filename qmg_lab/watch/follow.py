@@ -2,22 +2,31 @@
 
 Each `RunFollower.poll()` opens the file read-only through HDF5 SWMR, reads what the writer has flushed since
 the previous poll, and closes it again: a reopen costs about a millisecond and sees every flush, a killed
-writer's file and a resumed one alike; nothing is ever written. Per poll at most `max_rows` rows of a group are
-read (the first polls of a long finished file replay it in pieces, so the page answers meanwhile).
+writer's file and a resumed one alike; nothing is ever written.
+
+One data horizon for every group. Each poll takes every group up to the same instant, the horizon
+    h = min over the groups with rows of their last time
+(rows after h wait for the next poll), so no plot runs ahead of another: the writer hands /lockin and /truth over
+in whole chunks (up to 9 s behind /table and /chamber on the twins), and without a common horizon the slow groups
+would be drawn to a later time than the lock-in traces. Once the file is final (status completed or aborted, or
+its writer died) the horizon is the end of every group: the last rows are all shown. Nothing caps the rows read
+per poll, so a plot never falls behind the file (the slow groups are a few rows per second; the lock-in stream
+is sampled, below): a finished file is drawn by its first poll.
 
 A resume (`qmg-lab run --resume`) cuts every group back to a consistent instant before it appends again: a group
 found shorter than the rows already read means the file was cut, and the poll says `reset` (start again).
 
 Read per poll: /clsf (time, sf_change_estimate, gain_correction, rate_output_mean), /table, /chamber, from
-/lockin the time, drive amplitude and drive (PLL) frequency, from /truth (twins) the gyro temperature, which is
-row for row on the /lockin times (docs/hdf5.md); /steps and /events whole (a few hundred rows), and the root
-attributes.
+/lockin the time, drive amplitude, drive (PLL) frequency and PLL lock flag (pll_locked; files written before it
+existed lack it), from /truth (twins) the gyro temperature, which is row for row on the /lockin times
+(docs/hdf5.md); /steps and /events whole (a few hundred rows), and the root attributes.
 
 The lock-in stream (1800 rows per simulated second, hundreds of simulated seconds per wall second on the twins)
 is sampled, so that following it costs the same whatever the campaign's speed: of the new rows, at most
 SAMPLED_CHUNKS whole storage chunks are read per poll (evenly spaced, the newest always among them; a chunk is
-what HDF5 decompresses anyway). On the bench (2048-row chunks, about one a second) that is every row; on the
-twins (16384-row chunks of 9 s) a poll after 300 simulated seconds reads 4 of its 33 chunks. The drive amplitude,
+what HDF5 decompresses anyway), FIRST_CHUNKS on a file's first poll (a finished file's replay). On the bench
+(2048-row chunks, about one a second) that is every row; on the twins (16384-row chunks of 9 s) a poll after
+300 simulated seconds reads 4 of its 33 chunks. The drive amplitude,
 PLL frequency and gyro temperature traces are therefore exact within each chunk read and may miss a glitch in a
 chunk skipped; faults and lost locks are also in the events.
 
@@ -41,32 +50,37 @@ import numpy as np
 
 from qmg_lab.data.run import MOVING_MEAN_S, window_mean
 
-MAX_ROWS = 2_000_000
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)
+FIRST_CHUNKS = 40  # ... and on a file's first poll: a finished file's replay shows its whole length, drawn in ~1 s
 STREAM_GROUPS = ("lockin", "truth")
 COLUMNS: dict[str, tuple[str, ...]] = {
     "clsf": ("time", "sf_change_estimate", "gain_correction", "rate_output_mean"),
     "table": ("time", "rate_command", "rate_measured"),
     "chamber": ("time", "setpoint", "temperature"),
-    "lockin": ("time", "drive_amplitude", "drive_frequency"),
+    "lockin": ("time", "drive_amplitude", "drive_frequency", "pll_locked"),
     "truth": ("temperature",),  # row for row with /lockin
 }
+OPTIONAL = {("lockin", "pll_locked")}  # storage.layout.OPTIONAL_COLUMNS: older files lack it
 PPM = 1e6
 
 
 @dataclass
 class Update:
-    """What one poll found. groups: group -> column -> the new rows (truth's temperature carries /lockin's
-    time as "time"); reset: the file was cut (a resume) and everything shown so far must go; ready: the
-    file could be opened as a run file (False while a run is still creating it)."""
+    """What one poll found. groups: group -> column -> the new rows up to the horizon (truth's temperature
+    carries /lockin's time as "time"); horizon: the common data horizon (s, module docstring; NaN before any
+    row); final: the file's status is no longer "running" (every row shown); reset: the file was cut (a resume)
+    and everything shown so far must go; ready: the file could be opened as a run file (False while a run is
+    still creating it)."""
 
     ready: bool = False
     reset: bool = False
+    final: bool = False
+    horizon: float = float("nan")
     attrs: dict[str, Any] = field(default_factory=dict)
     groups: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     steps: dict[str, np.ndarray] = field(default_factory=dict)
     events: dict[str, np.ndarray] = field(default_factory=dict)
-    pending: bool = False  # rows remain beyond max_rows: poll again soon
+    lost_samples: int = 0  # /lockin samples missing inside the stretches this poll read (missing_samples)
     problem: str = ""
 
 
@@ -83,37 +97,68 @@ def _whole(h5: h5py.File, group: str) -> dict[str, np.ndarray]:
     return {c: _decode(g[c][:n]) for c in cols}
 
 
-def _sampled(h5: h5py.File, group: str, cols: tuple[str, ...], a: int, b: int) -> dict[str, np.ndarray]:
-    """Rows [a, b) of a lock-in-rate group, read as at most SAMPLED_CHUNKS whole chunks (module docstring);
-    /truth's rows carry /lockin's time (row for row)."""
+def _sampled(
+    h5: h5py.File, group: str, cols: tuple[str, ...], a: int, b: int, chunks: int
+) -> tuple[dict[str, np.ndarray], list[tuple[int, int]]]:
+    """Rows [a, b) of a lock-in-rate group, read as at most `chunks` whole chunks (module docstring), and the
+    row spans read; /truth's rows carry /lockin's time (row for row)."""
     ds = h5[group][cols[0]]
     size = int(ds.chunks[0]) if ds.chunks else b - a
     first, last = a // size, (b - 1) // size
-    picked = np.unique(np.linspace(last, first, min(SAMPLED_CHUNKS, last - first + 1)).round().astype(np.int64))
+    picked = np.unique(np.linspace(last, first, min(chunks, last - first + 1)).round().astype(np.int64))
     spans = [(max(a, int(k) * size), min(b, (int(k) + 1) * size)) for k in picked]
     out = {c: np.concatenate([h5[group][c][i:j] for i, j in spans]) for c in cols}
     if group == "truth":
         out["time"] = np.concatenate([h5["lockin/time"][i:j] for i, j in spans])
-    return out
+    return out, spans
+
+
+def missing_samples(t: np.ndarray, spans: list[tuple[int, int]]) -> int:
+    """Samples missing inside the spans read (t: their times end to end): a step dt_k > 1.5 dt_med between
+    neighbours of one span (dt_med its median step) lacks round(dt_k / dt_med) - 1 samples."""
+    lost, at = 0, 0
+    for i, j in spans:
+        dt = np.diff(t[at : at + j - i])
+        at += j - i
+        if dt.shape[0] < 2:
+            continue
+        med = float(np.median(dt))
+        big = dt[dt > 1.5 * med]
+        lost += int(np.sum(np.round(big / med) - 1)) if med > 0 else 0
+    return lost
 
 
 class RunFollower:
     """Reads a run file incrementally (see the module docstring); keeps the whole CLSF record (a few rows per
     second of run time) for its moving mean and the step pairs."""
 
-    def __init__(self, path: Path, max_rows: int = MAX_ROWS) -> None:
+    def __init__(self, path: Path) -> None:
         self.path = path
-        self.max_rows = max_rows
         self.read: dict[str, int] = dict.fromkeys(COLUMNS, 0)
+        #: the newest row read of each group (column -> value): the page's "now" panel
+        self.latest: dict[str, dict[str, float]] = {}
         self.clsf_t = np.zeros(0)
         self.clsf_s = np.zeros(0)
         self.clsf_out = np.zeros(0)
 
     def _restart(self) -> None:
         self.read = dict.fromkeys(COLUMNS, 0)
+        self.latest = {}
         self.clsf_t, self.clsf_s, self.clsf_out = np.zeros(0), np.zeros(0), np.zeros(0)
 
-    def poll(self) -> Update:
+    def attrs(self) -> dict[str, Any] | None:
+        """The file's root attributes alone (status, writer), or None if it cannot be opened yet: the page's
+        cheap check between polls."""
+        try:
+            h5 = h5py.File(self.path, "r", swmr=True, libver="latest")
+        except (OSError, FileNotFoundError):
+            return None
+        with h5:
+            return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in h5.attrs.items()}
+
+    def poll(self, writer_gone: bool = False) -> Update:
+        """What the writer flushed since the last poll, up to the common horizon (module docstring). writer_gone:
+        the caller found the file's writer dead, so the file is final although its status says "running"."""
         up = Update()
         try:
             h5 = h5py.File(self.path, "r", swmr=True, libver="latest")
@@ -122,25 +167,35 @@ class RunFollower:
             return up
         with h5:
             up.attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in h5.attrs.items()}
-            lengths = {}
+            up.final = writer_gone or up.attrs.get("status", "running") != "running"
+            lengths, present = {}, {}
             for g, cols in COLUMNS.items():
                 src = "lockin" if g == "truth" else g
-                need = [(g, c) for c in cols] + ([("lockin", "time")] if g == "truth" else [])
+                present[g] = tuple(c for c in cols if g in h5 and (c in h5[g] or (g, c) not in OPTIONAL))
+                need = [(g, c) for c in present[g]] + ([("lockin", "time")] if g == "truth" else [])
                 if g not in h5 or src not in h5 or any(c not in h5[gg] for gg, c in need):
                     lengths[g] = 0
                     continue
                 lengths[g] = min(h5[gg][c].shape[0] for gg, c in need)
+            first = all(n == 0 for n in self.read.values())
             if any(lengths[g] < self.read[g] for g in COLUMNS):
                 self._restart()
                 up.reset = True
-            for g, cols in COLUMNS.items():
+            ends = _ends(h5, lengths)
+            up.horizon = max(ends.values(), default=np.nan) if up.final else min(ends.values(), default=np.nan)
+            for g in COLUMNS:
                 a = self.read[g]
-                b = min(lengths[g], a + self.max_rows)
-                up.pending = up.pending or b < lengths[g]
+                b = _rows_to(h5, g, a, lengths[g], up.horizon) if g in ends else a
                 if b <= a:
                     continue
-                rows = _sampled(h5, g, cols, a, b) if g in STREAM_GROUPS else {c: h5[g][c][a:b] for c in cols}
+                if g in STREAM_GROUPS:
+                    rows, spans = _sampled(h5, g, present[g], a, b, FIRST_CHUNKS if first else SAMPLED_CHUNKS)
+                    if g == "lockin":
+                        up.lost_samples = missing_samples(rows["time"], spans)
+                else:
+                    rows = {c: h5[g][c][a:b] for c in present[g]}
                 up.groups[g] = rows
+                self.latest[g] = {c: float(v[-1]) for c, v in rows.items()}
                 self.read[g] = b
             up.steps = _whole(h5, "steps")
             up.events = _whole(h5, "events")
@@ -190,6 +245,25 @@ class RunFollower:
             return np.zeros(0), np.zeros(0)
         sf = np.array(sfs)
         return np.array(mids), (sf / sf[0] - 1.0) * PPM
+
+
+def _ends(h5: h5py.File, lengths: dict[str, int]) -> dict[str, float]:
+    """The last time of every group with rows (/truth: its /lockin time)."""
+    return {g: float(h5["lockin" if g == "truth" else g]["time"][n - 1]) for g, n in lengths.items() if n > 0}
+
+
+def _rows_to(h5: h5py.File, group: str, a: int, n: int, horizon: float) -> int:
+    """The end (exclusive) of the group's rows at or before `horizon`, searched among rows [a, n): the horizon is
+    at most one block before the group's end, so only the last stretch of a lock-in-rate time column is read."""
+    if not np.isfinite(horizon) or n <= a:
+        return a
+    t = h5["lockin" if group == "truth" else group]["time"]
+    lo = a
+    if group in STREAM_GROUPS and t.chunks:
+        lo = max(a, n - 2 * int(t.chunks[0]))
+        while lo > a and float(t[lo]) > horizon:  # the horizon lies further back: widen the search
+            lo = max(a, lo - 4 * int(t.chunks[0]))
+    return lo + int(np.searchsorted(t[lo:n], horizon, side="right"))
 
 
 def planned_kinds(attrs: dict[str, Any]) -> list[str]:

@@ -1,25 +1,55 @@
-"""The watch page's Bokeh document: a header and eight plots against run time, fed by a RunFollower.
+"""The watch page's Bokeh document: a "now" panel, a header line, and eight plots against run time (one shared
+toolbar), fed by a RunFollower.
+
+The now panel (top, above the plots) is what a person at the bench reads at a glance, each value at the common
+data horizon h of the page (follow.py; the header's "data to t = h"):
+
+    status      running | completed | aborted: <abort_reason> | process died: check the instruments (a "running"
+                file whose writer is gone: the instruments were not put in their safe state by the run)
+    SF          the CLSF SF-change estimate, its trailing 60 s mean at h, in ppm: SF/SF_0 - 1 with SF_0 the scale
+                factor when the CLSF reference was formed (the start), so it is the change since the start; and
+                the true SF change of the last completed +-rate step pair against the first (follow.py)
+    chamber     the setpoint and the air temperature of the last /chamber row; the gyro temperature of the last
+                /truth row read (twins; the bench file has no gyro temperature)
+    PLL         /lockin/pll_locked of the last row read: locked, or NOT LOCKED (a file without the column: not
+                recorded)
+    step        the current step (the first planned step not completed), its kind and its time left:
+                t_start + d - h, t_start the end of the last completed step, d its planned duration
+    end         while running: now + R / v, R the plan's remaining run time (the current step's time left plus the
+                planned durations of the steps after it) and v the run time the page saw pass per wall second over
+                the last minute (1 on the bench in real time, hundreds on the twins); once ended: the file's last
+                modification time, and the steps not run
+    banner      faults, reconnects, suspensions (and whether one is still on), the abort, and the safe-state
+                outcome, from /events; data loss (follow.missing_samples); after a dead writer: the instruments
+                may not be in a safe state
 
 Plots (x: run time in s since the file's t0_unix, shared by all but the events' categories):
-Traces from the lock-in stream (drive amplitude, PLL frequency, gyro temperature) are read in sampled chunks
-(follow.py) and drawn as points, so that no line is drawn across a stretch that was not read.
 
-    sf        CLSF SF-change estimate per dither period (ppm, faint) with its trailing 60 s moving mean, and the
-              true SF change from each completed +-rate step pair (follow.py), placed on the CLSF mean at the
-              first pair so both read as changes from there
+    sf        CLSF SF-change estimate per dither period (ppm) as a min/max envelope (a shaded band: its lower
+              and upper edges are each bin's minimum and maximum, so a long run's scatter does not alias into a
+              zig-zag), its trailing 60 s moving mean, and the true SF change from each completed +-rate step
+              pair (follow.py), placed on the CLSF mean at the first pair so both read as changes from there
     gain      CLSF gain correction g_c - 1 (ppm; 0 unless the run is in correct mode)
     temp      chamber air temperature, its setpoint, and (twins) the gyro temperature from /truth
     table     table rate commanded and measured (deg/s)
     drive     drive amplitude R (V)
-    pll       PLL oscillator frequency (Hz): steady while the loop is locked
+    pll       PLL oscillator frequency (Hz): steady while the loop is locked; unlocked samples in red
     steps     the plan as a timeline: completed steps by kind, the current step marked red, the remaining
               planned steps grey at their planned durations
     events    every /events row by kind (hover: instrument and message)
 
-Each trace is a `Trace`: new rows are reduced by min/max decimation (qmg_lab/data/decimate.py) and streamed
-to the browser (ColumnDataSource.stream); once a trace holds more than 2 x MAX_POINTS points it is decimated
-again to MAX_POINTS and sent whole. The browser thus never holds more than about 2 x MAX_POINTS points per
-trace, whatever the run's length.
+Traces from the lock-in stream (drive amplitude, PLL frequency, gyro temperature) are read in sampled chunks
+(follow.py) and drawn as points, so that no line is drawn across a stretch that was not read.
+
+Each trace is a `Trace` (a `Band` for the envelope): new rows are reduced by min/max decimation
+(qmg_lab/data/decimate.py) and streamed to the browser (ColumnDataSource.stream); once a trace holds more than
+2 x MAX_POINTS points it is decimated again to MAX_POINTS and sent whole. The browser thus never holds more than
+about 2 x MAX_POINTS points per trace, whatever the run's length.
+
+Timing: the page checks the file's status every CHECK_MS and reads its new rows every POLL_MS; a change of status
+(the run ended, was stopped, or its process died) is sent to the browser at once, alone (the now panel's text),
+and the file is read and redrawn on the next tick: the final status is on the page within CHECK_MS plus the
+check and one small message.
 """
 
 from __future__ import annotations
@@ -27,18 +57,20 @@ from __future__ import annotations
 import html
 import math
 import os
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from bokeh.document import Document
-from bokeh.layouts import column
+from bokeh.layouts import column, gridplot
 from bokeh.models import ColumnDataSource, DataRange1d, FactorRange, HoverTool
 from bokeh.models.annotations import Legend
 from bokeh.models.widgets import Div
 from bokeh.plotting import figure
 
 from qmg_lab.data.decimate import minmax
+from qmg_lab.data.run import MOVING_MEAN_S
 from qmg_lab.storage.records import EVENT_KINDS
 from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 
@@ -48,8 +80,13 @@ CHUNK_BINS = MAX_POINTS // 5
 #: the draw (under 2 s), and a software-drawn browser on the campaign's own two cores costs it under 10 % (once a
 #: second cost about 14 %: docs/performance.md)
 POLL_MS = 1500
+#: ... and checks the file's status (its root attributes and its writer's liveness: no data) every 0.5 s
+CHECK_MS = 500
+#: the run-time speed v (run s per wall s) of the expected end is taken over the last SPEED_WINDOW_S wall seconds
+SPEED_WINDOW_S = 60.0
 STEP_FAMILIES = ("lock", "dither", "soak", "rate", "hold", "sine", "level", "return")
 PLOTS = ("sf", "gain", "temp", "table", "drive", "pll", "steps", "events")  # model names: plot_<name>
+DIED = "process died: check the instruments"
 
 
 class Trace:
@@ -76,11 +113,53 @@ class Trace:
         self.source.data = {"t": [], "y": []}
 
 
+def _envelope(t: np.ndarray, lo: np.ndarray, hi: np.ndarray, bins: int) -> tuple[np.ndarray, ...]:
+    """(t, lo, hi) merged into at most `bins` bins of equal time span: each bin's last time, the minimum of its
+    lows and the maximum of its highs."""
+    if t.shape[0] <= bins:
+        return t, lo, hi
+    edges = np.linspace(t[0], t[-1], bins + 1)[1:-1]
+    starts = np.unique(np.concatenate(([0], np.searchsorted(t, edges, side="right"))))
+    starts = starts[starts < t.shape[0]]
+    ends = np.concatenate((starts[1:], [t.shape[0]])) - 1
+    return t[ends], np.minimum.reduceat(lo, starts), np.maximum.reduceat(hi, starts)
+
+
+class Band:
+    """A min/max envelope of one trace (`lo` <= y <= `hi` in each bin of time), kept bounded like `Trace`."""
+
+    def __init__(self, name: str) -> None:
+        self.source = ColumnDataSource({"t": [], "lo": [], "hi": []}, name=name)
+        self.t, self.lo, self.hi = np.zeros(0), np.zeros(0), np.zeros(0)
+
+    def add(self, t: np.ndarray, y: np.ndarray) -> None:
+        if t.shape[0] == 0:
+            return
+        t, lo, hi = _envelope(t, y, y, CHUNK_BINS)
+        self.t, self.lo, self.hi = (np.concatenate(p) for p in ((self.t, t), (self.lo, lo), (self.hi, hi)))
+        if self.t.shape[0] > 2 * MAX_POINTS:
+            self.t, self.lo, self.hi = _envelope(self.t, self.lo, self.hi, MAX_POINTS)
+            self.source.data = {"t": self.t, "lo": self.lo, "hi": self.hi}
+        else:
+            self.source.stream({"t": t, "lo": lo, "hi": hi})
+
+    def clear(self) -> None:
+        self.t, self.lo, self.hi = np.zeros(0), np.zeros(0), np.zeros(0)
+        self.source.data = {"t": [], "lo": [], "hi": []}
+
+
 def _clock(s: float) -> str:
     if not math.isfinite(s):
         return "-"
     h, rem = divmod(int(round(max(s, 0.0))), 3600)
     return f"{h}:{rem // 60:02d}:{rem % 60:02d}"
+
+
+def _wall(unix_s: float) -> str:
+    """A wall-clock time on this machine's clock: HH:MM:SS, with the date when it is not today."""
+    t = time.localtime(unix_s)
+    today = time.localtime()
+    return time.strftime("%H:%M:%S" if t[:3] == today[:3] else "%Y-%m-%d %H:%M:%S", t)
 
 
 def _family(kind: str) -> str:
@@ -102,6 +181,15 @@ def _identity(config_toml: str) -> tuple[str, list[float], float]:
     return name, [s.duration_s for s in steps], float(cfg.plan.settle_s)
 
 
+def _degc(v: float | None) -> str:
+    return f"{v:.2f}" if v is not None else "-"
+
+
+def _value(name: str, text: str) -> str:
+    """A value of the now panel, findable by its class (the browser test reads them)."""
+    return f"<span class='now-{name}'>{html.escape(text)}</span>"
+
+
 class WatchPage:
     """The page of one browser session: its Bokeh models and the follower that feeds them."""
 
@@ -111,13 +199,18 @@ class WatchPage:
         self.settle_s = 0.0
         self.durations: list[float] | None = None
         self.identity = ""
-        self.last_t = math.nan
+        self.last_t = math.nan  # the page's data horizon (s of run time)
         self.file_steps: dict[str, np.ndarray] = {}  # /steps as last read
+        self.status = ""  # the status as the page shows it (_status)
+        self.unlocked_at = math.nan  # run time of the last unlocked /lockin row read
+        self.lost = 0  # /lockin samples seen missing in the stretches read (follow.missing_samples)
+        self.seen: list[tuple[float, float]] = []  # (wall s, horizon s) of each poll while running
+        self.last_poll = -math.inf
+        self.last_up: Update | None = None  # the last poll's findings (check shows a new status with them)
         self.doc: Document | None = None
         self.traces = {
             n: Trace(n)
             for n in (
-                "sf_period",
                 "sf_mean",
                 "gain",
                 "chamber_air",
@@ -129,12 +222,16 @@ class WatchPage:
                 "pll_frequency",
             )
         }
+        self.sf_band = Band("sf_period")
+        self.unlocked = ColumnDataSource({"t": [], "y": []}, name="pll_unlocked")
         self.pairs = ColumnDataSource({"t": [], "y": []}, name="sf_pairs")
         self.steps = ColumnDataSource(
             {"left": [], "right": [], "family": [], "label": [], "color": []}, name="steps_timeline"
         )
         self.events = ColumnDataSource({"t": [], "kind": [], "instrument": [], "message": []}, name="events")
-        # a fixed height: a new header text then needs no new layout of the plots below it
+        # fixed heights: a new text then needs no new layout of the plots below it
+        self.now = Div(text=f"<b>{html.escape(path.name)}</b>: loading ...", name="now", sizing_mode="stretch_width")
+        self.now.height = 150
         self.header = Div(
             text=f"<b>{html.escape(path.name)}</b>: opening ...", name="header", height=44, sizing_mode="stretch_width"
         )
@@ -147,7 +244,7 @@ class WatchPage:
         fig = figure(
             name=f"plot_{name}",
             title=title,
-            height=kw.pop("height", 190),
+            height=kw.pop("height", 170),
             sizing_mode="stretch_width",
             x_range=x_range if x_range is not None else DataRange1d(),
             tools="pan,xwheel_zoom,box_zoom,reset,save",
@@ -169,7 +266,8 @@ class WatchPage:
     def _layout(self) -> Any:
         sf = self._figure("sf", "scale factor", "SF change [ppm]", None)
         x = self.x_range = sf.x_range
-        self._line(sf, "sf_period", "CLSF, each period", "#bbbbbb", line_width=1)
+        band = self.sf_band.source
+        sf.varea("t", "lo", "hi", source=band, color="#cccccc", alpha=0.7, legend_label="CLSF, each period (min-max)")
         self._line(sf, "sf_mean", "CLSF, 60 s mean", "#1f77b4", line_width=2)
         sf.scatter("t", "y", source=self.pairs, size=8, color="#d62728", legend_label="true SF, step pairs")
         gain = self._figure("gain", "CLSF gain correction", "g_c - 1 [ppm]", x)
@@ -185,7 +283,8 @@ class WatchPage:
         self._dots(drive, "drive_amplitude", "drive R", "#8c564b")
         pll = self._figure("pll", "PLL frequency (steady while locked)", "Hz", x)
         self._dots(pll, "pll_frequency", "PLL oscillator", "#17becf")
-        steps = self._figure("steps", "plan", "", x, y_range=FactorRange(factors=list(STEP_FAMILIES)), height=220)
+        pll.scatter("t", "y", source=self.unlocked, size=5, color="#d62728", legend_label="PLL not locked")
+        steps = self._figure("steps", "plan", "", x, y_range=FactorRange(factors=list(STEP_FAMILIES)), height=200)
         steps.hbar(
             y="family",
             left="left",
@@ -196,24 +295,59 @@ class WatchPage:
             legend_field="label",
         )
         steps.add_tools(HoverTool(tooltips=[("step", "@label"), ("from", "@left{0.0} s"), ("to", "@right{0.0} s")]))
-        events = self._figure("events", "events", "", x, y_range=FactorRange(factors=list(EVENT_KINDS)), height=240)
+        events = self._figure("events", "events", "", x, y_range=FactorRange(factors=list(EVENT_KINDS)), height=220)
         events.scatter("t", "kind", source=self.events, size=9, color="#d62728", legend_label="event")
         events.add_tools(HoverTool(tooltips=[("t", "@t{0.0} s"), ("", "@instrument: @message")]))
-        return column(self.header, sf, gain, temp, table, drive, pll, steps, events, sizing_mode="stretch_width")
+        # one toolbar for all the plots (their tools merged): pan or zoom one and all follow the shared time axis
+        plots = gridplot(
+            [[f] for f in (sf, gain, temp, table, drive, pll, steps, events)],
+            merge_tools=True,
+            toolbar_location="right",
+            sizing_mode="stretch_width",
+        )
+        return column(self.now, self.header, plots, sizing_mode="stretch_width")
 
     # ---- updates -----------------------------------------------------------------------------------------
 
     def attach(self, doc: Document) -> None:
+        """Add the page to a document. Served (a browser session), the first read of the file follows on the next
+        tick, so the page is up at once and says it is loading until the file is drawn; a bare document (tests,
+        benchmarks) is fed at once."""
         doc.title = f"qmg-lab watch: {self.path.name}"
         doc.add_root(self.layout)
         doc.add_root(self.polls)
         self.doc = doc
-        self.update()
-        doc.add_periodic_callback(self.update, POLL_MS)
+        if doc.session_context is None:
+            self.update()
+        else:
+            doc.add_next_tick_callback(self.update)
+        doc.add_periodic_callback(self.check, CHECK_MS)
+
+    def check(self) -> None:
+        """Every CHECK_MS: read and redraw if POLL_MS has passed, or at once if the file's status changed."""
+        if time.monotonic() - self.last_poll >= POLL_MS / 1000.0 - 0.05:
+            self.update()
+            return
+        attrs = self.follower.attrs()
+        if attrs is None or self.last_up is None:
+            return
+        status = self._status(attrs)
+        if status != self.status:
+            # the new status first, alone (a small message the browser shows at once: text, no plot to draw),
+            # then the whole read and redraw on the next tick
+            self.status = status
+            up = self.last_up
+            up.attrs = attrs
+            self.now.text = self._now(up)
+            if self.doc is not None and self.doc.session_context is not None:
+                self.doc.add_next_tick_callback(self.update)
+            else:
+                self.update()
 
     def update(self) -> None:
         """One poll of the file; every change to the page's models goes to the browser as one message (held
         and combined), so the browser draws the page once per poll, not once per trace."""
+        self.last_poll = time.monotonic()
         if self.doc is None:
             self._update()
             return
@@ -224,32 +358,68 @@ class WatchPage:
             self.doc.unhold()
 
     def _update(self) -> None:
-        up = self.follower.poll()
+        attrs = self.follower.attrs()
+        status = self._status(attrs) if attrs is not None else ""
+        up = self.follower.poll(writer_gone=status == DIED)
         self.polls.data = {"n": [self.polls.data["n"][0] + 1]}
         if not up.ready:
             self.header.text = f"<b>{html.escape(self.path.name)}</b>: {html.escape(up.problem)}"
+            self.now.text = self.header.text
             return
         if up.reset:  # a resume cut the file back: show it again from its start
             for tr in self.traces.values():
                 tr.clear()
-            self.last_t = math.nan
+            self.sf_band.clear()
+            self.unlocked.data = {"t": [], "y": []}
+            self.last_t = self.unlocked_at = math.nan
+            self.seen = []
+            self.lost = 0
         if self.durations is None:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
+        self.status = self._status(up.attrs)
         self.file_steps = up.steps
+        self.lost += up.lost_samples
         self._feed(up)
+        if math.isfinite(up.horizon):
+            self.last_t = up.horizon
+        if self.status.startswith("running") and math.isfinite(self.last_t):
+            wall = time.time()
+            self.seen = [(w, h) for w, h in self.seen if w >= wall - SPEED_WINDOW_S] + [(wall, self.last_t)]
         self._time_axis()
         self._steps(up)
         self._events(up)
-        text = self._header(up)
-        if text != self.header.text:
-            self.header.text = text
+        self.last_up = up
+        for div, text in ((self.header, self._header(up)), (self.now, self._now(up))):
+            if text != div.text:
+                div.text = text
+
+    def _status(self, a: dict[str, Any]) -> str:
+        """The status as the page shows it (module docstring)."""
+        from qmg_lab.storage.h5clear import writer_flags_set
+        from qmg_lab.storage.layout import StorageError
+        from qmg_lab.storage.reader import RunData
+        from qmg_lab.storage.resume import status_detail
+
+        s = str(a.get("status", "?"))
+        if s == "aborted":
+            reason = str(a.get("abort_reason", "")).strip()
+            return f"aborted: {reason}" if reason else "aborted"
+        if s != "running":
+            return s
+        if int(a.get("writer_pid", -1)) == os.getpid():
+            return "running (written by this process)"  # status_detail cannot tell its own process's writer
+        try:
+            detail = status_detail(RunData(self.path, a, {}, {}, writer_open=writer_flags_set(self.path)))
+        except (StorageError, OSError):
+            return "running"
+        return DIED if detail.startswith("interrupted") else detail
 
     def _feed(self, up: Update) -> None:
         g = up.groups
         tr = self.traces
         if "clsf" in g:
             c = g["clsf"]
-            tr["sf_period"].add(c["time"], c["sf_change_estimate"] * PPM)
+            self.sf_band.add(c["time"], c["sf_change_estimate"] * PPM)
             mean = self.follower.moving_mean_of_new(c["time"].shape[0])
             tr["sf_mean"].add(c["time"], mean * PPM)
             tr["gain"].add(c["time"], (c["gain_correction"] - 1.0) * PPM)
@@ -262,11 +432,15 @@ class WatchPage:
             tr["table_command"].add(g["table"]["time"], g["table"]["rate_command"])
             tr["table_measured"].add(g["table"]["time"], g["table"]["rate_measured"])
         if "lockin" in g:
-            tr["drive_amplitude"].add(g["lockin"]["time"], g["lockin"]["drive_amplitude"])
-            tr["pll_frequency"].add(g["lockin"]["time"], g["lockin"]["drive_frequency"])
-        ends = [t.t[-1] for t in tr.values() if t.t.shape[0]]
-        if ends:
-            self.last_t = max(ends)
+            lk = g["lockin"]
+            tr["drive_amplitude"].add(lk["time"], lk["drive_amplitude"])
+            tr["pll_frequency"].add(lk["time"], lk["drive_frequency"])
+            if "pll_locked" in lk:
+                off = lk["pll_locked"] == 0
+                if off.any():
+                    t, y = minmax(lk["time"][off], lk["drive_frequency"][off], CHUNK_BINS)
+                    self.unlocked.stream({"t": t, "y": y}, rollover=2 * MAX_POINTS)
+                    self.unlocked_at = float(lk["time"][off][-1])
         mids, change = self.follower.pair_changes(up.steps, self.settle_s)
         if mids.shape[0] != len(self.pairs.data["t"]):
             t = self.follower.clsf_t
@@ -283,6 +457,23 @@ class WatchPage:
         end = max(total, 1.02 * self.last_t) if math.isfinite(self.last_t) else total
         if math.isfinite(end) and end > 0 and (self.x_range.end is None or end > self.x_range.end):
             self.x_range.start, self.x_range.end = -0.01 * end, end
+
+    def _plan_position(self, s: dict[str, np.ndarray], planned: int) -> tuple[int, float, float, int]:
+        """(current step index or -1, its time left in s, the plan's remaining run time in s, steps not run) at
+        the horizon (module docstring: step, end)."""
+        done = s["status"] == "completed" if s else np.zeros(0, dtype=bool)
+        done_idx = {int(i) for i in s["index"][done]} if s else set()
+        left_steps = [i for i in range(planned) if i not in done_idx]
+        if not left_steps:
+            return -1, 0.0, 0.0, 0
+        durations = self.durations or []
+        current = left_steps[0]
+        start = max((float(x) for x in s["t_end"][done]), default=0.0) if s else 0.0
+        d = durations[current] if current < len(durations) else math.nan
+        h = self.last_t if math.isfinite(self.last_t) else start
+        step_left = max(start + d - h, 0.0)
+        later = sum(durations[i] if i < len(durations) else math.nan for i in left_steps[1:])
+        return current, step_left, step_left + later, len(left_steps)
 
     def _steps(self, up: Update) -> None:
         s = up.steps
@@ -303,7 +494,7 @@ class WatchPage:
             d = durations[i] if i < len(durations) else math.nan
             if not math.isfinite(d):
                 break
-            running = first and up.attrs.get("status") == "running"
+            running = first and self.status.startswith("running")
             left.append(start)
             right.append(start + d)
             kinds.append(kind)
@@ -327,33 +518,128 @@ class WatchPage:
         }
 
     def _header(self, up: Update) -> str:
-        from qmg_lab.storage.h5clear import writer_flags_set
-        from qmg_lab.storage.layout import StorageError
-        from qmg_lab.storage.reader import RunData
-        from qmg_lab.storage.resume import status_detail
-
         a = up.attrs
-        try:
-            status = status_detail(RunData(self.path, a, {}, {}, writer_open=writer_flags_set(self.path)))
-        except StorageError:
-            status = str(a.get("status", "?"))
-        if a.get("status") == "running" and int(a.get("writer_pid", -1)) == os.getpid():
-            status = "running (written by this process)"  # status_detail cannot tell its own process's writer
         planned = int(a.get("planned_steps", -1))
         done = int(a.get("completed_steps", 0))
-        total = sum(self.durations) if self.durations else math.nan
-        remaining = max(total - self.last_t, 0.0) if a.get("status") == "running" else 0.0
-        current = ""
-        kinds = planned_kinds(a)
-        if a.get("status") == "running" and done < len(kinds):
-            current = f", now step {done} ({html.escape(kinds[done])})"
         resumed = f", resumed {a.get('resume_count')}x" if int(a.get("resume_count", 0)) else ""
         return (
             f"<b>{html.escape(self.path.name)}</b> &middot; configuration {self.identity}"
             f" &middot; {html.escape(str(a.get('mode', '')))}"
-            f"<br>status <b>{html.escape(status)}</b>{resumed} &middot; steps {done} / {planned}{current}"
+            f"<br>status <b>{html.escape(self.status)}</b>{resumed} &middot; steps {done} / {planned}"
             f" &middot; elapsed <b><span class='elapsed'>{_clock(self.last_t)}</span></b> run time"
-            f" (data to t = <span class='last-t'>{self.last_t:.1f}</span> s)"
-            f" &middot; remaining {_clock(remaining) if math.isfinite(remaining) else '?'}"
+            f" (data to t = {self.last_t:.1f} s<span class='last-t' style='display:none'>{self.last_t!r}</span>)"
             f" &middot; started {html.escape(str(a.get('created', '')))}"
         )
+
+    def _now(self, up: Update) -> str:
+        a = up.attrs
+        latest = self.follower.latest
+        running = self.status.startswith("running")
+        color = "#2ca02c" if running else "#1f77b4" if self.status == "completed" else "#d62728"
+        cells: list[str] = []
+        t, s = self.follower.clsf_t, self.follower.clsf_s
+        if t.shape[0]:
+            inside = t > t[-1] - MOVING_MEAN_S
+            sf = f"{float(np.mean(s[inside])) * PPM:+.1f}"
+            sf_line = f"SF change since start {_value('sf', sf)} ppm <small>(CLSF, 60 s mean)</small>"
+            if len(self.pairs.data["t"]) > 1:
+                _, change = self.follower.pair_changes(up.steps, self.settle_s)
+                sf_line += f" &middot; step pairs {_value('pair', f'{float(change[-1]):+.1f}')} ppm since the first"
+        else:
+            sf_line = f"SF change since start {_value('sf', '-')} <small>(no CLSF period yet)</small>"
+        cells.append(sf_line)
+        ch, tru = latest.get("chamber", {}), latest.get("truth", {})
+        gyro = _value("gyro", _degc(tru.get("temperature"))) + " degC" if "truth" in latest else "not recorded"
+        cells.append(
+            f"chamber setpoint {_value('setpoint', _degc(ch.get('setpoint')))} degC &middot; air "
+            f"{_value('air', _degc(ch.get('temperature')))} degC &middot; gyro {gyro}"
+        )
+        lk = latest.get("lockin", {})
+        if "pll_locked" in lk:
+            locked = lk["pll_locked"] != 0
+            pll = _value("pll", "locked" if locked else "NOT LOCKED")
+            pll = f"<b style='color:{'#2ca02c' if locked else '#d62728'}'>{pll}</b>"
+            if locked and math.isfinite(self.unlocked_at):
+                pll += f" <small>(lost lock last at t = {self.unlocked_at:.0f} s)</small>"
+        else:
+            pll = _value("pll", "not recorded") + " <small>(file without /lockin/pll_locked)</small>"
+        planned = int(a.get("planned_steps", -1))
+        current, step_left, remaining, not_run = self._plan_position(up.steps, max(planned, 0))
+        kinds = planned_kinds(a)
+        if running and current >= 0:
+            kind = kinds[current] if current < len(kinds) else "?"
+            step = (
+                f"step {_value('step', str(current))} / {planned} {_value('kind', kind)} &middot; "
+                f"left {_value('left', _clock(step_left))}"
+            )
+        elif not_run:
+            step = f"stopped with {_value('not-run', str(not_run))} of {planned} steps not run"
+        else:
+            step = f"all {planned} steps done"
+        cells.append(f"PLL {pll} &middot; {step}")
+        cells.append(self._end(running, remaining))
+        status = f"<b style='font-size:130%;color:{color}'>{_value('status', self.status)}</b>"
+        banner = self._banner(up)
+        return (
+            f"<div style='font-size:110%;line-height:1.45'>{status} &middot; <b>{html.escape(self.path.name)}</b>"
+            f"<br>{'<br>'.join(cells)}{banner}</div>"
+        )
+
+    def _end(self, running: bool, remaining: float) -> str:
+        if not running:
+            try:
+                ended = _wall(self.path.stat().st_mtime)
+            except OSError:
+                ended = "?"
+            return f"ended {_value('end', ended)} <small>(the file's last write)</small>"
+        if not math.isfinite(remaining):
+            return f"expected end {_value('end', '?')} <small>(plan durations not readable)</small>"
+        speed = math.nan
+        if len(self.seen) >= 2 and self.seen[-1][0] - self.seen[0][0] >= 3.0:
+            (w0, h0), (w1, h1) = self.seen[0], self.seen[-1]
+            speed = (h1 - h0) / (w1 - w0)
+        if not speed > 0:
+            return (
+                f"expected end {_value('end', 'estimating')} &middot; remaining "
+                f"{_value('remaining', _clock(remaining))} run time"
+            )
+        return (
+            f"expected end {_value('end', _wall(time.time() + remaining / speed))} &middot; remaining "
+            f"{_value('remaining', _clock(remaining))} run time <small>({speed:.3g} s of run time per s)</small>"
+        )
+
+    def _banner(self, up: Update) -> str:
+        """Faults, reconnects, suspensions, data loss, the abort and the safe state (module docstring)."""
+        e = up.events
+        notes: list[str] = []
+        ok = False  # the safe state confirmed: its note is not an alarm
+        if self.status == DIED:
+            notes.append(
+                "the run's process died: the instruments may NOT be in their safe state (table stopped, chamber "
+                f"idle, drive off): check them; continue with qmg-lab run --resume {html.escape(self.path.name)}"
+            )
+        if self.lost:
+            notes.append(f"data loss: {_value('lost', str(self.lost))} lock-in samples missing in the stretches read")
+        if e and e["time"].shape[0]:
+            kinds = [str(k) for k in e["kind"]]
+            count = {k: kinds.count(k) for k in ("fault", "reconnect", "suspended")}
+            said = [f"{n} {k}{'s' if n > 1 else ''}" for k, n in count.items() if n]
+            if said:
+                last = max(i for i, k in enumerate(kinds) if k in count)
+                said.append(f"last at t = {float(e['time'][last]):.0f} s: {html.escape(str(e['message'][last]))}")
+                notes.append(", ".join(said))
+            susp = [i for i, k in enumerate(kinds) if k == "suspended"]
+            back = [i for i, k in enumerate(kinds) if k in ("resumed", "recovered")]
+            if susp and (not back or back[-1] < susp[-1]) and self.status.startswith("running"):
+                notes.append(f"SUSPENDED since t = {float(e['time'][susp[-1]]):.0f} s")
+            for i, k in enumerate(kinds):
+                if k in ("abort", "interrupted"):
+                    notes.append(f"{k}: {html.escape(str(e['message'][i]))}")
+            safe = [i for i, k in enumerate(kinds) if k == "safe_state"]
+            if safe:
+                said_safe = str(e["message"][safe[-1]])
+                ok = said_safe == "confirmed"
+                notes.append(f"safe state {_value('safe', said_safe)}")
+        alarm = "background:#fde0dc;border-left:4px solid #d62728;padding:2px 6px;margin-top:3px"
+        calm = "background:#e5f5e0;border-left:4px solid #2ca02c;padding:2px 6px;margin-top:3px"
+        return "".join(f"<div style='{calm if ok and n.startswith('safe state') else alarm}'>{n}</div>" for n in notes)

@@ -7,6 +7,7 @@ address sees the page: it shows the run and cannot change anything, but it is no
 
 from __future__ import annotations
 
+import logging
 import socket
 from pathlib import Path
 
@@ -19,6 +20,23 @@ from qmg_lab.watch.page import WatchPage
 
 LOOPBACK = "127.0.0.1"
 DEFAULT_PORT = 5006
+#: what Bokeh's websocket handler logs at WARNING when a closed tab's session still gets the page's update: the
+#: session ends by itself within check_unused_sessions_milliseconds, so it is nothing to act on
+CLOSED_TAB = "Failed sending message as connection was closed"
+
+
+class _ClosedTabFilter(logging.Filter):
+    """Drops exactly CLOSED_TAB from bokeh.server.views.ws; every other record passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != CLOSED_TAB
+
+
+def quiet_closed_tabs() -> None:
+    """Install the CLOSED_TAB filter on Bokeh's websocket logger (once)."""
+    log = logging.getLogger("bokeh.server.views.ws")
+    if not any(isinstance(f, _ClosedTabFilter) for f in log.filters):
+        log.addFilter(_ClosedTabFilter())
 
 
 def free_port(host: str = LOOPBACK, start: int = DEFAULT_PORT, tries: int = 50) -> int:
@@ -37,6 +55,7 @@ def free_port(host: str = LOOPBACK, start: int = DEFAULT_PORT, tries: int = 50) 
 
 def make_server(path: Path, host: str = LOOPBACK, port: int = DEFAULT_PORT) -> Server:
     """A started-but-not-running server of the page of `path` at http://host:port/ (call .io_loop.start())."""
+    quiet_closed_tabs()
 
     def session(doc: Document) -> None:
         WatchPage(path).attach(doc)

@@ -33,6 +33,7 @@ CONTRACT = {
         "drive_frequency": "Hz",
         "dither": "V",
         "table_encoder": "1",
+        "pll_locked": "1",
     },
     "clsf": {"time": "s", "eta": "1", "sf_change_estimate": "1", "gain_correction": "1", "rate_output_mean": "V"},
     "table": {"time": "s", "rate_command": "deg/s", "rate_measured": "deg/s", "position": "deg"},
@@ -77,6 +78,7 @@ def lockin_block(k: int, n: int = 700) -> dict[str, np.ndarray]:
         "drive_frequency": 2200.0 + 1e-3 * t,
         "dither": np.sign(np.sin(2 * np.pi * 7 * t)),
         "table_encoder": np.floor(200 * t) % 4,
+        "pll_locked": np.ones(n, dtype=np.uint8),
     }
 
 
@@ -106,6 +108,7 @@ def test_every_contract_item_present_with_units(tmp_path: Path) -> None:
                 assert ds.attrs["units"] == unit, f"{g}/{c}"
                 assert ds.attrs["description"]
         assert f["steps/kind"].dtype.kind == "S" and f["steps/status"].dtype.kind == "S"
+        assert f["lockin/pll_locked"].dtype == np.uint8
     # hardware files have no /truth
     q = tmp_path / "hw.h5"
     new_writer(q, truth=False, mode="hardware").close()
@@ -325,7 +328,7 @@ CHILD = textwrap.dedent("""
         t = (k * n + np.arange(n)) / 1400.0
         return dict(time=t, x_sense=np.sin(t), y_sense=np.cos(t), rate_output=0.3 + 1e-3 * t,
                     drive_amplitude=0.5 + 0 * t, drive_frequency=2200 + 0 * t, dither=np.sign(np.sin(44 * t)),
-                    table_encoder=0 * t)
+                    table_encoder=0 * t, pll_locked=np.ones(n, dtype=np.uint8))
     k = 0
     if mode == "driven":
         print("ready", flush=True)
@@ -446,6 +449,7 @@ def test_sigkill_mid_write_leaves_a_readable_file_then_resumes(tmp_path: Path, f
         drive_frequency=0 * t_new,
         dither=0 * t_new,
         table_encoder=0 * t_new,
+        pll_locked=1 + 0 * t_new,
     )
     w.set_status("completed")
     w.close()
@@ -546,3 +550,22 @@ def test_chunks_follow_the_write_pattern(tmp_path: Path) -> None:
         assert f["truth/time"].chunks == f["lockin/time"].chunks
         for grp in ("clsf", "table", "chamber", "steps"):
             assert all(f[grp][c].compression is None for c in f[grp])
+
+
+def test_a_file_written_before_pll_locked_existed_is_read_and_resumed_without_it(tmp_path: Path) -> None:
+    """/lockin/pll_locked is optional (storage.layout.OPTIONAL_COLUMNS): a file without it, as files written before
+    the column existed are, reads as before, and a writer that reopens it appends the columns the file has."""
+    p = tmp_path / "old.h5"
+    w = new_writer(p, truth=False)
+    w.append("lockin", **lockin_block(0))
+    w.close()
+    with h5py.File(p, "r+") as f:  # the older layout: the same file without the column
+        del f["lockin/pll_locked"]
+    run = read_run(p)
+    assert "pll_locked" not in run.groups["lockin"]
+    np.testing.assert_array_equal(run.groups["lockin"]["dither"], lockin_block(0)["dither"])
+    w = RunWriter.reopen(p, config_sha256=SHA, flush_interval_s=1.0)
+    w.append("lockin", **lockin_block(1))
+    w.close()
+    run = read_run(p)
+    assert run.groups["lockin"]["time"].shape == (1400,) and "pll_locked" not in run.groups["lockin"]

@@ -4,7 +4,9 @@ against `qmg-lab analyze`'s. The page in a real browser: test_watch_browser.py."
 
 from __future__ import annotations
 
+import html
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,11 +15,14 @@ import numpy as np
 from bokeh.document import Document
 
 from qmg_lab.analysis.compute import analyze
-from qmg_lab.watch.page import CHUNK_BINS, MAX_POINTS, PLOTS, Trace, WatchPage
+from qmg_lab.watch.page import CHUNK_BINS, MAX_POINTS, PLOTS, Band, Trace, WatchPage
 from tests.support.live_runs import append_block, interrupted_then_resumed, live_writer
 
 
 def test_the_page_follows_a_running_file(tmp_path: Path) -> None:
+    """Each block (live_runs.append_block: CLSF periods at 7 Hz to 10 k + 10 s, chamber and table every 0.5 s to
+    10 k + 9.5 s) is shown up to the common horizon h = min of the groups' last times = 10 k + 9.5 s: the
+    CLSF periods after h wait for the next poll; once the file is final every row is shown."""
     path = tmp_path / "live.h5"
     w = live_writer(path, "live one", ["soak", "soak", "soak"])
     try:
@@ -31,19 +36,51 @@ def test_the_page_follows_a_running_file(tmp_path: Path) -> None:
             append_block(w, k, "soak")
             page.update()
             seen.append(page.last_t)
-            assert len(page.traces["sf_period"].source.data["t"]) == 70 * (k + 1)  # < 2 CHUNK_BINS: all rows
-            assert page.traces["chamber_air"].t[-1] == 10.0 * k + 9.5
-        assert seen == [10.0, 20.0]  # the last CLSF period ends each block
+            h = 10.0 * k + 9.5
+            periods = int(np.floor(h * 7))  # the periods ending at j/7 <= h
+            assert len(page.sf_band.source.data["t"]) == periods  # < 2 CHUNK_BINS: every row its own bin
+            assert page.sf_band.t[-1] == periods / 7.0 <= h
+            assert page.traces["chamber_air"].t[-1] == h and page.traces["table_measured"].t[-1] == h
+            # the now panel: 60 s mean of the estimate 1e-6 t over the periods read, the last chamber row, the step
+            mean = np.mean(np.arange(1, periods + 1) / 7.0)  # ppm: 1e-6 t x 1e6
+            assert _now(page, "sf") == f"{mean:+.1f}" and _now(page, "air") == f"{25 + 0.1 * h:.2f}"
+            assert _now(page, "setpoint") == "30.00" and _now(page, "gyro") is None  # bench file: no /truth
+            assert _now(page, "pll") == "not recorded"  # no /lockin rows
+            assert _now(page, "step") == str(k + 1) and _now(page, "kind") == "soak"
+        assert seen == [9.5, 19.5]
         page.update()  # nothing new: nothing moves
-        assert page.last_t == 20.0
+        assert page.last_t == 19.5
         steps = page.steps.data
         assert steps["label"] == ["completed", "completed", "current"] and steps["color"][-1] == "#d62728"
     finally:
         w.set_status("completed")
         w.close()
     page.update()
-    # stopped short of its plan: the step not run stays on the timeline, grey, no longer current
+    # final: every row; stopped short of its plan: the step not run stays on the timeline, grey, no longer current
+    assert page.last_t == 20.0 and page.sf_band.t[-1] == 20.0
     assert "completed" in page.header.text and page.steps.data["label"] == ["completed", "completed", "planned"]
+    assert _now(page, "status") == "completed" and _now(page, "not-run") == "1" and _now(page, "left") is None
+
+
+def _now(page: WatchPage, name: str) -> str | None:
+    """A value of the page's now panel (page._value), None if it does not show it."""
+    m = re.search(rf"class='now-{name}'>([^<]*)<", page.now.text)
+    return html.unescape(m.group(1)) if m else None
+
+
+def test_the_envelope_keeps_every_minimum_and_maximum() -> None:
+    band = Band("x")
+    rng = np.random.default_rng(3)
+    ys = []
+    for k in range(30):  # 30 polls of 20000 periods
+        t = k * 2000.0 + np.arange(20_000) / 10.0
+        y = rng.standard_normal(t.shape[0])
+        ys.append(y)
+        band.add(t, y)
+        assert len(band.source.data["t"]) <= 2 * MAX_POINTS + CHUNK_BINS
+    y = np.concatenate(ys)
+    assert band.lo.min() == y.min() and band.hi.max() == y.max() and np.all(band.lo <= band.hi)
+    assert np.all(np.diff(band.t) > 0)
 
 
 def test_a_trace_stays_bounded() -> None:
@@ -119,3 +156,30 @@ def test_host_opens_the_page_on_purpose_with_a_warning(tmp_path: Path) -> None:
         proc.terminate()
         _, err = proc.communicate(timeout=30)
     assert "open to every machine" in err and "without a password" in err
+
+
+def test_missing_lockin_samples_are_counted_within_each_stretch_read() -> None:
+    from qmg_lab.watch.follow import missing_samples
+
+    dt = 1 / 1800
+    a = np.arange(100) * dt
+    b = 10.0 + np.delete(np.arange(100), [40, 41, 42, 70]) * dt  # 4 samples lost inside the second stretch
+    t = np.concatenate((a, b))
+    # the jump from the first stretch to the second (chunks not read in between) is no loss
+    assert missing_samples(t, [(0, 100), (5000, 5096)]) == 4
+    assert missing_samples(a, [(0, 100)]) == 0
+
+
+def test_the_closed_tab_warning_alone_is_filtered(caplog) -> None:  # type: ignore[no-untyped-def]
+    import logging
+
+    from qmg_lab.watch.server import CLOSED_TAB, quiet_closed_tabs
+
+    quiet_closed_tabs()
+    quiet_closed_tabs()  # once is enough: a second call adds nothing
+    log = logging.getLogger("bokeh.server.views.ws")
+    assert len(log.filters) == 1
+    with caplog.at_level(logging.WARNING, logger="bokeh.server.views.ws"):
+        log.warning(CLOSED_TAB)
+        log.warning("another websocket problem")
+    assert [r.getMessage() for r in caplog.records] == ["another websocket problem"]

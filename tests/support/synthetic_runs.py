@@ -82,6 +82,7 @@ def _lockin(w: RunWriter, t: np.ndarray, rate_output: np.ndarray, dither_hz: flo
         drive_frequency=z + 2200.0,
         dither=0.6 * sq,
         table_encoder=z,
+        pll_locked=z + 1,
     )
 
 

@@ -46,3 +46,17 @@ def test_a_block_with_a_lost_sample_is_recorded_group_by_group(tmp_path: Path) -
     np.testing.assert_array_equal(g["truth"]["time"], t)  # the lock-in's times, sample for sample
     np.testing.assert_array_equal(g["truth"]["rate"], 5.0 + delivered)  # the lost sample's truth is dropped
     assert run.attrs["clsf_reference"] == 0.25
+
+
+def test_the_pll_lock_flag_of_each_block_is_on_every_one_of_its_samples(tmp_path: Path) -> None:
+    path = tmp_path / "run.h5"
+    w = _writer(path)
+    rec = BlockRecorder(w)
+    none = ClsfPeriods(*(np.zeros(0) for _ in range(5)))
+    for k, locked in enumerate((True, False, True)):
+        t = k + np.arange(4) / FS
+        rec.record(t, LockInBlock(*(t for _ in range(len(LockInBlock.FIELDS))), pll_locked=locked), none, None, 0.0, None, None, 1 / FS)
+    w.close()
+    lockin = read_run(path).groups["lockin"]
+    assert lockin["pll_locked"].dtype == np.uint8
+    assert lockin["pll_locked"].tolist() == [1] * 4 + [0] * 4 + [1] * 4

@@ -39,6 +39,7 @@ def _lockin(k: int, n: int) -> dict[str, np.ndarray]:
         "drive_frequency": 2200.0 + 1e-3 * np.sqrt(i),
         "dither": np.sign(np.sin(2 * np.pi * 7 * i / FS)),
         "table_encoder": np.floor(i / 9) % 4,
+        "pll_locked": (i % 5 != 0).astype(np.uint8),
     }
 
 
