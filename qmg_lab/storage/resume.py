@@ -18,6 +18,7 @@ import numpy as np
 
 from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
+from qmg_lab.storage.lock import holder, lock_path, writer_state
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
@@ -84,10 +85,8 @@ def _check_resumable(
             f"{p}: was written with configuration {stored}, not with this configuration "
             f"{config_sha256}; resume with the configuration the run was started with"
         )
-    if run.writer_open:
-        pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
-        if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
-            raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
+    if writer_state(p) == "writing":  # the lock, not the recorded pid (which another process may now have)
+        raise StorageError(f"{p}: is still being written by another process ({holder(p)}); stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
     try:
@@ -97,16 +96,6 @@ def _check_resumable(
         raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
     refuse_discarding_repair(p, plan)
     return run
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
@@ -125,15 +114,19 @@ def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
 
 def status_detail(run: RunData) -> str:
     """The file's status as the operator should read it. "running" is what the file says while its writer
-    works, and also what a killed writer leaves behind: a "running" file whose writer process is gone (same
-    host, pid not alive) is "interrupted (process died)"; one written on another host cannot be checked."""
+    works, and also what a killed writer leaves behind: a "running" file whose lock is free (its writer is gone,
+    qmg_lab.storage.lock.writer_state) is "interrupted (process died)"; one written on another host cannot be
+    checked (a lock on a network file system does not reliably reach this host)."""
     if run.status != "running":
         return run.status
     pid, host = int(run.attrs.get("writer_pid", -1)), str(run.attrs.get("writer_host", ""))
     if host and host != socket.gethostname():
         return f"running, or interrupted (written on host {host}; its process cannot be checked from here)"
-    if run.writer_open and pid > 0 and pid != os.getpid() and _pid_alive(pid):
+    state = writer_state(run.path)
+    if state == "writing":
         return f"running (process {pid} is writing it)"
+    if state == "unknown":
+        return f"running, or interrupted (its lock file {lock_path(run.path)} cannot be read to check)"
     return "interrupted (process died)"
 
 
