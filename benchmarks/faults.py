@@ -68,17 +68,16 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from qmg_lab.campaign.pipeline import run_campaign  # noqa: E402 - imported after sys.path points at this checkout
 from qmg_lab.campaign.plan import build_plan  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.campaign.runner import CampaignRunner  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.config.schema import config_fingerprint, parse_config  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.config.schema import parse_config  # noqa: E402 - imported after sys.path points at this checkout
 from qmg_lab.station import build_station, make_world  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.storage.writer import RunWriter, read_run  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.storage.writer import read_run  # noqa: E402 - imported after sys.path points at this checkout
 
 SAFE_C = 20.0
 BASE = f"""
@@ -151,8 +150,7 @@ def random_faults(rng: random.Random) -> str:
 
 def missing_samples(path: Path, injected: int) -> int:
     """Samples absent from /lockin/time (gaps of more than one period) beyond the `injected` HF2 losses."""
-    with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-        t = h5["lockin/time"][:]
+    t = read_run(path, select=("lockin/time",)).groups["lockin"]["time"]
     if len(t) < 2:
         return 0
     dt = float(np.median(np.diff(t)))
@@ -178,25 +176,12 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
         world = make_world(cfg)
         station = build_station(cfg, world)
         path = tmp / f"soak{i}.h5"
-        writer = RunWriter.create(
-            path,
-            config_text=text,
-            config_sha256=config_fingerprint(text),
-            mode="sim",
-            software_version="bench",
-            t0_unix=time.time(),
-            compression="none",
-            truth=True,
-            flush_interval_s=cfg.storage.flush_interval_s,
-        )
-        runner = CampaignRunner(cfg, station, writer)
         try:
-            summary = runner.run()
-        except Exception as exc:
-            summary = runner.summary("aborted", str(exc))
+            end = run_campaign(cfg, text, path, station=station, software_version="bench")
         finally:
             station.close()
-            writer.close()
+        summary = end.summary
+        assert summary is not None, end.message  # the checks before the run passed
         faults = summary.faults_injected
         n_faults = sum(1 for f in faults if f["kind"] != "link_restored")
         fig["faults_injected"] += n_faults
@@ -393,8 +378,8 @@ def references(seeds: list[int], tmp: Path) -> tuple[dict[int, Path], dict[int, 
             cwd=ROOT,
         )
     cfg0 = parse_config(configs[seeds[0]].read_text())
-    with h5py.File(refs[seeds[0]], "r") as f:  # the sample period the lock-in applied (its rate, read back)
-        dt = float(np.median(np.diff(f["lockin/time"][:2000])))
+    t = read_run(refs[seeds[0]], select=("lockin/time",)).groups["lockin"]["time"]
+    dt = float(np.median(np.diff(t[:2000])))  # the sample period the lock-in applied (its rate, read back)
     return configs, refs, dt, cfg0.lockin.sim_poll_interval_s
 
 
@@ -547,24 +532,10 @@ def _kill_after(argv: list[str], seconds: float, fig: dict[str, object]) -> tupl
 
 
 def _checkpoints(path: Path) -> dict[int, tuple[float, float]]:
-    """The checkpoints a plain resume of the file keeps (its repair plan, read-only: the leading "completed"
-    /steps rows whose data are in): index -> (t_start, t_end). A file a full disk left short is read from a
-    copy padded to its recorded end, as its resume reads it."""
-    from qmg_lab.storage.resume import ends_short, plan_repair
-    from qmg_lab.storage.salvage import padded_copy
+    """The checkpoints a plain resume of the file keeps (qmg_lab.storage.resume.kept_checkpoints, read-only)."""
+    from qmg_lab.storage.resume import kept_checkpoints
 
-    short = ends_short(path)
-    source = path.with_name(path.name + ".padded") if short else path
-    if short:
-        padded_copy(path, source)
-    try:
-        with h5py.File(source, "r", swmr=True, libver="latest") as h5:
-            n = plan_repair(h5, thorough=short).steps_rows
-            cols = [h5["steps"][c][:n] for c in ("index", "t_start", "t_end")]
-    finally:
-        if short:
-            source.unlink()
-    return {int(i): (float(a), float(b)) for i, a, b in zip(*cols, strict=True)}
+    return kept_checkpoints(path)
 
 
 def _finish_and_compare(

@@ -3,9 +3,10 @@ process is asked to stop.
 
 Every stop signal takes Ctrl-C's path: SIGINT (Ctrl-C), SIGTERM (kill, systemd, a batch scheduler), SIGHUP (the
 terminal or the SSH session that started the run went away), SIGQUIT (Ctrl-\\) and, on Windows, SIGBREAK
-(Ctrl-Break). Handlers are installed only for the signals the platform has (`STOP_SIGNALS`). The first signal sets
-a flag that the campaign checks between lock-in blocks (it then brings every instrument to its safe state and
-marks the file "aborted", the signal named in `abort_reason`); the process then exits 128 + the signal's number
+(Ctrl-Break). Handlers are installed only for the signals the platform has (`STOP_SIGNALS`), and never over
+an inherited "ignore": a run started under `nohup` (SIGHUP ignored) goes on when its terminal hangs up. The first
+signal sets a flag that the campaign checks between lock-in blocks (it then brings every instrument to its safe state
+and marks the file "aborted", the signal named in `abort_reason`); the process then exits 128 + the signal's number
 (`exit_code`), the shell's convention for "ended by signal n" (130 for Ctrl-C). A second signal raises
 `StopRequested` (a KeyboardInterrupt) at once, unless a protected section (an HDF5 write, the safe state, the
 file's last close) is running: then it is raised when the section ends.
@@ -78,6 +79,8 @@ class InterruptGuard:
         if threading.current_thread() is threading.main_thread():
             for sig in STOP_SIGNALS:
                 try:
+                    if signal.getsignal(sig) is signal.SIG_IGN:
+                        continue  # ignored by whoever started the run (nohup ignores SIGHUP): it stays ignored
                     self._previous[sig] = signal.signal(sig, self._handle)
                 except (OSError, ValueError):  # a signal this process may not catch here
                     continue

@@ -16,15 +16,14 @@ from pathlib import Path
 from typing import Annotated, NoReturn
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 
-from qmg_lab.cli.signals import say
+from qmg_lab.cli.signals import SteadyConsole, say
 from qmg_lab.config.schema import Config, ConfigError, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, Station
 
-console = Console(stderr=True)
-out = Console()
+console = SteadyConsole(stderr=True)  # a broken pipe turns it off, never ends the process (cli/signals.py)
+out = SteadyConsole()
 
 EXIT_BAD_INPUT, EXIT_FAULT, EXIT_INTERRUPTED = 2, 3, 130
 

@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 
 from qmg_lab.instruments import INSTRUMENT_NAMES
+from qmg_lab.storage.h5clear import clear_superblock_flags, left_open_without_swmr
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
 from qmg_lab.storage.lock import holder, lock_path, writer_state
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
@@ -57,6 +58,18 @@ def check_resumable(
         return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def heal_interrupted_open(path: Path) -> bool:
+    """A writer killed between opening the file for writing and switching it to SWMR (the first moments of a new
+    file's or a resume's write, before any data is written) leaves the superblock marked "open for writing, not
+    SWMR", which no reader can open. Once the lock says that writer is gone (the caller holds it), the marks are
+    cleared (what `h5clear -s` does; qmg_lab/storage/h5clear.py): the only change made to a file before every
+    resume check passed, and it changes no data. True if it cleared them. StorageError: no HDF5 file."""
+    if writer_state(path) == "writing" or not left_open_without_swmr(path):
+        return False
+    clear_superblock_flags(path)
+    return True
 
 
 def ends_short(path: Path) -> bool:
@@ -303,3 +316,21 @@ def repair_end(h5: h5py.File, plan: RepairPlan | None = None) -> RepairPlan:
         _cut(steps[c], plan.steps_rows)
     h5.flush()
     return plan
+
+
+def kept_checkpoints(path: Path) -> dict[int, tuple[float, float]]:
+    """Read-only: the checkpoints a plain resume of the file keeps (its repair plan: the leading "completed" /steps
+    rows whose data are in), index -> (t_start, t_end), s. A file a full disk left short is read from a copy padded
+    to its recorded end, as its resume reads it."""
+    short = ends_short(path)
+    source = path.with_name(f".{path.name}.{os.getpid()}.padded") if short else path
+    if short:
+        padded_copy(path, source)
+    try:
+        with h5py.File(source, "r", swmr=True, libver="latest") as h5:
+            n = plan_repair(h5, thorough=short).steps_rows
+            cols = [h5["steps"][c][:n] for c in ("index", "t_start", "t_end")]
+    finally:
+        if short:
+            source.unlink()
+    return {int(i): (float(a), float(b)) for i, a, b in zip(*cols, strict=True)}

@@ -165,6 +165,7 @@ class RunWriter:
             raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
         self._lock = lock  # the file's one-writer lock, released by close()
         self._failed = False  # a write failed (RunFileWriteError): nothing more is written
+        self._write_error: RunFileWriteError | None = None
         self.path = path
         self._h5 = h5
         self.flush_interval_s = float(flush_interval_s)
@@ -750,6 +751,12 @@ class RunWriter:
     def closed(self) -> bool:
         return self._closed
 
+    @property
+    def write_error(self) -> RunFileWriteError | None:
+        """The write that failed (a full disk), or None: after one, nothing more was written and the file keeps
+        what its last successful flush wrote."""
+        return self._write_error
+
     def __enter__(self) -> RunWriter:
         return self
 
@@ -787,7 +794,10 @@ class RunWriter:
     def _write_failed(self, exc: BaseException) -> RunFileWriteError:
         """The StorageError of a failed write; the writer writes nothing more (`close` then only closes)."""
         self._failed = True
-        return RunFileWriteError(self.path, exc)
+        error = RunFileWriteError(self.path, exc)
+        if self._write_error is None:
+            self._write_error = error
+        return error
 
     def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
         """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
