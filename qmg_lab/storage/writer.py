@@ -316,11 +316,12 @@ class RunWriter:
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
+        h5 = _open_for_writing(p, "the new run file")
         try:
-            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
             h5.swmr_mode = True
         except OSError as exc:
-            raise StorageError(f"{p}: cannot open the new run file for writing: {exc}") from None
+            h5.close()
+            raise StorageError(f"{p}: cannot start SWMR on the new run file: {exc}") from None
         return h5
 
     @staticmethod
@@ -452,10 +453,7 @@ class RunWriter:
             os.truncate(p, read_superblock(p).eof_address or 0)
         if run.writer_open or short:
             clear_superblock_flags(p)
-        try:
-            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
-        except OSError as exc:
-            raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
+        h5 = _open_for_writing(p, "the run file")
         try:
             plan = plan_repair(h5, thorough=short)  # where it can end; refused if that discards data
             refuse_discarding_repair(p, plan)
@@ -870,6 +868,32 @@ class RunFileWriteError(StorageError):
 
 
 OUT_OF_SPACE_ERRNOS = frozenset({errno.ENOSPC, errno.EFBIG} | ({errno.EDQUOT} if hasattr(errno, "EDQUOT") else set()))
+
+
+#: how long the writer retries opening a file a reader holds (HDF5's own file lock, errno 11), s: a reader that
+#: polls the file (the watch page, `runs`, a test waiting for a checkpoint) holds it for milliseconds at a time
+READER_WAIT_S = 3.0
+
+
+def _open_for_writing(p: Path, what: str) -> h5py.File:
+    """Open `p` for writing (not yet SWMR). HDF5 locks a file for each open; a reader that has it open (not as a
+    SWMR reader of a SWMR-writing file) makes the open fail with "unable to lock file": retried for READER_WAIT_S,
+    then refused with words saying a reader holds it."""
+    deadline = _time.monotonic() + READER_WAIT_S
+    while True:
+        try:
+            return h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
+        except OSError as exc:
+            held = "unable to lock file" in str(exc)
+            if held and _time.monotonic() < deadline:
+                _time.sleep(0.05)
+                continue
+            if held:
+                raise StorageError(
+                    f"{p}: another process holds {what} open for reading (a `qmg-lab analyze`, `watch` or `runs`, "
+                    "or a program using h5py or HDFView): close it, then run the command again"
+                ) from None
+            raise StorageError(f"{p}: cannot open {what} for writing: {exc}") from None
 
 
 def _move_into_place(tmp: Path, p: Path) -> None:

@@ -178,3 +178,28 @@ def test_a_reused_pid_is_not_a_writer_and_a_held_lock_is(tmp_path: Path) -> None
     finally:
         holder.communicate("")
     assert writer_state(path) == "gone"
+
+
+def test_a_reader_holding_the_file_is_named_when_a_resume_cannot_open_it(tmp_path: Path) -> None:
+    """HDF5 locks a file for each open: a plain (non-SWMR) reader in another process makes the writer's open fail
+    with "unable to lock file". The resume waits a moment (a polling reader lets go within milliseconds), then says
+    that a reader holds the file, and changes nothing."""
+    path = tmp_path / "F.h5"
+    w = RunWriter.create(
+        path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
+    )
+    w.set_status("aborted", "test")
+    w.close()
+    before = path.read_bytes()
+    hold = "import h5py, sys; f = h5py.File(sys.argv[1], 'r'); print('open', flush=True); sys.stdin.read()"
+    reader = subprocess.Popen(
+        [sys.executable, "-c", hold, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "open"
+        with pytest.raises(StorageError, match="another process holds the run file open for reading"):
+            RunWriter.reopen(path, config_sha256="x")
+    finally:
+        reader.communicate("")
+    assert path.read_bytes() == before
+    RunWriter.reopen(path, config_sha256="x").close()  # the reader gone, the resume opens it
