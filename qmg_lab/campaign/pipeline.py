@@ -40,9 +40,9 @@ from qmg_lab.campaign.plan import CheckedPlan, checked_plan, plan_duration_s
 from qmg_lab.campaign.runner import CampaignRunner, Progress, RunSummary, run_space_need
 from qmg_lab.config.schema import Config, config_fingerprint
 from qmg_lab.instruments import InstrumentError, LimitError, Station
-from qmg_lab.storage.layout import StorageError
+from qmg_lab.storage.layout import DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
-from qmg_lab.storage.resume import ends_short, heal_interrupted_open
+from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
 from qmg_lab.storage.study_level import refuse_study_resume
 from qmg_lab.storage.writer import RunFileWriteError, RunWriter, read_run
 
@@ -149,6 +149,9 @@ def run_campaign(
                 done = set()
                 _check_new_file(path, overwrite)
             _check_space(cfg, plan, path, done, resume)
+        except DamagedFileError as exc:  # a file --resume cannot continue: the way out is named
+            words = str(exc) if "salvage" in str(exc) else f"{exc}; nothing was changed: {SALVAGE.format(path=path)}"
+            return RunEnd(EXIT_BAD_INPUT, words, path, error=exc)
         except (RunRefused, StorageError, LimitError) as exc:
             return RunEnd(EXIT_BAD_INPUT, str(exc), path, error=exc)
         guard = stack.enter_context(InterruptGuard())

@@ -24,6 +24,9 @@ from qmg_lab.storage.reader import RunData, read_run, valid_rows
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
 
+#: the way out when a file cannot be resumed
+SALVAGE = "copy what still reads into a new file with `qmg-lab salvage {path} -o NEW.h5` and analyse that"
+
 
 def check_resumable(
     path: str | Path, *, config_sha256: str, instrument_modes: Mapping[str, str] | None = None
@@ -53,7 +56,7 @@ def check_resumable(
         except H5_ERRORS as exc:
             raise DamagedFileError(
                 f"{p}: ends before the end of file its superblock records, and what is left cannot be resumed "
-                f"({exc}); nothing was changed: copy what still reads with `qmg-lab salvage {p} -o NEW.h5`"
+                f"({exc}); nothing was changed: {SALVAGE.format(path=p)}"
             ) from None
         return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
     finally:
@@ -106,7 +109,9 @@ def _check_resumable(
         with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
             plan = plan_repair(h5, thorough=thorough)
     except (OSError, RuntimeError) as exc:
-        raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
+        raise DamagedFileError(
+            f"{p}: HDF5 cannot read it: {exc}; nothing was changed: {SALVAGE.format(path=p)}"
+        ) from None
     refuse_discarding_repair(p, plan)
     return run
 
@@ -198,8 +203,9 @@ class RepairPlan:
 def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
     """Read-only: where a killed file can end on one consistent instant (RunWriter.reopen steps 1-3).
 
-    1. every group keeps its whole rows that are data: its shortest column, and of its time column only the rows
-       `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
+    1. every group keeps its whole rows that are data: its shortest column, no row at or after a fill value (NaN)
+       in any of its columns (the last FILL_CHECK_ROWS; every row when thorough), and of its time column only the
+       rows `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
        issue 27 on, 0.0 before: never data);
     2. the end instant is the last /lockin time, or the last /truth time if earlier (unless /truth has no rows);
        in the twins' whole-chunk layout it moves back to the last /table or /chamber reading at or before it;
@@ -214,6 +220,7 @@ def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
         n = min(h5[g][c].shape[0] for c in h5[g])
         if thorough:
             n = min(readable_rows(h5[g][c], n) for c in h5[g])
+        n = min(_written_rows(h5[g][c], n, 0 if thorough else max(n - FILL_CHECK_ROWS, 0)) for c in h5[g])
         t = h5[g]["time"][:n]
         n = valid_rows(t)
         rows[g], times[g] = n, t[:n]
@@ -253,6 +260,22 @@ def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
     )
 
 
+#: rows at the end of every column a repair reads for fill values (NaN: allocated, never written): twice what the
+#: writer's chunk cache holds per dataset (1 MiB of float64, qmg_lab.storage.writer.WRITER_CACHE), the most a
+#: failed flush (a full disk) can leave unwritten behind rows whose time did reach the disk
+FILL_CHECK_ROWS = 1 << 18
+
+
+def _written_rows(ds: h5py.Dataset, n: int, start: int) -> int:
+    """Rows of `ds` before its first fill value (NaN) at or after row `start`, at most n. A full disk can leave a
+    column's chunk unwritten while the group's time reached the disk: those rows hold the fill value and are never
+    data (the campaign writes no NaN)."""
+    if n <= start:
+        return n
+    bad = np.flatnonzero(np.isnan(ds[start:n]))
+    return start + int(bad[0]) if bad.size else n
+
+
 def _max_cut_s(h5: h5py.File, times: dict[str, np.ndarray]) -> float:
     """What a kill can lose at the end of this file, s: two /lockin chunks of samples, two /table intervals and
     REPAIR_CUT_MARGIN_S (the spacings from the file's own last rows)."""
@@ -278,7 +301,7 @@ def refuse_discarding_repair(path: Path, plan: RepairPlan) -> None:
             f"{plan.t_recorded:.1f} s, its groups only agree up to {kept_end:.1f} s) and the completed "
             f"steps {plan.dropped_steps}: the file's end is damaged beyond what a killed process leaves "
             f"(at most {plan.max_cut_s:.1f} s here). Nothing was changed; analyse it as it is "
-            f"(qmg-lab analyze {path}), or copy what reads into a new file with qmg-lab salvage"
+            f"(qmg-lab analyze {path}), or {SALVAGE.format(path=path)}"
         )
 
 

@@ -137,5 +137,5 @@ def completed_steps(path: Path) -> int:
     """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be read yet."""
     try:
         return int(read_run(path, select=()).attrs["completed_steps"])
-    except (StorageError, KeyError):
+    except (StorageError, OSError, RuntimeError, KeyError):  # HDF5's own errors while the writer lays it out
         return -1
