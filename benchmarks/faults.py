@@ -730,7 +730,7 @@ def _wait_steps(proc: subprocess.Popen[str], path: Path, n: int) -> bool:
     return False
 
 
-def resume_window_kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
+def resume_window_kills(n: int, seed: int, tmp: Path, deadline: float = float("inf")) -> dict[str, object]:
     """Kills inside `--resume`, each followed by a plain `--resume` that must continue the file to the
     uninterrupted run's data. One killed file per seed (SIGKILL in a random late step), copied for every case;
     the resume of the copy is killed: a third of the cases 0-200 ms after it opened the file for writing (before
@@ -750,6 +750,9 @@ def resume_window_kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
             bases[sd] = (base, cfg, ref, dt, poll_s)
     kinds = ("open_0_200ms", "repair", "external")
     for i in range(n):
+        if time.monotonic() > deadline:
+            fig["stopped_at_deadline"] = True
+            break
         sd = list(bases)[i % len(bases)]
         base, cfg, ref, dt, poll_s = bases[sd]
         path = tmp / f"window{i}.h5"
@@ -770,7 +773,7 @@ def resume_window_kills(n: int, seed: int, tmp: Path) -> dict[str, object]:
         elif code != 0:
             fig["resume_failed"] = int(fig["resume_failed"]) + 1
             fig["details"].append(f"window{i}: resume ({kind}) exit {code}: {' '.join(err.split())[-300:]}")
-        if code == 0 or read_run(path, select=()).status == "completed":
+        if code == 0 or _completed(path):
             path.unlink()
             continue  # the resume ran to its end before the kill: nothing left to continue
         _finish_and_compare(path, cfg, ref, dt, poll_s, before, fig, f"window{i} ({kind}, seed {sd})")
@@ -868,9 +871,12 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
                     f.unlink()
             fig["cases"] = int(fig["cases"]) + 1
             fig["exit_codes"].append(codes)  # type: ignore[union-attr]
-            if read_run(path, select=()).status == "completed":
+            if _completed(path):
                 continue
-            before = _checkpoints(path)
+            try:
+                before = _checkpoints(path)
+            except Exception:  # not readable until a resume heals it: nothing to hold the resume to
+                before = {}
             asked = _needed_bytes(said)
             if asked is not None:
                 _fill(mount, asked)  # exactly what the run asked for, no more
@@ -888,6 +894,15 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
         finally:
             subprocess.run(["umount", str(mount)], check=False)
     return fig
+
+
+def _completed(path: Path) -> bool:
+    """The file says "completed" (False while no reader can open it: a writer killed before its SWMR start, which
+    the next --resume heals)."""
+    try:
+        return read_run(path, select=()).status == "completed"
+    except Exception:
+        return False
 
 
 def completed_steps_now(path: Path) -> int:
@@ -951,18 +966,23 @@ def main() -> None:
         help="only the writer's soaks: N kills inside --resume (a third in its first 200 ms of writing), a full "
         "disk at every FILL_LEVELS level twice in a row (root, Linux), a dead stdout reader and nohup + SIGHUP",
     )
+    ap.add_argument("--parts", default="kills,disk,output", help="with --writer: which of kills, disk, output")
+    ap.add_argument("--deadline-s", type=float, help="with --writer: start no kill case after this many seconds")
     args = ap.parse_args()
     t0 = time.monotonic()
     if args.writer is not None:
+        deadline = t0 + args.deadline_s if args.deadline_s else float("inf")
+        parts = set(args.parts.split(","))
         with tempfile.TemporaryDirectory(prefix="qmg-faults-") as d:
             tmp = Path(d)
-            writer = {
-                "resume_window_kills": resume_window_kills(args.writer, args.seed, tmp),
-                "disk_full_levels": disk_full_levels(args.seed, tmp),
-                "output": output_survival(args.seed, tmp),
-                "seed": args.seed,
-                "wall_s": round(time.monotonic() - t0, 1),
-            }
+            writer: dict[str, object] = {}
+            if "kills" in parts:
+                writer["resume_window_kills"] = resume_window_kills(args.writer, args.seed, tmp, deadline)
+            if "disk" in parts:
+                writer["disk_full_levels"] = disk_full_levels(args.seed, tmp)
+            if "output" in parts:
+                writer["output"] = output_survival(args.seed, tmp)
+            writer.update(seed=args.seed, wall_s=round(time.monotonic() - t0, 1))
         print(json.dumps(writer) if args.json else json.dumps(writer, indent=1))
         return
     with tempfile.TemporaryDirectory(prefix="qmg-faults-") as d:

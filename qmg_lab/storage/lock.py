@@ -112,13 +112,12 @@ class RunFileLock:
 
 
 def writer_state(path: str | Path) -> WriterState:
-    """Whether another process writes the run file `path`, from its lock alone: "writing" (the lock is held by
-    another process), "gone" (the lock is free, or this process holds it, or there is no lock file: no writer ever
-    locked it from this folder's view), "unknown" (the lock file cannot be opened to probe it). A free lock taken
-    by the probe is released at once."""
-    key = os.path.abspath(lock_path(path))
-    if key in _HELD:
-        return "gone"  # this process is the writer (or is about to be): no other process writes it
+    """Whether a process writes the run file `path`, from its lock alone: "writing" (the lock is held, by another
+    process or by this one: `held_here` tells which), "gone" (the lock is free, or there is no lock file: no writer
+    ever locked it from this folder's view), "unknown" (the lock file cannot be opened to probe it). A free lock
+    taken by the probe is released at once."""
+    if held_here(path):
+        return "writing"
     lock_file = lock_path(path)
     if not lock_file.exists():
         return "gone"
@@ -131,6 +130,11 @@ def writer_state(path: str | Path) -> WriterState:
         return "unknown"
     probe.release()
     return "gone"
+
+
+def held_here(path: str | Path) -> bool:
+    """This process holds the lock of run file `path` (it is, or is about to be, its writer)."""
+    return os.path.abspath(lock_path(path)) in _HELD
 
 
 def holder(path: str | Path) -> str:

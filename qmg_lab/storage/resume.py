@@ -19,7 +19,7 @@ import numpy as np
 from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.storage.h5clear import clear_superblock_flags, left_open_without_swmr
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
-from qmg_lab.storage.lock import holder, lock_path, writer_state
+from qmg_lab.storage.lock import held_here, holder, lock_path, writer_state
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
@@ -69,7 +69,7 @@ def heal_interrupted_open(path: Path) -> bool:
     SWMR", which no reader can open. Once the lock says that writer is gone (the caller holds it), the marks are
     cleared (what `h5clear -s` does; qmg_lab/storage/h5clear.py): the only change made to a file before every
     resume check passed, and it changes no data. True if it cleared them. StorageError: no HDF5 file."""
-    if writer_state(path) == "writing" or not left_open_without_swmr(path):
+    if (not held_here(path) and writer_state(path) == "writing") or not left_open_without_swmr(path):
         return False
     clear_superblock_flags(path)
     return True
@@ -101,7 +101,7 @@ def _check_resumable(
             f"{p}: was written with configuration {stored}, not with this configuration "
             f"{config_sha256}; resume with the configuration the run was started with"
         )
-    if writer_state(p) == "writing":  # the lock, not the recorded pid (which another process may now have)
+    if not held_here(p) and writer_state(p) == "writing":  # the lock, not the recorded pid (maybe reused)
         raise StorageError(f"{p}: is still being written by another process ({holder(p)}); stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))

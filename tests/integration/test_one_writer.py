@@ -136,7 +136,7 @@ def test_the_lock_is_reentrant_in_one_process_and_exclusive_across_writers(tmp_p
             path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
         )
         w.close()  # the writer's share of the lock ends; the outer one still holds it
-        assert writer_state(path) == "gone"  # held by this process: no other process writes it
+        assert writer_state(path) == "writing"  # held by this process
     assert lock_path(path).exists() and writer_state(path) == "gone"
     with pytest.raises(StorageError, match="already exists"):
         RunWriter.create(
