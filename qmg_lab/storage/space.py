@@ -18,6 +18,7 @@ free, the resume's own check passes.
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -74,10 +75,12 @@ class SpaceNeed:
     def words(self) -> str:
         """The figure for the operator: what the run needs, at which rate, and what is free."""
         how = "as written so far" if self.measured else "uncompressed, the most it can write"
-        free = "unknown" if self.free is None else f"{self.free / 1e6:.1f} MB"
+        # the figure asked is rounded up and what is free down: freeing what it says is always enough
+        free = "unknown" if self.free is None else f"{math.floor(self.free / 1e5) / 10:.1f} MB"
+        asked = math.ceil(self.needed / 1e5) / 10
         return (
-            f"The run needs about {self.needed / 1e6:.1f} MB more on its disk for its remaining {self.left_s:.0f} s "
-            f"of run time ({self.bytes_per_s * 3600 / 1e6:.0f} MB per hour of run time, {how}, x{MARGIN:g} "
+            f"The run needs about {asked:.1f} MB more on its disk for its remaining {self.left_s:.0f} s of run time "
+            f"({self.bytes_per_s * 3600 / 1e6:.0f} MB per hour of run time, {how}, x{MARGIN:g} "
             f"+ {RESERVE_BYTES / 1e6:.1f} MB); {free} are free"
         )
 
