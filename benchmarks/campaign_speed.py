@@ -45,9 +45,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import h5py
-
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from qmg_lab.storage.reader import read_run  # noqa: E402 - imported after sys.path points at this checkout
+
 PAPER = ROOT / "configs" / "paper_campaign.toml"
 
 
@@ -99,10 +101,9 @@ def run_once(
     if proc.returncode != 0:
         err = proc.stderr.read().decode() if proc.stderr else ""
         raise SystemExit(f"qmg-lab run {config} failed ({proc.returncode}):\n{err}")
-    with h5py.File(out, "r") as f:
-        t = f["lockin/time"]
-        simulated = float(t[t.shape[0] - 1])
-        assert "truth" in f, "the twins' file has /truth"
+    run = read_run(out, select=("lockin/time",))
+    simulated = float(run.groups["lockin"]["time"][-1])
+    assert run.has_truth, "the twins' file has /truth"
     cpu = usage.ru_utime + usage.ru_stime
     return wall, usage.ru_maxrss / 1024.0, simulated, out.stat().st_size / 1e6, cpu, main_cpu
 

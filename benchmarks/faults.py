@@ -67,18 +67,18 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
-import h5py
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from qmg_lab.campaign.pipeline import run_campaign  # noqa: E402 - imported after sys.path points at this checkout
 from qmg_lab.campaign.plan import build_plan  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.campaign.runner import CampaignRunner  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.config.schema import config_fingerprint, parse_config  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.config.schema import parse_config  # noqa: E402 - imported after sys.path points at this checkout
 from qmg_lab.station import build_station, make_world  # noqa: E402 - imported after sys.path points at this checkout
-from qmg_lab.storage.writer import RunWriter, read_run  # noqa: E402 - imported after sys.path points at this checkout
+from qmg_lab.storage.writer import read_run  # noqa: E402 - imported after sys.path points at this checkout
 
 SAFE_C = 20.0
 BASE = f"""
@@ -151,8 +151,7 @@ def random_faults(rng: random.Random) -> str:
 
 def missing_samples(path: Path, injected: int) -> int:
     """Samples absent from /lockin/time (gaps of more than one period) beyond the `injected` HF2 losses."""
-    with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-        t = h5["lockin/time"][:]
+    t = read_run(path, select=("lockin/time",)).groups["lockin"]["time"]
     if len(t) < 2:
         return 0
     dt = float(np.median(np.diff(t)))
@@ -178,25 +177,12 @@ def soak(n: int, seed: int, tmp: Path) -> dict[str, int]:
         world = make_world(cfg)
         station = build_station(cfg, world)
         path = tmp / f"soak{i}.h5"
-        writer = RunWriter.create(
-            path,
-            config_text=text,
-            config_sha256=config_fingerprint(text),
-            mode="sim",
-            software_version="bench",
-            t0_unix=time.time(),
-            compression="none",
-            truth=True,
-            flush_interval_s=cfg.storage.flush_interval_s,
-        )
-        runner = CampaignRunner(cfg, station, writer)
         try:
-            summary = runner.run()
-        except Exception as exc:
-            summary = runner.summary("aborted", str(exc))
+            end = run_campaign(cfg, text, path, station=station, software_version="bench")
         finally:
             station.close()
-            writer.close()
+        summary = end.summary
+        assert summary is not None, end.message  # the checks before the run passed
         faults = summary.faults_injected
         n_faults = sum(1 for f in faults if f["kind"] != "link_restored")
         fig["faults_injected"] += n_faults
@@ -301,6 +287,15 @@ def child(phase: str, nth: int, delay_s: float, argv: list[str]) -> None:
             arm()
         return close(self)
 
+    if phase == "open":  # killed delay_s after the file is opened for writing (before SWMR, repair, first rows)
+        opened = storage._open_for_writing
+
+        def open_and_arm(p, what):
+            h5 = opened(p, what)
+            arm()
+            return h5
+
+        storage._open_for_writing = open_and_arm
     if phase == "repair":  # killed right after the nth dataset resize of the repair on reopen
         import h5py as _h5py
 
@@ -363,9 +358,12 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
             bad.append(f"/{grp} has a gap longer than one block")
     if te.max() > tl[-1]:
         bad.append("a step ends after the data")
+    nan_rows = {f"{grp}/{c}": int(np.isnan(v).sum()) for grp, cols in g.items() for c, v in cols.items()}
+    if any(nan_rows.values()):  # fill values (NaN) are never data: none may be left in a resumed file
+        bad.append(f"NaN rows { ({k: v for k, v in nan_rows.items() if v}) }")
     from qmg_lab.analysis.compute import analyze
 
-    a, b = analyze(path), analyze(ref)
+    a, b = analyze(path), _analysis(ref)
     if a.truth_check_rms_ppm is None or b.truth_check_rms_ppm is None:
         bad.append("no truth check")
     else:
@@ -375,6 +373,18 @@ def check_against(path: Path, ref: Path, dt: float, poll_s: float) -> list[str]:
                 f"truth check {a.truth_check_rms_ppm:.2f} ppm vs {b.truth_check_rms_ppm:.2f} ppm (tolerance {tol:.2f})"
             )
     return bad
+
+
+_ANALYSES: dict[Path, object] = {}
+
+
+def _analysis(ref: Path) -> Any:
+    """analyze(ref), once per reference file."""
+    from qmg_lab.analysis.compute import analyze
+
+    if ref not in _ANALYSES:
+        _ANALYSES[ref] = analyze(ref)
+    return _ANALYSES[ref]
 
 
 def references(seeds: list[int], tmp: Path) -> tuple[dict[int, Path], dict[int, Path], float, float]:
@@ -393,8 +403,8 @@ def references(seeds: list[int], tmp: Path) -> tuple[dict[int, Path], dict[int, 
             cwd=ROOT,
         )
     cfg0 = parse_config(configs[seeds[0]].read_text())
-    with h5py.File(refs[seeds[0]], "r") as f:  # the sample period the lock-in applied (its rate, read back)
-        dt = float(np.median(np.diff(f["lockin/time"][:2000])))
+    t = read_run(refs[seeds[0]], select=("lockin/time",)).groups["lockin"]["time"]
+    dt = float(np.median(np.diff(t[:2000])))  # the sample period the lock-in applied (its rate, read back)
     return configs, refs, dt, cfg0.lockin.sim_poll_interval_s
 
 
@@ -547,24 +557,10 @@ def _kill_after(argv: list[str], seconds: float, fig: dict[str, object]) -> tupl
 
 
 def _checkpoints(path: Path) -> dict[int, tuple[float, float]]:
-    """The checkpoints a plain resume of the file keeps (its repair plan, read-only: the leading "completed"
-    /steps rows whose data are in): index -> (t_start, t_end). A file a full disk left short is read from a
-    copy padded to its recorded end, as its resume reads it."""
-    from qmg_lab.storage.resume import ends_short, plan_repair
-    from qmg_lab.storage.salvage import padded_copy
+    """The checkpoints a plain resume of the file keeps (qmg_lab.storage.resume.kept_checkpoints, read-only)."""
+    from qmg_lab.storage.resume import kept_checkpoints
 
-    short = ends_short(path)
-    source = path.with_name(path.name + ".padded") if short else path
-    if short:
-        padded_copy(path, source)
-    try:
-        with h5py.File(source, "r", swmr=True, libver="latest") as h5:
-            n = plan_repair(h5, thorough=short).steps_rows
-            cols = [h5["steps"][c][:n] for c in ("index", "t_start", "t_end")]
-    finally:
-        if short:
-            source.unlink()
-    return {int(i): (float(a), float(b)) for i, a, b in zip(*cols, strict=True)}
+    return kept_checkpoints(path)
 
 
 def _finish_and_compare(
@@ -706,6 +702,252 @@ def damaged_files(seed: int, tmp: Path) -> dict[str, object]:
     return fig
 
 
+SHORT_HOLD_S = 50.0  # the writer soaks' campaign: 12 steps, 109 s simulated (BASE with a 50 s end hold)
+
+
+def short_reference(seed: int, tmp: Path) -> tuple[Path, Path, float, float]:
+    """The writer soaks' configuration of `seed` (BASE, no faults) and its uninterrupted run; the lock-in's sample
+    period and block, read back from the file."""
+    cfg, ref = tmp / f"short{seed}.toml", tmp / f"short{seed}-ref.h5"
+    if not ref.exists():
+        cfg.write_text(BASE.format(hold=SHORT_HOLD_S) + f"[sim]\nseed = {seed}\n")
+        subprocess.run(
+            [sys.executable, "-m", "qmg_lab", "run", str(cfg), "-o", str(ref), "-q"],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            cwd=ROOT,
+        )
+    t = read_run(ref, select=("lockin/time",)).groups["lockin"]["time"]
+    return cfg, ref, float(np.median(np.diff(t[:2000]))), parse_config(cfg.read_text()).lockin.sim_poll_interval_s
+
+
+def _wait_steps(proc: subprocess.Popen[str], path: Path, n: int) -> bool:
+    """Wait until the file records n completed steps (True) or the process ends (False)."""
+    while proc.poll() is None:
+        if completed_steps_now(path) >= n:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def resume_window_kills(n: int, seed: int, tmp: Path, deadline: float = float("inf")) -> dict[str, object]:
+    """Kills inside `--resume`, each followed by a plain `--resume` that must continue the file to the
+    uninterrupted run's data. One killed file per seed (SIGKILL in a random late step), copied for every case;
+    the resume of the copy is killed: a third of the cases 0-200 ms after it opened the file for writing (before
+    the SWMR start, inside the repair, the first rows: the window the issue found), a third right after the k-th
+    dataset resize of its repair, a third by an external SIGKILL 0-2.5 s after the process started."""
+    import shutil
+
+    rng = random.Random(seed + 17)
+    fig = _outcome_figures(cases=0, kills_inside_resume=0, by_kind={"open_0_200ms": 0, "repair": 0, "external": 0})
+    bases: dict[int, tuple[Path, Path, Path, float, float]] = {}
+    for sd in (seed * 100 + 50 + k for k in range(4)):
+        cfg, ref, dt, poll_s = short_reference(sd, tmp)
+        base = tmp / f"window-base{sd}.h5"
+        run_args = ["run", str(cfg), "-o", str(base), "-q"]
+        code, _ = _kill_after(_child_argv("step", rng.randint(1, 3), rng.uniform(0.0, 0.003), run_args), HANG_S, fig)
+        if code == -signal.SIGKILL and base.exists():
+            bases[sd] = (base, cfg, ref, dt, poll_s)
+    kinds = ("open_0_200ms", "repair", "external")
+    for i in range(n):
+        if time.monotonic() > deadline:
+            fig["stopped_at_deadline"] = True
+            break
+        sd = list(bases)[i % len(bases)]
+        base, cfg, ref, dt, poll_s = bases[sd]
+        path = tmp / f"window{i}.h5"
+        shutil.copyfile(base, path)
+        before = _checkpoints(path)
+        resume_args = ["run", str(cfg), "--resume", str(path), "-q"]
+        kind = kinds[i % 3]
+        if kind == "open_0_200ms":
+            code, err = _kill_after(_child_argv("open", 1, rng.uniform(0.0, 0.2), resume_args), HANG_S, fig)
+        elif kind == "repair":
+            code, err = _kill_after(_child_argv("repair", rng.randint(1, 40), 0.0, resume_args), HANG_S, fig)
+        else:
+            code, err = _kill_after([sys.executable, "-m", "qmg_lab", *resume_args], rng.uniform(0.0, 2.5), fig)
+        fig["cases"] = int(fig["cases"]) + 1
+        if code == -signal.SIGKILL:
+            fig["kills_inside_resume"] = int(fig["kills_inside_resume"]) + 1
+            fig["by_kind"][kind] += 1  # type: ignore[index]
+        elif code != 0:
+            fig["resume_failed"] = int(fig["resume_failed"]) + 1
+            fig["details"].append(f"window{i}: resume ({kind}) exit {code}: {' '.join(err.split())[-300:]}")
+        if code == 0 or _completed(path):
+            path.unlink()
+            continue  # the resume ran to its end before the kill: nothing left to continue
+        _finish_and_compare(path, cfg, ref, dt, poll_s, before, fig, f"window{i} ({kind}, seed {sd})")
+        path.unlink(missing_ok=True)
+    return fig
+
+
+#: free bytes left on the run's disk when it fills up: from nothing to more than a flush needs
+FILL_LEVELS = (0, 4096, 65536, 262144, 1 << 20, 2 << 20, 4 << 20, 6 << 20, 8 << 20, 12 << 20)
+TMPFS_BYTES = 80 << 20  # the small disk: room for the run's check before it starts (raw rate) and its file
+
+
+def _fill(mount: Path, leave: int) -> Path:
+    """Fill the disk at `mount` up to `leave` free bytes with a new file (as another program would)."""
+    filler = mount / f"filler-{time.monotonic_ns()}"
+    st = os.statvfs(mount)
+    todo = max(st.f_bavail * st.f_frsize - leave, 0)
+    with open(filler, "wb") as fh:
+        while todo > 0:
+            try:
+                todo -= fh.write(b"\0" * min(todo, 1 << 20))
+            except OSError:
+                break
+    return filler
+
+
+def _needed_bytes(said: str) -> int | None:
+    """The space the run asked for, bytes ("The run needs about X MB more")."""
+    import re
+
+    m = re.search(r"The run needs about ([0-9.]+) MB more", said)
+    return int(float(m.group(1)) * 1e6) if m else None
+
+
+def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
+    """A real full disk at every level of FILL_LEVELS, twice in a row: each case runs the writer soaks' campaign on
+    a small tmpfs; another program fills the disk to the level after a random step; the run must end with exit
+    2 or 3 and words, never exit 0 without every step in the file, never a traceback or a signal (segfault). Then
+    the disk fills again during the resume (the second full disk). Then exactly the space the run asked for is
+    freed and a plain --resume must complete the file to the uninterrupted run's data. Needs root (mount) on
+    Linux; otherwise skipped."""
+    if sys.platform != "linux" or os.geteuid() != 0:
+        return {"skipped": "needs root on Linux to mount a tmpfs"}
+    rng = random.Random(seed + 19)
+    cfg, ref, dt, poll_s = short_reference(seed * 100 + 70, tmp)
+    fig = _outcome_figures(
+        cases=0, full_disk_ends=0, false_successes=0, segfaults=0, tracebacks=0, asked_enough=0, asked_not_enough=0
+    )
+    fig["levels"] = list(FILL_LEVELS)
+    fig["exit_codes"] = []
+    for i, level in enumerate(FILL_LEVELS):
+        mount = tmp / f"disk{i}"
+        mount.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={TMPFS_BYTES}", "tmpfs", str(mount)], check=True)
+        try:
+            path = mount / "run.h5"
+            codes = []
+            said = ""
+            for attempt, argv in enumerate(
+                (["run", str(cfg), "-o", str(path), "-q"], ["run", str(cfg), "--resume", str(path), "-q"])
+            ):
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "qmg_lab", *argv],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                    cwd=ROOT,
+                )
+                start = max(completed_steps_now(path), 0)
+                if _wait_steps(proc, path, start + rng.randint(2, 6) if attempt == 0 else start + 1):
+                    _fill(mount, level if attempt == 0 else rng.choice(FILL_LEVELS))
+                try:
+                    _, err = proc.communicate(timeout=HANG_S)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+                    fig["hangs"] = int(fig["hangs"]) + 1
+                    err = ""
+                said = " ".join(err.split())
+                codes.append(proc.returncode)
+                if proc.returncode < 0:
+                    fig["segfaults" if proc.returncode == -signal.SIGSEGV else "crashes"] = (
+                        int(fig["segfaults" if proc.returncode == -signal.SIGSEGV else "crashes"]) + 1
+                    )
+                if "Traceback" in err:
+                    fig["tracebacks"] = int(fig["tracebacks"]) + 1
+                if proc.returncode == 0:
+                    run = read_run(path, select=())
+                    if run.status != "completed" or sorted(set(run.steps["index"])) != list(range(12)):
+                        fig["false_successes"] = int(fig["false_successes"]) + 1
+                        fig["details"].append(f"disk{i}: exit 0 with status {run.status}")
+                    break
+                fig["full_disk_ends"] = int(fig["full_disk_ends"]) + 1
+                for f in mount.glob("filler-*"):
+                    f.unlink()
+            fig["cases"] = int(fig["cases"]) + 1
+            fig["exit_codes"].append(codes)  # type: ignore[union-attr]
+            if _completed(path):
+                continue
+            try:
+                before = _checkpoints(path)
+            except Exception:  # not readable until a resume heals it: nothing to hold the resume to
+                before = {}
+            asked = _needed_bytes(said)
+            if asked is not None:
+                _fill(mount, asked)  # exactly what the run asked for, no more
+            done = _run([sys.executable, "-m", "qmg_lab", "run", str(cfg), "--resume", str(path), "-q"], fig)
+            if done is not None and asked is not None:
+                key = "asked_enough" if done.returncode == 0 else "asked_not_enough"
+                fig[key] = int(fig[key]) + 1
+                if done.returncode != 0:
+                    fig["details"].append(
+                        f"disk{i}: asked {asked} B, resume exit {done.returncode}: {done.stderr[-200:]}"
+                    )
+            for f in mount.glob("filler-*"):
+                f.unlink()
+            _finish_and_compare(path, cfg, ref, dt, poll_s, before, fig, f"disk{i} (level {level} B)")
+        finally:
+            subprocess.run(["umount", str(mount)], check=False)
+    return fig
+
+
+def _completed(path: Path) -> bool:
+    """The file says "completed" (False while no reader can open it: a writer killed before its SWMR start, which
+    the next --resume heals)."""
+    try:
+        return read_run(path, select=()).status == "completed"
+    except Exception:
+        return False
+
+
+def completed_steps_now(path: Path) -> int:
+    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be read."""
+    try:
+        return int(read_run(path, select=()).attrs["completed_steps"])
+    except Exception:  # the writer is laying the file out, or it does not exist yet
+        return -1
+
+
+def output_survival(seed: int, tmp: Path) -> dict[str, object]:
+    """A run whose stdout reader dies at once (with progress on, stderr's too) and a run under `nohup` that gets a
+    SIGHUP in its middle: exit code and whether the file holds the whole run (status completed, 12 steps)."""
+    import shutil
+
+    cfg, _, _, _ = short_reference(seed * 100 + 80, tmp)
+    out: dict[str, object] = {}
+    for label in ("stdout_reader_died", "nohup_hangup"):
+        path = tmp / f"{label}.h5"
+        argv = [sys.executable, "-m", "qmg_lab", "run", str(cfg), "-o", str(path)]
+        if label == "stdout_reader_died":
+            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+            assert proc.stdout is not None and proc.stderr is not None
+            proc.stdout.close()
+            proc.stderr.close()
+        else:
+            nohup = shutil.which("nohup")
+            if nohup is None:
+                out[label] = {"skipped": "no nohup"}
+                continue
+            proc = subprocess.Popen(
+                [nohup, *argv, "-q"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                cwd=ROOT,
+                start_new_session=True,
+            )
+            if _wait_steps(proc, path, 4):  # type: ignore[arg-type]
+                proc.send_signal(signal.SIGHUP)
+        code = proc.wait(timeout=HANG_S)
+        run = read_run(path, select=())
+        out[label] = {"exit": code, "status": run.status, "steps": len(set(run.steps["index"]))}
+    return out
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":  # faults.py --child PHASE NTH DELAY -- qmg-lab args
         child(sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), sys.argv[6:])
@@ -717,8 +959,32 @@ def main() -> None:
     ap.add_argument("--resume-kills", type=int, default=24, help="runs whose --resume is killed (part 3)")
     ap.add_argument("--disk-full", type=int, default=8, help="runs that hit a full disk, then resumed (part 4)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument(
+        "--writer",
+        type=int,
+        metavar="N",
+        help="only the writer's soaks: N kills inside --resume (a third in its first 200 ms of writing), a full "
+        "disk at every FILL_LEVELS level twice in a row (root, Linux), a dead stdout reader and nohup + SIGHUP",
+    )
+    ap.add_argument("--parts", default="kills,disk,output", help="with --writer: which of kills, disk, output")
+    ap.add_argument("--deadline-s", type=float, help="with --writer: start no kill case after this many seconds")
     args = ap.parse_args()
     t0 = time.monotonic()
+    if args.writer is not None:
+        deadline = t0 + args.deadline_s if args.deadline_s else float("inf")
+        parts = set(args.parts.split(","))
+        with tempfile.TemporaryDirectory(prefix="qmg-faults-") as d:
+            tmp = Path(d)
+            writer: dict[str, object] = {}
+            if "kills" in parts:
+                writer["resume_window_kills"] = resume_window_kills(args.writer, args.seed, tmp, deadline)
+            if "disk" in parts:
+                writer["disk_full_levels"] = disk_full_levels(args.seed, tmp)
+            if "output" in parts:
+                writer["output"] = output_survival(args.seed, tmp)
+            writer.update(seed=args.seed, wall_s=round(time.monotonic() - t0, 1))
+        print(json.dumps(writer) if args.json else json.dumps(writer, indent=1))
+        return
     with tempfile.TemporaryDirectory(prefix="qmg-faults-") as d:
         tmp = Path(d)
         s = soak(args.campaigns, args.seed, tmp)

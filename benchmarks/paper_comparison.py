@@ -21,10 +21,12 @@ import tempfile
 from pathlib import Path
 
 import allantools
-import h5py
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from qmg_lab.storage.reader import read_run  # noqa: E402 - imported after sys.path points at this checkout
 
 
 def qmg(*args: str) -> str:
@@ -51,11 +53,11 @@ def one_second_means(t: np.ndarray, v: np.ndarray) -> np.ndarray:
 def self_calibrated_sf_adev(path: Path) -> tuple[list[float], list[float]]:
     """ADEV (relative) at 60 s and 2000 s after the soak: of the twin's actual SF under CLSF correction (1 s
     means of /truth) and of the CLSF estimate itself (one value per dither period)."""
-    with h5py.File(path, "r") as f:
-        kinds = list(f["steps/kind"][:])
-        t0 = float(f["steps/t_end"][kinds.index(b"soak")])
-        tt, sf = f["truth/time"][:], f["truth/scale_factor"][:]
-        ct, est = f["clsf/time"][:], f["clsf/sf_change_estimate"][:]
+    run = read_run(path, select=("truth/time", "truth/scale_factor", "clsf/time", "clsf/sf_change_estimate"))
+    kinds = list(run.steps["kind"])
+    t0 = float(run.steps["t_end"][kinds.index("soak")])
+    tt, sf = run.groups["truth"]["time"], run.groups["truth"]["scale_factor"]
+    ct, est = run.groups["clsf"]["time"], run.groups["clsf"]["sf_change_estimate"]
     keep = tt >= t0
     per_s = one_second_means(tt[keep], sf[keep])
     k = ct >= t0

@@ -5,10 +5,11 @@ Writes `--minutes` of a realistic 1400 Sa/s campaign stream in 2 s blocks (2800 
 a square dither, 7 CLSF rows/s, a table and a chamber row per block, /truth (a slowly drifting true SF and
 temperature, a constant rate) at the lock-in sample times. Two write patterns, as the campaign produces them:
 
-* twins (`RunWriter.create(realtime=False)`): the world runs ~1000x real time, so a 1 s wall-clock flush and the
-  flush at every completed step carry about a minute of data: a flush every 30 blocks (60 s of data);
-* hardware (`realtime=True`, smaller chunks): blocks of 0.5 s (700 samples, lockin.poll_interval_s) and a flush
-  every 1 s of data (every second block).
+* twins (a twin configuration's file, `new_run_file`: big chunks): the world runs ~1000x real time, so a 1 s
+  wall-clock flush and the flush at every completed step carry about a minute of data: a flush every 30 blocks
+  (60 s of data);
+* hardware (a bench configuration's file: smaller chunks): blocks of 0.5 s (700 samples, lockin.poll_interval_s)
+  and a flush every 1 s of data (every second block).
 
 Then the campaign's own recording path per lock-in block (`per_block`): `BlockRecorder.record` as the runner calls
 it, for `--blocks` blocks of 2 s at 1800 Sa/s (3600 samples: the paper campaign's twin blocks; a 7 Hz square
@@ -21,13 +22,13 @@ medians of `--repeats` runs in this process after a short warm-up (numba's cache
     python benchmarks/storage_speed.py [--minutes 10] [--blocks 1660] [--repeats 5]
 
 Prints JSON: per case MB per campaign hour, write CPU s per campaign hour (append + flush + close), and the
-seconds to read one hour of /lockin/rate_output with plain h5py; per_block: microseconds per block per level.
+seconds to read one hour of /lockin/rate_output through qmg_lab.storage.reader.read_run; per_block: microseconds
+per block per level.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import statistics
 import tempfile
@@ -36,7 +37,6 @@ import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
-import h5py
 import numpy as np
 import tomlkit
 
@@ -46,7 +46,7 @@ from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.clsf.estimator import ClsfPeriods
 from qmg_lab.config.schema import parse_config
 from qmg_lab.instruments import INSTRUMENT_NAMES, ChamberReading, LockInBlock, TableReading, TruthBlock
-from qmg_lab.storage.writer import RunWriter
+from qmg_lab.storage.writer import read_run
 
 FS = 1400.0
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,19 +75,12 @@ def lockin_columns(rng: np.random.Generator, t: np.ndarray) -> dict[str, np.ndar
 
 def write_campaign(path: Path, compression: str, minutes: float, truth: bool, realtime: bool) -> dict[str, float]:
     rng = np.random.default_rng(1)
-    text = "[campaign]\nname='bench'\n"
-    w = RunWriter.create(
-        path,
-        config_text=text,
-        config_sha256=hashlib.sha256(text.encode()).hexdigest(),
-        mode="sim",
-        software_version="bench",
-        t0_unix=time.time(),
-        compression=compression,
-        truth=truth,
-        flush_interval_s=1e9,
-        realtime=realtime,
-    )
+    # the twins' write pattern is the twins' file (/truth, big chunks); the hardware's a bench file (small chunks)
+    assert truth != realtime, "a run file has /truth exactly when its lock-in is a twin"
+    text = f"[campaign]\nname='bench'\n[storage]\ncompression = '{compression}'\n"
+    cfg = parse_config(text)
+    cfg = cfg.with_all_sim() if truth else cfg
+    w = new_run_file(path, cfg, text, checked_plan(cfg), software_version="bench")
     block = 700 if realtime else 2800
     flush_every = 2 if realtime else 30
     n_blocks = int(minutes * 60 * FS / block)
@@ -126,8 +119,7 @@ def write_campaign(path: Path, compression: str, minutes: float, truth: bool, re
     t_cpu += time.perf_counter() - t0
     hours = n_blocks * block / FS / 3600
     t0 = time.perf_counter()
-    with h5py.File(path, "r") as f:
-        f["lockin/rate_output"][:]
+    read_run(path, select=("lockin/rate_output",))
     t_read = time.perf_counter() - t0
     return {
         "mb_per_hour": path.stat().st_size / 1e6 / hours,

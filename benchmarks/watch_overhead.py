@@ -162,10 +162,9 @@ def main() -> None:
             w, how, c = _watched(cfg, out, tmp, not args.no_browser)
             watched.append(w)
             cpu.append(c)
-        import h5py
+        from qmg_lab.storage.reader import read_run
 
-        with h5py.File(out, "r") as f:
-            simulated = float(f["lockin/time"][-1])
+        simulated = float(read_run(out, select=("lockin/time",)).groups["lockin"]["time"][-1])
         result = {
             "config": str(PAPER.relative_to(REPO)),
             "ramp_divisor": args.ramp_divisor,

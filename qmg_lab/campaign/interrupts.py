@@ -3,9 +3,10 @@ process is asked to stop.
 
 Every stop signal takes Ctrl-C's path: SIGINT (Ctrl-C), SIGTERM (kill, systemd, a batch scheduler), SIGHUP (the
 terminal or the SSH session that started the run went away), SIGQUIT (Ctrl-\\) and, on Windows, SIGBREAK
-(Ctrl-Break). Handlers are installed only for the signals the platform has (`STOP_SIGNALS`). The first signal sets
-a flag that the campaign checks between lock-in blocks (it then brings every instrument to its safe state and
-marks the file "aborted", the signal named in `abort_reason`); the process then exits 128 + the signal's number
+(Ctrl-Break). Handlers are installed only for the signals the platform has (`STOP_SIGNALS`), and not over an
+inherited "ignore" of SIGHUP: a run started under `nohup` goes on when its terminal hangs up. The first
+signal sets a flag that the campaign checks between lock-in blocks (it then brings every instrument to its safe state
+and marks the file "aborted", the signal named in `abort_reason`); the process then exits 128 + the signal's number
 (`exit_code`), the shell's convention for "ended by signal n" (130 for Ctrl-C). A second signal raises
 `StopRequested` (a KeyboardInterrupt) at once, unless a protected section (an HDF5 write, the safe state, the
 file's last close) is running: then it is raised when the section ends.
@@ -31,6 +32,10 @@ SIGNAL_MEANINGS: dict[str, str] = {
     "SIGQUIT": "stopped by SIGQUIT (quit request, Ctrl-\\)",
     "SIGBREAK": "stopped by SIGBREAK (Ctrl-Break)",
 }
+#: stop signals whose inherited "ignore" is kept: SIGHUP, which `nohup` ignores so that a run outlives its
+#: terminal. SIGINT is taken over even when ignored: a shell starts background jobs (`cmd &`) with SIGINT ignored,
+#: and Ctrl-C or `kill -INT` must still stop the campaign safely
+KEPT_IF_IGNORED: frozenset[int] = frozenset({int(signal.SIGHUP)} if hasattr(signal, "SIGHUP") else set())
 STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
     getattr(signal, name) for name in SIGNAL_MEANINGS if hasattr(signal, name)
 )
@@ -78,6 +83,8 @@ class InterruptGuard:
         if threading.current_thread() is threading.main_thread():
             for sig in STOP_SIGNALS:
                 try:
+                    if sig in KEPT_IF_IGNORED and signal.getsignal(sig) is signal.SIG_IGN:
+                        continue  # ignored by whoever started the run (nohup): it stays ignored
                     self._previous[sig] = signal.signal(sig, self._handle)
                 except (OSError, ValueError):  # a signal this process may not catch here
                     continue

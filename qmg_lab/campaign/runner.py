@@ -23,10 +23,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
@@ -46,6 +46,7 @@ from qmg_lab.instruments import (
     InstrumentError,
     Station,
 )
+from qmg_lab.storage.space import SpaceNeed, measured_bytes_per_s, raw_bytes_per_s, space_need
 from qmg_lab.storage.writer import RunFileWriteError, RunWriter
 
 T = TypeVar("T")
@@ -56,6 +57,7 @@ __all__ = [
     "CampaignRunner",
     "Progress",
     "RunSummary",
+    "run_space_need",
 ]
 
 log = logging.getLogger(__name__)
@@ -155,6 +157,7 @@ class CampaignRunner:
             event=self._event,
         )
         self._safe_confirmed = True
+        self._status_error: RunFileWriteError | None = None  # the final status/flush could not be written
         #: the safe_state event's message, word for word ("confirmed" or "not confirmed: ..."): what the CLI's last
         #: words about the safe state say, so the terminal never contradicts the file
         self.safe_state_note = ""
@@ -232,6 +235,8 @@ class CampaignRunner:
                 failures = self._finish_protected(status, reason)
                 if failures and status == "completed":
                     raise CampaignAborted("safe state not confirmed: " + "; ".join(failures))
+                if self._status_error is not None and status == "completed":  # the data are not all in the file
+                    raise CampaignAborted(self._write_failure_reason(self._status_error)) from self._status_error
         return self.summary(status, reason)
 
     def summary(self, status: str, reason: str = "") -> RunSummary:
@@ -332,28 +337,36 @@ class CampaignRunner:
             self.writer.flush()
         except RunFileWriteError as exc:  # the file cannot take its status (a full disk): it keeps its last flush
             log.error("could not write the run's status: %s", exc)
+            self._status_error = exc
         return failures
 
     def _write_failure_reason(self, exc: RunFileWriteError) -> str:
-        """The abort reason of a failed write; out of space: how much more the run needs, from the bytes per
-        second of run time written so far and the plan's time left, and what is free on the file's disk."""
+        """The abort reason of a failed write; out of space: how much more the run needs (qmg_lab/storage/space.py,
+        the figure the resume's own check asks for), and what is free on the file's disk."""
         if not exc.out_of_space:
             return f"the run file could not be written: {exc}"
         path = self.writer.path
-        try:
-            size = path.stat().st_size
-            free = shutil.disk_usage(path.resolve().parent).free
-        except OSError:
-            size, free = 0, 0
-        left_s = max(self._planned_s - self._done_s, 0.0)
-        per_s = size / self._t if self._t > 0 else 0.0
         what = "the process's file size limit (ulimit -f) was reached" if exc.size_limit else "the disk is full"
+        need = self._space_need()
         return (
-            f"the run file could not be written: {what} ({path}: {size / 1e6:.1f} MB written for {self._t:.0f} s "
-            f"of run time). The run needs about {per_s * left_s / 1e6:.0f} MB more for its remaining "
-            f"{left_s:.0f} s (at {per_s * 3600 / 1e6:.0f} MB per hour of run time); {free / 1e6:.0f} MB are free "
-            f"on its disk. Free the space, then continue with --resume {path}"
+            f"the run file could not be written: {what} ({path}, {self._t:.0f} s of run time written). "
+            f"{need.words()}. Free the space, then continue with --resume {path}"
         )
+
+    def _space_need(self) -> SpaceNeed:
+        return run_space_need(
+            self.cfg, self.writer.path, run_time_s=self._t, left_s=max(self._planned_s - self._done_s, 0.0)
+        )
+
+    def _check_space(self) -> None:
+        """After every step: stop at this checkpoint, in the safe state, if the rest of the plan does not fit on the
+        file's disk (a full disk in the middle of a write is avoided, not only survived)."""
+        need = self._space_need()
+        if not need.enough:
+            raise CampaignAborted(
+                f"not enough space left for the rest of the run: {need.words()}. Free the space, then continue "
+                f"with --resume {self.writer.path}"
+            )
 
     # ================================================================== steps
     def _run_step(self, step: Step) -> None:
@@ -374,6 +387,8 @@ class CampaignRunner:
             status="completed",
         )
         self._done_s += step.duration_s  # append_step flushed the file (in the twins' layout with the step's chunk)
+        if len(self.writer.completed_steps()) < len(self.steps):
+            self._check_space()
 
     def _apply(self, step: Step) -> None:
         """Commands at the start of a step (idempotent, so a resumed step can re-apply them)."""
@@ -529,3 +544,18 @@ class CampaignRunner:
             self.clsf.release_hold(self._t + self.cfg.clsf.hold_s)
             self._event("resumed", "", f"after: {self._suspended}", logging.INFO)
         self._suspended = new
+
+
+def run_space_need(cfg: Config, path: Path, *, run_time_s: float, left_s: float) -> SpaceNeed:
+    """The space a run of `cfg` at `path` still needs for `left_s` of run time (qmg_lab/storage/space.py): at the
+    bytes per second its file shows over `run_time_s` of run time, or, before it holds data, at the layout's raw
+    rate (every /lockin sample, /truth on the twins, a /clsf row per dither period, a /table and /chamber reading
+    per lock-in block of at least 0.05 s)."""
+    measured = measured_bytes_per_s(path, run_time_s)
+    if measured is not None:
+        return space_need(path, bytes_per_s=measured, left_s=left_s, measured=True)
+    lk = cfg.lockin
+    rows = {"lockin": lk.demod_rate_hz, "clsf": cfg.dither.frequency_hz, "table": 20.0, "chamber": 20.0}
+    if lk.sim:
+        rows["truth"] = lk.demod_rate_hz
+    return space_need(path, bytes_per_s=raw_bytes_per_s(rows), left_s=left_s, measured=False)

@@ -17,15 +17,14 @@ from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 
-from qmg_lab.cli.signals import say
+from qmg_lab.cli.signals import SteadyConsole, say
 from qmg_lab.config.schema import Config, ConfigError, load_config, stream_timing_problem
 from qmg_lab.instruments import InstrumentError, Station
 
-console = Console(stderr=True)
-out = Console()
+console = SteadyConsole(stderr=True)  # a broken pipe turns it off, never ends the process (cli/signals.py)
+out = SteadyConsole()
 
 #: what an unencodable character becomes on a console or redirected stream that cannot encode it (a Windows
 #: console or file in cp1252 has no ≤, µ or −): its escape (\u2264), never a UnicodeEncodeError

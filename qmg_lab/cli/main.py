@@ -15,7 +15,6 @@ import json
 import logging
 import sys
 import tempfile
-from contextlib import ExitStack
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any
@@ -36,7 +35,6 @@ from qmg_lab.cli.common import (
     QuietOpt,
     SimOpt,
     characterize_app,
-    connected_station,
     console,
     fail,
     flag,
@@ -45,9 +43,9 @@ from qmg_lab.cli.common import (
     tolerant_streams,
     warn_network_share,
 )
-from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
+from qmg_lab.cli.signals import say, settle_streams, stop_exits
 from qmg_lab.config.schema import Config, config_fingerprint
-from qmg_lab.instruments import INSTRUMENT_NAMES, InstrumentError, LimitError
+from qmg_lab.instruments import INSTRUMENT_NAMES, InstrumentError
 
 app = typer.Typer(
     add_completion=False,
@@ -241,105 +239,38 @@ def _execute(
     overwrite: bool = False,
     realtime: bool = False,
 ) -> Any:
-    """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
-    instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
-    configuration, writer gone, same twin/hardware instruments), then connect the station, and only then create
-    or change the file. The file's final close is protected from a second Ctrl-C."""
-    from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
-    from qmg_lab.campaign.pipeline import new_run_file
-    from qmg_lab.campaign.plan import checked_plan
-    from qmg_lab.campaign.runner import CampaignAborted, CampaignInterrupted, CampaignRunner
+    """Run a campaign into a new file or resume one through the one pipeline (qmg_lab.campaign.pipeline.run_campaign:
+    every check that needs no instrument first, the file's lock, the stop signals, the station, the file, its close
+    and its read-back; docs/reliability.md). This adds the progress view and turns the run's end into the exit code
+    and its words: 0 only if the closed file holds the whole run."""
+    from qmg_lab.campaign.pipeline import RunHooks, run_campaign
     from qmg_lab.cli.progress import ProgressView
-    from qmg_lab.storage.resume import ends_short
-    from qmg_lab.storage.study_level import refuse_study_resume
-    from qmg_lab.storage.writer import RunWriter, StorageError
 
-    try:
-        plan = checked_plan(cfg)
-    except LimitError as exc:
-        fail(EXIT_BAD_INPUT, str(exc))
-    sha = config_fingerprint(text)
-    modes = cfg.instrument_modes()
-    with ExitStack() as lock:  # the run file's one-writer lock, held until the command ends
-        if resume is not None:
-            if output is not None and output.resolve() != resume.resolve():
-                fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
-            if resume.is_file():
-                _hold(lock, resume)  # from the first check to the last close: no other process writes it meanwhile
-            try:
-                # a file cut short is checked first, on a padded copy opened without SWMR: a SWMR open of it
-                # could retry for minutes
-                short = ends_short(resume)
-                if not short:
-                    refuse_study_resume(resume)
-                RunWriter.check_resumable(resume, config_sha256=sha, instrument_modes=modes)
-                if short:
-                    refuse_study_resume(resume)
-            except StorageError as exc:
-                fail(EXIT_BAD_INPUT, str(exc))
-            path = resume
-        else:
-            path = output or _default_output(cfg)
-            try:
-                path.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-            _hold(lock, path)  # a live run's file is neither replaced (--overwrite) nor written by a second run
-            if path.exists() and not (overwrite and path.is_file()):
-                fail(EXIT_BAD_INPUT, f"{path} exists: choose another -o, or continue it with --resume {path}")
-        warn_network_share(path)  # HDF5 SWMR on a network share: readers may see a stale file
-        with stop_exits(console.print), InterruptGuard() as guard, connected_station(cfg, realtime) as station:
-            # one guard from here to the file's last close: a stop signal while the station connects or the file is
-            # reopened is kept for the campaign, which stops at its first block (docs/reliability.md)
-            try:
-                if resume is not None:
-                    writer = RunWriter.reopen(
-                        resume, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s, instrument_modes=modes
-                    )
-                else:
-                    if path.exists():
-                        path.unlink()  # --overwrite, now that the station answered
-                    writer = new_run_file(path, cfg, text, plan)
-            except StorageError as exc:
-                fail(EXIT_BAD_INPUT, str(exc))
-            except OSError as exc:
-                fail(EXIT_BAD_INPUT, f"cannot write the run file: {exc}")
-            log.info("run file %s; instruments %s", writer.path, modes)
-            heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
-            view = ProgressView(console, enabled=not quiet)
-            runner: CampaignRunner | None = None
-            try:
-                with view:
-                    runner = CampaignRunner(
-                        cfg, station, writer, progress=view.update, resume=resume is not None, plan=plan, guard=guard
-                    )
-                    return runner.run()
-            except CampaignInterrupted as exc:
-                fail(
-                    exit_code(exc.signum),
-                    f"{exc}; {safe_state_words(runner.safe_state_note if runner else '')}; file {writer.path} (status "
-                    f"aborted; continue with --resume {writer.path})",
-                )
-            except (CampaignAborted, InstrumentError) as exc:
-                words = safe_state_words(runner.safe_state_note if runner else "")
-                fail(EXIT_FAULT, f"{exc}; {words}; file {writer.path} (status aborted)")
-            except LimitError as exc:
-                fail(EXIT_BAD_INPUT, str(exc))
-            finally:
-                with guard.protect():  # a second stop signal waits for the file's last write
-                    writer.close()
+    if resume is not None and output is not None and output.resolve() != resume.resolve():
+        fail(EXIT_BAD_INPUT, f"--resume {resume} and -o {output} name different files")
+    if realtime and not cfg.lockin.sim:
+        fail(EXIT_BAD_INPUT, "--realtime paces the lock-in twin, and [lockin] sim is false: hardware runs in real time")
+    path = resume if resume is not None else (output or _default_output(cfg))
+    warn_network_share(path)  # HDF5 SWMR on a network share: readers may see a stale file
+    view = ProgressView(console, enabled=not quiet)
 
+    def file_open(writer: Any) -> None:
+        log.info("run file %s; instruments %s", writer.path, cfg.instrument_modes())
+        heap.settle()  # start-up is over: the campaign makes garbage from here on (qmg_lab.cli.heap)
 
-def _hold(stack: ExitStack, path: Path) -> None:
-    """Take the run file's one-writer lock (qmg_lab/storage/lock.py) for the rest of the command; exit 2 if
-    another process writes the file."""
-    from qmg_lab.storage.lock import RunFileLock
-    from qmg_lab.storage.writer import StorageError
-
-    try:
-        stack.enter_context(RunFileLock(path))
-    except StorageError as exc:
-        fail(EXIT_BAD_INPUT, str(exc))
+    with stop_exits(console.print):
+        end = run_campaign(
+            cfg,
+            text,
+            path,
+            resume=resume is not None,
+            overwrite=overwrite,
+            realtime=realtime,
+            hooks=RunHooks(progress=view.update, view=view, file_open=file_open),
+        )
+    if not end.ok:
+        fail(end.exit_code, end.message)
+    return end.summary
 
 
 def _print_summary(summary: Any) -> None:

@@ -3,11 +3,13 @@
 * Exit codes after a stop signal: 128 + the signal's number (qmg_lab.campaign.interrupts.exit_code): Ctrl-C 130,
   SIGHUP 129, SIGQUIT 131, SIGTERM 143, Windows' SIGBREAK 149.
 * The last words about the safe state repeat the run file's `safe_state` event word for word
-  (`safe_state_words`), so the terminal never says "safe" when the file says "not confirmed".
-* A dead terminal (SIGHUP, a closed SSH session: writes fail with EIO) or a full stdout/stderr (ENOSPC, EPIPE)
-  never changes how a campaign ends: a console write that fails is dropped (`say`), and at exit the standard
-  streams are pointed at the null device if they cannot be flushed (`settle_streams`), so Python's own final
-  flush does not turn the exit code into 120.
+  (qmg_lab.campaign.pipeline.safe_state_words), so the terminal never says "safe" when the file says "not confirmed".
+* A dead terminal (SIGHUP, a closed SSH session: writes fail with EIO), a full stdout/stderr (ENOSPC) or a reader
+  that went away (EPIPE: `qmg-lab run ... | head -1`) never changes how a campaign ends: a console write that fails
+  is dropped (`say`); the CLI's consoles are `SteadyConsole`s, which turn themselves off on a broken pipe where
+  rich's Console raises SystemExit(1) (`Console.on_broken_pipe`); and at exit the standard streams are pointed at
+  the null device if they cannot be flushed (`settle_streams`), so Python's own final flush does not turn the exit
+  code into 120.
 """
 
 from __future__ import annotations
@@ -20,23 +22,26 @@ from contextlib import contextmanager
 from typing import Any
 
 import typer
+from rich.console import Console
+
+
+class SteadyConsole(Console):
+    """A rich Console whose broken pipe turns it off instead of ending the process: rich's `on_broken_pipe`
+    points stdout at the null device and raises SystemExit(1), which would abort a campaign because its output's
+    reader went away. Here the console goes quiet and its own stream is pointed at the null device."""
+
+    def on_broken_pipe(self) -> None:
+        self.quiet = True
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self.file.fileno())
+            os.close(null)
 
 
 def say(print_: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
     """Call a console's print; a write that fails (dead terminal, full device, closed pipe) is dropped."""
     with contextlib.suppress(OSError, ValueError):  # ValueError: the stream was closed
         print_(*args, **kwargs)
-
-
-def safe_state_words(note: str) -> str:
-    """The CLI's words about the safe state, from the text of the file's safe_state event ("confirmed" or
-    "not confirmed: <what failed>"); before the safe state was commanded (note ""): the station's own close
-    commands it, without a file event."""
-    if note == "confirmed":
-        return "instruments in their safe state (safe_state: confirmed)"
-    if note:
-        return f"safe_state: {note}; go and check the instruments"
-    return "safe state commanded when the station closed"
 
 
 def settle_streams() -> None:

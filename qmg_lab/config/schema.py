@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import stat
 import sys
 import tomllib
 from pathlib import Path
@@ -801,17 +802,32 @@ def parse_config(text: str, source: str = "<string>") -> Config:
         raise ConfigError(f"{source}: invalid configuration:\n  " + "\n  ".join(lines)) from None
 
 
+#: the largest configuration file read, bytes: a campaign's TOML is a few kB; anything larger is not one
+CONFIG_MAX_BYTES = 1 << 20
+
+
 def load_config(path: str | Path) -> tuple[Config, str]:
     """Read and validate a configuration file. Returns the model and the file's text (stored in run files)."""
     p = Path(path)
     try:
-        text = p.read_bytes().decode("utf-8")  # no newline translation: TOML allows LF and CRLF only
+        info = p.stat()  # before any open: opening a FIFO waits for a writer, a device may never end
+        if stat.S_ISDIR(info.st_mode):
+            raise ConfigError(f"{p}: is a directory, not a configuration file")
+        if not stat.S_ISREG(info.st_mode):
+            raise ConfigError(f"{p}: is not a regular file (a pipe, a device or a socket); give a TOML file")
+        if info.st_size > CONFIG_MAX_BYTES:
+            raise ConfigError(
+                f"{p}: {info.st_size} bytes is not a configuration (at most {CONFIG_MAX_BYTES} bytes); "
+                "give the campaign's TOML file"
+            )
+        with open(p, "rb") as f:
+            text = f.read(CONFIG_MAX_BYTES + 1).decode("utf-8")  # no newline translation: TOML allows LF and CRLF
     except FileNotFoundError:
         raise ConfigError(f"{p}: configuration file not found") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{p}: is a directory, not a configuration file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+    if len(text) > CONFIG_MAX_BYTES:
+        raise ConfigError(f"{p}: grew past {CONFIG_MAX_BYTES} bytes while it was read; give the campaign's TOML file")
     return parse_config(text, str(p)), text
 
 

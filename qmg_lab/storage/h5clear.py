@@ -89,6 +89,19 @@ def writer_flags_set(path: str | Path) -> bool:
     return body[11] != 0
 
 
+#: the superblock's file-consistency flags (HDF5 file format specification, version 3 superblock; H5Fpkg.h):
+#: opened for writing, and opened for SWMR writing
+WRITE_ACCESS, SWMR_WRITE_ACCESS = 0x01, 0x04
+
+
+def left_open_without_swmr(path: str | Path) -> bool:
+    """True if a writer opened the file for writing and never switched it to SWMR nor closed it: killed between
+    its open and its `swmr_mode = True` (no reader, SWMR or not, can open such a file until the flags are
+    cleared)."""
+    body, _ = _superblock(Path(path))
+    return bool(body[11] & WRITE_ACCESS) and not body[11] & SWMR_WRITE_ACCESS
+
+
 def clear_superblock_flags(path: Path) -> None:
     """Zero the superblock's file-consistency flags and rewrite its checksum (h5clear -s)."""
     body, _ = _superblock(path)

@@ -1,70 +1,56 @@
-"""One writer per run file: an exclusive lock that the operating system releases when the process dies.
+"""One writer per run file, and the one answer to "is its writer still alive?": the run file's lock.
 
-The lock is a small file next to the run file, `.NAME.lock`, held open and locked for as long as a writer may
-change `NAME`: from the CLI's first check (before `--overwrite` may delete anything) to the run file's close.
-`fcntl.flock(LOCK_EX | LOCK_NB)` where the system has fcntl (POSIX), else `msvcrt.locking(LK_NBLCK)` on one byte
-far past the end (Windows; so the holder's pid, written at the start, stays readable); each module is imported
-only where it exists. Both
-locks belong to the open file and end with the process, however it dies (kill -9 included): a stale lock file
-is harmless, the next writer locks it again.
+The lock is `filelock.FileLock` (flock on POSIX, LockFileEx on Windows) on a separate small file next to the run
+file, `.NAME.lock`, held from the CLI's first check (before `--overwrite` may delete anything) to the run file's
+close. The operating system releases it however the process dies (kill -9 included).
+
+Why a separate lock file, not the run file itself: the lock must exist before the run file does (a new run is laid
+out under a hidden name and moved into place) and across its replacement (`--overwrite`); and HDF5 owns the run
+file's descriptors (a POSIX record lock on another descriptor of the same file would be dropped by HDF5's own
+close). The lock file stays after release (filelock leaves it so that waiters share one inode): a stale one is
+harmless, it only ever records who held it last.
+
+What filelock lacks here, in one line: it does not say who holds a lock, so once held this wrapper writes
+"process PID on HOST" into the lock file for the refusal message (unreadable while held on Windows, where the
+message then says the holder is not recorded).
+
+Liveness (`writer_state`): a run file's writer is alive exactly while its lock is held. A free lock means the
+writer is gone, whatever its recorded process id now names (a reused PID is not a writer). No process is signalled
+to find out: `os.kill(pid, 0)` sends Ctrl-C on Windows (signal 0 is CTRL_C_EVENT).
 
 Within one process the lock is re-entrant (counted): the CLI takes it, and `RunWriter.create` / `reopen`, which
-always take it too, share it.
-
-POSIX: the holder deletes the lock file on release, still holding it; a process that opened the old file in the
-meantime finds, once it has the lock, that the path names another file (or none) and starts over. Windows does
-not delete a file another process holds open: the delete is tried and skipped if refused.
+always take it too, share it. A writer waits up to ACQUIRE_WAIT_S for a lock that another process holds: a
+`writer_state` probe from a reader (`status`, the watch page) holds it for microseconds and must not refuse a run.
 """
 
 from __future__ import annotations
 
 import contextlib
-import importlib
 import os
 import socket
-import sys
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Literal
+
+from filelock import FileLock, Timeout
 
 from qmg_lab.storage.layout import StorageError
 
-
-def _posix_flock() -> Any:
-    """fcntl where the system has it (POSIX), else None (Windows)."""
-    try:
-        import fcntl
-    except ImportError:
-        return None
-    return fcntl
+#: how long a writer waits for a lock held elsewhere before it refuses, s: longer than a liveness probe holds it
+ACQUIRE_WAIT_S = 1.0
 
 
-_FCNTL = _posix_flock()
-_WIN_LOCK_OFFSET = 1 << 30  # msvcrt's locked byte: past any pid text, so readers can read the holder
+@dataclass
+class _Held:
+    lock: FileLock
+    count: int
 
 
-def _try_lock(fd: int) -> None:
-    """Lock `fd` without waiting; OSError (BlockingIOError on POSIX) if another process holds it."""
-    if _FCNTL is not None:
-        _FCNTL.flock(fd, _FCNTL.LOCK_EX | _FCNTL.LOCK_NB)
-        return
-    msvcrt: Any = importlib.import_module("msvcrt")  # Windows: a byte-range lock on one byte far past the end
-    os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
-    msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
-    os.lseek(fd, 0, os.SEEK_SET)
+#: locks this process holds, by lock file path
+_HELD: dict[str, _Held] = {}
 
-
-def _unlock(fd: int) -> None:
-    if _FCNTL is not None:
-        _FCNTL.flock(fd, _FCNTL.LOCK_UN)
-        return
-    msvcrt: Any = importlib.import_module("msvcrt")
-    os.lseek(fd, _WIN_LOCK_OFFSET, os.SEEK_SET)
-    msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
-
-
-#: locks this process holds: lock file path -> [file descriptor, count]
-_HELD: dict[str, list[int]] = {}
+WriterState = Literal["writing", "gone", "unknown"]
 
 
 def lock_path(path: str | Path) -> Path:
@@ -87,51 +73,34 @@ class RunFileLock:
             return self
         held = _HELD.get(self._key)
         if held is not None:
-            held[1] += 1
+            held.count += 1
             self._held = True
             return self
-        while True:
-            try:
-                fd = os.open(self.lock_file, os.O_RDWR | os.O_CREAT, 0o644)
-            except OSError as exc:
-                raise StorageError(f"{self.path}: cannot create its lock file {self.lock_file}: {exc}") from None
-            try:
-                _try_lock(fd)
-            except OSError:
-                holder = _read_holder(fd)
-                os.close(fd)
-                raise StorageError(
-                    f"{self.path}: is being written by another qmg-lab process ({holder}); a run file has one "
-                    f"writer: wait for it to end or stop it, or write to another -o"
-                ) from None
-            if sys.platform != "win32" and not _same_file(fd, self.lock_file):
-                os.close(fd)  # its holder deleted it on release after we opened it: lock the new one
-                continue
-            os.ftruncate(fd, 0)
-            os.write(fd, f"process {os.getpid()} on {socket.gethostname()}\n".encode())
-            _HELD[self._key] = [fd, 1]
-            self._held = True
-            return self
+        lock = FileLock(self.lock_file, thread_local=False)
+        try:
+            lock.acquire(timeout=ACQUIRE_WAIT_S)
+        except Timeout:
+            raise StorageError(
+                f"{self.path}: is being written by another qmg-lab process ({_read_holder(self.lock_file)}); a run "
+                f"file has one writer: wait for it to end or stop it, or write to another -o"
+            ) from None
+        except OSError as exc:  # a read-only folder, no space for an empty file, a path that is not a folder
+            raise StorageError(f"{self.path}: cannot create its lock file {self.lock_file}: {_words(exc)}") from None
+        _write_holder(self.lock_file)
+        _HELD[self._key] = _Held(lock, 1)
+        self._held = True
+        return self
 
     def release(self) -> None:
         if not self._held:
             return
         self._held = False
         held = _HELD[self._key]
-        held[1] -= 1
-        if held[1] > 0:
+        held.count -= 1
+        if held.count > 0:
             return
         del _HELD[self._key]
-        fd = held[0]
-        try:
-            if sys.platform != "win32":
-                self.lock_file.unlink(missing_ok=True)  # still held: see the module docstring
-            _unlock(fd)
-        finally:
-            os.close(fd)
-        if sys.platform == "win32":
-            with contextlib.suppress(OSError):  # another process has it open (and will lock it)
-                self.lock_file.unlink(missing_ok=True)
+        held.lock.release()
 
     def __enter__(self) -> RunFileLock:
         return self.acquire()
@@ -142,17 +111,52 @@ class RunFileLock:
         self.release()
 
 
-def _same_file(fd: int, path: Path) -> bool:
+def writer_state(path: str | Path) -> WriterState:
+    """Whether a process writes the run file `path`, from its lock alone: "writing" (the lock is held, by another
+    process or by this one: `held_here` tells which), "gone" (the lock is free, or there is no lock file: no writer
+    ever locked it from this folder's view), "unknown" (the lock file cannot be opened to probe it). A free lock
+    taken by the probe is released at once."""
+    if held_here(path):
+        return "writing"
+    lock_file = lock_path(path)
+    if not lock_file.exists():
+        return "gone"
+    probe = FileLock(lock_file, thread_local=False)
     try:
-        return os.path.samestat(os.fstat(fd), os.stat(path))
-    except FileNotFoundError:
-        return False
+        probe.acquire(timeout=0)
+    except Timeout:
+        return "writing"
+    except (OSError, RuntimeError):
+        return "unknown"
+    probe.release()
+    return "gone"
 
 
-def _read_holder(fd: int) -> str:
+def held_here(path: str | Path) -> bool:
+    """This process holds the lock of run file `path` (it is, or is about to be, its writer)."""
+    return os.path.abspath(lock_path(path)) in _HELD
+
+
+def holder(path: str | Path) -> str:
+    """Who holds (or last held) the lock of run file `path`, as its lock file says ("process PID on HOST")."""
+    return _read_holder(lock_path(path))
+
+
+def _write_holder(lock_file: Path) -> None:
+    """Record the holder in the held lock file; a write that fails (a full disk) only loses the record."""
+    with contextlib.suppress(OSError), open(lock_file, "r+b") as f:
+        f.truncate(0)
+        f.write(f"process {os.getpid()} on {socket.gethostname()}\n".encode())
+
+
+def _read_holder(lock_file: Path) -> str:
     try:
-        os.lseek(fd, 0, os.SEEK_SET)
-        text = os.read(fd, 200).decode("utf-8", "replace").strip()
+        text = lock_file.read_bytes()[:200].decode("utf-8", "replace").strip()
     except OSError:
         text = ""
     return text or "its process is not recorded"
+
+
+def _words(exc: OSError) -> str:
+    """An OSError as words without the traceback's class name: its strerror and file name."""
+    return f"{exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")

@@ -17,10 +17,15 @@ import h5py
 import numpy as np
 
 from qmg_lab.instruments import INSTRUMENT_NAMES
+from qmg_lab.storage.h5clear import clear_superblock_flags, left_open_without_swmr
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
+from qmg_lab.storage.lock import held_here, holder, lock_path, writer_state
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
+
+#: the way out when a file cannot be resumed
+SALVAGE = "copy what still reads into a new file with `qmg-lab salvage {path} -o NEW.h5` and analyse that"
 
 
 def check_resumable(
@@ -51,11 +56,23 @@ def check_resumable(
         except H5_ERRORS as exc:
             raise DamagedFileError(
                 f"{p}: ends before the end of file its superblock records, and what is left cannot be resumed "
-                f"({exc}); nothing was changed: copy what still reads with `qmg-lab salvage {p} -o NEW.h5`"
+                f"({exc}); nothing was changed: {SALVAGE.format(path=p)}"
             ) from None
         return _check_resumable(p, tmp, config_sha256, instrument_modes, thorough=True)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def heal_interrupted_open(path: Path) -> bool:
+    """A writer killed between opening the file for writing and switching it to SWMR (the first moments of a new
+    file's or a resume's write, before any data is written) leaves the superblock marked "open for writing, not
+    SWMR", which no reader can open. Once the lock says that writer is gone (the caller holds it), the marks are
+    cleared (what `h5clear -s` does; qmg_lab/storage/h5clear.py): the only change made to a file before every
+    resume check passed, and it changes no data. True if it cleared them. StorageError: no HDF5 file."""
+    if (not held_here(path) and writer_state(path) == "writing") or not left_open_without_swmr(path):
+        return False
+    clear_superblock_flags(path)
+    return True
 
 
 def ends_short(path: Path) -> bool:
@@ -84,29 +101,19 @@ def _check_resumable(
             f"{p}: was written with configuration {stored}, not with this configuration "
             f"{config_sha256}; resume with the configuration the run was started with"
         )
-    if run.writer_open:
-        pid, host = int(run.attrs.get("writer_pid", -1)), run.attrs.get("writer_host", "")
-        if host == socket.gethostname() and pid > 0 and pid != os.getpid() and _pid_alive(pid):
-            raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
+    if not held_here(p) and writer_state(p) == "writing":  # the lock, not the recorded pid (maybe reused)
+        raise StorageError(f"{p}: is still being written by another process ({holder(p)}); stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
     try:
         with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
             plan = plan_repair(h5, thorough=thorough)
     except (OSError, RuntimeError) as exc:
-        raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
+        raise DamagedFileError(
+            f"{p}: HDF5 cannot read it: {exc}; nothing was changed: {SALVAGE.format(path=p)}"
+        ) from None
     refuse_discarding_repair(p, plan)
     return run
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
@@ -125,15 +132,19 @@ def file_instrument_modes(attrs: Mapping[str, Any]) -> dict[str, str]:
 
 def status_detail(run: RunData) -> str:
     """The file's status as the operator should read it. "running" is what the file says while its writer
-    works, and also what a killed writer leaves behind: a "running" file whose writer process is gone (same
-    host, pid not alive) is "interrupted (process died)"; one written on another host cannot be checked."""
+    works, and also what a killed writer leaves behind: a "running" file whose lock is free (its writer is gone,
+    qmg_lab.storage.lock.writer_state) is "interrupted (process died)"; one written on another host cannot be
+    checked (a lock on a network file system does not reliably reach this host)."""
     if run.status != "running":
         return run.status
     pid, host = int(run.attrs.get("writer_pid", -1)), str(run.attrs.get("writer_host", ""))
     if host and host != socket.gethostname():
         return f"running, or interrupted (written on host {host}; its process cannot be checked from here)"
-    if run.writer_open and pid > 0 and pid != os.getpid() and _pid_alive(pid):
+    state = writer_state(run.path)
+    if state == "writing":
         return f"running (process {pid} is writing it)"
+    if state == "unknown":
+        return f"running, or interrupted (its lock file {lock_path(run.path)} cannot be read to check)"
     return "interrupted (process died)"
 
 
@@ -192,8 +203,9 @@ class RepairPlan:
 def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
     """Read-only: where a killed file can end on one consistent instant (RunWriter.reopen steps 1-3).
 
-    1. every group keeps its whole rows that are data: its shortest column, and of its time column only the rows
-       `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
+    1. every group keeps its whole rows that are data: its shortest column, no row at or after a fill value (NaN)
+       in any of its columns (the last FILL_CHECK_ROWS; every row when thorough), and of its time column only the
+       rows `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
        issue 27 on, 0.0 before: never data);
     2. the end instant is the last /lockin time, or the last /truth time if earlier (unless /truth has no rows);
        in the twins' whole-chunk layout it moves back to the last /table or /chamber reading at or before it;
@@ -208,6 +220,7 @@ def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
         n = min(h5[g][c].shape[0] for c in h5[g])
         if thorough:
             n = min(readable_rows(h5[g][c], n) for c in h5[g])
+        n = min(_written_rows(h5[g][c], n, 0 if thorough else max(n - FILL_CHECK_ROWS, 0)) for c in h5[g])
         t = h5[g]["time"][:n]
         n = valid_rows(t)
         rows[g], times[g] = n, t[:n]
@@ -247,6 +260,22 @@ def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
     )
 
 
+#: rows at the end of every column a repair reads for fill values (NaN: allocated, never written): twice what the
+#: writer's chunk cache holds per dataset (1 MiB of float64, qmg_lab.storage.writer.WRITER_CACHE), the most a
+#: failed flush (a full disk) can leave unwritten behind rows whose time did reach the disk
+FILL_CHECK_ROWS = 1 << 18
+
+
+def _written_rows(ds: h5py.Dataset, n: int, start: int) -> int:
+    """Rows of `ds` before its first fill value (NaN) at or after row `start`, at most n. A full disk can leave a
+    column's chunk unwritten while the group's time reached the disk: those rows hold the fill value and are never
+    data (the campaign writes no NaN)."""
+    if n <= start:
+        return n
+    bad = np.flatnonzero(np.isnan(ds[start:n]))
+    return start + int(bad[0]) if bad.size else n
+
+
 def _max_cut_s(h5: h5py.File, times: dict[str, np.ndarray]) -> float:
     """What a kill can lose at the end of this file, s: two /lockin chunks of samples, two /table intervals and
     REPAIR_CUT_MARGIN_S (the spacings from the file's own last rows)."""
@@ -272,7 +301,7 @@ def refuse_discarding_repair(path: Path, plan: RepairPlan) -> None:
             f"{plan.t_recorded:.1f} s, its groups only agree up to {kept_end:.1f} s) and the completed "
             f"steps {plan.dropped_steps}: the file's end is damaged beyond what a killed process leaves "
             f"(at most {plan.max_cut_s:.1f} s here). Nothing was changed; analyse it as it is "
-            f"(qmg-lab analyze {path}), or copy what reads into a new file with qmg-lab salvage"
+            f"(qmg-lab analyze {path}), or {SALVAGE.format(path=path)}"
         )
 
 
@@ -310,3 +339,21 @@ def repair_end(h5: h5py.File, plan: RepairPlan | None = None) -> RepairPlan:
         _cut(steps[c], plan.steps_rows)
     h5.flush()
     return plan
+
+
+def kept_checkpoints(path: Path) -> dict[int, tuple[float, float]]:
+    """Read-only: the checkpoints a plain resume of the file keeps (its repair plan: the leading "completed" /steps
+    rows whose data are in), index -> (t_start, t_end), s. A file a full disk left short is read from a copy padded
+    to its recorded end, as its resume reads it."""
+    short = ends_short(path)
+    source = path.with_name(f".{path.name}.{os.getpid()}.padded") if short else path
+    if short:
+        padded_copy(path, source)
+    try:
+        with h5py.File(source, "r", swmr=True, libver="latest") as h5:
+            n = plan_repair(h5, thorough=short).steps_rows
+            cols = [h5["steps"][c][:n] for c in ("index", "t_start", "t_end")]
+    finally:
+        if short:
+            source.unlink()
+    return {int(i): (float(a), float(b)) for i, a, b in zip(*cols, strict=True)}

@@ -167,6 +167,7 @@ class RunWriter:
             raise StorageError(f"{path}: flush_interval_s must be > 0 s, got {flush_interval_s!r}")
         self._lock = lock  # the file's one-writer lock, released by close()
         self._failed = False  # a write failed (RunFileWriteError): nothing more is written
+        self._write_error: RunFileWriteError | None = None
         self.path = path
         self._h5 = h5
         self.flush_interval_s = float(flush_interval_s)
@@ -320,11 +321,12 @@ class RunWriter:
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
+        h5 = _open_for_writing(p, "the new run file")
         try:
-            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
             h5.swmr_mode = True
         except OSError as exc:
-            raise StorageError(f"{p}: cannot open the new run file for writing: {exc}") from None
+            h5.close()
+            raise StorageError(f"{p}: cannot start SWMR on the new run file: {exc}") from None
         return h5
 
     @staticmethod
@@ -458,10 +460,7 @@ class RunWriter:
             os.truncate(p, read_superblock(p).eof_address or 0)
         if run.writer_open or short:
             clear_superblock_flags(p)
-        try:
-            h5 = h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
-        except OSError as exc:
-            raise StorageError(f"{p}: cannot open the run file for writing: {exc}") from None
+        h5 = _open_for_writing(p, "the run file")
         try:
             plan = plan_repair(h5, thorough=short)  # where it can end; refused if that discards data
             refuse_discarding_repair(p, plan)
@@ -759,6 +758,12 @@ class RunWriter:
     def closed(self) -> bool:
         return self._closed
 
+    @property
+    def write_error(self) -> RunFileWriteError | None:
+        """The write that failed (a full disk), or None: after one, nothing more was written and the file keeps
+        what its last successful flush wrote."""
+        return self._write_error
+
     def __enter__(self) -> RunWriter:
         return self
 
@@ -796,7 +801,10 @@ class RunWriter:
     def _write_failed(self, exc: BaseException) -> RunFileWriteError:
         """The StorageError of a failed write; the writer writes nothing more (`close` then only closes)."""
         self._failed = True
-        return RunFileWriteError(self.path, exc)
+        error = RunFileWriteError(self.path, exc)
+        if self._write_error is None:
+            self._write_error = error
+        return error
 
     def _hand_over(self, *, flush_file: bool, complete: bool = False) -> None:
         """Give the buffered rows to the writer thread: one job writes every group's columns, then the /steps rows
@@ -869,6 +877,32 @@ class RunFileWriteError(StorageError):
 
 
 OUT_OF_SPACE_ERRNOS = frozenset({errno.ENOSPC, errno.EFBIG} | ({errno.EDQUOT} if hasattr(errno, "EDQUOT") else set()))
+
+
+#: how long the writer retries opening a file a reader holds (HDF5's own file lock, errno 11), s: a reader that
+#: polls the file (the watch page, `runs`, a test waiting for a checkpoint) holds it for milliseconds at a time
+READER_WAIT_S = 3.0
+
+
+def _open_for_writing(p: Path, what: str) -> h5py.File:
+    """Open `p` for writing (not yet SWMR). HDF5 locks a file for each open; a reader that has it open (not as a
+    SWMR reader of a SWMR-writing file) makes the open fail with "unable to lock file": retried for READER_WAIT_S,
+    then refused with words saying a reader holds it."""
+    deadline = _time.monotonic() + READER_WAIT_S
+    while True:
+        try:
+            return h5py.File(p, "r+", libver="latest", **WRITER_CACHE)
+        except OSError as exc:
+            held = "unable to lock file" in str(exc)
+            if held and _time.monotonic() < deadline:
+                _time.sleep(0.05)
+                continue
+            if held:
+                raise StorageError(
+                    f"{p}: another process holds {what} open for reading (a `qmg-lab analyze`, `watch` or `runs`, "
+                    "or a program using h5py or HDFView): close it, then run the command again"
+                ) from None
+            raise StorageError(f"{p}: cannot open {what} for writing: {exc}") from None
 
 
 def _move_into_place(tmp: Path, p: Path) -> None:

@@ -121,20 +121,15 @@ def run_campaign(config_text: str, run_file: Path) -> tuple[dict[str, Any], floa
     """Run the point's campaign on the twins into run_file and analyse it: (analyze --json, simulated s)."""
     from qmg_lab.analysis.compute import analyze
     from qmg_lab.campaign.pipeline import run_campaign as run_into
-    from qmg_lab.campaign.plan import checked_plan
-    from qmg_lab.station import build_station
     from qmg_lab.storage.writer import read_run, status_detail
 
     cfg = parse_config(config_text, "point configuration")
-    plan = checked_plan(cfg)  # before any twin is built: a point outside the limits fails here
-    station = build_station(cfg)
-    try:
-        summary = run_into(cfg, config_text, station, run_file, plan=plan)
-    finally:
-        station.close()
+    end = run_into(cfg, config_text, run_file)  # the plan is checked before any twin is built
+    if end.summary is None:  # refused or never started: no run file to analyse
+        raise RuntimeError(end.message)
     result = analyze(run_file).to_json()
     result["status_detail"] = status_detail(read_run(run_file, select=()))
-    return result, summary.simulated_s
+    return result, end.summary.simulated_s
 
 
 def run_point(point: dict[str, Any], out_dir: str, keep_run_files: bool = False) -> dict[str, Any]:

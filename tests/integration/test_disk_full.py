@@ -60,3 +60,40 @@ def test_a_full_disk_aborts_safe_with_exit_3_and_the_run_resumes(tmp_path: Path)
         events = read_events(h5)
     first_abort = next(e for e in events if e["kind"] == "abort")
     assert "file size limit" in first_abort["message"] or "could not be written" in first_abort["message"]
+
+
+def test_a_full_disk_at_the_last_write_is_no_success(tmp_path: Path) -> None:
+    """The issue's false success: the disk fills during the run's last writes (the final flush and close). The
+    limit is one byte under the size of the same run's uninterrupted file, so every write but the last ones
+    succeeds: the run must exit 3 (never 0 while the file is not closed "completed" with every step), and a
+    --resume without the limit completes it with every planned step and no NaN row in any column."""
+    import resource
+    import subprocess
+
+    text = config_text()
+    cfg = tmp_path / "short.toml"
+    cfg.write_text(text)
+    ref = tmp_path / "ref.h5"
+    done = subprocess.run(qmg("run", str(cfg), "-o", str(ref), "-q"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    limit = ref.stat().st_size - 1
+
+    def last_write_fails() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    path = tmp_path / "run.h5"
+    full = subprocess.run(
+        qmg("run", str(cfg), "-o", str(path), "-q"), capture_output=True, text=True, preexec_fn=last_write_fails
+    )
+    said = " ".join(full.stderr.split())
+    assert full.returncode == 3, said  # not 0: the file does not hold the whole run
+    assert "Traceback" not in said and f"--resume {path}" in said
+    done = subprocess.run(qmg("run", str(cfg), "--resume", str(path), "-q"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    plan = build_plan(parse_config(text))
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["status"] == "completed"
+        assert sorted(h5["steps/index"][:].tolist()) == [s.index for s in plan]
+        for group in ("lockin", "clsf", "table", "chamber", "truth"):
+            for column in h5[group]:
+                assert not np.isnan(h5[group][column][:]).any(), f"/{group}/{column} has a NaN row"

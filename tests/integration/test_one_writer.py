@@ -21,7 +21,7 @@ import pytest
 from qmg_lab.campaign.plan import build_plan
 from qmg_lab.config.schema import parse_config
 from qmg_lab.storage.layout import StorageError
-from qmg_lab.storage.lock import RunFileLock, lock_path
+from qmg_lab.storage.lock import RunFileLock, lock_path, writer_state
 from qmg_lab.storage.writer import RunWriter
 from tests.integration.test_resume import wait_for_steps
 from tests.support.campaigns import config_text, long_config, qmg
@@ -104,7 +104,9 @@ def test_two_runs_started_together_on_one_path(tmp_path: Path, short_cfg: Path) 
     assert "being written by another qmg-lab process" in said or "exists" in said
     assert "Traceback" not in said
     assert _file_rows(path) == _plan_rows(short_cfg)
-    assert not list(tmp_path.glob(".F.h5.*"))  # no temporary file and no lock file left behind
+    # no temporary file left behind; the lock file stays (filelock keeps it so waiters share one inode), free
+    assert [p.name for p in tmp_path.glob(".F.h5.*")] == [".F.h5.lock"]
+    assert writer_state(path) == "gone"
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
@@ -134,10 +136,70 @@ def test_the_lock_is_reentrant_in_one_process_and_exclusive_across_writers(tmp_p
             path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
         )
         w.close()  # the writer's share of the lock ends; the outer one still holds it
-        assert lock_path(path).exists()
-    assert not lock_path(path).exists()
+        assert writer_state(path) == "writing"  # held by this process
+    assert lock_path(path).exists() and writer_state(path) == "gone"
     with pytest.raises(StorageError, match="already exists"):
         RunWriter.create(
             path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
         )
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["F.h5"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".F.h5.lock", "F.h5"]
+
+
+def test_a_reused_pid_is_not_a_writer_and_a_held_lock_is(tmp_path: Path) -> None:
+    """Liveness is the lock's state, never the recorded pid: a "running" file whose recorded writer pid names a
+    live process (here this test's own parent, as after PID reuse) but whose lock is free is an interrupted run
+    that --resume may continue; while another process holds the lock it is running, and --resume's check
+    refuses."""
+    from qmg_lab.storage.writer import read_run, status_detail
+
+    path = tmp_path / "F.h5"
+    w = RunWriter.create(
+        path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
+    )
+    w._h5.attrs["writer_pid"] = os.getppid()  # a live process that is not the writer
+    w.close()  # status stays "running", as a killed writer leaves it
+    assert status_detail(read_run(path, select=())) == "interrupted (process died)"
+    RunWriter.check_resumable(path, config_sha256="x")  # not refused: the lock is free
+
+    hold = "from qmg_lab.storage.lock import RunFileLock; import sys; RunFileLock(sys.argv[1]).acquire(); "
+    hold += "print('held', flush=True); sys.stdin.read()"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", hold, str(path)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        assert writer_state(path) == "writing"
+        assert status_detail(read_run(path, select=())).startswith("running (process")
+        with pytest.raises(StorageError, match="still being written by another process"):
+            RunWriter.check_resumable(path, config_sha256="x")
+    finally:
+        holder.communicate("")
+    assert writer_state(path) == "gone"
+
+
+def test_a_reader_holding_the_file_is_named_when_a_resume_cannot_open_it(tmp_path: Path) -> None:
+    """HDF5 locks a file for each open: a plain (non-SWMR) reader in another process makes the writer's open fail
+    with "unable to lock file". The resume waits a moment (a polling reader lets go within milliseconds), then says
+    that a reader holds the file, and changes nothing."""
+    path = tmp_path / "F.h5"
+    w = RunWriter.create(
+        path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
+    )
+    w.set_status("aborted", "test")
+    w.close()
+    before = path.read_bytes()
+    hold = "import h5py, sys; f = h5py.File(sys.argv[1], 'r'); print('open', flush=True); sys.stdin.read()"
+    reader = subprocess.Popen(
+        [sys.executable, "-c", hold, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "open"
+        with pytest.raises(StorageError, match="another process holds the run file open for reading"):
+            RunWriter.reopen(path, config_sha256="x")
+    finally:
+        reader.communicate("")
+    assert path.read_bytes() == before
+    RunWriter.reopen(path, config_sha256="x").close()  # the reader gone, the resume opens it

@@ -186,3 +186,39 @@ def test_fill_values_a_killed_shrink_leaves_are_never_data(killed_run, tmp_path:
                     filled += 1
     assert filled >= 8  # /lockin and /truth at least: the repair cuts there
     _assert_same(*_plan_and_rows(copy), ref_plan, ref_rows, f"fill {fill}")
+
+
+KILL_BEFORE_SWMR = """
+import os, signal, sys
+from qmg_lab.storage import writer
+
+path, sha = sys.argv[1], sys.argv[2]
+opened = writer._open_for_writing
+
+def open_then_die(p, what):
+    h5 = opened(p, what)
+    os.kill(os.getpid(), signal.SIGKILL)  # opened for writing, SWMR not yet started
+
+writer._open_for_writing = open_then_die
+writer.RunWriter.reopen(path, config_sha256=sha)
+"""
+
+
+def test_a_resume_killed_before_its_swmr_start_is_continued_by_a_plain_resume(killed_run, tmp_path: Path) -> None:
+    """The first moments of a resume's write: the file is open for writing, not yet SWMR. A kill there leaves a
+    superblock that no reader opens ("not already open for SWMR writing"); the next plain --resume heals it (the
+    lock is free: the writer is gone) and completes the plan, each step once."""
+    from qmg_lab.storage.h5clear import left_open_without_swmr
+
+    path, cfg, sha = killed_run
+    copy = tmp_path / "window.h5"
+    shutil.copyfile(path, copy)
+    killed = subprocess.run([sys.executable, "-c", KILL_BEFORE_SWMR, str(copy), sha], capture_output=True, text=True)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert left_open_without_swmr(copy)
+    done = subprocess.run(qmg("run", str(cfg), "--resume", str(copy), "-q"), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    with h5py.File(copy, "r") as h5:
+        assert h5.attrs["status"] == "completed"
+        index = h5["steps/index"][:].tolist()
+    assert sorted(index) == [s.index for s in build_plan(parse_config(cfg.read_text()))]

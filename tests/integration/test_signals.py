@@ -15,6 +15,7 @@ test's polling latency.
 
 from __future__ import annotations
 
+import shutil
 import signal
 import subprocess
 import sys
@@ -127,3 +128,48 @@ def test_the_terminal_says_what_the_files_safe_state_event_says(tmp_path: Path) 
     said = " ".join(done.stderr.split())
     assert f"safe_state: {' '.join(note.split())}" in said
     assert "instruments in their safe state" not in said
+
+
+@pytest.mark.parametrize("quiet", [True, False], ids=["-q", "progress"])
+def test_a_run_whose_output_reader_died_completes_with_exit_0(tmp_path: Path, quiet: bool) -> None:
+    """`qmg-lab run ... | consumer` where the consumer is gone before anything is written: every write to the
+    pipe fails with EPIPE (rich's Console would raise SystemExit(1) there). With -q only the summary meets the
+    dead pipe; with progress on, stderr's reader is gone too. The run completes and exits 0."""
+    cfg_path = tmp_path / "short.toml"
+    cfg_path.write_text(config_text())
+    path = tmp_path / "run.h5"
+    argv = qmg("run", str(cfg_path), "-o", str(path), *(["-q"] if quiet else []))
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader of stdout dies at once
+    if not quiet:
+        proc.stderr.close()
+    assert proc.wait(timeout=600) == 0
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["status"] == "completed" and h5.attrs["abort_reason"] == ""
+
+
+def test_a_run_under_nohup_outlives_a_hang_up(tmp_path: Path) -> None:
+    """`nohup qmg-lab run ...`: SIGHUP is ignored by whoever started the run, and the run keeps it so: a hang-up
+    in the middle of the run changes nothing, the run completes and exits 0."""
+    text = config_text()
+    cfg_path = tmp_path / "short.toml"
+    cfg_path.write_text(text)
+    path = tmp_path / "run.h5"
+    nohup = shutil.which("nohup")
+    if nohup is None:
+        pytest.skip("no nohup on this system")
+    proc = subprocess.Popen(
+        [nohup, *qmg("run", str(cfg_path), "-o", str(path), "-q")],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own session: the SIGHUP sent here is the only one it gets
+    )
+    wait_for_steps(proc, path, 4)
+    proc.send_signal(signal.SIGHUP)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    with h5py.File(path, "r") as h5:
+        assert h5.attrs["status"] == "completed"
+        assert sorted(h5["steps/index"][:].tolist()) == [s.index for s in build_plan(parse_config(text))]

@@ -19,11 +19,14 @@ redirected to a file or a pipe is. `study` starts Dask worker processes, which a
 interpreter does not reach: it is not run here (its POSIX-only lock is replaced by `filelock`,
 tests/unit/test_study_point_lock.py).
 
-The run file's lock then takes Windows' branch (msvcrt's byte-range lock), which the child supplies as a stand-in
-module built on POSIX record locks, with msvcrt's semantics. What this stand-in cannot show: Windows' own
-refusal to rename an open file (the writer no longer does: RunWriter.create builds a new file under a unique
-temporary name and renames it only once it is closed) and Windows' console events (Ctrl-Break is handled as a stop
-signal; closing the window is not visible to Python's signal module: docs/reliability.md).
+The run file's lock is filelock's (qmg_lab/storage/lock.py), which picks its Windows class (LockFileEx) by
+`sys.platform`: the stand-in cannot reach that branch, filelock's own Windows CI covers it. Windows' `os.kill` is
+stood in for: signal 0 is CTRL_C_EVENT, so `os.kill(pid, 0)` delivers a Ctrl-C to this process instead of probing
+`pid`; a run killed on "Windows" must then still be analysed and resumed (the writer's liveness is its lock's
+state, never a signal). What this stand-in cannot show: Windows' own refusal to rename an open file (the writer
+no longer does: RunWriter.create builds a new file under a unique temporary name and renames it only once it is
+closed) and Windows' console events (Ctrl-Break is handled as a stop signal; closing the window is not visible to
+Python's signal module: docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -111,20 +114,18 @@ for name in [m for m in BLOCKED if m not in sys.modules]:  # the meta-path layer
 exec("import termios", {"__name__": "third_party_probe"})
 
 from qmg_lab.cli.main import main
-# Windows' msvcrt for the run file's lock (qmg_lab/storage/lock.py takes it where fcntl is missing): a stand-in
-# module with its byte-range lock semantics (LK_NBLCK: lock n bytes at the file position or raise OSError at once;
-# LK_UNLCK: unlock them), made here from POSIX record locks, which are byte ranges too. It is installed once the
-# CLI and the standard library it loads are imported: modules such as subprocess take an importable msvcrt for
-# Windows at their own import
-import types, fcntl as _posix_fcntl
-msvcrt = types.ModuleType("msvcrt")
-msvcrt.LK_NBLCK, msvcrt.LK_UNLCK = 2, 0
-def _locking(fd, mode, nbytes):
-    start = os.lseek(fd, 0, os.SEEK_CUR)
-    op = _posix_fcntl.LOCK_EX | _posix_fcntl.LOCK_NB if mode == msvcrt.LK_NBLCK else _posix_fcntl.LOCK_UN
-    _posix_fcntl.lockf(fd, op, nbytes, start, os.SEEK_SET)
-msvcrt.locking = _locking
-sys.modules["msvcrt"] = msvcrt
+# Windows' os.kill: signal 0 is CTRL_C_EVENT, so os.kill(pid, 0) is GenerateConsoleCtrlEvent(CTRL_C_EVENT, pid):
+# a Ctrl-C to the console this process shares, not a liveness probe (Python's os.kill documentation; Microsoft's
+# GenerateConsoleCtrlEvent page). The stand-in delivers that Ctrl-C to this process; other signals end the pid
+# as TerminateProcess does
+import signal as _signal
+_posix_kill = os.kill
+def _windows_kill(pid, sig):
+    if sig == 0:  # CTRL_C_EVENT
+        _signal.raise_signal(_signal.SIGINT)
+        return
+    _posix_kill(pid, _signal.SIGKILL)
+os.kill = _windows_kill
 
 commands, codes_file, codes = json.load(open(sys.argv[2], encoding="utf-8")), sys.argv[3], []
 for argv in commands:
@@ -138,8 +139,8 @@ for argv in commands:
     print(f"=== exit {code}", flush=True)
     codes.append(code)
 lock = sys.modules.get("qmg_lab.storage.lock")
-lock_branch = None if lock is None else ("fcntl" if lock._FCNTL is not None else "msvcrt")
-result = {"codes": codes, "has_fork": hasattr(os, "fork"), "lock_branch": lock_branch}
+lock_class = None if lock is None else f"{lock.FileLock.__module__}.{lock.FileLock.__name__}"
+result = {"codes": codes, "has_fork": hasattr(os, "fork"), "lock_class": lock_class}
 json.dump(result, open(codes_file, "w", encoding="utf-8"))
 """
 
@@ -180,7 +181,7 @@ def test_the_cli_runs_without_posix_only_modules(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr, proc.stderr[-5000:]
     result = json.loads(codes_file.read_text(encoding="utf-8"))
     assert result["has_fork"] is False
-    assert result["lock_branch"] == "msvcrt"  # the run file's lock took Windows' branch
+    assert result["lock_class"].startswith("filelock.")  # the run file's lock is filelock's (no fcntl of ours)
     expected = [0, 0, 3, 0, 0, 0, 0, 0]
     assert result["codes"] == expected, (proc.stdout[-3000:], proc.stderr[-3000:])
     out = _sections(proc.stdout)
@@ -234,3 +235,44 @@ def test_the_pty_transport_is_refused_without_posix_with_a_message_naming_the_wa
     assert not serial_twin.pty_supported()
     with pytest.raises(OSError, match=r'needs a POSIX system.*sim_transport = "inprocess"'):
         serial_twin.serve_pty(RateTableTwin(paper_world(), **table_twin_settings()))
+
+
+@pytest.mark.timeout(900)
+def test_a_killed_run_resumes_under_windows_os_kill_semantics(tmp_path: Path) -> None:
+    """A run killed by SIGKILL leaves a file whose writer is gone; under Windows' os.kill (signal 0 is a Ctrl-C to
+    the console) `analyze` and `run --resume` of it must not probe the dead writer's pid with os.kill: both exit 0,
+    and the resumed file is completed (the writer's liveness is read from the run file's lock)."""
+    from tests.integration.test_resume import wait_for_steps
+    from tests.support.campaigns import qmg
+
+    cfg = tmp_path / "short.toml"
+    cfg.write_text(config_text(seed=5), encoding="utf-8")
+    run_file = tmp_path / "killed.h5"
+    proc = subprocess.Popen(
+        qmg("run", str(cfg), "-o", str(run_file), "-q"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
+    wait_for_steps(proc, run_file, 4)
+    proc.kill()
+    proc.wait()
+    with h5py.File(run_file, "r", swmr=True, libver="latest") as f:
+        assert f.attrs["status"] == "running"  # killed: the writer's pid is recorded, its process gone
+
+    commands = [["analyze", str(run_file), "--json"], ["run", str(cfg), "--resume", str(run_file), "-q"]]
+    argv_file, codes_file = tmp_path / "argv.json", tmp_path / "codes.json"
+    argv_file.write_text(json.dumps(commands), encoding="utf-8")
+    child = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(BLOCKED), str(argv_file), str(codes_file)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        encoding="cp1252",
+        env={**os.environ, "PYTHONIOENCODING": "cp1252"},
+        timeout=880,
+    )
+    assert child.returncode == 0, child.stdout[-3000:] + child.stderr[-5000:]
+    result = json.loads(codes_file.read_text(encoding="utf-8"))
+    assert result["codes"] == [0, 0], child.stderr[-3000:]
+    assert "Traceback" not in child.stderr
+    with h5py.File(run_file, "r") as f:
+        assert f.attrs["status"] == "completed"
+        assert [s.decode() for s in f["steps/status"][:]] == ["completed"] * SHORT_STEPS

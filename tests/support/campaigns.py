@@ -14,13 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import h5py
-
-from qmg_lab.campaign.runner import CampaignRunner, RunSummary
-from qmg_lab.config.schema import Config, config_fingerprint, parse_config
+from qmg_lab.campaign.pipeline import RunHooks, run_campaign
+from qmg_lab.campaign.runner import RunSummary
+from qmg_lab.config.schema import Config, parse_config
 from qmg_lab.instruments import Station
 from qmg_lab.station import build_station, make_world
-from qmg_lab.storage.writer import RunData, RunWriter, read_run
+from qmg_lab.storage.writer import RunData, RunWriter, StorageError, read_run
 from sims.world import World
 
 SAFE_SETPOINT_C = 20.0
@@ -93,39 +92,34 @@ def run_inprocess(
     progress: Any = None,
     writer_cls: type[RunWriter] = RunWriter,
 ) -> Outcome:
-    """Run the campaign of `text` on the twins in this process; never raises (the error is returned)."""
+    """Run the campaign of `text` on the twins in this process, through the pipeline `qmg-lab run` takes
+    (qmg_lab.campaign.pipeline.run_campaign), on a station built here on a World the test keeps; never raises (the
+    error is returned). writer_cls: a RunWriter subclass the opened file is given (tests inject faults in writes)."""
     cfg = parse_config(text)
     world = make_world(cfg)
     station = build_station(cfg, world)
     path = tmp_path / name
-    sha = config_fingerprint(text)
-    if resume:
-        writer = writer_cls.reopen(path, config_sha256=sha, flush_interval_s=cfg.storage.flush_interval_s)
-    else:
-        writer = writer_cls.create(
+
+    def file_open(writer: RunWriter) -> None:
+        if writer_cls is not RunWriter:
+            writer.__class__ = writer_cls
+
+    try:
+        end = run_campaign(
+            cfg,
+            text,
             path,
-            config_text=text,
-            config_sha256=sha,
-            mode="sim",
-            software_version="test",
+            resume=resume,
+            station=station,
             t0_unix=0.0,
-            flush_interval_s=cfg.storage.flush_interval_s,
-            compression="none",
-            truth=True,
+            software_version="test",
+            hooks=RunHooks(progress=progress, file_open=file_open),
         )
-    runner = CampaignRunner(cfg, station, writer, progress=progress, resume=resume)
-    error: BaseException | None = None
-    try:
-        summary = runner.run()
-    except Exception as exc:
-        error = exc
-        summary = runner.summary("aborted", str(exc))
-    try:
         lockin_state = station.lockin.state()
     finally:
         station.close()
-        writer.close()
-    return Outcome(cfg, world, station, path, summary, error, lockin_state)
+    assert end.summary is not None, end.message  # the checks before the run passed
+    return Outcome(cfg, world, station, path, end.summary, end.error, lockin_state)
 
 
 def long_config() -> str:
@@ -140,9 +134,8 @@ def qmg(*args: str) -> list[str]:
 
 
 def completed_steps(path: Path) -> int:
-    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be opened yet."""
+    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be read yet."""
     try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            return int(h5.attrs["completed_steps"])
-    except (OSError, KeyError):
+        return int(read_run(path, select=()).attrs["completed_steps"])
+    except (StorageError, OSError, RuntimeError, KeyError):  # HDF5's own errors while the writer lays it out
         return -1

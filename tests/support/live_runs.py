@@ -8,23 +8,21 @@ from pathlib import Path
 
 import numpy as np
 
+from qmg_lab.campaign.pipeline import new_run_file
+from qmg_lab.campaign.plan import checked_plan
+from qmg_lab.config.schema import parse_config
 from qmg_lab.storage.writer import RunWriter
 from tests.support.campaigns import Outcome, config_text, run_inprocess
 
 
 def live_writer(path: Path, name: str, planned_kinds: list[str]) -> RunWriter:
-    """A new run file (no /truth: as on the bench) whose writer the caller keeps open."""
-    return RunWriter.create(
-        path,
-        config_text=f'[campaign]\nname = "{name}"\n',
-        config_sha256="0" * 64,
-        mode="sim",
-        software_version="test",
-        t0_unix=1.7e9,
-        truth=False,
-        planned_steps=len(planned_kinds),
-        planned_step_kinds=planned_kinds,
-    )
+    """A new run file of a bench configuration (no /truth) made as every run file is made
+    (qmg_lab.campaign.pipeline.new_run_file), with the plan `planned_kinds`; the caller keeps its writer open."""
+    text = f'[campaign]\nname = "{name}"\n'
+    cfg = parse_config(text)
+    w = new_run_file(path, cfg, text, checked_plan(cfg), t0_unix=1.7e9, software_version="test")
+    w.set_plan(len(planned_kinds), planned_kinds)
+    return w
 
 
 def append_block(w: RunWriter, k: int, kind: str) -> None:

@@ -4,7 +4,6 @@ subprocess that is killed while writing one)."""
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import signal
@@ -13,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from qmg_lab.campaign.pipeline import new_run_file
+from qmg_lab.campaign.plan import checked_plan
+from qmg_lab.config.schema import parse_config
 from qmg_lab.storage.writer import RunWriter
 
 FS = 1400.0
@@ -46,18 +48,14 @@ def _config(
     """)
 
 
-def _writer(path: Path, config: str, planned_kinds: list[str], truth: bool, mode: str = "sim") -> RunWriter:
-    return RunWriter.create(
-        path,
-        config_text=config,
-        config_sha256=hashlib.sha256(config.encode()).hexdigest(),
-        mode=mode,
-        software_version="test",
-        t0_unix=1.7e9,
-        truth=truth,
-        planned_steps=len(planned_kinds),
-        planned_step_kinds=planned_kinds,
-    )
+def _writer(path: Path, config: str, planned_kinds: list[str], truth: bool) -> RunWriter:
+    """A new run file made as every run file is made (qmg_lab.campaign.pipeline.new_run_file): on the twins (with
+    /truth) or on the bench, with the plan `planned_kinds` written here."""
+    cfg = parse_config(config)
+    cfg = cfg.with_all_sim() if truth else cfg
+    w = new_run_file(path, cfg, config, checked_plan(cfg), t0_unix=1.7e9, software_version="test")
+    w.set_plan(len(planned_kinds), planned_kinds)
+    return w
 
 
 def square(t: np.ndarray, f_hz: float = F_D, fs: float = FS) -> np.ndarray:
@@ -103,7 +101,7 @@ def temperature(t: np.ndarray | float) -> np.ndarray | float:
 def write_sweep(path: Path, pairs_written: int = N_PAIRS, truth: bool = True, kill: bool = False) -> None:
     rng = np.random.default_rng(7)
     kinds = ["lock", "dither"] + ["rate"] * (2 * N_PAIRS) + ["return"]
-    w = _writer(path, _config("temperature_sweep", DWELL, SETTLE), kinds, truth, "sim" if truth else "hardware")
+    w = _writer(path, _config("temperature_sweep", DWELL, SETTLE), kinds, truth)
     steps = [(0, "lock", 0.0, 2.0, 0.0), (1, "dither", 2.0, 4.0, 0.0)]
     for k in range(2 * pairs_written):
         steps.append((2 + k, "rate", T_PRE + k * DWELL, T_PRE + (k + 1) * DWELL, RATE if k % 2 == 0 else -RATE))
@@ -155,7 +153,6 @@ def write_linearity(path: Path, k: float) -> None:
         _config("linearity", LIN_DWELL, LIN_SETTLE, extra=f"linearity_rates_dps = {LIN_RATES}"),
         ["level"] * len(LIN_RATES),
         truth=False,
-        mode="hardware",
     )
     for i, r in enumerate(LIN_RATES):
         t = np.arange(round(i * LIN_DWELL * FS), round((i + 1) * LIN_DWELL * FS)) / FS

@@ -55,7 +55,8 @@ def test_the_pll_lock_flag_of_each_block_is_on_every_one_of_its_samples(tmp_path
     none = ClsfPeriods(*(np.zeros(0) for _ in range(5)))
     for k, locked in enumerate((True, False, True)):
         t = k + np.arange(4) / FS
-        rec.record(t, LockInBlock(*(t for _ in range(len(LockInBlock.FIELDS))), pll_locked=locked), none, None, 0.0, None, None, 1 / FS)
+        block = LockInBlock(*(t for _ in range(len(LockInBlock.FIELDS))), pll_locked=locked)
+        rec.record(t, block, none, None, 0.0, None, None, 1 / FS)
     w.close()
     lockin = read_run(path).groups["lockin"]
     assert lockin["pll_locked"].dtype == np.uint8
