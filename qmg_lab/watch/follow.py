@@ -159,7 +159,7 @@ class RunFollower:
         if new_rows == 0:
             return np.zeros(0)
         i0 = t.shape[0] - new_rows
-        j = int(np.searchsorted(t, t[i0] - MOVING_MEAN_S, side="right"))
+        j = int(np.searchsorted(t, t[i0] - MOVING_MEAN_S, side="left"))
         tt, ss = t[j:], s[j:]
         return window_mean(tt, ss, tt - MOVING_MEAN_S, tt)[i0 - j :]
 
