@@ -53,10 +53,10 @@ from qmg_lab.analysis.characterize import (
     settling_time_s,
 )
 from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
-from qmg_lab.campaign.plan import dither_amplitude_vpp
-from qmg_lab.config.schema import Config, ConfigError, parse_config
+from qmg_lab.clsf.dither_edges import edge_threshold_v
+from qmg_lab.config.schema import Config, ConfigError, dither_amplitude_vpp, parse_config
+from qmg_lab.storage.reader import RunData, read_run
 from qmg_lab.storage.study_level import read_summary
-from qmg_lab.storage.writer import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
 PPM = 1e6
@@ -205,7 +205,7 @@ def _load(path: str | Path) -> _Ctx:
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
     lk = run.groups["lockin"]
     summary = read_summary(run.path)
-    if summary is not None:  # study storage level (qmg_lab/analysis/study_writer.py): the reductions as written
+    if summary is not None:  # study storage level (qmg_lab/campaign/study_level.py): the reductions as written
         ctx.study_level = True
         ctx.windows = summary.window_rows()
         if cfg.clsf.mode != "off":
@@ -215,7 +215,7 @@ def _load(path: str | Path) -> _Ctx:
         return ctx
     if cfg.clsf.mode != "off" and "dither" in lk:  # the same reductions over the whole columns
         ctx.dither_rising_s, ctx.edge_integral = edges_and_integrals(
-            t, lk["dither"], lk["rate_output"], 0.5 * dither_amplitude_vpp(cfg)
+            t, lk["dither"], lk["rate_output"], edge_threshold_v(dither_amplitude_vpp(cfg))
         )
     truth = run.groups.get("truth")
     if truth is not None:

@@ -1,5 +1,5 @@
 """The analysis's reductions of the raw streams, written once: used by `qmg-lab analyze` on a full file and by the
-study storage level while the campaign runs (qmg_lab/analysis/study_writer.py).
+study storage level while the campaign runs (qmg_lab/campaign/study_level.py).
 
 * The settle time that starts each step's analysis window: max(plan.settle_s, 5 rate-loop time constants
   5/(2 pi f_bw)).

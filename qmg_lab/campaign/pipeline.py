@@ -19,9 +19,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from qmg_lab import __version__
-from qmg_lab.analysis.study_writer import create_run_writer
 from qmg_lab.campaign.plan import CheckedPlan, checked_plan
 from qmg_lab.campaign.runner import CampaignRunner, Progress, RunSummary
+from qmg_lab.campaign.study_level import create_run_writer
 from qmg_lab.config.schema import Config, config_fingerprint
 from qmg_lab.instruments import Station
 from qmg_lab.storage.writer import RunWriter

@@ -34,14 +34,15 @@ import numpy as np
 from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard
 from qmg_lab.campaign.loops import lockin_setup
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
-from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, plan_duration_s
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.campaign.recovery import RecoveryPolicy
 from qmg_lab.campaign.snapshots import station_snapshots
 from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.dither_edges import edge_threshold_v
 from qmg_lab.clsf.estimator import ClsfEstimator
-from qmg_lab.config.schema import Config
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, MovingMean
+from qmg_lab.config.schema import Config, dither_amplitude_vpp
 from qmg_lab.instruments import (
     InstrumentError,
     Station,
@@ -134,7 +135,7 @@ class CampaignRunner:
             mode=self.cfg.clsf.mode,
             time_constant_s=self.cfg.clsf.time_constant_s,
             reference_periods=self.cfg.clsf.reference_periods,
-            dither_min_step_v=0.5 * dither_amplitude_vpp(self.cfg),
+            dither_min_step_v=edge_threshold_v(dither_amplitude_vpp(self.cfg)),
         )
         self._offset = 0.0
         self._t = 0.0  # file time of the last sample, s

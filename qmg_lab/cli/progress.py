@@ -21,8 +21,8 @@ from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 from qmg_lab.campaign.runner import Progress
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 
 REFRESH_S = 0.25  # terminal panel refresh
 LINE_EVERY_S = 10.0  # plain-text line interval (logs, CI)

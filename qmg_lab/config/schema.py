@@ -605,6 +605,11 @@ class Config(_Section):
         return {n: ("twin" if getattr(self, n).sim else "hardware") for n in INSTRUMENT_NAMES}
 
 
+def dither_amplitude_vpp(cfg: Config) -> float:
+    """DS345 peak-to-peak amplitude for the virtual rate: Vpp = 2 Omega_v SF (the dither adds to the FTR command)."""
+    return 2.0 * cfg.dither.virtual_rate_dps * cfg.device.sf_nominal_v_per_dps
+
+
 def plan_limit_problems(cfg: Config) -> list[str]:
     """Every [plan] value outside the instrument limit its field names (`_limited_by`), in words."""
     problems = []

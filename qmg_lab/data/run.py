@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 import h5py
 import numpy as np
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, trailing_mean
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, trailing_mean
 from qmg_lab.storage.layout import DESCRIPTIONS, FORMAT, GROUP_UNITS, StorageError
 from qmg_lab.storage.reader import attr_value, valid_rows
 
@@ -204,7 +204,7 @@ def _lazy_column(file: _RunFile, group: str, name: str, n: int, dtype: np.dtype[
     from xarray.backends import BackendArray
     from xarray.core import indexing
 
-    class H5Column(BackendArray):  # type: ignore[misc]
+    class H5Column(BackendArray):
         def __init__(self) -> None:
             self.shape = (n,)
             self.dtype = np.dtype("datetime64[ns]") if t0_unix is not None else np.dtype(dtype)
@@ -375,7 +375,7 @@ class Run:
         """The CLSF rows (indexed by /clsf/time) with the chamber air and the gyro temperature on that axis.
 
         Columns: sf_change_estimate, sf_change_estimate_60s (the trailing moving mean over SF_MEAN_WINDOW_S of
-        run time, campaign/moving_mean.py), gain_correction, eta, chamber_temperature and chamber_setpoint (degC,
+        run time, clsf/moving_mean.py), gain_correction, eta, chamber_temperature and chamber_setpoint (degC,
         /chamber linearly interpolated at each CLSF time), gyro_temperature (degC, the twins' /truth/temperature
         interpolated likewise; NaN on the bench, which has no truth). Outside a source's time span the value is
         NaN: nothing is extrapolated.

@@ -4,7 +4,7 @@ Reads only the root attributes, /steps, /events and the tail of each group's tim
 read-only): cheap on files of hours, and usable on a file a campaign is writing.
 
 Headline results (the figures a run list can give without the full analysis, `qmg-lab analyze`):
-    sf_change_60s_ppm   the CLSF SF-change estimate, mean of its last SF_MEAN_WINDOW_S (60 s) of run time (campaign/moving_mean.py), in ppm
+    sf_change_60s_ppm   the CLSF SF-change estimate, mean of its last 60 s of run time (clsf/moving_mean.py), in ppm
     gain_correction     the last CLSF gain correction g_c in force (1.0 = none; correct mode)
     chamber_c           the last chamber air temperature, degC
     faults              the number of `fault` events
@@ -21,7 +21,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.campaign.moving_mean import last_window_mean
+from qmg_lab.clsf.moving_mean import last_window_mean
 from qmg_lab.storage.layout import FORMAT, StorageError
 
 TAIL_ROWS = 4096  # CLSF rows read from the end: >= 60 s at any dither frequency below 68 Hz

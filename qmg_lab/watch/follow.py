@@ -39,7 +39,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S, window_mean
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
+from qmg_lab.clsf.moving_mean import window_mean
 
 MAX_ROWS = 2_000_000
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)

@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S
 from tests.support.campaigns import config_text, run_inprocess
 
 
