@@ -55,6 +55,7 @@ from qmg_lab.analysis.characterize import (
 from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
 from qmg_lab.clsf.dither_edges import edge_threshold_v
 from qmg_lab.config.schema import Config, ConfigError, dither_amplitude_vpp, parse_config
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
 from qmg_lab.storage.reader import RunData, read_run
 from qmg_lab.storage.study_level import read_summary
 
@@ -96,6 +97,8 @@ class AnalysisResult:
     steps_completed: int
     missing_steps: list[dict[str, Any]]
     sf_nominal_v_per_dps: float
+    #: who ran it, on which device, why: the file's root attributes (storage.layout.RUN_CONTEXT_ATTRS), "" if absent
+    run_context: dict[str, str] = field(default_factory=dict)
     sf_measured_v_per_dps: float = float("nan")
     n_step_pairs: int = 0
     pairs: list[StepPair] = field(default_factory=list)
@@ -580,6 +583,7 @@ def analyze(path: str | Path) -> AnalysisResult:
         steps_completed=len(ctx.steps),
         missing_steps=[],
         sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps,
+        run_context={k: str(a.get(k, "")) for k in RUN_CONTEXT_ATTRS},
         notes=[*ctx.notes, *unclosed],
     )
     res = _completeness(ctx, res).applied_to(res)

@@ -24,6 +24,7 @@ from qmg_lab.campaign.runner import CampaignRunner, Progress, RunSummary
 from qmg_lab.campaign.study_level import create_run_writer
 from qmg_lab.config.schema import Config, config_fingerprint
 from qmg_lab.instruments import Station
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
 from qmg_lab.storage.writer import RunWriter
 
 
@@ -35,8 +36,12 @@ def new_run_file(
     *,
     t0_unix: float | None = None,
     software_version: str = __version__,
+    note: str = "",
 ) -> RunWriter:
-    """A new run file for `plan` at the configuration's storage level; t0_unix: now unless given."""
+    """A new run file for `plan` at the configuration's storage level; t0_unix: now unless given; note: the run's
+    own note (`run --note`), stored with the configuration's operator, device serial and notes."""
+    who = cfg.campaign
+    context = dict(zip(RUN_CONTEXT_ATTRS, (who.operator, who.device_serial, who.notes, note), strict=True))
     return create_run_writer(
         path,
         cfg,
@@ -47,6 +52,7 @@ def new_run_file(
         software_version=software_version,
         t0_unix=datetime.now(UTC).timestamp() if t0_unix is None else t0_unix,
         instrument_modes=cfg.instrument_modes(),
+        extra_attrs=context,
     )
 
 
@@ -58,11 +64,12 @@ def run_campaign(
     *,
     plan: CheckedPlan | None = None,
     progress: Callable[[Progress], None] | None = None,
+    note: str = "",
 ) -> RunSummary:
     """Run the configuration's campaign on `station` into a new run file at `path`; the file is closed on every
     way out (the station is the caller's to close). Raises what CampaignRunner.run raises."""
     plan = checked_plan(cfg) if plan is None else plan
-    writer = new_run_file(path, cfg, config_text, plan)
+    writer = new_run_file(path, cfg, config_text, plan, note=note)
     try:
         return CampaignRunner(cfg, station, writer, plan=plan, progress=progress).run()
     finally:

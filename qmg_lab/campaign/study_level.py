@@ -99,6 +99,7 @@ def create_run_writer(
     t0_unix: float,
     instrument_modes: Mapping[str, str],
     clock: Callable[[], float] | None = None,
+    extra_attrs: Mapping[str, Any] | None = None,
 ) -> RunWriter:
     """A new run file at the configuration's storage level (`[storage] level`): a RunWriter ("full") or a
     StudyRunWriter with the analysis's reductions ("study")."""
@@ -112,6 +113,7 @@ def create_run_writer(
         compression=cfg.storage.resolved_compression(cfg.lockin.sim),
         instrument_modes=instrument_modes,
         realtime=not cfg.lockin.sim,
+        extra_attrs=extra_attrs,
     )
     if clock is not None:
         kwargs["clock"] = clock

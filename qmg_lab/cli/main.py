@@ -42,7 +42,7 @@ from qmg_lab.cli.common import (
     out,
 )
 from qmg_lab.cli.signals import safe_state_words, say, settle_streams, stop_exits
-from qmg_lab.config.schema import Config, config_fingerprint
+from qmg_lab.config.schema import NOTES_MAX_CHARS, Config, config_fingerprint
 from qmg_lab.instruments import INSTRUMENT_NAMES, InstrumentError, LimitError
 
 app = typer.Typer(
@@ -202,20 +202,32 @@ def run(
     watch_page: Annotated[
         bool, typer.Option("--watch", help="a live page of the run in the browser (127.0.0.1)")
     ] = False,
+    note: Annotated[str, typer.Option("--note", help="why this run: a note stored in the new file")] = "",
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
 
+    if len(note) > NOTES_MAX_CHARS:
+        fail(EXIT_BAD_INPUT, f"--note has {len(note)} characters; at most {NOTES_MAX_CHARS} are stored")
+    if note and resume is not None:
+        fail(EXIT_BAD_INPUT, "--note is a new run's note; a resumed run keeps the note it was started with")
     cfg, text = load(config, sim, campaign=True)
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
     with watch_beside((resume or output) if watch_page else None):
-        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite)
+        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, note=note)
     _print_summary(summary)
 
 
 def _execute(
-    cfg: Config, text: str, *, output: Path | None, resume: Path | None, quiet: bool, overwrite: bool = False
+    cfg: Config,
+    text: str,
+    *,
+    output: Path | None,
+    resume: Path | None,
+    quiet: bool,
+    overwrite: bool = False,
+    note: str = "",
 ) -> Any:
     """Run a campaign into a new file or resume one. Order (docs/reliability.md): every check that needs no
     instrument first (plan limits; the output path, or for --resume the file: readable, not completed, same
@@ -274,7 +286,7 @@ def _execute(
                 else:
                     if path.exists():
                         path.unlink()  # --overwrite, now that the station answered
-                    writer = new_run_file(path, cfg, text, plan)
+                    writer = new_run_file(path, cfg, text, plan, note=note)
             except StorageError as exc:
                 fail(EXIT_BAD_INPUT, str(exc))
             except OSError as exc:

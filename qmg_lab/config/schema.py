@@ -64,6 +64,9 @@ def _transport_on_this_system(value: str) -> str:
 SimTransport = Annotated[Literal["inprocess", "pty", "socket"], AfterValidator(_transport_on_this_system)]
 
 
+NOTES_MAX_CHARS = 2000  # [campaign] notes and `run --note`: a paragraph, not a document
+
+
 class CampaignSection(_Section):
     """What kind of campaign the `[plan]` describes."""
 
@@ -72,6 +75,9 @@ class CampaignSection(_Section):
         "temperature_sweep",
         description="temperature_sweep: the paper's Figs. 4-6; allan: Fig. 7; bandwidth/linearity: Figs. 3/2",
     )
+    operator: str = Field("", max_length=100, description="who runs the campaign (stored in the file; optional)")
+    device_serial: str = Field("", max_length=100, description="serial number of the gyroscope under test (optional)")
+    notes: str = Field("", max_length=NOTES_MAX_CHARS, description="why this campaign: free text stored in the file")
 
 
 class DeviceSection(_Section):

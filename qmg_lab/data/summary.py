@@ -8,6 +8,7 @@ Headline results (the figures a run list can give without the full analysis, `qm
     gain_correction     the last CLSF gain correction g_c in force (1.0 = none; correct mode)
     chamber_c           the last chamber air temperature, degC
     faults              the number of `fault` events
+    operator, device_serial, notes, run_note: who ran it, on which device, why (storage.layout.RUN_CONTEXT_ATTRS)
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import h5py
 import numpy as np
 
 from qmg_lab.clsf.moving_mean import last_window_mean
-from qmg_lab.storage.layout import FORMAT, StorageError
+from qmg_lab.storage.layout import FORMAT, RUN_CONTEXT_ATTRS, StorageError
 
 TAIL_ROWS = 4096  # CLSF rows read from the end: >= 60 s at any dither frequency below 68 Hz
 GROUPS_WITH_TIME = ("lockin", "clsf", "table", "chamber", "truth")
@@ -85,6 +86,7 @@ def summarize(path: Path) -> dict[str, Any]:
         "sf_change_60s_ppm": sf_60,
         "gain_correction": float(clsf["gain_correction"][-1]) if t.shape[0] else math.nan,
         "chamber_c": float(chamber["temperature"][-1]) if chamber["time"].shape[0] else math.nan,
+        **{k: str(attrs.get(k, "")) for k in RUN_CONTEXT_ATTRS},
     }
 
 

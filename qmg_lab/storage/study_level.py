@@ -203,7 +203,8 @@ class StudyRunWriter(RunWriter):
 def create_study_writer(path: Path, reducer: StudyReducer, **create: Any) -> StudyRunWriter:
     """A new study-level run file (RunWriter.create's keywords; no /truth group) whose /lockin and /truth go to
     `reducer`."""
-    writer = StudyRunWriter.create(path, truth=False, extra_attrs={LEVEL_ATTR: "study"}, extra_layout=_layout, **create)
+    attrs = {**(create.pop("extra_attrs", None) or {}), LEVEL_ATTR: "study"}
+    writer = StudyRunWriter.create(path, truth=False, extra_attrs=attrs, extra_layout=_layout, **create)
     assert isinstance(writer, StudyRunWriter)
     writer.reducer = reducer
     for g, units in (("windows", WINDOWS_UNITS), ("edges", EDGES_UNITS)):

@@ -39,6 +39,7 @@ from bokeh.models.widgets import Div
 from bokeh.plotting import figure
 
 from qmg_lab.data.decimate import minmax
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
 from qmg_lab.storage.records import EVENT_KINDS
 from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 
@@ -100,6 +101,12 @@ def _identity(config_toml: str) -> tuple[str, list[float], float]:
         return "? (stored configuration not readable)", [], 0.0
     name = f"<b>{html.escape(cfg.campaign.name)}</b> ({cfg.campaign.kind}, CLSF {cfg.clsf.mode})"
     return name, [s.duration_s for s in steps], float(cfg.plan.settle_s)
+
+
+def _run_context(attrs: dict[str, Any]) -> str:
+    """Who ran it, on which device, why (storage.layout.RUN_CONTEXT_ATTRS), as HTML; "" when none is given."""
+    given = [(k.replace("_", " "), str(attrs.get(k, ""))) for k in RUN_CONTEXT_ATTRS]
+    return "".join(f"; {html.escape(k)}: {html.escape(v)}" for k, v in given if v)
 
 
 class WatchPage:
@@ -235,6 +242,7 @@ class WatchPage:
             self.last_t = math.nan
         if self.durations is None:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
+            self.identity += _run_context(up.attrs)
         self.file_steps = up.steps
         self._feed(up)
         self._time_axis()
