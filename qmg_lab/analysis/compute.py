@@ -52,7 +52,13 @@ from qmg_lab.analysis.characterize import (
     moving_average,
     settling_time_s,
 )
-from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
+from qmg_lab.analysis.reductions import (
+    WindowSums,
+    analysis_settle_s,
+    edges_and_integrals,
+    mean_between_edges,
+    rate_pairs,
+)
 from qmg_lab.clsf.dither_edges import edge_threshold_v
 from qmg_lab.config.schema import Config, ConfigError, dither_amplitude_vpp, parse_config
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
@@ -312,12 +318,8 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
     found = _Found()
     g = ctx.run.groups
     clsf, chamber = g.get("clsf"), g.get("chamber")
-    for idx in sorted(ctx.steps):
-        sp, sm = ctx.steps[idx], ctx.steps.get(idx + 1)
-        if sp["kind"] != "rate" or sm is None or sm["kind"] != "rate":
-            continue
-        if not (sp["table_rate"] > 0 > sm["table_rate"]):
-            continue
+    for idx in rate_pairs({i: (str(s["kind"]), float(s["table_rate"])) for i, s in ctx.steps.items()}):
+        sp, sm = ctx.steps[idx], ctx.steps[idx + 1]
         wp, wm = _window(ctx, sp), _window(ctx, sm)
         op, np_ = _mean_whole_periods(ctx, *wp)
         om, nm = _mean_whole_periods(ctx, *wm)

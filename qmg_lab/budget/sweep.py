@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import expm
 
-from qmg_lab.analysis.reductions import analysis_settle_s
+from qmg_lab.analysis.reductions import analysis_settle_s, rate_pairs
 from qmg_lab.campaign.plan import Step, build_plan
 from qmg_lab.config.schema import Config
 
@@ -366,11 +366,7 @@ def _accuracy(cfg: Config) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
     wins = {w.index: w for w in _windows(sweep, steps)}
     starts = np.cumsum([0.0] + [st.duration_s for st in steps])
     ramp_start = next((float(starts[k]) for k, st in enumerate(steps) if st.kind == "rate"), 0.0)
-    pairs = [
-        (wins[k], wins[k + 1])
-        for k in sorted(wins)
-        if k + 1 in wins and wins[k].rate_dps > 0 > wins[k + 1].rate_dps and steps[k].kind == "rate"
-    ]
+    pairs = [(wins[k], wins[k + 1]) for k in rate_pairs({k: (steps[k].kind, w.rate_dps) for k, w in wins.items()})]
     if not pairs:
         return dict.fromkeys(ACCURACY_SOURCES, float("nan")), np.zeros((len(ACCURACY_SOURCES), 0)), np.zeros(0)
     temps = []

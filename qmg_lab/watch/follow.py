@@ -39,6 +39,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from qmg_lab.analysis.reductions import rate_pairs
 from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
 from qmg_lab.clsf.moving_mean import window_mean
 
@@ -172,13 +173,9 @@ class RunFollower:
         done = steps["status"] == "completed"
         rows = {int(i): k for k, i in enumerate(steps["index"]) if done[k]}
         mids, sfs = [], []
-        for i in sorted(rows):
-            p, m = rows[i], rows.get(i + 1)
-            if m is None or steps["kind"][p] != "rate" or steps["kind"][m] != "rate":
-                continue
+        for i in rate_pairs({i: (str(steps["kind"][k]), float(steps["table_rate"][k])) for i, k in rows.items()}):
+            p, m = rows[i], rows[i + 1]
             rp, rm = float(steps["table_rate"][p]), float(steps["table_rate"][m])
-            if not rp > 0 > rm:
-                continue
             means = []
             for k in (p, m):
                 a, b = float(steps["t_start"][k]) + settle_s, float(steps["t_end"][k])
