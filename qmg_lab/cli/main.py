@@ -268,6 +268,8 @@ def _execute(
             path = resume
         else:
             path = output or _default_output(cfg)
+            if path.is_dir():
+                fail(EXIT_BAD_INPUT, f"-o {path} is a folder: name the run file to write, e.g. -o {path / 'run.h5'}")
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
@@ -470,6 +472,8 @@ def analyze(
     if run_file.is_dir():
         _analyze_study(run_file, json_out, figures)
         return
+    if figures is not None and figures.exists() and not figures.is_dir():
+        fail(EXIT_BAD_INPUT, f"--figures {figures} is a file: name a folder for the figures (made if missing)")
     try:
         check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
     except DamagedFileError as exc:
@@ -488,7 +492,10 @@ def analyze(
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
 
-            written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
+            try:
+                written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
+            except OSError as exc:
+                fail(EXIT_BAD_INPUT, f"--figures {figures}: cannot write the figures there ({exc})")
     except DamagedFileError as exc:  # what still reads, and what does not
         fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
