@@ -178,7 +178,7 @@ class CampaignRunner:
         return self._offset_target if self._offset_target is not None else 0.0
 
     def _event(self, kind: str, instrument: str, message: str, level: int = logging.WARNING) -> None:
-        """One entry of the run's log: the module logger and the run file's /events (runfile_records.py)."""
+        """One entry of the run's log: the module logger and the run file's /events (qmg_lab/storage/records.py)."""
         log.log(level, "t=%.3f s %s %s: %s", self._now(), kind, instrument or "campaign", message)
         try:
             self._records.event(self._now(), kind, instrument, message)
