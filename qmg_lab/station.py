@@ -36,7 +36,7 @@ from drivers.hf2_nodes import mixer_layout
 from drivers.hf2li import HF2LI, open_hf2_session
 from drivers.line_transport import LineTransport, SerialLineTransport, VisaLineTransport
 from drivers.serial_link import Framing
-from qmg_lab.config.schema import Config
+from qmg_lab.config.schema import Config, ConfigError
 from qmg_lab.instruments import (
     INSTRUMENT_NAMES,
     FunctionGenerator,
@@ -96,7 +96,15 @@ def gyro_params(cfg: Config) -> GyroParams:
     (the schema is the one place of their defaults)."""
     values = cfg.sim.model_dump(include=set(GyroParams.field_names()))  # [sim] also holds the world's and faults'
     values["drive_amplitude_vrms"] = cfg.device.drive_amplitude_vrms
-    return GyroParams.from_mapping(values)
+    params = GyroParams.from_mapping(values)
+    # the schema bounds every key; only the physics computes the forcer's electrostatic spring from them
+    if params.electrostatic_spring_ratio >= 0.5:
+        raise ConfigError(
+            "[sim]: the forcer's electrostatic spring must stay below half the sense stiffness (k_e/k = "
+            f"{params.electrostatic_spring_ratio:.3g} from forcer_bias_v, forcer_gap_um, drive_amplitude_um, "
+            "forcer_electrode_v_per_v): near pull-in"
+        )
+    return params
 
 
 def fault_plan(cfg: Config) -> FaultPlan:
@@ -451,6 +459,8 @@ def build_station(cfg: Config, world: World | None = None) -> Station:
     """Connect every instrument of the configuration (twins where `sim = true`). `world`: the twins' shared
     world (default: a new one from [sim]; tests pass their own to look at the physical state). If one
     instrument cannot be connected, those already connected are closed and the InstrumentError names it."""
+    if cfg.lockin.sim:
+        gyro_params(cfg)  # a [sim] the twin cannot simulate is bad input, found before anything is connected
     bench = _Bench(cfg, world)
     world = bench.world
     connected: dict[str, Instrument] = {}

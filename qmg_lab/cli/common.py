@@ -69,6 +69,8 @@ def connected_station(cfg: Config) -> Iterator[Station]:
 
     try:
         station = build_station(cfg)
+    except ConfigError as exc:
+        fail(EXIT_BAD_INPUT, str(exc))
     except (InstrumentError, OSError) as exc:
         fail(EXIT_FAULT, f"could not connect the station: {exc}")
     try:

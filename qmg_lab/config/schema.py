@@ -549,6 +549,16 @@ class SimSection(_Section):
     )
     faults: SimFaultsSection = Field(default_factory=SimFaultsSection)
 
+    @model_validator(mode="after")
+    def _averaged_model(self) -> SimSection:
+        """The twin's averaged model holds for a mode split well below the resonance (docs/physics.md)."""
+        if self.freq_mismatch_hz >= 0.1 * self.f0_hz:
+            raise ValueError(
+                f"freq_mismatch_hz = {self.freq_mismatch_hz:g} must be below 0.1 f0_hz = {0.1 * self.f0_hz:g} Hz "
+                "(the averaged model needs the mode split well below the resonance)"
+            )
+        return self
+
 
 class Config(_Section):
     """A whole campaign configuration."""
