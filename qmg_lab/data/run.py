@@ -198,37 +198,6 @@ def _frame(cols: dict[str, Column], index: str | None = "time") -> pd.DataFrame:
     return df
 
 
-def _lazy_column(file: _RunFile, group: str, name: str, n: int, dtype: np.dtype[Any], t0_unix: float | None) -> Any:
-    """A column as xarray's lazily indexed array: a read of an index or a slice reads only those rows from the
-    file (through `file`); with t0_unix, the rows' UTC datetime64[ns] = t0_unix + time instead of the time."""
-    from xarray.backends import BackendArray
-    from xarray.core import indexing
-
-    class H5Column(BackendArray):
-        def __init__(self) -> None:
-            self.shape = (n,)
-            self.dtype = np.dtype("datetime64[ns]") if t0_unix is not None else np.dtype(dtype)
-
-        def __getitem__(self, key: Any) -> np.ndarray:
-            return indexing.explicit_indexing_adapter(key, self.shape, indexing.IndexingSupport.BASIC, self._read)
-
-        def _read(self, key: tuple[Any, ...]) -> np.ndarray:
-            (k,) = key
-            if isinstance(k, slice):
-                k = slice(*k.indices(n))  # never past the valid rows, whatever the dataset's extent
-            elif not -n <= int(k) < n:
-                raise IndexError(f"row {k} of /{group}/{name} is outside its {n} rows")
-            else:
-                k = int(k) % n
-            values = np.asarray(file.get()[group][name][k])
-            if t0_unix is None:
-                return values
-            ns = np.round(values * 1e9).astype(np.int64)
-            return np.datetime64(round(t0_unix * 1e9), "ns") + ns.astype("timedelta64[ns]")
-
-    return indexing.LazilyIndexedArray(H5Column())
-
-
 @dataclass(repr=False)
 class Run:
     """A qmg-lab run file (see the module docstring). attrs: root attributes (text decoded). A context manager:
@@ -334,6 +303,8 @@ class Run:
         """One group as a Dataset of lazily indexed columns (text columns, only in /steps and /events, are read)."""
         import xarray as xr
 
+        from qmg_lab.data.lazy import lazy_column
+
         if group not in h5:
             raise StorageError(f"{h5.filename}: has no /{group} group")
         grp = h5[group]
@@ -348,13 +319,13 @@ class Run:
             if ds.dtype.kind == "S":
                 values: Any = np.array([v.decode("utf-8", "replace") for v in ds[:n]], dtype=str)
             else:
-                values = _lazy_column(self._file, group, c, n, ds.dtype, None)
+                values = lazy_column(self._file, group, c, n, ds.dtype)
             variables[c] = xr.Variable(dim, values, attrs)
         coords: dict[str, xr.Variable] = {}
         if "time" in variables:
             coords["time"] = variables.pop("time")
             if np.isfinite(self.t0_unix):
-                utc = _lazy_column(self._file, group, "time", n, grp["time"].dtype, self.t0_unix)
+                utc = lazy_column(self._file, group, "time", n, grp["time"].dtype, self.t0_unix)
                 coords["datetime"] = xr.Variable(
                     dim,
                     utc,

@@ -69,6 +69,17 @@ def test_chunks_give_dask_arrays_whose_mean_agrees_with_the_eager_one(sweep: Pat
         assert run.to_xarray(["lockin"], chunks={})["lockin"]["x_sense"].data.chunks[0][0] == on_disk
 
 
+def test_the_lazy_arrays_pickle_for_dask_workers(sweep: Path) -> None:
+    """A dask graph of the tree travels to another process as bytes: the column and its file handle pickle (the
+    handle as its path) and read the same values after the trip."""
+    import pickle
+
+    with qmg_lab.open_run(sweep) as run:
+        arr = run.to_xarray(["lockin"], chunks={})["lockin"]["rate_output"].data
+        again = pickle.loads(pickle.dumps(arr))
+        np.testing.assert_array_equal(again.compute(), arr.compute())
+
+
 def test_every_variable_has_long_name_units_and_a_datetime_coordinate(sweep: Path) -> None:
     with qmg_lab.open_run(sweep) as run:
         tree = run.to_xarray()
