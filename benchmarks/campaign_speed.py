@@ -206,8 +206,10 @@ def against_reference(rev: str, runs: int, cold_count: int) -> dict[str, object]
                     config = trees[name] / "configs" / "paper_campaign.toml"
                     wall, _, _, _, cpu, _ = run_once(config, tmp / f"{name}.h5", trees[name], empty)
                     cold_runs[name].append((wall, cpu))
-            cold = {
+            cold = {  # NaN with --cold-runs 0: the warm comparison alone
                 name: (statistics.median(w for w, _ in runs_), statistics.median(c for _, c in runs_))
+                if runs_
+                else (float("nan"), float("nan"))
                 for name, runs_ in cold_runs.items()
             }
         finally:

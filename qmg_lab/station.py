@@ -39,7 +39,7 @@ from drivers.hf2_nodes import mixer_layout
 from drivers.hf2li import HF2LI, open_hf2_session
 from drivers.line_transport import LineTransport, SerialLineTransport, VisaLineTransport
 from drivers.serial_link import Framing
-from qmg_lab.config.schema import Config
+from qmg_lab.config.schema import Config, ConfigError
 from qmg_lab.instruments import (
     INSTRUMENT_NAMES,
     FunctionGenerator,
@@ -99,7 +99,15 @@ def gyro_params(cfg: Config) -> GyroParams:
     (the schema is the one place of their defaults)."""
     values = cfg.sim.model_dump(include=set(GyroParams.field_names()))  # [sim] also holds the world's and faults'
     values["drive_amplitude_vrms"] = cfg.device.drive_amplitude_vrms
-    return GyroParams.from_mapping(values)
+    params = GyroParams.from_mapping(values)
+    # the schema bounds every key; only the physics computes the forcer's electrostatic spring from them
+    if params.electrostatic_spring_ratio >= 0.5:
+        raise ConfigError(
+            "[sim]: the forcer's electrostatic spring must stay below half the sense stiffness (k_e/k = "
+            f"{params.electrostatic_spring_ratio:.3g} from forcer_bias_v, forcer_gap_um, drive_amplitude_um, "
+            "forcer_electrode_v_per_v): near pull-in"
+        )
+    return params
 
 
 def fault_plan(cfg: Config) -> FaultPlan:
@@ -522,6 +530,8 @@ def build_station(cfg: Config, world: World | None = None, pacing: RealTimePacin
     closed and the InstrumentError names it."""
     if pacing is not None and not cfg.lockin.sim:
         raise ValueError("real-time pacing applies to the lock-in twin: [lockin] sim is false (hardware is real time)")
+    if cfg.lockin.sim:
+        gyro_params(cfg)  # a [sim] the twin cannot simulate is bad input, found before anything is connected
     bench = _Bench(cfg, world, pacing=pacing)
     world = bench.world
     connected: dict[str, Instrument] = {}

@@ -157,7 +157,6 @@ class _TwinBase:
     def __init__(self, params: GyroParams, dt_s: float, seed: int, step_s: float) -> None:
         if not isinstance(params, GyroParams):
             raise TypeError(f"params must be a GyroParams, got {type(params).__name__}")
-        params.validate()
         if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s must be a finite number > 0, got {dt_s!r}")
         self.params = params

@@ -52,8 +52,9 @@ True SF per step: sf_true (omega_x/omega0)(a/a0)/(G_f g) with a = |C_x + iS_x| t
 the Coriolis load k Omega c_y on the drive, the rate output follows the actual amplitude).
 Bias: a sum of first-order Gauss-Markov rates x_j <- a_j x_j + b_j w, updated every `gm_steps` steps and held.
 
-The kernels are compiled with nogil=True: they touch only the arrays they are given, so the noise stream's
-background thread (sims/noise.py) draws the next block's normals while they run.
+The kernels are compiled with nogil=True: they touch only the arrays they are given (the noise stream,
+sims/noise.py, draws each block's normals in the caller's thread before the call), so another thread of the
+process (the run file's writer) runs beside them.
 """
 
 from __future__ import annotations

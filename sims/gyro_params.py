@@ -88,9 +88,6 @@ class GyroParams:
     feedthrough_phase_deg: float  # feedthrough phase against the force (capacitive: into Y); assumed
     hf2_demod_ripple: bool  # carrier model: the demodulator filter's residual 2 omega term in the stream
 
-    def __post_init__(self) -> None:
-        self.validate()
-
     @classmethod
     def field_names(cls) -> frozenset[str]:
         """The names of the parameters (what `from_mapping` accepts)."""
@@ -112,79 +109,6 @@ class GyroParams:
         if missing:
             raise ValueError(f"GyroParams: missing parameters {missing}")
         return cls(**d)
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first parameter that cannot be simulated."""
-        positive = (
-            "f0_hz",
-            "q_factor",
-            "angular_gain",
-            "drive_voltage_v",
-            "sf_true_v_per_dps",
-            "drive_amplitude_vrms",
-            "forcer_gap_um",
-            "drive_amplitude_um",
-        )
-        for name in positive:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"GyroParams.{name} must be a finite number > 0, got {v!r}")
-        non_negative = (
-            "arw_deg_per_rt_h",
-            "bias_instability_deg_per_h",
-            "pickoff_noise_vrms_per_rt_hz",
-            "forcer_noise_v_per_rt_hz",
-            "auxin_noise_v_rms",
-            "loop_delay_us",
-            "freq_mismatch_hz",
-            "forcer_bias_v",
-            "forcer_electrode_v_per_v",
-            "feedthrough_v_per_v",
-        )
-        for name in non_negative:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"GyroParams.{name} must be a finite number >= 0, got {v!r}")
-        if self.arw_dps_per_rt_hz is not None and not (
-            math.isfinite(self.arw_dps_per_rt_hz) and self.arw_dps_per_rt_hz >= 0
-        ):
-            raise ValueError(f"GyroParams.arw_dps_per_rt_hz must be None or >= 0, got {self.arw_dps_per_rt_hz!r}")
-        for name in ("auxout_bits", "auxin_bits"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and 0 <= v <= 32):
-                raise ValueError(f"GyroParams.{name} must be an integer in [0, 32] (0 = ideal), got {v!r}")
-        for name in ("auxout_range_v", "auxin_range_v"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"GyroParams.{name} must be a finite number > 0, got {v!r}")
-        if not 0.0 <= self.damping_mismatch < 1.0:
-            raise ValueError(f"GyroParams.damping_mismatch must lie in [0, 1), got {self.damping_mismatch!r}")
-        for name in (
-            "damping_axis_deg",
-            "stiffness_axis_deg",
-            "forcer_tempco_ppm_per_c",
-            "frequency_tempco_ppm_per_c",
-            "pickoff_electronics_tempco_ppm_per_c",
-            "pickoff_transducer_tempco_ppm_per_c",
-            "pickoff_ratio_tempco2_ppm_per_c2",
-            "frontend_thermal_tau_s",
-            "reference_temperature_c",
-            "q_tempco_ppm_per_c",
-            "damping_mismatch_tempco_per_c",
-            "freq_mismatch_tempco_hz_per_c",
-            "feedthrough_phase_deg",
-        ):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise ValueError(f"GyroParams.{name} must be a finite number, got {v!r}")
-        if self.freq_mismatch_hz >= 0.1 * self.f0_hz:
-            raise ValueError("GyroParams.freq_mismatch_hz must be well below f0_hz (averaged model)")
-        if self.electrostatic_spring_ratio >= 0.5:
-            raise ValueError(
-                "GyroParams: the forcer's electrostatic spring must stay below half the sense stiffness (got k_e/k = "
-                f"{self.electrostatic_spring_ratio:.3g} from forcer_bias_v, forcer_gap_um, drive_amplitude_um): "
-                "near pull-in"
-            )
 
     @property
     def arw_rad_per_rt_s(self) -> float:

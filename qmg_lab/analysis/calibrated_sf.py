@@ -26,7 +26,7 @@ from qmg_lab.analysis.adev import overlapping_adev
 from qmg_lab.analysis.compute import AnalysisResult, StepPair, analyze, stored_config
 from qmg_lab.analysis.reductions import analysis_settle_s
 from qmg_lab.clsf.pickoff_model import PickoffRatioModel, binned, fit_pickoff_model, window_means
-from qmg_lab.storage.writer import RunData, read_run
+from qmg_lab.storage.reader import RunData, read_run
 
 PPM = 1e6
 WARN_ACCURACY_PPM = 100.0  # the bound across variants: above it `analyze` names the broken assumption

@@ -59,11 +59,18 @@ from qmg_lab.analysis.characterize import (
     settling_time_s,
 )
 from qmg_lab.analysis.encoder import EncoderTrack, Plateau, decode_quadrature, plateau, rate_over
-from qmg_lab.analysis.reductions import WindowSums, analysis_settle_s, edges_and_integrals, mean_between_edges
-from qmg_lab.campaign.plan import dither_amplitude_vpp
-from qmg_lab.config.schema import Config, ConfigError, parse_config
+from qmg_lab.analysis.reductions import (
+    WindowSums,
+    analysis_settle_s,
+    edges_and_integrals,
+    mean_between_edges,
+    rate_pairs,
+)
+from qmg_lab.clsf.dither_edges import edge_threshold_v
+from qmg_lab.config.schema import Config, ConfigError, dither_amplitude_vpp, parse_config
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
+from qmg_lab.storage.reader import RunData, read_run
 from qmg_lab.storage.study_level import read_summary
-from qmg_lab.storage.writer import RunData, read_run
 
 _SINE = re.compile(r"^sine:([0-9.eE+-]+)Hz$")
 PPM = 1e6
@@ -150,6 +157,8 @@ class AnalysisResult:
     steps_completed: int
     missing_steps: list[dict[str, Any]]
     sf_nominal_v_per_dps: float
+    #: who ran it, on which device, why: the file's root attributes (storage.layout.RUN_CONTEXT_ATTRS), "" if absent
+    run_context: dict[str, str] = field(default_factory=dict)
     sf_measured_v_per_dps: float = float("nan")
     n_step_pairs: int = 0
     pairs: list[StepPair] = field(default_factory=list)
@@ -264,7 +273,7 @@ def _load(path: str | Path) -> _Ctx:
     ctx = _Ctx(run, cfg, fs, period, settle, steps, notes)
     lk = run.groups["lockin"]
     summary = read_summary(run.path)
-    if summary is not None:  # study storage level (qmg_lab/analysis/study_writer.py): the reductions as written
+    if summary is not None:  # study storage level (qmg_lab/campaign/study_level.py): the reductions as written
         ctx.study_level = True
         ctx.windows = summary.window_rows()
         if cfg.clsf.mode != "off":
@@ -274,7 +283,7 @@ def _load(path: str | Path) -> _Ctx:
         return ctx
     if cfg.clsf.mode != "off" and "dither" in lk:  # the same reductions over the whole columns
         ctx.dither_rising_s, ctx.edge_integral = edges_and_integrals(
-            t, lk["dither"], lk["rate_output"], 0.5 * dither_amplitude_vpp(cfg)
+            t, lk["dither"], lk["rate_output"], edge_threshold_v(dither_amplitude_vpp(cfg))
         )
     _find_plateaus(ctx)
     truth = run.groups.get("truth")
@@ -403,12 +412,8 @@ def _pairs(ctx: _Ctx, res: AnalysisResult) -> _Found:
     found = _Found()
     g = ctx.run.groups
     clsf, chamber = g.get("clsf"), g.get("chamber")
-    for idx in sorted(ctx.steps):
-        sp, sm = ctx.steps[idx], ctx.steps.get(idx + 1)
-        if sp["kind"] != "rate" or sm is None or sm["kind"] != "rate":
-            continue
-        if not (sp["table_rate"] > 0 > sm["table_rate"]):
-            continue
+    for idx in rate_pairs({i: (str(s["kind"]), float(s["table_rate"])) for i, s in ctx.steps.items()}):
+        sp, sm = ctx.steps[idx], ctx.steps[idx + 1]
         wp, wm = _window(ctx, sp), _window(ctx, sm)
         op, np_ = _mean_whole_periods(ctx, *wp)
         om, nm = _mean_whole_periods(ctx, *wm)
@@ -681,6 +686,7 @@ def analyze(path: str | Path) -> AnalysisResult:
         steps_completed=len(ctx.steps),
         missing_steps=[],
         sf_nominal_v_per_dps=cfg.device.sf_nominal_v_per_dps,
+        run_context={k: str(a.get(k, "")) for k in RUN_CONTEXT_ATTRS},
         notes=[*ctx.notes, *unclosed],
     )
     res = _completeness(ctx, res).applied_to(res)

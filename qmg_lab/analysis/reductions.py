@@ -1,5 +1,5 @@
 """The analysis's reductions of the raw streams, written once: used by `qmg-lab analyze` on a full file and by the
-study storage level while the campaign runs (qmg_lab/analysis/study_writer.py).
+study storage level while the campaign runs (qmg_lab/campaign/study_level.py).
 
 * The settle time that starts each step's analysis window: max(plan.settle_s, 5 rate-loop time constants
   5/(2 pi f_bw)).
@@ -10,6 +10,8 @@ study storage level while the campaign runs (qmg_lab/analysis/study_writer.py).
   per chunk), and the integral interpolated linearly at each edge (`EdgeIntegrator`). A step's rate-output mean
   over whole dither periods is then (I(e_last) - I(e_first)) / (e_last - e_first) (`mean_between_edges`).
 * The truth's sample count and sums over a step's window (`WindowSums`).
+* The step pairs that measure the scale factor (`rate_pairs`): step i and step i + 1, both "rate" steps, at
+  +r then -r (r+ > 0 > r-); the pair's SF is (m+ - m-) / (r+ - r-), m+- the steps' rate-output means.
 
 Fed the same samples in blocks of any size, these give the same values as over the whole columns up to the
 rounding of the running sums (the integral's partial sums are formed in the same order; blocks only change
@@ -19,6 +21,7 @@ where a chunk's arrays are joined).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +33,17 @@ from qmg_lab.config.schema import Config
 EDGE_CHUNK_SAMPLES = 36000
 #: lock-in samples kept from the previous chunk: a smoothed edge may lie a sample or two before its chunk
 _INTERP_HISTORY = 16
+
+
+def rate_pairs(steps: Mapping[int, tuple[str, float]]) -> list[int]:
+    """The first index i of every +rate/-rate pair among `steps` (step index -> (kind, table rate in deg/s)):
+    i and i + 1 both present, both of kind "rate", rate(i) > 0 > rate(i + 1); in index order."""
+    pairs = []
+    for i in sorted(steps):
+        plus, minus = steps[i], steps.get(i + 1)
+        if minus is not None and plus[0] == "rate" == minus[0] and plus[1] > 0 > minus[1]:
+            pairs.append(i)
+    return pairs
 
 
 def analysis_settle_s(cfg: Config) -> float:

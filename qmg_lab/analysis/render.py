@@ -55,6 +55,7 @@ def render_table(result: AnalysisResult) -> Table:
     tab.add_column("unit")
     rows: list[tuple[str, str, str]] = [
         ("campaign / CLSF mode", f"{r.campaign_kind} / {r.clsf_mode}", ""),
+        *((k.replace("_", " "), v, "") for k, v in r.run_context.items() if v),
         ("steps completed / planned", f"{r.steps_completed} / {f(r.steps_planned, reason='steps_planned')}", ""),
         (
             "missing steps",

@@ -35,9 +35,10 @@ import numpy as np
 from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
 from qmg_lab.analysis.compute import AnalysisResult, analyze, stored_config
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
+from qmg_lab.clsf.moving_mean import centred_mean
 from qmg_lab.data.decimate import minmax
-from qmg_lab.data.run import MOVING_MEAN_S, centred_mean
-from qmg_lab.storage.writer import read_run, read_window
+from qmg_lab.storage.reader import read_run, read_window
 
 MAX_POINTS = 20000
 FORMATS = ("png", "svg", "pdf")

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import expm
 
-from qmg_lab.analysis.reductions import analysis_settle_s
+from qmg_lab.analysis.reductions import analysis_settle_s, rate_pairs
 from qmg_lab.campaign.plan import Step, build_plan
 from qmg_lab.config.schema import Config
 
@@ -423,11 +423,7 @@ def pair_errors(cfg: Config) -> PairErrors:
     wins = {w.index: w for w in _windows(sweep, steps)}
     starts = np.cumsum([0.0] + [st.duration_s for st in steps])
     ramp_start = next((float(starts[k]) for k, st in enumerate(steps) if st.kind == "rate"), 0.0)
-    pairs = [
-        (wins[k], wins[k + 1])
-        for k in sorted(wins)
-        if k + 1 in wins and wins[k].rate_dps > 0 > wins[k + 1].rate_dps and steps[k].kind == "rate"
-    ]
+    pairs = [(wins[k], wins[k + 1]) for k in rate_pairs({k: (steps[k].kind, w.rate_dps) for k, w in wins.items()})]
     if not pairs:
         return PairErrors(np.zeros((len(ACCURACY_SOURCES), 0)), [], ramp_start, np.zeros(0), np.zeros(0))
     grids = np.array(

@@ -33,14 +33,14 @@ from pathlib import Path
 from typing import Any
 
 from qmg_lab import __version__
-from qmg_lab.analysis.study_writer import create_run_writer
 from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
 from qmg_lab.campaign.plan import CheckedPlan, checked_plan, plan_duration_s
 from qmg_lab.campaign.runner import CampaignRunner, Progress, RunSummary, run_space_need
-from qmg_lab.config.schema import Config, config_fingerprint
+from qmg_lab.campaign.study_level import create_run_writer
+from qmg_lab.config.schema import Config, ConfigError, config_fingerprint
 from qmg_lab.instruments import InstrumentError, LimitError, Station
-from qmg_lab.storage.layout import DamagedFileError, StorageError
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS, DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
 from qmg_lab.storage.study_level import refuse_study_resume
@@ -59,8 +59,12 @@ def new_run_file(
     *,
     t0_unix: float | None = None,
     software_version: str = __version__,
+    note: str = "",
 ) -> RunWriter:
-    """A new run file for `plan` at the configuration's storage level; t0_unix: now unless given."""
+    """A new run file for `plan` at the configuration's storage level; t0_unix: now unless given; note: the run's
+    own note (`run --note`), stored with the configuration's operator, device serial and notes."""
+    who = cfg.campaign
+    context = dict(zip(RUN_CONTEXT_ATTRS, (who.operator, who.device_serial, who.notes, note), strict=True))
     return create_run_writer(
         path,
         cfg,
@@ -71,6 +75,7 @@ def new_run_file(
         software_version=software_version,
         t0_unix=datetime.now(UTC).timestamp() if t0_unix is None else t0_unix,
         instrument_modes=cfg.instrument_modes(),
+        extra_attrs=context,
     )
 
 
@@ -131,11 +136,13 @@ def run_campaign(
     t0_unix: float | None = None,
     software_version: str = __version__,
     realtime: bool = False,
+    note: str = "",
 ) -> RunEnd:
     """Run the configuration's campaign into a new run file at `path`, or continue it (`resume`). The module
     docstring's protocol. station: the caller's, already connected (it stays the caller's to close); None: the
     station is built from the configuration after the checks and closed here, its lock-in twin paced to the wall
-    clock if `realtime` (`run --sim --realtime`, qmg_lab.station.RealTimePacing)."""
+    clock if `realtime` (`run --sim --realtime`, qmg_lab.station.RealTimePacing). note: `run --note`, stored in a
+    new file's root attributes."""
     hooks = hooks or RunHooks()
     with ExitStack() as stack:
         try:
@@ -161,10 +168,12 @@ def run_campaign(
         if station is None:
             try:
                 station = stack.enter_context(_connected(cfg, realtime))
+            except ConfigError as exc:  # a configuration the physics refuses (the station's pull-in check)
+                return RunEnd(EXIT_BAD_INPUT, str(exc), path, error=exc)
             except (InstrumentError, OSError) as exc:
                 return RunEnd(EXIT_FAULT, f"could not connect the station: {exc}", path, error=exc)
         try:
-            writer = _open_file(cfg, config_text, path, plan, resume, t0_unix, software_version)
+            writer = _open_file(cfg, config_text, path, plan, resume, t0_unix, software_version, note)
         except (StorageError, OSError) as exc:
             return RunEnd(EXIT_BAD_INPUT, _file_words(path, exc), path, error=exc)
         return _run(cfg, station, writer, plan, resume, hooks, guard)
@@ -255,6 +264,7 @@ def _open_file(
     resume: bool,
     t0_unix: float | None,
     software_version: str,
+    note: str,
 ) -> RunWriter:
     if resume:
         return RunWriter.reopen(
@@ -265,7 +275,7 @@ def _open_file(
         )
     if path.exists():
         path.unlink()  # --overwrite, now that the checks passed and the station answered
-    return new_run_file(path, cfg, config_text, plan, t0_unix=t0_unix, software_version=software_version)
+    return new_run_file(path, cfg, config_text, plan, t0_unix=t0_unix, software_version=software_version, note=note)
 
 
 def _file_words(path: Path, exc: BaseException) -> str:

@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
-from qmg_lab.config.schema import ALLAN_SEGMENT_S, Config
+from qmg_lab.config.schema import ALLAN_SEGMENT_S, Config, dither_amplitude_vpp
 from qmg_lab.instruments import LimitError
 
 # ALLAN_SEGMENT_S: checkpoint granularity of a long constant-temperature hold (defined beside the schema's bound
@@ -94,11 +94,6 @@ class LimitCheck:
         """The check in words: "table rate = 500 deg/s outside [0, 100] deg/s" ("within" when it passes)."""
         where = "within" if self.ok else "outside"
         return f"{self.what} = {self.value:g} {self.unit} {where} [{self.low:g}, {self.high:g}] {self.unit}"
-
-
-def dither_amplitude_vpp(cfg: Config) -> float:
-    """DS345 peak-to-peak amplitude for the virtual rate: Vpp = 2 Omega_v SF (the dither adds to the FTR command)."""
-    return 2.0 * cfg.dither.virtual_rate_dps * cfg.device.sf_nominal_v_per_dps
 
 
 def ramp_time_s(cfg: Config) -> float:
@@ -250,7 +245,6 @@ __all__ = [
     "assert_within_limits",
     "build_plan",
     "checked_plan",
-    "dither_amplitude_vpp",
     "limit_checks",
     "plan_duration_s",
     "ramp_time_s",

@@ -34,14 +34,15 @@ import numpy as np
 from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard
 from qmg_lab.campaign.loops import lockin_setup
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
-from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, dither_amplitude_vpp, plan_duration_s
+from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, plan_duration_s
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.campaign.recovery import RecoveryPolicy
 from qmg_lab.campaign.snapshots import station_snapshots
 from qmg_lab.clsf.demod_filter import DemodFilter
+from qmg_lab.clsf.dither_edges import edge_threshold_v
 from qmg_lab.clsf.estimator import ClsfEstimator
-from qmg_lab.config.schema import Config
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, MovingMean
+from qmg_lab.config.schema import Config, dither_amplitude_vpp
 from qmg_lab.instruments import (
     InstrumentError,
     Station,
@@ -136,7 +137,7 @@ class CampaignRunner:
             mode=self.cfg.clsf.mode,
             time_constant_s=self.cfg.clsf.time_constant_s,
             reference_periods=self.cfg.clsf.reference_periods,
-            dither_min_step_v=0.5 * dither_amplitude_vpp(self.cfg),
+            dither_min_step_v=edge_threshold_v(dither_amplitude_vpp(self.cfg)),
         )
         self._offset = 0.0
         self._t = 0.0  # file time of the last sample, s
@@ -180,7 +181,7 @@ class CampaignRunner:
         return self._offset_target if self._offset_target is not None else 0.0
 
     def _event(self, kind: str, instrument: str, message: str, level: int = logging.WARNING) -> None:
-        """One entry of the run's log: the module logger and the run file's /events (runfile_records.py)."""
+        """One entry of the run's log: the module logger and the run file's /events (qmg_lab/storage/records.py)."""
         log.log(level, "t=%.3f s %s %s: %s", self._now(), kind, instrument or "campaign", message)
         try:
             self._records.event(self._now(), kind, instrument, message)

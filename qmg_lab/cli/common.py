@@ -107,6 +107,8 @@ def connected_station(cfg: Config, realtime: bool = False) -> Iterator[Station]:
         fail(EXIT_BAD_INPUT, "--realtime paces the lock-in twin, and [lockin] sim is false: hardware runs in real time")
     try:
         station = build_station(cfg, pacing=RealTimePacing() if realtime else None)
+    except ConfigError as exc:
+        fail(EXIT_BAD_INPUT, str(exc))
     except (InstrumentError, OSError) as exc:
         fail(EXIT_FAULT, f"could not connect the station: {exc}")
     try:

@@ -44,7 +44,7 @@ from qmg_lab.cli.common import (
     warn_network_share,
 )
 from qmg_lab.cli.signals import say, settle_streams, stop_exits
-from qmg_lab.config.schema import Config, config_fingerprint
+from qmg_lab.config.schema import NOTES_MAX_CHARS, Config, config_fingerprint
 from qmg_lab.instruments import INSTRUMENT_NAMES, InstrumentError
 
 app = typer.Typer(
@@ -217,15 +217,22 @@ def run(
             help="with --watch: seconds the page stays up with the final status after the run (Ctrl-C closes it)",
         ),
     ] = watch.DEFAULT_LINGER_S,
+    note: Annotated[str, typer.Option("--note", help="why this run: a note stored in the new file")] = "",
 ) -> None:
     """Run a campaign, with live progress and a summary at the end."""
     from qmg_lab.cli.watch import watch_beside
 
+    if len(note) > NOTES_MAX_CHARS:
+        fail(EXIT_BAD_INPUT, f"--note has {len(note)} characters; at most {NOTES_MAX_CHARS} are stored")
+    if note and resume is not None:
+        fail(EXIT_BAD_INPUT, "--note is a new run's note; a resumed run keeps the note it was started with")
     cfg, text = load(config, sim, campaign=True)
     if watch_page and resume is None and output is None:
         output = _default_output(cfg)  # the page needs the file's name before the run makes it
     with watch_beside((resume or output) if watch_page else None, port, watch_linger):
-        summary = _execute(cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, realtime=realtime)
+        summary = _execute(
+            cfg, text, output=output, resume=resume, quiet=quiet, overwrite=overwrite, realtime=realtime, note=note
+        )
         _print_summary(summary)  # before the page's linger
 
 
@@ -238,6 +245,7 @@ def _execute(
     quiet: bool,
     overwrite: bool = False,
     realtime: bool = False,
+    note: str = "",
 ) -> Any:
     """Run a campaign into a new file or resume one through the one pipeline (qmg_lab.campaign.pipeline.run_campaign:
     every check that needs no instrument first, the file's lock, the stop signals, the station, the file, its close
@@ -266,6 +274,7 @@ def _execute(
             resume=resume is not None,
             overwrite=overwrite,
             realtime=realtime,
+            note=note,
             hooks=RunHooks(progress=view.update, view=view, file_open=file_open),
         )
     if not end.ok:
@@ -419,6 +428,8 @@ def analyze(
     if run_file.is_dir():
         _analyze_study(run_file, json_out, figures)
         return
+    if figures is not None and figures.exists() and not figures.is_dir():
+        fail(EXIT_BAD_INPUT, f"--figures {figures} is a file: name a folder for the figures (made if missing)")
     try:
         check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
     except DamagedFileError as exc:
@@ -453,7 +464,10 @@ def analyze(
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
 
-            written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
+            try:
+                written = write_figures(run_file, figures, fmt=fmt)  # type: ignore[arg-type]  # checked above
+            except OSError as exc:
+                fail(EXIT_BAD_INPUT, f"--figures {figures}: cannot write the figures there ({exc})")
     except DamagedFileError as exc:  # what still reads, and what does not
         fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:

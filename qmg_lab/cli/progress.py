@@ -21,8 +21,8 @@ from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 from qmg_lab.campaign.runner import Progress
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, MovingMean
 
 REFRESH_S = 1.0  # terminal panel refresh, s: the live panel is rebuilt and redrawn once a second (a redraw costs
 # about 1.5 % of a core at 4 a second on a real-time run: benchmarks/realtime_cpu.py)

@@ -31,19 +31,19 @@ OPEN_WARNING = (
 
 
 def _check_run_file(path: Path) -> None:
-    import h5py
-
-    from qmg_lab.storage.layout import FORMAT
+    """Refuse (exit 2) what is not a readable run file, in the words `analyze` uses: both ask the same reader."""
+    from qmg_lab.cli.files import damaged_file_report
+    from qmg_lab.storage.layout import DamagedFileError, StorageError
+    from qmg_lab.storage.reader import read_run
 
     if not path.is_file():
         fail(EXIT_BAD_INPUT, f"{path}: no such run file")
     try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            fmt = h5.attrs.get("format")
-    except OSError as exc:
-        fail(EXIT_BAD_INPUT, f"{path}: HDF5 cannot open it: {exc}")
-    if (fmt.decode() if isinstance(fmt, bytes) else fmt) != FORMAT:
-        fail(EXIT_BAD_INPUT, f"{path}: not a {FORMAT} run file (root attribute format = {fmt!r})")
+        read_run(path, select=())
+    except DamagedFileError as exc:
+        fail(EXIT_BAD_INPUT, damaged_file_report(path, str(exc)))
+    except StorageError as exc:
+        fail(EXIT_BAD_INPUT, str(exc))
 
 
 def watch(

@@ -156,13 +156,22 @@ def continue_fit(
     return True, j, rolling_line_fit(np.concatenate((hist_t, te)), np.concatenate((hist_j, jf)), hist_t.size, fit_edges)
 
 
+def edge_threshold_v(amplitude_vpp: float) -> float:
+    """The smallest recorded level step taken for a running dither: half the square wave's peak-to-peak amplitude.
+
+    A running dither steps by its full Vpp at every edge; with the dither muted (AMPL 0VP) the AuxIn shows only its
+    reading noise and ADC steps, orders of magnitude below Vpp / 2, so half the amplitude tells the two apart with a
+    factor of two of margin on either side (an attenuated or a mis-set amplitude still counts as running)."""
+    return 0.5 * amplitude_vpp
+
+
 @dataclass
 class EdgeTracker:
     """Streams dither samples in; returns the smoothed times of the rising and falling edges found."""
 
     window_s: float = 0.0  # the AuxIn averaging window W, s
     fit_edges: int = 32
-    min_step_v: float = 0.0  # the smallest level step taken for a running dither, V
+    min_step_v: float = 0.0  # the smallest level step taken for a running dither (edge_threshold_v), V
     lo: float | None = None
     hi: float | None = None
     _prev_t: float | None = None

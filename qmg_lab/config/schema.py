@@ -86,6 +86,9 @@ def _transport_on_this_system(value: str) -> str:
 SimTransport = Annotated[Literal["inprocess", "pty", "socket"], AfterValidator(_transport_on_this_system)]
 
 
+NOTES_MAX_CHARS = 2000  # [campaign] notes and `run --note`: a paragraph, not a document
+
+
 class CampaignSection(_Section):
     """What kind of campaign the `[plan]` describes."""
 
@@ -94,6 +97,9 @@ class CampaignSection(_Section):
         "temperature_sweep",
         description="temperature_sweep: the paper's Figs. 4-6; allan: Fig. 7; bandwidth/linearity: Figs. 3/2",
     )
+    operator: str = Field("", max_length=100, description="who runs the campaign (stored in the file; optional)")
+    device_serial: str = Field("", max_length=100, description="serial number of the gyroscope under test (optional)")
+    notes: str = Field("", max_length=NOTES_MAX_CHARS, description="why this campaign: free text stored in the file")
 
 
 class DeviceSection(_Section):
@@ -660,6 +666,16 @@ class SimSection(_Section):
             )
         return data
 
+    @model_validator(mode="after")
+    def _averaged_model(self) -> SimSection:
+        """The twin's averaged model holds for a mode split well below the resonance (docs/physics.md)."""
+        if self.freq_mismatch_hz >= 0.1 * self.f0_hz:
+            raise ValueError(
+                f"freq_mismatch_hz = {self.freq_mismatch_hz:g} must be below 0.1 f0_hz = {0.1 * self.f0_hz:g} Hz "
+                "(the averaged model needs the mode split well below the resonance)"
+            )
+        return self
+
 
 class Config(_Section):
     """A whole campaign configuration."""
@@ -720,6 +736,11 @@ class Config(_Section):
         """ "twin" | "hardware" per instrument, as the configuration (after --sim) sets them: the one place that
         decides it for the CLI, the study task and the run file's instrument_modes attribute."""
         return {n: ("twin" if getattr(self, n).sim else "hardware") for n in INSTRUMENT_NAMES}
+
+
+def dither_amplitude_vpp(cfg: Config) -> float:
+    """DS345 peak-to-peak amplitude for the virtual rate: Vpp = 2 Omega_v SF (the dither adds to the FTR command)."""
+    return 2.0 * cfg.dither.virtual_rate_dps * cfg.device.sf_nominal_v_per_dps
 
 
 def plan_limit_problems(cfg: Config) -> list[str]:

@@ -1,46 +1,60 @@
 """A run file in one line: `qmg_lab.open_run(path)` (docs/working-with-runs.md; the layout: docs/hdf5.md).
 
-    run = qmg_lab.open_run("run.h5")
-    run.config["campaign"]["name"], run.status, run.steps, run.events
-    run.to_xarray()["clsf"].sf_change_estimate.plot()
+    with qmg_lab.open_run("run.h5") as run:
+        run.config["campaign"]["name"], run.status, run.steps, run.events
+        run.to_xarray()["clsf"].sf_change_estimate.plot()
 
-Every read opens the file read-only through HDF5 SWMR and closes it again, so a file that a campaign is still
-writing (or that a killed writer left) reads as of the writer's last flush; nothing here ever writes. `Run` holds
-what is small (root attributes, configuration, steps, events, snapshots) as read at `open_run`; the data groups
-are read when asked for (`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call.
-`run.reload()` reads the small parts again.
+Every read opens the file read-only through HDF5 SWMR, so a file that a campaign is still writing (or that a
+killed writer left) reads as of the writer's last flush; nothing here ever writes. `Run` holds what is small (root
+attributes, configuration, steps, events, snapshots) as read at `open_run`; the data groups are read when asked
+for (`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call. `run.reload()` reads
+the small parts again. The data reads share one read-only file handle, opened at the first of them and closed by
+`run.close()` (or on leaving `with open_run(...) as run:`); a read after `close()` opens it again.
 
-Every group is cut to its shortest column (a kill, or a reader between two column writes, may leave one column a
-block longer): whole rows only, as `qmg_lab.storage.reader.read_run` does.
+Whole valid rows only, as `qmg_lab.storage.reader.read_run` reads them: every group is cut to its shortest
+column (a kill, or a reader between two column writes, may leave one column a block longer), and to the rows
+whose time is data (`storage.reader.valid_rows`: the fill rows a killed writer leaves at the end hold a NaN or a
+0.0 time). The time column is scanned for that in blocks of SCAN_ROWS, so the rule costs no memory on a long run.
 
 `to_xarray()` returns an xarray DataTree rather than a dict of Datasets: the tree mirrors the file's groups
 (`tree["clsf"]`, `tree["chamber"]`) with the root attributes on its root, each group keeps its own time axis
 (the groups are sampled at different rates, so one shared Dataset would need a union of all times full of NaN),
-and it is one object that `to_netcdf`/`to_zarr` write whole. `tree["clsf"].to_dataset()` is the Dataset of one group.
+and it is one object that `to_netcdf`/`to_zarr` write whole. It is lazy, as `xarray.open_dataset` is: nothing of
+a column is read until its values are asked for (xarray's lazy indexing over the HDF5 dataset: a slice reads that
+slice), `chunks=` as `open_dataset` spells it gives dask arrays instead, and `.load()` reads everything. A day of
+/lockin is ~10^8 rows per column (GB): an index over the time of the stream groups (/lockin, /truth) would read
+their whole time column, so those two keep `time` as a coordinate without an index (`.set_xindex("time")` builds
+one, reading the column; `.isel` needs none). Every variable carries `long_name` and `units`, and every node a
+`datetime` coordinate (UTC, datetime64[ns]) next to its run time `time` (s since the root attribute t0_unix).
 """
 
 from __future__ import annotations
 
 import json
+import threading
 import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import FORMAT, StorageError
-from qmg_lab.storage.reader import attr_value
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, trailing_mean
+from qmg_lab.storage.layout import DESCRIPTIONS, FORMAT, GROUP_UNITS, StorageError
+from qmg_lab.storage.reader import attr_value, valid_rows
 
 if TYPE_CHECKING:  # pandas and xarray are imported when a table is asked for: `import qmg_lab` stays light
     import pandas as pd
     import xarray as xr
 
 DATA_GROUPS = ("lockin", "clsf", "table", "chamber", "truth", "edges", "windows")
+#: the groups sampled at the lock-in's rate: their time coordinate gets no index in `to_xarray` (module docstring)
+STREAM_GROUPS = ("lockin", "truth")
 TEXT_UNITS = "text"
-MOVING_MEAN_S = 60.0
+SCAN_ROWS = 1 << 22  # time rows read at once by the valid-rows scan: 32 MiB of float64, 256 /lockin chunks
 
 
 @dataclass(frozen=True)
@@ -53,7 +67,7 @@ class Column:
 
 
 def _open(path: Path) -> h5py.File:
-    """The file, read-only through SWMR (also a running or a killed writer's file)."""
+    """The file, read-only through SWMR (also a running or a killed writer's file): every read here opens it so."""
     if not path.is_file():
         raise StorageError(f"{path}: no such run file")
     try:
@@ -62,14 +76,77 @@ def _open(path: Path) -> h5py.File:
         raise StorageError(f"{path}: HDF5 cannot open it: {exc}") from None
 
 
-def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
-    """Every 1-D column of /group (or those named, plus `time` when the group has one), cut to whole rows.
+class _RunFile:
+    """The read-only handle the data reads of one `Run` share: opened at the first read, closed by `close()`.
 
-    Fixed-length byte columns (`kind`, `status`, `message`, ...) come back as str arrays."""
+    Pickles as its path (a dask worker in another process opens its own handle). h5py serialises its calls, so
+    dask's threads may read through one handle."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._h5: h5py.File | None = None
+        self._lock = threading.Lock()
+
+    def get(self) -> h5py.File:
+        with self._lock:
+            if self._h5 is None or not self._h5.id.valid:
+                self._h5 = _open(self.path)
+            return self._h5
+
+    def close(self) -> None:
+        with self._lock:
+            if self._h5 is not None:
+                self._h5.close()
+                self._h5 = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"path": self.path}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["path"])  # type: ignore[misc]
+
+
+def _columns_1d(grp: h5py.Group) -> list[str]:
+    return [c for c in grp if isinstance(grp[c], h5py.Dataset) and grp[c].ndim == 1]
+
+
+def whole_rows(grp: h5py.Group, names: Sequence[str]) -> int:
+    """The rows of a group that are data: its shortest column, cut by the valid-rows rule of its time column
+    (`storage.reader.valid_rows`), which is scanned SCAN_ROWS at a time; the datasets are refreshed first (SWMR),
+    so a running file is read as of the writer's last flush."""
+    for c in names:
+        grp[c].refresh()
+    n = min((grp[c].shape[0] for c in names), default=0)
+    if "time" not in grp or "time" not in names:
+        return n
+    ds = grp["time"]
+    done = 0
+    last: np.ndarray | None = None
+    while done < n:
+        t = np.asarray(ds[done : min(n, done + SCAN_ROWS)], dtype=float)
+        # the rule over the whole column, block by block: each block is checked with the last row before it
+        k = valid_rows(t) if last is None else valid_rows(np.concatenate((last, t))) - 1
+        if k < t.shape[0]:
+            return done + k
+        last = t[-1:]
+        done += t.shape[0]
+    return n
+
+
+def _attrs_of(ds: h5py.Dataset, group: str, name: str) -> tuple[str, str]:
+    """(units, description) of a column: its own attributes, else what storage/layout.py declares for it."""
+    units = attr_value(ds.attrs.get("units", GROUP_UNITS.get(group, {}).get(name, "")))
+    desc = attr_value(ds.attrs.get("description", DESCRIPTIONS.get(f"{group}/{name}", "")))
+    return str(units), str(desc)
+
+
+def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
+    """Every 1-D column of /group (or those named, plus `time` when the group has one), whole valid rows only
+    (`whole_rows`). Fixed-length byte columns (`kind`, `status`, `message`, ...) come back as str arrays."""
     if group not in h5:
         raise StorageError(f"{h5.filename}: has no /{group} group")
     grp = h5[group]
-    names = [c for c in grp if isinstance(grp[c], h5py.Dataset) and grp[c].ndim == 1]
+    names = _columns_1d(grp)
     if columns is not None:
         wanted = list(columns)
         unknown = sorted(set(wanted) - set(names))
@@ -80,16 +157,14 @@ def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) 
         names = [c for c in names if c != "json"]  # bytes of the documents, not rows: see Run.snapshots
     if not names:
         return {}
-    n = min(grp[c].shape[0] for c in names)
+    n = whole_rows(grp, names)
     out: dict[str, Column] = {}
     for c in names:
         ds = grp[c]
         values = ds[:n]
         if values.dtype.kind == "S":
             values = np.array([v.decode("utf-8", "replace") for v in values], dtype=str)
-        out[c] = Column(
-            values, str(attr_value(ds.attrs.get("units", ""))), str(attr_value(ds.attrs.get("description", "")))
-        )
+        out[c] = Column(values, *_attrs_of(ds, group, c))
     return out
 
 
@@ -123,9 +198,10 @@ def _frame(cols: dict[str, Column], index: str | None = "time") -> pd.DataFrame:
     return df
 
 
-@dataclass
+@dataclass(repr=False)
 class Run:
-    """A qmg-lab/1 run file (see the module docstring). attrs: root attributes (text decoded)."""
+    """A qmg-lab run file (see the module docstring). attrs: root attributes (text decoded). A context manager:
+    leaving `with` closes the file handle the data reads share (`close`)."""
 
     path: Path
     attrs: dict[str, Any]
@@ -134,6 +210,38 @@ class Run:
     steps: pd.DataFrame
     events: pd.DataFrame
     groups: list[str] = field(default_factory=list)
+    _file: _RunFile = field(init=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self._file = _RunFile(self.path)
+
+    def __enter__(self) -> Run:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file handle of the data reads (a later read opens it again)."""
+        self._file.close()
+
+    def __repr__(self) -> str:
+        """Four lines: file, campaign and status; start and run time; steps; groups."""
+        done = int((self.steps["status"] == "completed").sum()) if "status" in self.steps else 0
+        ends = self.steps["t_end"].to_numpy(dtype=float) if "t_end" in self.steps else np.zeros(0)
+        length = float(np.nanmax(ends)) if np.isfinite(ends).any() else 0.0
+        start = (
+            datetime.fromtimestamp(self.t0_unix, UTC).isoformat(timespec="seconds")
+            if np.isfinite(self.t0_unix)
+            else "?"
+        )
+        kind = self.config.get("campaign", {}).get("kind", "")
+        return (
+            f"<qmg_lab.Run {self.path.name}: {self.name} ({kind}), {self.status}>\n"
+            f"  started {start}, {self.attrs.get('mode', '?')}, {length:.1f} s of run time\n"
+            f"  steps: {done} of {len(self.steps)} completed, {len(self.events)} events\n"
+            f"  groups: {', '.join(self.groups)}"
+        )
 
     @property
     def status(self) -> str:
@@ -163,8 +271,7 @@ class Run:
 
     def columns(self, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
         """The columns of one group with their units and descriptions, read now."""
-        with _open(self.path) as h5:
-            return read_group(h5, group, columns)
+        return read_group(self._file.get(), group, columns)
 
     def to_pandas(self, group: str, columns: Iterable[str] | None = None) -> pd.DataFrame:
         """One group as a DataFrame indexed by run time (s since t0_unix); units and descriptions in
@@ -176,47 +283,81 @@ class Run:
             return self.reload().events
         return _frame(self.columns(group, columns))
 
-    def to_xarray(self, groups: Sequence[str] | None = None) -> xr.DataTree:
-        """The file as an xarray DataTree: one node per group (default every data group the file has, plus
-        steps and events), each with its own `time` coordinate (s since t0_unix; steps and events by row),
-        units and description of every variable in its attrs, the root attributes on the root."""
+    def to_xarray(self, groups: Sequence[str] | None = None, chunks: Any = None) -> xr.DataTree:
+        """The file as a lazy xarray DataTree (module docstring): one node per group (default every data group
+        the file has, plus steps and events), each with its `time` (s since t0_unix) and `datetime` (UTC)
+        coordinates (steps and events by row), `long_name` and `units` on every variable, the root attributes on
+        the root. chunks: None (lazy indexing, no dask), or what `xarray.open_dataset` takes: `{}` (the file's
+        own chunks), "auto", an int or a dict of dimension -> rows (dask arrays). `.load()` reads it all."""
         import xarray as xr
 
         wanted = list(groups) if groups is not None else [*self.groups, "steps", "events"]
-        nodes: dict[str, xr.Dataset] = {}
-        with _open(self.path) as h5:
-            for g in wanted:
-                cols = read_group(h5, g)
-                dim = "time" if g in DATA_GROUPS else ("step" if g == "steps" else "event")
-                data_vars = {
-                    c: xr.Variable(dim, col.values, {"units": col.units, "description": col.description})
-                    for c, col in cols.items()
-                    if not (dim == "time" and c == "time")
-                }
-                coords = {}
-                if dim == "time" and "time" in cols:
-                    t = cols["time"]
-                    coords["time"] = xr.Variable("time", t.values, {"units": t.units, "description": t.description})
-                nodes[g] = xr.Dataset(data_vars, coords=coords)
+        h5 = self._file.get()
+        nodes = {f"/{g}": self._node(h5, g, chunks) for g in wanted}
         root = xr.Dataset(attrs={k: v for k, v in self.attrs.items() if k != "config_toml"})
-        return xr.DataTree.from_dict({"/": root, **{f"/{g}": ds for g, ds in nodes.items()}})
+        tree = xr.DataTree.from_dict({"/": root, **nodes})
+        tree.set_close(self.close)
+        return tree
+
+    def _node(self, h5: h5py.File, group: str, chunks: Any) -> xr.Dataset:
+        """One group as a Dataset of lazily indexed columns (text columns, only in /steps and /events, are read)."""
+        import xarray as xr
+
+        from qmg_lab.data.lazy import lazy_column
+
+        if group not in h5:
+            raise StorageError(f"{h5.filename}: has no /{group} group")
+        grp = h5[group]
+        names = [c for c in _columns_1d(grp) if not (group == "snapshots" and c == "json")]
+        n = whole_rows(grp, names)
+        dim = "time" if group in DATA_GROUPS else ("step" if group == "steps" else "event")
+        variables: dict[str, xr.Variable] = {}
+        for c in names:
+            ds = grp[c]
+            units, desc = _attrs_of(ds, group, c)
+            attrs = {"long_name": desc or c, "units": units, "description": desc}
+            if ds.dtype.kind == "S":
+                values: Any = np.array([v.decode("utf-8", "replace") for v in ds[:n]], dtype=str)
+            else:
+                values = lazy_column(self._file, group, c, n, ds.dtype)
+            variables[c] = xr.Variable(dim, values, attrs)
+        coords: dict[str, xr.Variable] = {}
+        if "time" in variables:
+            coords["time"] = variables.pop("time")
+            if np.isfinite(self.t0_unix):
+                utc = lazy_column(self._file, group, "time", n, grp["time"].dtype, self.t0_unix)
+                coords["datetime"] = xr.Variable(
+                    dim,
+                    utc,
+                    {"long_name": f"UTC datetime of the row: t0_unix + {group} time"},
+                    encoding={"units": "nanoseconds since 1970-01-01"},
+                )
+        indexed = dim == "time" and group not in STREAM_GROUPS  # "datetime" is never an index
+        node = xr.Dataset(variables, coords=xr.Coordinates(coords) if indexed else xr.Coordinates(coords, indexes={}))
+        if chunks is None:
+            return node
+        if not isinstance(chunks, dict):
+            return node.chunk(chunks)
+        on_disk = grp["time"].chunks if "time" in grp else None  # `{}` and unnamed dimensions: the file's chunks
+        preferred = {d: on_disk[0] if d == "time" and on_disk else -1 for d in node.dims}
+        return node.chunk({d: chunks.get(d, preferred[d]) for d in node.dims})
 
     def clsf_with_temperatures(self) -> pd.DataFrame:
         """The CLSF rows (indexed by /clsf/time) with the chamber air and the gyro temperature on that axis.
 
-        Columns: sf_change_estimate, sf_change_estimate_60s (the trailing moving mean over MOVING_MEAN_S of run
-        time), gain_correction, eta, chamber_temperature and chamber_setpoint (degC, /chamber linearly
-        interpolated at each CLSF time), gyro_temperature (degC, the twins' /truth/temperature interpolated
-        likewise; NaN on the bench, which has no truth). Outside a source's time span the value is NaN: nothing
-        is extrapolated.
+        Columns: sf_change_estimate, sf_change_estimate_60s (the trailing moving mean over SF_MEAN_WINDOW_S of
+        run time, clsf/moving_mean.py), gain_correction, eta, chamber_temperature and chamber_setpoint (degC,
+        /chamber linearly interpolated at each CLSF time), gyro_temperature (degC, the twins' /truth/temperature
+        interpolated likewise; NaN on the bench, which has no truth). Outside a source's time span the value is
+        NaN: nothing is extrapolated.
         """
-        with _open(self.path) as h5:
-            clsf = read_group(h5, "clsf")
-            chamber = read_group(h5, "chamber") if "chamber" in h5 else {}
-            truth = read_group(h5, "truth", ["temperature"]) if "truth" in h5 else {}
+        h5 = self._file.get()
+        clsf = read_group(h5, "clsf")
+        chamber = read_group(h5, "chamber") if "chamber" in h5 else {}
+        truth = read_group(h5, "truth", ["temperature"]) if "truth" in h5 else {}
         df = _frame(clsf)
         t = np.asarray(df.index, dtype=float)
-        df["sf_change_estimate_60s"] = trailing_mean(t, df["sf_change_estimate"].to_numpy(), MOVING_MEAN_S)
+        df["sf_change_estimate_60s"] = trailing_mean(t, df["sf_change_estimate"].to_numpy(), SF_MEAN_WINDOW_S)
         for col, src, name in (
             ("chamber_temperature", chamber, "temperature"),
             ("chamber_setpoint", chamber, "setpoint"),
@@ -236,30 +377,8 @@ def interpolate(t: np.ndarray, t_src: np.ndarray, y_src: np.ndarray) -> np.ndarr
     return np.interp(t, t_src, y_src, left=np.nan, right=np.nan)
 
 
-def trailing_mean(t: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
-    """Moving mean of y over the trailing window (t_i - window_s, t_i] of each sample (t increasing): what a
-    live display can show, at the price of a lag of about window_s / 2 on a trend."""
-    return window_mean(t, y, t - window_s, t)
-
-
-def centred_mean(t: np.ndarray, y: np.ndarray, window_s: float) -> np.ndarray:
-    """Moving mean of y over the centred window (t_i - window_s / 2, t_i + window_s / 2]: no lag on a trend,
-    for a finished record (figures)."""
-    return window_mean(t, y, t - 0.5 * window_s, t + 0.5 * window_s)
-
-
-def window_mean(t: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Mean of the rows with lo_i < t <= hi_i (each window holds row i): sums from one cumulative sum, O(n)."""
-    if t.shape[0] == 0:
-        return np.zeros(0)
-    c = np.concatenate(([0.0], np.cumsum(y)))
-    first = np.searchsorted(t, lo, side="right")
-    last = np.searchsorted(t, hi, side="right")
-    return (c[last] - c[first]) / (last - first)
-
-
 def open_run(path: str | Path) -> Run:
-    """Open a qmg-lab/1 run file (complete, running or left by a killed writer) read-only; see `Run`."""
+    """Open a qmg-lab run file (complete, running or left by a killed writer) read-only; see `Run`."""
     import pandas as pd
 
     p = Path(path)

@@ -4,10 +4,11 @@ Reads only the root attributes, /steps, /events and the tail of each group's tim
 read-only): cheap on files of hours, and usable on a file a campaign is writing.
 
 Headline results (the figures a run list can give without the full analysis, `qmg-lab analyze`):
-    sf_change_60s_ppm   the CLSF SF-change estimate, mean of its last 60 s of run time, in ppm
+    sf_change_60s_ppm   the CLSF SF-change estimate, mean of its last 60 s of run time (clsf/moving_mean.py), in ppm
     gain_correction     the last CLSF gain correction g_c in force (1.0 = none; correct mode)
     chamber_c           the last chamber air temperature, degC
     faults              the number of `fault` events
+    operator, device_serial, notes, run_note: who ran it, on which device, why (storage.layout.RUN_CONTEXT_ATTRS)
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import FORMAT, StorageError
+from qmg_lab.clsf.moving_mean import last_window_mean
+from qmg_lab.storage.layout import FORMAT, RUN_CONTEXT_ATTRS, StorageError
 
 TAIL_ROWS = 4096  # CLSF rows read from the end: >= 60 s at any dither frequency below 68 Hz
-MOVING_MEAN_S = 60.0
 GROUPS_WITH_TIME = ("lockin", "clsf", "table", "chamber", "truth")
 
 
@@ -69,10 +70,7 @@ def summarize(path: Path) -> dict[str, Any]:
         if "events" in h5 and "kind" in h5["events"]:
             faults = int(np.count_nonzero(h5["events/kind"][:] == b"fault"))
     t = clsf["time"]
-    sf_60 = math.nan
-    if t.shape[0]:
-        recent = t > t[-1] - MOVING_MEAN_S
-        sf_60 = float(np.mean(clsf["sf_change_estimate"][recent])) * 1e6
+    sf_60 = last_window_mean(t, clsf["sf_change_estimate"]) * 1e6
     return {
         "file": str(path),
         "status": status_detail(read_run(path, select=())),
@@ -88,6 +86,7 @@ def summarize(path: Path) -> dict[str, Any]:
         "sf_change_60s_ppm": sf_60,
         "gain_correction": float(clsf["gain_correction"][-1]) if t.shape[0] else math.nan,
         "chamber_c": float(chamber["temperature"][-1]) if chamber["time"].shape[0] else math.nan,
+        **{k: str(attrs.get(k, "")) for k in RUN_CONTEXT_ATTRS},
     }
 
 

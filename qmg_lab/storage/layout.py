@@ -94,6 +94,12 @@ def column_dtype(group: str, column: str) -> Any:
     return COLUMN_DTYPES.get(f"{group}/{column}", np.float64)
 
 
+#: who ran a campaign, on which device and why: root attributes of every new file (empty when not given; files
+#: written before they existed lack them, and read as empty). operator, device_serial, notes: the configuration's
+#: [campaign] keys; run_note: `qmg-lab run --note`.
+RUN_CONTEXT_ATTRS = ("operator", "device_serial", "notes", "run_note")
+
+
 KIND_BYTES = 48
 STATUS_BYTES = 16
 STEPS_DTYPES: dict[str, Any] = {

@@ -9,7 +9,7 @@ what costs disk and time, and the analysis reads them only through a few reducti
 * /lockin with only the raw rows the reducer chose to keep (the settling step's);
 * the root attribute storage_level = "study".
 
-What the rows hold is computed by a `StudyReducer` the caller hands in (qmg_lab/analysis/study_writer.py: the
+What the rows hold is computed by a `StudyReducer` the caller hands in (qmg_lab/campaign/study_level.py: the
 analysis's own reductions); this module knows only where they go. A study-level file cannot be resumed (the
 reductions live in the writer's memory): a study reruns a campaign that did not finish.
 """
@@ -138,7 +138,7 @@ class StudyRunWriter(RunWriter):
     /windows and /edges rows (and any raw /lockin rows it keeps); every other group as at the full level.
     Use `create_study_writer`."""
 
-    _reducer: StudyReducer
+    reducer: StudyReducer  #: what reduces /lockin and /truth (given to create_study_writer)
     _finished = False
 
     def append(self, group: str, **columns: np.ndarray) -> None:
@@ -151,9 +151,9 @@ class StudyRunWriter(RunWriter):
         if block["time"].shape[0] == 0:
             return
         if group == "lockin":
-            self._reducer.lockin(block, self)
+            self.reducer.lockin(block, self)
         else:
-            self._reducer.truth(block, self)
+            self.reducer.truth(block, self)
 
     def append_row(self, group: str, **values: float) -> None:
         """As RunWriter.append_row; a /lockin or /truth row goes through `append`."""
@@ -165,7 +165,7 @@ class StudyRunWriter(RunWriter):
     def append_step(self, **step: Any) -> None:
         """The reducer sees the step first (its /windows row), then the /steps row is written."""
         self._check_open()
-        self._reducer.step(step, self)
+        self.reducer.step(step, self)
         super().append_step(**step)
 
     def set_status(self, status: str, abort_reason: str = "") -> None:
@@ -182,7 +182,7 @@ class StudyRunWriter(RunWriter):
     def _finish(self) -> None:
         if not self._finished:
             self._finished = True
-            self._reducer.finish(self)
+            self.reducer.finish(self)
 
     # ---- what the reducer writes -----------------------------------------------------------------------------
 
@@ -203,9 +203,10 @@ class StudyRunWriter(RunWriter):
 def create_study_writer(path: Path, reducer: StudyReducer, **create: Any) -> StudyRunWriter:
     """A new study-level run file (RunWriter.create's keywords; no /truth group) whose /lockin and /truth go to
     `reducer`."""
-    writer = StudyRunWriter.create(path, truth=False, extra_attrs={LEVEL_ATTR: "study"}, extra_layout=_layout, **create)
+    attrs = {**(create.pop("extra_attrs", None) or {}), LEVEL_ATTR: "study"}
+    writer = StudyRunWriter.create(path, truth=False, extra_attrs=attrs, extra_layout=_layout, **create)
     assert isinstance(writer, StudyRunWriter)
-    writer._reducer = reducer
+    writer.reducer = reducer
     for g, units in (("windows", WINDOWS_UNITS), ("edges", EDGES_UNITS)):
         writer._buffer_group(g, list(units))
     return writer

@@ -48,7 +48,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from qmg_lab.data.run import MOVING_MEAN_S, window_mean
+from qmg_lab.analysis.reductions import rate_pairs
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
+from qmg_lab.clsf.moving_mean import window_mean
 
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)
 FIRST_CHUNKS = 40  # ... and on a file's first poll: a finished file's replay shows its whole length, drawn in ~1 s
@@ -214,7 +216,7 @@ class RunFollower:
         if new_rows == 0:
             return np.zeros(0)
         i0 = t.shape[0] - new_rows
-        j = int(np.searchsorted(t, t[i0] - MOVING_MEAN_S, side="right"))
+        j = int(np.searchsorted(t, t[i0] - MOVING_MEAN_S, side="left"))
         tt, ss = t[j:], s[j:]
         return window_mean(tt, ss, tt - MOVING_MEAN_S, tt)[i0 - j :]
 
@@ -226,13 +228,9 @@ class RunFollower:
         done = steps["status"] == "completed"
         rows = {int(i): k for k, i in enumerate(steps["index"]) if done[k]}
         mids, sfs = [], []
-        for i in sorted(rows):
-            p, m = rows[i], rows.get(i + 1)
-            if m is None or steps["kind"][p] != "rate" or steps["kind"][m] != "rate":
-                continue
+        for i in rate_pairs({i: (str(steps["kind"][k]), float(steps["table_rate"][k])) for i, k in rows.items()}):
+            p, m = rows[i], rows[i + 1]
             rp, rm = float(steps["table_rate"][p]), float(steps["table_rate"][m])
-            if not rp > 0 > rm:
-                continue
             means = []
             for k in (p, m):
                 a, b = float(steps["t_start"][k]) + settle_s, float(steps["t_end"][k])

@@ -69,8 +69,9 @@ from bokeh.models.annotations import Legend
 from bokeh.models.widgets import Div
 from bokeh.plotting import figure
 
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
 from qmg_lab.data.decimate import minmax
-from qmg_lab.data.run import MOVING_MEAN_S
+from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
 from qmg_lab.storage.records import EVENT_KINDS
 from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 
@@ -188,6 +189,12 @@ def _degc(v: float | None) -> str:
 def _value(name: str, text: str) -> str:
     """A value of the now panel, findable by its class (the browser test reads them)."""
     return f"<span class='now-{name}'>{html.escape(text)}</span>"
+
+
+def _run_context(attrs: dict[str, Any]) -> str:
+    """Who ran it, on which device, why (storage.layout.RUN_CONTEXT_ATTRS), as HTML; "" when none is given."""
+    given = [(k.replace("_", " "), str(attrs.get(k, ""))) for k in RUN_CONTEXT_ATTRS]
+    return "".join(f"; {html.escape(k)}: {html.escape(v)}" for k, v in given if v)
 
 
 class WatchPage:
@@ -376,6 +383,7 @@ class WatchPage:
             self.lost = 0
         if self.durations is None:
             self.identity, self.durations, self.settle_s = _identity(str(up.attrs.get("config_toml", "")))
+            self.identity += _run_context(up.attrs)
         self.status = self._status(up.attrs)
         self.file_steps = up.steps
         self.lost += up.lost_samples

@@ -18,10 +18,9 @@ import pytest
 
 from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines
 from qmg_lab.campaign.loops import lockin_setup
-from qmg_lab.campaign.plan import dither_amplitude_vpp
 from qmg_lab.clsf.demod_filter import DemodFilter
 from qmg_lab.clsf.estimator import ClsfEstimator
-from qmg_lab.config.schema import parse_config
+from qmg_lab.config.schema import dither_amplitude_vpp, parse_config
 from qmg_lab.station import build_station
 
 ROOT = Path(__file__).resolve().parents[2]

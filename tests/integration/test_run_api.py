@@ -68,7 +68,7 @@ def test_a_finished_file(tmp_path: Path) -> None:
     np.testing.assert_allclose(df["gyro_temperature"][in_truth], syn.temperature(t[in_truth]), rtol=0, atol=1e-9)
     assert df["gyro_temperature"][~in_truth].isna().all() and (~in_truth).sum() == 1
     s = df["sf_change_estimate"].to_numpy()
-    direct = np.array([s[(t > ti - 60.0) & (t <= ti)].mean() for ti in t])
+    direct = np.array([s[(t >= ti - 60.0) & (t <= ti)].mean() for ti in t])  # the closed window [t - 60, t]
     np.testing.assert_allclose(df["sf_change_estimate_60s"], direct, rtol=0, atol=1e-10)
 
 

@@ -1,5 +1,5 @@
 """The run's summary states the CLSF SF-change estimate as its mean over the last 60 s of run time, not one dither
-period's estimate (issue 26: one period scatters by several hundred ppm). Its value is the mean of the file's own
+period's estimate (one period scatters by several hundred ppm). Its value is the mean of the file's own
 /clsf/sf_change_estimate rows whose period ended in the last 60 s before the last one."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from qmg_lab.campaign.moving_mean import SF_MEAN_WINDOW_S
+from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S
 from tests.support.campaigns import config_text, run_inprocess
 
 

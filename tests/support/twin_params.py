@@ -14,9 +14,10 @@ import functools
 from typing import Any
 
 from qmg_lab.config.schema import Config
-from qmg_lab.station import fault_plan, gyro_params, world_params
+from qmg_lab.station import fault_plan, gyro_params, hf2_wiring, world_params
 from sims.faults import FaultPlan
 from sims.gyro_params import GyroParams
+from sims.hf2_loops import HF2Wiring
 from sims.world import World, WorldParams
 
 
@@ -24,6 +25,11 @@ from sims.world import World, WorldParams
 def _paper() -> tuple[GyroParams, WorldParams, FaultPlan]:
     cfg = Config()
     return gyro_params(cfg), world_params(cfg), fault_plan(cfg)
+
+
+def paper_wiring(**overrides: Any) -> HF2Wiring:
+    """The default configuration's HF2 wiring ([lockin], through the station's `hf2_wiring`), `overrides` changed."""
+    return dataclasses.replace(hf2_wiring(Config()), **overrides)
 
 
 def paper_gyro_params(**overrides: Any) -> GyroParams:

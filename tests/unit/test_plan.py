@@ -14,11 +14,17 @@ from qmg_lab.campaign.plan import (
     StepKind,
     assert_within_limits,
     build_plan,
-    dither_amplitude_vpp,
     limit_checks,
     plan_duration_s,
 )
-from qmg_lab.config.schema import MAX_PLAN_STEPS, Config, ConfigError, parse_config, plan_step_bound
+from qmg_lab.config.schema import (
+    MAX_PLAN_STEPS,
+    Config,
+    ConfigError,
+    dither_amplitude_vpp,
+    parse_config,
+    plan_step_bound,
+)
 from qmg_lab.instruments import LimitError
 
 

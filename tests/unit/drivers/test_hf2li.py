@@ -20,7 +20,8 @@ from drivers.hf2li import HF2LI
 from qmg_lab.campaign.loops import agc_pi, lockin_setup, pll_pi, quadrature_pi, rate_pi
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LimitError
-from sims.hf2_server import HF2DataServerTwin, HF2Wiring
+from qmg_lab.station import hf2_wiring
+from sims.hf2_server import HF2DataServerTwin
 from sims.world import World
 from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
@@ -44,22 +45,7 @@ def bench(cfg: Config | None = None) -> tuple[Config, World, CountingTwin, HF2LI
     cfg = cfg or Config()
     lk = cfg.lockin
     world = paper_world()
-    wiring = HF2Wiring(
-        **{
-            f: getattr(lk, f)
-            for f in (
-                "drive_sigin",
-                "sense_sigin",
-                "drive_sigout",
-                "forcer_sigout",
-                "forcer_carrier_amplitude",
-                "rate_auxout",
-                "quadrature_auxout",
-                "rate_auxin",
-                "dither_auxin",
-            )
-        }
-    )
+    wiring = hf2_wiring(cfg)  # the [lockin] wiring, as the station passes it to the twin
     twin = CountingTwin(world, paper_gyro_params(), seed=7, wiring=wiring, **hf2_twin_settings())
     session = Session("localhost", hf2=True, connection=twin)
     li = HF2LI(session, "dev1234", lk, output_safe_v=lk.output_safe_v)

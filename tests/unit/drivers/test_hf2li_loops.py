@@ -23,9 +23,9 @@ from drivers.hf2li import HF2LI
 from qmg_lab.campaign.loops import lockin_setup
 from qmg_lab.config.schema import Config
 from qmg_lab.instruments import LockInBlock
-from sims.hf2_server import HF2DataServerTwin, HF2Wiring
+from sims.hf2_server import HF2DataServerTwin
 from sims.world import World
-from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_wiring, paper_world
 
 SF = 0.06
 TABLE_ERROR = 60e-6
@@ -35,7 +35,7 @@ STEP_ACCEL = 1e6  # deg/s^2: a step as sharp as one 0.7 ms sample
 def bench(setup_edit=None) -> tuple[World, HF2DataServerTwin, HF2LI]:
     cfg = Config()
     world = paper_world()
-    twin = HF2DataServerTwin(world, paper_gyro_params(), seed=11, wiring=HF2Wiring(), **hf2_twin_settings())
+    twin = HF2DataServerTwin(world, paper_gyro_params(), seed=11, wiring=paper_wiring(), **hf2_twin_settings())
     li = HF2LI(Session("localhost", hf2=True, connection=twin), "dev1234", cfg.lockin)
     setup = lockin_setup(cfg)
     li.configure(setup_edit(setup) if setup_edit else setup)

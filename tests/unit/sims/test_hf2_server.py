@@ -11,10 +11,11 @@ import math
 import numpy as np
 import pytest
 
+from qmg_lab.config.schema import ConfigError, parse_config
 from sims.gyro import GyroParams
-from sims.hf2_server import AUXIN_ADC_RATE_HZ, HF2DataServerTwin, HF2Wiring
+from sims.hf2_server import AUXIN_ADC_RATE_HZ, HF2DataServerTwin
 from sims.world import DITHER_SQUARE, World
-from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
+from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_wiring, paper_world
 
 DEV = "/dev1234"
 
@@ -26,7 +27,11 @@ def make_twin(
     rate; the HF2's own rate ladder is tested on its own."""
     world = paper_world()
     twin = HF2DataServerTwin(
-        world, params or paper_gyro_params(), seed=3, wiring=HF2Wiring(**wiring), **hf2_twin_settings(rate_set=rate_set)
+        world,
+        params or paper_gyro_params(),
+        seed=3,
+        wiring=paper_wiring(**wiring),
+        **hf2_twin_settings(rate_set=rate_set),
     )
     twin.connectDevice("dev1234", "USB")
     return world, twin
@@ -265,11 +270,12 @@ def test_fault_hooks_reject_bad_arguments() -> None:
         twin.force_pll_unlock(-2.0)
 
 
-def test_wiring_is_validated() -> None:
-    with pytest.raises(ValueError, match="rate_auxin and dither_auxin"):
-        HF2Wiring(rate_auxin=1, dither_auxin=1)
-    with pytest.raises(ValueError, match="forcer_carrier_amplitude"):
-        HF2Wiring(forcer_carrier_amplitude=1.5)
+def test_wiring_is_validated_by_the_schema() -> None:
+    """The wiring is declared and checked once, in [lockin]; the twin takes what the station passes."""
+    with pytest.raises(ConfigError, match=r"rate_auxin and lockin\.dither_auxin"):
+        parse_config("[lockin]\nrate_auxin = 1\ndither_auxin = 1\n")
+    with pytest.raises(ConfigError, match="forcer_carrier_amplitude"):
+        parse_config("[lockin]\nforcer_carrier_amplitude = 1.5\n")
 
 
 def test_auxin_readings_are_quantised_noisy_and_clipped() -> None:
@@ -302,7 +308,7 @@ def test_an_hf2li_without_mf_refuses_the_mf_mixer_channels_and_streams_on_two_os
         world,
         paper_gyro_params(),
         seed=3,
-        wiring=HF2Wiring(forcer_mixer_channel=7),
+        wiring=paper_wiring(forcer_mixer_channel=7),
         **hf2_twin_settings(options=("PLL", "PID")),
     )
     twin.connectDevice("dev1234", "USB")

@@ -63,8 +63,14 @@ def test_forcer_cubic_is_the_parallel_plate_gap_closing(v_p: float, gap_um: floa
 
 
 def test_pull_in_is_refused_by_name() -> None:
-    with pytest.raises(ValueError, match="electrostatic spring"):
-        paper_gyro_params(forcer_bias_v=200.0, forcer_gap_um=0.01, forcer_electrode_v_per_v=0.01)
+    """The station, which turns [sim] into the twin's parameters, refuses a forcer near pull-in as bad input."""
+    from qmg_lab.config.schema import ConfigError, parse_config
+    from qmg_lab.station import gyro_params
+
+    cfg = parse_config("[sim]\nforcer_bias_v = 200.0\nforcer_gap_um = 0.01\nforcer_electrode_v_per_v = 0.01\n")
+    with pytest.raises(ConfigError, match="electrostatic spring"):
+        gyro_params(cfg)
+    assert paper_gyro_params().electrostatic_spring_ratio < 0.5  # the default configuration's twin is far from it
 
 
 def _settled_rate_output(p: GyroParams, rate_dps: float, temperature_c: float = 25.0, seconds: float = 30.0) -> float:

@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 
 from qmg_lab.analysis.reductions import EdgeIntegrator, WindowSums, analysis_settle_s
-from qmg_lab.campaign.plan import Step, dither_amplitude_vpp
-from qmg_lab.clsf.dither_edges import EdgeTracker
-from qmg_lab.config.schema import Config
+from qmg_lab.campaign.plan import Step
+from qmg_lab.clsf.dither_edges import EdgeTracker, edge_threshold_v
+from qmg_lab.config.schema import Config, dither_amplitude_vpp
 from qmg_lab.storage.study_level import StudyRunWriter, create_study_writer
 from qmg_lab.storage.writer import RunWriter
 
@@ -99,6 +99,7 @@ def create_run_writer(
     t0_unix: float,
     instrument_modes: Mapping[str, str],
     clock: Callable[[], float] | None = None,
+    extra_attrs: Mapping[str, Any] | None = None,
 ) -> RunWriter:
     """A new run file at the configuration's storage level (`[storage] level`): a RunWriter ("full") or a
     StudyRunWriter with the analysis's reductions ("study")."""
@@ -112,10 +113,13 @@ def create_run_writer(
         compression=cfg.storage.resolved_compression(cfg.lockin.sim),
         instrument_modes=instrument_modes,
         realtime=not cfg.lockin.sim,
+        extra_attrs=extra_attrs,
     )
     if clock is not None:
         kwargs["clock"] = clock
     if cfg.storage.level == "full":
         return RunWriter.create(path, truth=cfg.lockin.sim, **kwargs)
-    reducer = StudyReductions(analysis_settle_s(cfg), settling_step_index(steps), 0.5 * dither_amplitude_vpp(cfg))
+    reducer = StudyReductions(
+        analysis_settle_s(cfg), settling_step_index(steps), edge_threshold_v(dither_amplitude_vpp(cfg))
+    )
     return create_study_writer(path, reducer, **kwargs)
