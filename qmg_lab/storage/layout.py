@@ -9,7 +9,23 @@ from typing import Any
 
 import numpy as np
 
-FORMAT = "qmg-lab/1"
+#: the run-file format new files are written in (root attribute `format`; docs/hdf5.md, "Format versions")
+FORMAT = "qmg-lab/2"
+#: the formats every reader accepts (qmg_lab/storage/runfile.py check_format); /1 files lack what /2 added
+READ_FORMATS = ("qmg-lab/1", "qmg-lab/2")
+#: columns a format added: a file of an earlier format lacks them, and its readers do not ask for them
+#: (docs/hdf5.md, "Format versions"; the campaign attributes and salvage attributes /2 added are optional anyway)
+COLUMNS_ADDED: dict[str, dict[str, tuple[str, ...]]] = {"qmg-lab/2": {"lockin": ("pll_locked",)}}
+
+
+def group_columns(group: str, fmt: str) -> list[str]:
+    """The columns of a data group or /steps that a file of format `fmt` has (GROUP_UNITS, STEPS_UNITS less the
+    columns later formats added)."""
+    cols = list(GROUP_UNITS.get(group, STEPS_UNITS))
+    later = READ_FORMATS[READ_FORMATS.index(fmt) + 1 :] if fmt in READ_FORMATS else ()
+    added = {c for f in later for c in COLUMNS_ADDED.get(f, {}).get(group, ())}
+    return [c for c in cols if c not in added]
+
 
 LOCKIN_UNITS = {
     "time": "s",
