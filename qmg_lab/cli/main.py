@@ -467,11 +467,14 @@ def analyze(
 
     from qmg_lab.analysis.compute import analyze as run_analysis
     from qmg_lab.analysis.render import render_table
+    from qmg_lab.storage.salvage import salvage_summary
     from qmg_lab.storage.writer import read_run, status_detail
 
     try:
         result = run_analysis(run_file)
-        detail = status_detail(read_run(run_file, select=()))
+        head = read_run(run_file, select=())
+        detail = status_detail(head)
+        salvaged = salvage_summary(head.attrs)  # a salvaged file says so first, with what it lost
         written = []
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
@@ -484,10 +487,13 @@ def analyze(
     if json_out:
         data = result.to_json()
         data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
+        data["salvaged"] = salvaged or None
         if figures is not None:
             data["figures"] = [str(p) for p in written]
         out.print_json(json.dumps(data, default=float))
     else:
+        if salvaged:
+            out.print(salvaged, style="bold yellow", markup=False, highlight=False)
         out.print(render_table(dataclasses.replace(result, status=detail)))
         for p in written:
             out.print(f"figure: {p}")

@@ -26,23 +26,19 @@ OPEN_WARNING = (
 
 
 def _check_run_file(path: Path) -> None:
-    import h5py
+    """Refuse (exit 2, in words) what is not a readable run file, as every reader does (`open_run_file`)."""
+    from qmg_lab.storage.layout import StorageError
+    from qmg_lab.storage.runfile import open_run_file
 
-    from qmg_lab.storage.layout import FORMAT
-
-    if not path.is_file():
-        fail(EXIT_BAD_INPUT, f"{path}: no such run file")
     try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            fmt = h5.attrs.get("format")
-    except OSError as exc:
-        fail(EXIT_BAD_INPUT, f"{path}: HDF5 cannot open it: {exc}")
-    if (fmt.decode() if isinstance(fmt, bytes) else fmt) != FORMAT:
-        fail(EXIT_BAD_INPUT, f"{path}: not a {FORMAT} run file (root attribute format = {fmt!r})")
+        with open_run_file(path):
+            pass
+    except StorageError as exc:
+        fail(EXIT_BAD_INPUT, str(exc))
 
 
 def watch(
-    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1)", show_default=False)],
+    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1 or /2)", show_default=False)],
     host: Annotated[
         str, typer.Option("--host", help="address to listen on; anything but 127.0.0.1 opens the page to the network")
     ] = LOOPBACK,

@@ -4,14 +4,16 @@
     run.config["campaign"]["name"], run.status, run.steps, run.events
     run.to_xarray()["clsf"].sf_change_estimate.plot()
 
-Every read opens the file read-only through HDF5 SWMR and closes it again, so a file that a campaign is still
-writing (or that a killed writer left) reads as of the writer's last flush; nothing here ever writes. `Run` holds
-what is small (root attributes, configuration, steps, events, snapshots) as read at `open_run`; the data groups
-are read when asked for (`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call.
-`run.reload()` reads the small parts again.
+Every read opens the file read-only (qmg_lab.storage.runfile.open_run_file: through HDF5 SWMR when a writer
+left it open) and closes it again, so a file that a campaign is still writing (or that a killed writer left)
+reads as of the writer's last flush; nothing here ever writes. `Run` holds what is small (root attributes,
+configuration, steps, events, snapshots) as read at `open_run`; the data groups are read when asked for
+(`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call. `run.reload()` reads the
+small parts again. A file that cannot be read raises StorageError (DamagedFileError for damaged bytes).
 
-Every group is cut to its shortest column (a kill, or a reader between two column writes, may leave one column a
-block longer): whole rows only, as `qmg_lab.storage.reader.read_run` does.
+Whole valid rows only, by the one rule every reader applies (`RunFile.read`): every group is cut to its shortest
+column (a kill, or a reader between two column writes, may leave one column a block longer), and rows never
+written (the fill value NaN, left by a kill or a full disk) are not data.
 
 `to_xarray()` returns an xarray DataTree rather than a dict of Datasets: the tree mirrors the file's groups
 (`tree["clsf"]`, `tree["chamber"]`) with the root attributes on its root, each group keeps its own time axis
@@ -24,15 +26,15 @@ from __future__ import annotations
 import json
 import tomllib
 from collections.abc import Iterable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import h5py
 import numpy as np
 
-from qmg_lab.storage.layout import FORMAT, StorageError
-from qmg_lab.storage.reader import attr_value
+from qmg_lab.storage.layout import StorageError
+from qmg_lab.storage.runfile import RunFile, attr_value, open_run_file
 
 if TYPE_CHECKING:  # pandas and xarray are imported when a table is asked for: `import qmg_lab` stays light
     import pandas as pd
@@ -52,39 +54,34 @@ class Column:
     description: str
 
 
-def _open(path: Path) -> h5py.File:
-    """The file, read-only through SWMR (also a running or a killed writer's file)."""
-    if not path.is_file():
-        raise StorageError(f"{path}: no such run file")
-    try:
-        return h5py.File(path, "r", swmr=True, libver="latest")
-    except OSError as exc:
-        raise StorageError(f"{path}: HDF5 cannot open it: {exc}") from None
+def _open(path: Path) -> AbstractContextManager[RunFile]:
+    """The file, read-only (`open_run_file`: also a running or a killed writer's file; StorageError, never an
+    h5py exception, for anything else)."""
+    return open_run_file(path)
 
 
-def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
-    """Every 1-D column of /group (or those named, plus `time` when the group has one), cut to whole rows.
+def read_group(run: RunFile, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
+    """Every 1-D column of /group (or those named, plus `time` when the group has one), whole valid rows only
+    (`RunFile.read`: fill rows are never data).
 
     Fixed-length byte columns (`kind`, `status`, `message`, ...) come back as str arrays."""
-    if group not in h5:
-        raise StorageError(f"{h5.filename}: has no /{group} group")
-    grp = h5[group]
-    names = [c for c in grp if isinstance(grp[c], h5py.Dataset) and grp[c].ndim == 1]
+    names = run.columns(group)
     if columns is not None:
         wanted = list(columns)
         unknown = sorted(set(wanted) - set(names))
         if unknown:
-            raise StorageError(f"{h5.filename}: /{group} has no columns {unknown}")
+            raise StorageError(f"{run.path}: /{group} has no columns {unknown}")
         names = [c for c in names if c in wanted or c == "time"]
     if group == "snapshots":
         names = [c for c in names if c != "json"]  # bytes of the documents, not rows: see Run.snapshots
     if not names:
         return {}
-    n = min(grp[c].shape[0] for c in names)
+    grp = run.h5[group]
+    rows = run.read(group, names)
     out: dict[str, Column] = {}
     for c in names:
         ds = grp[c]
-        values = ds[:n]
+        values = rows[c]
         if values.dtype.kind == "S":
             values = np.array([v.decode("utf-8", "replace") for v in values], dtype=str)
         out[c] = Column(
@@ -93,11 +90,11 @@ def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) 
     return out
 
 
-def _snapshots(h5: h5py.File) -> list[dict[str, Any]]:
-    if "snapshots" not in h5:
+def _snapshots(run: RunFile) -> list[dict[str, Any]]:
+    if "snapshots" not in run.h5:
         return []
-    rows = read_group(h5, "snapshots")
-    blob = h5["snapshots/json"][:].tobytes()
+    rows = read_group(run, "snapshots")
+    blob = run.h5["snapshots/json"][:].tobytes()
     docs = []
     for i in range(rows["time"].values.shape[0]):
         o, k = int(rows["offset"].values[i]), int(rows["length"].values[i])
@@ -125,7 +122,7 @@ def _frame(cols: dict[str, Column], index: str | None = "time") -> pd.DataFrame:
 
 @dataclass
 class Run:
-    """A qmg-lab/1 run file (see the module docstring). attrs: root attributes (text decoded)."""
+    """A run file, qmg-lab/1 or /2 (see the module docstring). attrs: root attributes (text decoded)."""
 
     path: Path
     attrs: dict[str, Any]
@@ -163,8 +160,8 @@ class Run:
 
     def columns(self, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
         """The columns of one group with their units and descriptions, read now."""
-        with _open(self.path) as h5:
-            return read_group(h5, group, columns)
+        with _open(self.path) as run:
+            return read_group(run, group, columns)
 
     def to_pandas(self, group: str, columns: Iterable[str] | None = None) -> pd.DataFrame:
         """One group as a DataFrame indexed by run time (s since t0_unix); units and descriptions in
@@ -184,9 +181,9 @@ class Run:
 
         wanted = list(groups) if groups is not None else [*self.groups, "steps", "events"]
         nodes: dict[str, xr.Dataset] = {}
-        with _open(self.path) as h5:
+        with _open(self.path) as run:
             for g in wanted:
-                cols = read_group(h5, g)
+                cols = read_group(run, g)
                 dim = "time" if g in DATA_GROUPS else ("step" if g == "steps" else "event")
                 data_vars = {
                     c: xr.Variable(dim, col.values, {"units": col.units, "description": col.description})
@@ -210,10 +207,10 @@ class Run:
         likewise; NaN on the bench, which has no truth). Outside a source's time span the value is NaN: nothing
         is extrapolated.
         """
-        with _open(self.path) as h5:
-            clsf = read_group(h5, "clsf")
-            chamber = read_group(h5, "chamber") if "chamber" in h5 else {}
-            truth = read_group(h5, "truth", ["temperature"]) if "truth" in h5 else {}
+        with _open(self.path) as run:
+            clsf = read_group(run, "clsf")
+            chamber = read_group(run, "chamber") if "chamber" in run.h5 else {}
+            truth = read_group(run, "truth", ["temperature"]) if "truth" in run.h5 else {}
         df = _frame(clsf)
         t = np.asarray(df.index, dtype=float)
         df["sf_change_estimate_60s"] = trailing_mean(t, df["sf_change_estimate"].to_numpy(), MOVING_MEAN_S)
@@ -259,20 +256,22 @@ def window_mean(t: np.ndarray, y: np.ndarray, lo: np.ndarray, hi: np.ndarray) ->
 
 
 def open_run(path: str | Path) -> Run:
-    """Open a qmg-lab/1 run file (complete, running or left by a killed writer) read-only; see `Run`."""
+    """Open a run file (qmg-lab/1 or /2; complete, running or left by a killed writer) read-only; see `Run`.
+
+    Raises StorageError (qmg_lab.storage.layout; DamagedFileError for damaged bytes) naming the file and what is
+    wrong, never an h5py exception: the file is opened by qmg_lab.storage.runfile.open_run_file."""
     import pandas as pd
 
     p = Path(path)
-    with _open(p) as h5:
-        attrs = {k: attr_value(v) for k, v in h5.attrs.items()}
-        if attrs.get("format") != FORMAT:
-            raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
+    with _open(p) as run:
+        h5 = run.h5
+        attrs = dict(run.attrs)
         try:
             config = tomllib.loads(str(attrs.get("config_toml", "")))
         except tomllib.TOMLDecodeError as exc:
             raise StorageError(f"{p}: the stored configuration (config_toml) is not TOML: {exc}") from None
-        steps = _frame(read_group(h5, "steps"), index=None) if "steps" in h5 else pd.DataFrame()
-        events = _frame(read_group(h5, "events"), index=None) if "events" in h5 else pd.DataFrame()
-        snapshots = _snapshots(h5)
+        steps = _frame(read_group(run, "steps"), index=None) if "steps" in h5 else pd.DataFrame()
+        events = _frame(read_group(run, "events"), index=None) if "events" in h5 else pd.DataFrame()
+        snapshots = _snapshots(run)
         groups = [g for g in DATA_GROUPS if g in h5]
     return Run(p, attrs, config, snapshots, steps, events, groups)

@@ -19,6 +19,7 @@ import numpy as np
 from qmg_lab.instruments import INSTRUMENT_NAMES
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
+from qmg_lab.storage.runfile import open_run_file
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
 
@@ -90,11 +91,8 @@ def _check_resumable(
             raise StorageError(f"{p}: is still open for writing by process {pid} on {host}; stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
-    try:
-        with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
-            plan = plan_repair(h5, thorough=thorough)
-    except (OSError, RuntimeError) as exc:
-        raise StorageError(f"{p}: HDF5 cannot read it: {exc}") from None
+    with open_run_file(readable) as opened:  # the readers' guarded open: bounded, StorageError in words
+        plan = plan_repair(opened.h5, thorough=thorough)
     refuse_discarding_repair(p, plan)
     return run
 

@@ -143,6 +143,30 @@ class RunFile:
                 out = {c: v[~fill] for c, v in out.items()}
         return out
 
+    def tail(self, group: str, columns: Iterable[str], rows: int) -> dict[str, np.ndarray]:
+        """The last `rows` whole rows of /group's `columns` (and `time`), by the rule of `read` applied from the
+        end: fill rows only ever follow a group's data (a kill or a full disk leaves them at its end), so the
+        tail's time rows are checked continuing the row before it, and NaN rows dropped. Reads only the tail."""
+        grp = self.h5[group]
+        names = [c for c in self.columns(group) if c in set(columns) or c == "time"]
+        n = min((int(grp[c].shape[0]) for c in names), default=0)
+        if group in GROUP_UNITS and "time" in grp:
+            i0 = max(0, n - rows)
+            t = self._read(grp["time"], i0, n)
+            before = float(self._read(grp["time"], i0 - 1, i0)[0]) if i0 else None
+            k = valid_rows(t, previous=before)
+            n = i0 + k if k or not i0 else self.rows(group, names)
+        i0 = max(0, n - rows)
+        out = {c: self._read(grp[c], i0, n) for c in names}
+        if "time" in out:
+            fill = np.zeros(n - i0, dtype=bool)
+            for v in out.values():
+                if v.dtype.kind == "f":
+                    fill |= np.isnan(v)
+            if fill.any():
+                out = {c: v[~fill] for c, v in out.items()}
+        return out
+
     def _read(self, ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:
         try:
             return np.asarray(ds[start:stop])
@@ -153,35 +177,49 @@ class RunFile:
 
 
 @contextmanager
-def open_run_file(path: str | Path, *, probe: bool = True, timeout_s: float = PROBE_TIMEOUT_S) -> Iterator[RunFile]:
+def open_run_file(
+    path: str | Path, *, probe: bool = True, timeout_s: float = PROBE_TIMEOUT_S, damaged: bool = False
+) -> Iterator[RunFile]:
     """`with open_run_file(path) as run:` a qmg-lab run file open read-only (module docstring, steps 1-5).
 
     Yields a RunFile (`run.h5` the h5py.File, `run.attrs`, `run.format`, `run.writer_open`, `run.read(group)`).
     Raises StorageError naming the file and what is wrong (DamagedFileError for damaged bytes), never an h5py
     exception. probe=False skips the child-process walk of a file whose writer flags are set (step 4): only for
-    a file this caller has already probed.
+    a file this caller has already probed. damaged=True (salvage and its scan): a file cut short or left open
+    by a writer is opened too, always through `ClearedView` without SWMR (bounded by the bytes on disk: nothing
+    is retried), and root attributes that do not read are left out instead of refused.
     """
     p = Path(path)
     if not p.exists():
         raise StorageError(f"{p}: no such run file")
     if not p.is_file():
         raise StorageError(f"{p}: not a run file (a folder, a pipe or a device, not a regular file)")
-    check_file_end(p)
-    writer_open = writer_flags_set(p)
-    if writer_open and probe:
-        _probe_in_child(p, timeout_s)
-    try:
-        h5 = h5py.File(p, "r", swmr=writer_open, libver="latest")
-    except H5_ERRORS as exc:
-        raise DamagedFileError(f"{p}: HDF5 cannot open it: {exc}") from None
+    view: ClearedView | None = None
+    if damaged:
+        writer_open = False
+        try:
+            view = ClearedView(p)
+            h5 = h5py.File(view, "r")
+        except (*H5_ERRORS, StorageError) as exc:
+            if view is not None:
+                view.close()
+            raise DamagedFileError(f"{p}: HDF5 cannot open it at all, nothing can be read: {exc}") from None
+    else:
+        check_file_end(p)
+        writer_open = writer_flags_set(p)
+        if writer_open and probe and _file_key(p) not in _PROBED:
+            _probe_in_child(p, timeout_s)
+            _PROBED.add(_file_key(p))
+        try:
+            h5 = h5py.File(p, "r", swmr=writer_open, libver="latest")
+        except H5_ERRORS as exc:
+            raise DamagedFileError(f"{p}: HDF5 cannot open it: {exc}") from None
     try:
         with h5:
-            try:
-                attrs = {k: attr_value(h5.attrs[k]) for k in h5.attrs}
-            except H5_ERRORS as exc:
-                raise DamagedFileError(f"{p}: its root attributes do not read (the file is damaged): {exc}") from None
+            attrs = _root_attrs(p, h5, tolerant=damaged)
             fmt = str(attrs.get("format", ""))
-            check_format(p, fmt)
+            if not (damaged and fmt == ""):
+                check_format(p, fmt)
             yield RunFile(p, h5, fmt, writer_open, attrs)
     except StorageError:
         raise
@@ -191,6 +229,27 @@ def open_run_file(path: str | Path, *, probe: bool = True, timeout_s: float = PR
         raise DamagedFileError(f"{p}: HDF5 cannot read it (the file is damaged): {exc}") from None
     except H5_ERRORS as exc:
         raise DamagedFileError(f"{p}: HDF5 cannot read it (the file is damaged): {exc}") from None
+    finally:
+        if view is not None:
+            view.close()
+
+
+def _root_attrs(p: Path, h5: h5py.File, *, tolerant: bool) -> dict[str, Any]:
+    """The root attributes decoded; one that does not read is a DamagedFileError, or left out if tolerant."""
+    try:
+        names = list(h5.attrs)
+    except H5_ERRORS as exc:
+        if tolerant:
+            return {}
+        raise DamagedFileError(f"{p}: its root attributes do not read (the file is damaged): {exc}") from None
+    attrs: dict[str, Any] = {}
+    for k in names:
+        try:
+            attrs[k] = attr_value(h5.attrs[k])
+        except H5_ERRORS as exc:
+            if not tolerant:
+                raise DamagedFileError(f"{p}: its root attribute {k!r} does not read (damaged): {exc}") from None
+    return attrs
 
 
 def check_format(path: Path, fmt: str) -> None:
@@ -206,6 +265,16 @@ def check_format(path: Path, fmt: str) -> None:
         f"{path}: not a qmg-lab run file: its root attribute format is {fmt!r}, not {FORMAT!r} "
         f"(nor any of {', '.join(READ_FORMATS)})"
     )
+
+
+#: files whose structure a child walked without fault, as (path, size, mtime ns): a file that has not changed
+#: since is not walked again by this process (analyze opens the same killed file several times)
+_PROBED: set[tuple[str, int, int]] = set()
+
+
+def _file_key(path: Path) -> tuple[str, int, int]:
+    st = path.stat()
+    return (str(path.resolve()), st.st_size, st.st_mtime_ns)
 
 
 def _probe_in_child(path: Path, timeout_s: float) -> None:

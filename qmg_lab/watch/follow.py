@@ -1,6 +1,7 @@
 """Following a run file from another process: the rows that arrived since the last look (no Bokeh here).
 
-Each `RunFollower.poll()` opens the file read-only through HDF5 SWMR, reads what the writer has flushed since
+Each `RunFollower.poll()` opens the file read-only (qmg_lab.storage.runfile.open_run_file: SWMR while a writer
+has it open; a damaged file is a `problem` in words, never a hang), reads what the writer has flushed since
 the previous poll, and closes it again: a reopen costs about a millisecond and sees every flush, a killed
 writer's file and a resumed one alike; nothing is ever written. Per poll at most `max_rows` rows of a group are
 read (the first polls of a long finished file replay it in pieces, so the page answers meanwhile).
@@ -40,6 +41,8 @@ import h5py
 import numpy as np
 
 from qmg_lab.data.run import MOVING_MEAN_S, window_mean
+from qmg_lab.storage.layout import StorageError
+from qmg_lab.storage.runfile import open_run_file
 
 MAX_ROWS = 2_000_000
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)
@@ -108,6 +111,7 @@ class RunFollower:
         self.clsf_t = np.zeros(0)
         self.clsf_s = np.zeros(0)
         self.clsf_out = np.zeros(0)
+        self.probed = False  # open_run_file walked this file's structure (in a child) without fault
 
     def _restart(self) -> None:
         self.read = dict.fromkeys(COLUMNS, 0)
@@ -115,13 +119,30 @@ class RunFollower:
 
     def poll(self) -> Update:
         up = Update()
-        try:
-            h5 = h5py.File(self.path, "r", swmr=True, libver="latest")
-        except (OSError, FileNotFoundError) as exc:
-            up.problem = "waiting for the run file" if not self.path.exists() else f"cannot open it yet ({exc})"
+        if not self.path.exists():
+            up.problem = "waiting for the run file"
             return up
-        with h5:
-            up.attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in h5.attrs.items()}
+        try:
+            self._read_new(up)
+        except StorageError as exc:  # open_run_file: not (yet) a readable run file, or damaged; said in words
+            self.probed = False  # walked again, in a child process with a time limit, at the next poll
+            up.problem = f"cannot read it yet ({exc})"
+            return up
+        clsf = up.groups.get("clsf")
+        if clsf is not None:
+            self.clsf_t = np.concatenate((self.clsf_t, clsf["time"]))
+            self.clsf_s = np.concatenate((self.clsf_s, clsf["sf_change_estimate"]))
+            self.clsf_out = np.concatenate((self.clsf_out, clsf["rate_output_mean"]))
+        up.ready = True
+        return up
+
+    def _read_new(self, up: Update) -> None:
+        """One poll's reading (`poll`): the file opened by `open_run_file` (its structure walked in a child
+        process with a time limit at the first poll and after a failed one; SWMR while a writer has it open)."""
+        with open_run_file(self.path, probe=not self.probed) as run:
+            self.probed = True
+            h5 = run.h5
+            up.attrs = dict(run.attrs)
             lengths = {}
             for g, cols in COLUMNS.items():
                 src = "lockin" if g == "truth" else g
@@ -144,13 +165,6 @@ class RunFollower:
                 self.read[g] = b
             up.steps = _whole(h5, "steps")
             up.events = _whole(h5, "events")
-        clsf = up.groups.get("clsf")
-        if clsf is not None:
-            self.clsf_t = np.concatenate((self.clsf_t, clsf["time"]))
-            self.clsf_s = np.concatenate((self.clsf_s, clsf["sf_change_estimate"]))
-            self.clsf_out = np.concatenate((self.clsf_out, clsf["rate_output_mean"]))
-        up.ready = True
-        return up
 
     def moving_mean_of_new(self, new_rows: int) -> np.ndarray:
         """The trailing MOVING_MEAN_S mean of the CLSF estimate at its newest `new_rows` rows (from the kept
