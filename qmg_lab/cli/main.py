@@ -449,7 +449,7 @@ def analyze(
 
     from qmg_lab.cli.files import damaged_file_report
     from qmg_lab.storage.layout import DamagedFileError, StorageError
-    from qmg_lab.storage.superblock import check_file_end
+    from qmg_lab.storage.runfile import check_structure
 
     if fmt not in ("png", "svg", "pdf"):
         fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
@@ -458,8 +458,8 @@ def analyze(
     if run_file.is_dir():
         _analyze_study(run_file, json_out, figures)
         return
-    try:
-        check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
+    try:  # a file cut short or with damaged metadata is answered before the analysis is even imported
+        check_structure(run_file)
     except DamagedFileError as exc:
         fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:

@@ -28,11 +28,10 @@ OPEN_WARNING = (
 def _check_run_file(path: Path) -> None:
     """Refuse (exit 2, in words) what is not a readable run file, as every reader does (`open_run_file`)."""
     from qmg_lab.storage.layout import StorageError
-    from qmg_lab.storage.runfile import open_run_file
+    from qmg_lab.storage.runfile import check_structure
 
     try:
-        with open_run_file(path):
-            pass
+        check_structure(path)
     except StorageError as exc:
         fail(EXIT_BAD_INPUT, str(exc))
 

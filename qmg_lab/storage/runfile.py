@@ -252,6 +252,16 @@ def _root_attrs(p: Path, h5: h5py.File, *, tolerant: bool) -> dict[str, Any]:
     return attrs
 
 
+def check_structure(path: str | Path) -> None:
+    """Open the file (`open_run_file`) and read every attribute, member, dataset header and chunk index of it
+    (the walk of step 4, here in this process: a file whose writer flags are set was walked in a child already,
+    a cleanly closed one is read without SWMR, so nothing retries). StorageError/DamagedFileError in words. For
+    commands that want to answer for a damaged file before loading anything heavy (`analyze`, `watch`)."""
+    with open_run_file(path) as run:
+        if not run.writer_open:
+            _walk(run.h5)
+
+
 def check_format(path: Path, fmt: str) -> None:
     """Refuse (StorageError, in words) a file whose root attribute `format` this version does not read."""
     if fmt in READ_FORMATS:
