@@ -44,6 +44,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
@@ -171,36 +172,65 @@ def _one(command: str, path: Path, work: Path, intact: Path, sha: str) -> list[s
     return [sys.executable, "-c", head + code]
 
 
-def _children_cpu_s() -> float:
-    """CPU time (user + system) of this process's finished children and their own waited-for children, s."""
-    import resource  # POSIX; this benchmark runs on the Linux lab and CI machines
+def _wait(argv: list[str], work: Path) -> tuple[int | None, str, str, float, float | None]:
+    """Run argv with the GUARD_S guard: (exit code or None if it hung, stdout, stderr, wall s, CPU s). CPU: the
+    child's user + system time, its own waited-for children included (os.wait4's resource usage of that child
+    alone, so parallel workers do not mix)."""
+    out_path, err_path = work / "stdout.txt", work / "stderr.txt"
+    t0 = time.monotonic()
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        proc = subprocess.Popen(argv, stdout=out, stderr=err, env=ENV, text=True)
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)  # POSIX: the Linux lab and CI machines
+            if pid:
+                code = os.waitstatus_to_exitcode(status)
+                proc.returncode = code
+                cpu: float | None = usage.ru_utime + usage.ru_stime
+                break
+            if time.monotonic() - t0 > GUARD_S:
+                proc.kill()
+                proc.wait()
+                code, cpu = None, None
+                break
+            time.sleep(0.02)
+    wall = time.monotonic() - t0
+    return code, out_path.read_text(), err_path.read_text(), wall, cpu
 
-    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return ru.ru_utime + ru.ru_stime
 
-
-def run_one(argv: list[str], command: str) -> dict[str, object]:
-    t0, c0 = time.monotonic(), _children_cpu_s()
-    try:
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=GUARD_S, env=ENV)
-    except subprocess.TimeoutExpired:
+def run_one(argv: list[str], command: str, work: Path) -> dict[str, object]:
+    """One reader on one file: wall and CPU time, hang, traceback, exit code, whether `runs` kept the intact row."""
+    code, stdout, stderr, wall, cpu = _wait(argv, work)
+    if code is None:
         return {"wall_s": GUARD_S, "cpu_s": None, "hang": True, "traceback": False, "exit": None, "said": ""}
-    wall, cpu = time.monotonic() - t0, _children_cpu_s() - c0
-    said = (done.stderr + done.stdout).strip()
-    traceback = "Traceback" in done.stderr or done.returncode < 0
     listed = True
-    if command == "runs" and done.returncode == 0:
-        rows = json.loads(done.stdout)["runs"]
+    if command == "runs" and code == 0:
+        rows = json.loads(stdout)["runs"]
         listed = any(r["file"].endswith("intact.h5") and "name" in r for r in rows) and len(rows) == 2
     return {
         "wall_s": round(wall, 2),
-        "cpu_s": round(cpu, 2),
+        "cpu_s": round(cpu, 2) if cpu is not None else None,
         "hang": False,
-        "traceback": traceback,
-        "exit": done.returncode,
+        "traceback": "Traceback" in stderr or code < 0,
+        "exit": code,
         "listed": listed,
-        "said": " ".join(said.split())[-300:],
+        "said": " ".join((stderr + stdout).split())[-300:],
     }
+
+
+def soak_file(i: int, src: Path, kind: str, seed: int, tmp: Path, intact: Path, sha: str) -> list[dict[str, object]]:
+    """Damage one copy of src and put every reader to it; a row per command (in its own work folder)."""
+    work = tmp / f"work_{i:03d}"
+    work.mkdir()
+    path = work / f"damaged_{i:03d}.h5"
+    where = damage(src, path, kind, random.Random(seed * 100_003 + i))
+    label = f"{kind}/{'closed' if src == intact else 'killed'}"
+    rows = []
+    for command in COMMANDS:
+        row = run_one(_one(command, path, work, intact, sha), command, work)
+        rows.append({"file": i, "label": label, "where": where, "command": command, **row})
+    shutil.rmtree(work / "runs", ignore_errors=True)
+    (work / "salvaged.h5").unlink(missing_ok=True)
+    return rows
 
 
 def open_cost(path: Path) -> float:
@@ -224,8 +254,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--keep", type=Path, default=None, help="keep the damaged files whose readers failed here")
+    ap.add_argument("--workers", type=int, default=1, help="files soaked at once (each reader is its own process)")
     args = ap.parse_args()
-    rng = random.Random(args.seed)
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="qmg-damaged-") as d:
         tmp = Path(d)
@@ -234,27 +264,28 @@ def main() -> None:
             sha = str(h5.attrs["config_sha256"])
         cost = {"completed_open_s": round(open_cost(done), 4), "killed_open_s": round(open_cost(killed), 4)}
         baseline = {  # the same commands on the intact references: what a command costs before any damage
-            f"{c}/{label}": run_one(_one(c, ref, tmp, done, sha), c)
+            f"{c}/{label}": run_one(_one(c, ref, tmp, done, sha), c, tmp)
             for label, ref in (("closed", done), ("killed", killed))
             for c in COMMANDS
         }
         per: dict[str, dict[str, list[dict[str, object]]]] = {c: {} for c in COMMANDS}
         failures: list[dict[str, object]] = []
-        for i in range(args.files):
-            kind = KINDS[i % len(KINDS)]
-            src = (done, killed)[(i // len(KINDS)) % 2]
-            path = tmp / f"damaged_{i:03d}.h5"
-            where = damage(src, path, kind, rng)
-            label = f"{kind}/{'closed' if src is done else 'killed'}"
-            for command in COMMANDS:
-                row = run_one(_one(command, path, tmp, done, sha), command)
-                per[command].setdefault(label, []).append(row)
-                if row["hang"] or row["traceback"] or not row.get("listed", True) or float(row["cpu_s"]) > ANSWER_S:  # type: ignore[arg-type]
-                    failures.append({"file": i, "label": label, "where": where, "command": command, **row})
-                    if args.keep is not None:
-                        args.keep.mkdir(parents=True, exist_ok=True)
-                        shutil.copyfile(path, args.keep / path.name)
-            path.unlink()
+        jobs = [(i, (done, killed)[(i // len(KINDS)) % 2], KINDS[i % len(KINDS)]) for i in range(args.files)]
+        with ThreadPoolExecutor(max_workers=args.workers) as pool:
+            results = pool.map(lambda j: soak_file(*j, args.seed, tmp, done, sha), jobs)
+            for rows in results:
+                for row in rows:
+                    print(json.dumps(row), file=sys.stderr, flush=True)  # progress: one line per answer
+                    per[str(row["command"])].setdefault(str(row["label"]), []).append(row)
+                    cpu = row["cpu_s"]
+                    if row["hang"] or row["traceback"] or not row.get("listed", True) or (cpu or 0.0) > ANSWER_S:  # type: ignore[operator]
+                        failures.append(row)
+                        if args.keep is not None:
+                            args.keep.mkdir(parents=True, exist_ok=True)
+                            name = f"damaged_{int(row['file']):03d}.h5"  # type: ignore[call-overload]
+                            shutil.copyfile(tmp / f"work_{int(row['file']):03d}" / name, args.keep / name)  # type: ignore[call-overload]
+                if rows:
+                    shutil.rmtree(tmp / f"work_{int(rows[0]['file']):03d}", ignore_errors=True)  # type: ignore[call-overload]
     summary: dict[str, object] = {}
     for command, labels in per.items():
         rows = [r for rs in labels.values() for r in rs]
@@ -276,6 +307,7 @@ def main() -> None:
     result = {
         "files": args.files,
         "seed": args.seed,
+        "workers": args.workers,
         "kinds": {k: sum(1 for i in range(args.files) if KINDS[i % len(KINDS)] == k) for k in KINDS},
         "open_run_file_cost": cost,
         "intact_baseline": {

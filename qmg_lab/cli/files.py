@@ -40,7 +40,7 @@ def damaged_file_report(path: Path, problem: str) -> str:
 
 
 def salvage(
-    run_file: Annotated[Path, typer.Argument(help="damaged run file (HDF5, qmg-lab/1)", show_default=False)],
+    run_file: Annotated[Path, typer.Argument(help="damaged run file (HDF5, qmg-lab/1 or /2)", show_default=False)],
     output: Annotated[Path, typer.Option("-o", "--output", help="new file for what still reads", show_default=False)],
 ) -> None:
     """Copy what still reads of a damaged run file (cut short, or with chunks that do not decode) into a new

@@ -436,7 +436,7 @@ def characterize_linearity(
 @app.command()
 def analyze(
     run_file: Annotated[
-        Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
+        Path, typer.Argument(help="run file (HDF5, qmg-lab/1 or /2), or a study directory", show_default=False)
     ],
     json_out: JsonOpt = False,
     figures: Annotated[Path | None, typer.Option("--figures", help="write the figures to this folder")] = None,

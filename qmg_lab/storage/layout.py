@@ -1,4 +1,5 @@
-"""The "qmg-lab/1" run-file layout (docs/hdf5.md): groups, columns, units, descriptions, dtypes, chunking.
+"""The run-file layout, format "qmg-lab/2" ("qmg-lab/1" files read too; docs/hdf5.md): groups, columns, units,
+descriptions, dtypes, chunking.
 
 Shared by the writer (qmg_lab/storage/writer.py) and the reader (qmg_lab/storage/reader.py); docs/hdf5.md explains it.
 """

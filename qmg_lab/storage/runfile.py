@@ -14,10 +14,11 @@ seconds, with words, whatever the file's bytes:
 4. a file whose flags are set (its writer is still writing, or was killed) must be read through SWMR, which
    retries a failing metadata read for minutes, inside HDF5's C code where no thread can interrupt it. So its
    structure is first walked in a child process with a time limit (`probe_structure`: every group, attribute,
-   dataset header and chunk index): first without SWMR through `ClearedView` (the flags read as cleared,
-   nothing written; bounded by the bytes on disk), then, only if that failed, through SWMR (a live writer's
-   flush caught half-way is retried as it should be). A child that fails or runs out of time makes the file
-   damaged (DamagedFileError); one that succeeds leaves a structure the SWMR open here reads without retries.
+   dataset header and chunk index), without SWMR, through `ClearedView` (the flags read as cleared, nothing
+   written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if it failed (a live
+   writer's flush caught half-way is whole a moment later). A child that fails or runs out of time makes the
+   file damaged (DamagedFileError); one that succeeds leaves a structure the SWMR open here reads without
+   retries.
    The cost, a Python start with h5py (about 0.4 s), is paid only for such files (measured by
    benchmarks/damaged_files.py); a caller that reopens the same live file again and again (the watch page)
    probes it once (`probe=False` after);
@@ -37,6 +38,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -53,9 +55,15 @@ from qmg_lab.storage.view import ClearedView
 
 #: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
 H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
-#: the child process's time to walk a file's structure (step 4), s: a start with h5py takes about 0.4 s and the
-#: walk of an intact 12-hour file well under a second; a damaged file under SWMR would retry for minutes
-PROBE_TIMEOUT_S = 3.0
+#: the child process's time to walk a file's structure (step 4), s. The walk itself never retries (no SWMR): this
+#: is a guard against the unforeseen, not the expected answer time. A start with h5py takes about 0.4 s on an
+#: idle machine and the walk of an intact 12-hour file well under a second, but a start takes several seconds
+#: on a machine loaded 5x over its cores (measured: benchmarks/damaged_files.py), and a healthy file must not be
+#: called damaged because the machine is busy
+PROBE_TIMEOUT_S = 10.0
+#: a failed walk is tried again this often, this far apart (s): a live writer's flush caught half-way
+PROBE_RETRIES = 2
+PROBE_PAUSE_S = 0.2
 
 
 def attr_value(value: Any) -> Any:
@@ -311,20 +319,21 @@ def _probe_in_child(path: Path, timeout_s: float) -> None:
 
 
 def probe_structure(path: Path) -> str:
-    """In the child process: walk the structure of `path` without SWMR (through ClearedView), then, only if that
-    failed, through SWMR; "" if either walk went through, else the first walk's error."""
-    try:
-        with ClearedView(path) as view, h5py.File(view, "r") as h5:
-            _walk(h5)
-        return ""
-    except (*H5_ERRORS, StorageError) as exc:
-        first = f"{type(exc).__name__}: {exc}"
-    try:
-        with h5py.File(path, "r", swmr=True, libver="latest") as h5:
-            _walk(h5)
-        return ""
-    except H5_ERRORS:
-        return first
+    """In the child process: walk the structure of `path` without SWMR, through ClearedView (nothing retries: a
+    damaged metadata block fails at once); "" if the walk went through, else its error. A failed walk is tried
+    again PROBE_RETRIES times PROBE_PAUSE_S apart: a live writer's flush caught half-way is whole a moment later,
+    a damaged block stays damaged."""
+    problem = ""
+    for attempt in range(1 + PROBE_RETRIES):
+        if attempt:
+            time.sleep(PROBE_PAUSE_S)
+        try:
+            with ClearedView(path) as view, h5py.File(view, "r") as h5:
+                _walk(h5)
+            return ""
+        except (*H5_ERRORS, StorageError) as exc:
+            problem = problem or f"{type(exc).__name__}: {exc}"
+    return problem
 
 
 def _walk(group: h5py.Group) -> None:
