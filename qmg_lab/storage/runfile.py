@@ -295,11 +295,16 @@ def _file_key(path: Path) -> tuple[str, int, int]:
     return (str(path.resolve()), st.st_size, st.st_mtime_ns)
 
 
+def child_env() -> dict[str, str]:
+    """The environment of a child process that must import this qmg_lab (not another installed one)."""
+    root = str(Path(__file__).resolve().parents[2])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH", "")) if x)}
+
+
 def _probe_in_child(path: Path, timeout_s: float) -> None:
     """Walk the file's structure in a child process (module docstring, step 4); DamagedFileError if the walk
     fails, crashes or is not done within timeout_s."""
-    root = str(Path(__file__).resolve().parents[2])  # the child imports this qmg_lab, not another installed one
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH", "")) if x)}
+    env = child_env()
     argv = [sys.executable, "-m", "qmg_lab.storage.probe", str(path)]
     try:
         done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)

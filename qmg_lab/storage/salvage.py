@@ -32,6 +32,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,11 +42,21 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.h5clear import clear_superblock_flags
-from qmg_lab.storage.layout import GROUP_UNITS, StorageError
-from qmg_lab.storage.runfile import H5_ERRORS, open_run_file, valid_rows
+from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError
+from qmg_lab.storage.runfile import H5_ERRORS, child_env, open_run_file, valid_rows
 from qmg_lab.storage.superblock import read_superblock
 
-__all__ = ["H5_ERRORS", "DatasetScan", "padded_copy", "readable_rows", "salvage", "salvage_summary", "scan"]
+__all__ = [
+    "H5_ERRORS",
+    "DatasetScan",
+    "padded_copy",
+    "readable_rows",
+    "salvage",
+    "salvage_isolated",
+    "salvage_summary",
+    "scan",
+    "scan_isolated",
+]
 #: columns that are not rows (the snapshots' JSON bytes, addressed by offset and length): kept whole
 NOT_ROWS = ("/snapshots/json",)
 
@@ -331,3 +343,63 @@ def _copy_attrs(source: h5py.AttributeManager, target: h5py.AttributeManager) ->
             target[k] = source[k]
         except H5_ERRORS:
             continue
+
+
+#: `scan_isolated`'s time limit, s; `salvage_isolated`'s: this plus SALVAGE_S_PER_MB per MB of the file (a
+#: copy of a long run legitimately takes minutes)
+ISOLATED_S = 30.0
+SALVAGE_S_PER_MB = 2.0
+
+
+def _in_child(argv: list[str], timeout_s: float, what: str, path: Path) -> str:
+    """Run `python -m qmg_lab.storage.salvage ARGV` with a time limit: HDF5 can loop inside its C code on bytes
+    that decode as nonsense (a zero-filled attribute heap was seen to), where only a child can be stopped.
+    Returns its stdout; StorageError in words if it fails or runs out of time."""
+    full = [sys.executable, "-m", "qmg_lab.storage.salvage", *argv]
+    try:
+        done = subprocess.run(full, capture_output=True, text=True, timeout=timeout_s, env=child_env(), check=False)
+    except subprocess.TimeoutExpired:
+        raise DamagedFileError(
+            f"{path}: {what} did not finish within {timeout_s:g} s: HDF5 loops on a damaged part of the file"
+        ) from None
+    if done.returncode != 0:
+        said = " ".join(done.stderr.split()[-60:]) or f"exit {done.returncode}"
+        raise StorageError(f"{path}: {what} failed: {said}")
+    return done.stdout
+
+
+def scan_isolated(path: str | Path, timeout_s: float = ISOLATED_S) -> list[DatasetScan]:
+    """`scan` in a child process with a time limit (`_in_child`)."""
+    out = _in_child(["scan", str(path)], timeout_s, "the scan of what still reads", Path(path))
+    return [DatasetScan(**row) for row in json.loads(out)]
+
+
+def salvage_isolated(source: str | Path, target: str | Path) -> list[DatasetScan]:
+    """`salvage` in a child process with a time limit growing with the file (`_in_child`); nothing is left at
+    `target` if it fails."""
+    src = Path(source)
+    size_mb = src.stat().st_size / 1e6 if src.is_file() else 0.0
+    dst = Path(target)
+    try:
+        out = _in_child(["salvage", str(source), str(target)], ISOLATED_S + SALVAGE_S_PER_MB * size_mb, "salvage", src)
+    except StorageError:
+        for partial in dst.parent.glob(f".{dst.name}.*.salvaging"):  # a stopped child's unfinished copy
+            partial.unlink(missing_ok=True)
+        raise
+    return [DatasetScan(**row) for row in json.loads(out)]
+
+
+def _main(argv: list[str]) -> int:
+    """The child of `scan_isolated` / `salvage_isolated`: the scan as JSON on stdout; exit 1 with the words on
+    stderr for a StorageError."""
+    try:
+        rows = scan(argv[1]) if argv[0] == "scan" else salvage(argv[1], argv[2])
+    except StorageError as exc:
+        print(str(exc), file=sys.stderr)
+        return 1
+    print(json.dumps([r.__dict__ for r in rows]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

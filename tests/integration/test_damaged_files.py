@@ -302,3 +302,15 @@ def test_both_format_versions_read(run_file: Path, tmp_path: Path) -> None:
     assert read_run(old).attrs["format"] == "qmg-lab/1"
     assert qmg_lab.open_run(old).attrs["format"] == "qmg-lab/1"
     assert read_run(run_file).attrs["format"] == "qmg-lab/2"
+
+
+def test_salvage_that_hdf5_loops_on_is_stopped_in_words(run_file: Path, tmp_path: Path) -> None:
+    """Cut at 3707 bytes and padded with zeros to its recorded end, the file's attribute heap reads as zeros, on
+    which HDF5 loops inside its C code (found by benchmarks/damaged_files.py): salvage runs in a child process
+    with a time limit, answers exit 2 in words, and leaves no partial copy."""
+    cut = _cut_copy(run_file, tmp_path / "cut.h5", 3707)
+    new = tmp_path / "new.h5"
+    done = subprocess.run(qmg("salvage", str(cut), "-o", str(new)), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "did not finish" in " ".join(done.stderr.split())
+    assert not new.exists() and not list(tmp_path.glob(".new.h5.*"))
