@@ -20,10 +20,10 @@ def damaged_file_report(path: Path, problem: str) -> str:
     """The analysis's error, then what of the file still reads and what does not (qmg_lab.storage.salvage.scan),
     and how to copy what reads."""
     from qmg_lab.storage.layout import StorageError
-    from qmg_lab.storage.salvage import scan
+    from qmg_lab.storage.salvage import scan_isolated
 
     try:
-        rows = scan(path)
+        rows = scan_isolated(path)
     except StorageError as exc:
         return f"{problem}\nnothing of it can be read: {exc}"
     ok = [r for r in rows if r.complete]
@@ -40,13 +40,13 @@ def damaged_file_report(path: Path, problem: str) -> str:
 
 
 def salvage(
-    run_file: Annotated[Path, typer.Argument(help="damaged run file (HDF5, qmg-lab/1)", show_default=False)],
+    run_file: Annotated[Path, typer.Argument(help="damaged run file (HDF5, qmg-lab/1 or /2)", show_default=False)],
     output: Annotated[Path, typer.Option("-o", "--output", help="new file for what still reads", show_default=False)],
 ) -> None:
     """Copy what still reads of a damaged run file (cut short, or with chunks that do not decode) into a new
     file of the same layout; the damaged file is not changed."""
     from qmg_lab.storage.layout import StorageError
-    from qmg_lab.storage.salvage import salvage as salvage_file
+    from qmg_lab.storage.salvage import salvage_isolated as salvage_file
 
     if not run_file.is_file():
         fail(EXIT_BAD_INPUT, f"{run_file}: no such run file")

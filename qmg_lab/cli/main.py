@@ -402,7 +402,7 @@ def characterize_linearity(
 @app.command()
 def analyze(
     run_file: Annotated[
-        Path, typer.Argument(help="run file (HDF5, qmg-lab/1), or a study directory", show_default=False)
+        Path, typer.Argument(help="run file (HDF5, qmg-lab/1 or /2), or a study directory", show_default=False)
     ],
     json_out: JsonOpt = False,
     figures: Annotated[Path | None, typer.Option("--figures", help="write the figures to this folder")] = None,
@@ -419,7 +419,7 @@ def analyze(
 
     from qmg_lab.cli.files import damaged_file_report
     from qmg_lab.storage.layout import DamagedFileError, StorageError
-    from qmg_lab.storage.superblock import check_file_end
+    from qmg_lab.storage.runfile import check_structure
 
     if fmt not in ("png", "svg", "pdf"):
         fail(EXIT_BAD_INPUT, f"--format {fmt}: use png, svg or pdf")
@@ -430,8 +430,8 @@ def analyze(
         return
     if figures is not None and figures.exists() and not figures.is_dir():
         fail(EXIT_BAD_INPUT, f"--figures {figures} is a file: name a folder for the figures (made if missing)")
-    try:
-        check_file_end(run_file)  # a file cut short is answered before the analysis is even imported
+    try:  # a file cut short or with damaged metadata is answered before the analysis is even imported
+        check_structure(run_file)
     except DamagedFileError as exc:
         fail(EXIT_BAD_INPUT, damaged_file_report(run_file, str(exc)))
     except StorageError as exc:
@@ -439,6 +439,7 @@ def analyze(
 
     from qmg_lab.analysis.compute import analyze as run_analysis
     from qmg_lab.analysis.render import render_table
+    from qmg_lab.storage.salvage import salvage_summary
     from qmg_lab.storage.writer import read_run, status_detail
 
     model = None
@@ -459,7 +460,9 @@ def analyze(
                 calibrated = evaluate(run_file, model, result)
             except ValueError as exc:
                 fail(EXIT_BAD_INPUT, str(exc))
-        detail = status_detail(read_run(run_file, select=()))
+        head = read_run(run_file, select=())
+        detail = status_detail(head)
+        salvaged = salvage_summary(head.attrs)  # a salvaged file says so first, with what it lost
         written = []
         if figures is not None:
             from qmg_lab.analysis.report import write_figures
@@ -475,12 +478,15 @@ def analyze(
     if json_out:
         data = result.to_json()
         data["status_detail"] = detail  # "status" stays the file's attribute; this is how to read it
+        data["salvaged"] = salvaged or None
         if figures is not None:
             data["figures"] = [str(p) for p in written]
         if calibrated is not None:
             data["calibrated_sf"] = {**calibrated.to_json(), "model_file": str(sf_model)}
         out.print_json(json.dumps(data, default=float))
     else:
+        if salvaged:
+            out.print(salvaged, style="bold yellow", markup=False, highlight=False)
         out.print(render_table(dataclasses.replace(result, status=detail)))
         if calibrated is not None:
             out.print(sfcal.render_calibrated(calibrated))

@@ -31,15 +31,16 @@ OPEN_WARNING = (
 
 
 def _check_run_file(path: Path) -> None:
-    """Refuse (exit 2) what is not a readable run file, in the words `analyze` uses: both ask the same reader."""
+    """Refuse (exit 2) what is not a readable run file, in the words `analyze` uses: both ask the same guarded
+    open (`open_run_file`'s structure check)."""
     from qmg_lab.cli.files import damaged_file_report
     from qmg_lab.storage.layout import DamagedFileError, StorageError
-    from qmg_lab.storage.reader import read_run
+    from qmg_lab.storage.runfile import check_structure
 
     if not path.is_file():
         fail(EXIT_BAD_INPUT, f"{path}: no such run file")
     try:
-        read_run(path, select=())
+        check_structure(path)
     except DamagedFileError as exc:
         fail(EXIT_BAD_INPUT, damaged_file_report(path, str(exc)))
     except StorageError as exc:
@@ -47,7 +48,7 @@ def _check_run_file(path: Path) -> None:
 
 
 def watch(
-    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1)", show_default=False)],
+    run_file: Annotated[Path, typer.Argument(help="run file (HDF5, qmg-lab/1 or /2)", show_default=False)],
     host: Annotated[
         str, typer.Option("--host", help="address to listen on; anything but 127.0.0.1 opens the page to the network")
     ] = LOOPBACK,

@@ -4,7 +4,9 @@
         run.config["campaign"]["name"], run.status, run.steps, run.events
         run.to_xarray()["clsf"].sf_change_estimate.plot()
 
-Every read opens the file read-only through HDF5 SWMR, so a file that a campaign is still writing (or that a
+Every read opens the file read-only through the readers' one guarded open
+(`qmg_lab.storage.runfile.open_run_file`: SWMR when a writer left it open; StorageError, never an h5py
+exception), so a file that a campaign is still writing (or that a
 killed writer left) reads as of the writer's last flush; nothing here ever writes. `Run` holds what is small (root
 attributes, configuration, steps, events, snapshots) as read at `open_run`; the data groups are read when asked
 for (`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call. `run.reload()` reads
@@ -13,8 +15,8 @@ the small parts again. The data reads share one read-only file handle, opened at
 
 Whole valid rows only, as `qmg_lab.storage.reader.read_run` reads them: every group is cut to its shortest
 column (a kill, or a reader between two column writes, may leave one column a block longer), and to the rows
-whose time is data (`storage.reader.valid_rows`: the fill rows a killed writer leaves at the end hold a NaN or a
-0.0 time). The time column is scanned for that in blocks of SCAN_ROWS, so the rule costs no memory on a long run.
+whose time is data (`RunFile.rows`, the rule every reader applies: the fill rows a killed writer leaves at the end
+hold a NaN or a 0.0 time), scanned in blocks so that it costs no memory on a long run.
 
 `to_xarray()` returns an xarray DataTree rather than a dict of Datasets: the tree mirrors the file's groups
 (`tree["clsf"]`, `tree["chamber"]`) with the root attributes on its root, each group keeps its own time axis
@@ -34,6 +36,7 @@ import json
 import threading
 import tomllib
 from collections.abc import Iterable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -43,8 +46,8 @@ import h5py
 import numpy as np
 
 from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S, trailing_mean
-from qmg_lab.storage.layout import DESCRIPTIONS, FORMAT, GROUP_UNITS, StorageError
-from qmg_lab.storage.reader import attr_value, valid_rows
+from qmg_lab.storage.layout import DESCRIPTIONS, GROUP_UNITS, StorageError
+from qmg_lab.storage.runfile import RunFile, attr_value, open_run_file
 
 if TYPE_CHECKING:  # pandas and xarray are imported when a table is asked for: `import qmg_lab` stays light
     import pandas as pd
@@ -54,7 +57,6 @@ DATA_GROUPS = ("lockin", "clsf", "table", "chamber", "truth", "edges", "windows"
 #: the groups sampled at the lock-in's rate: their time coordinate gets no index in `to_xarray` (module docstring)
 STREAM_GROUPS = ("lockin", "truth")
 TEXT_UNITS = "text"
-SCAN_ROWS = 1 << 22  # time rows read at once by the valid-rows scan: 32 MiB of float64, 256 /lockin chunks
 
 
 @dataclass(frozen=True)
@@ -66,71 +68,41 @@ class Column:
     description: str
 
 
-def _open(path: Path) -> h5py.File:
-    """The file, read-only through SWMR (also a running or a killed writer's file): every read here opens it so."""
-    if not path.is_file():
-        raise StorageError(f"{path}: no such run file")
-    try:
-        return h5py.File(path, "r", swmr=True, libver="latest")
-    except OSError as exc:
-        raise StorageError(f"{path}: HDF5 cannot open it: {exc}") from None
-
-
 class _RunFile:
-    """The read-only handle the data reads of one `Run` share: opened at the first read, closed by `close()`.
+    """The read-only handle the data reads of one `Run` share (`open_run_file`, held open): opened at the first
+    read, closed by `close()`.
 
     Pickles as its path (a dask worker in another process opens its own handle). h5py serialises its calls, so
     dask's threads may read through one handle."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self._h5: h5py.File | None = None
+        self._stack: ExitStack | None = None
+        self._run: RunFile | None = None
         self._lock = threading.Lock()
 
-    def get(self) -> h5py.File:
+    def run(self) -> RunFile:
         with self._lock:
-            if self._h5 is None or not self._h5.id.valid:
-                self._h5 = _open(self.path)
-            return self._h5
+            if self._run is None or not self._run.h5.id.valid:
+                stack = ExitStack()
+                self._run = stack.enter_context(open_run_file(self.path))
+                self._stack = stack
+            return self._run
+
+    def get(self) -> h5py.File:
+        return self.run().h5
 
     def close(self) -> None:
         with self._lock:
-            if self._h5 is not None:
-                self._h5.close()
-                self._h5 = None
+            if self._stack is not None:
+                self._stack.close()
+            self._stack, self._run = None, None
 
     def __getstate__(self) -> dict[str, Any]:
         return {"path": self.path}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(state["path"])  # type: ignore[misc]
-
-
-def _columns_1d(grp: h5py.Group) -> list[str]:
-    return [c for c in grp if isinstance(grp[c], h5py.Dataset) and grp[c].ndim == 1]
-
-
-def whole_rows(grp: h5py.Group, names: Sequence[str]) -> int:
-    """The rows of a group that are data: its shortest column, cut by the valid-rows rule of its time column
-    (`storage.reader.valid_rows`), which is scanned SCAN_ROWS at a time; the datasets are refreshed first (SWMR),
-    so a running file is read as of the writer's last flush."""
-    for c in names:
-        grp[c].refresh()
-    n = min((grp[c].shape[0] for c in names), default=0)
-    if "time" not in grp or "time" not in names:
-        return n
-    ds = grp["time"]
-    done = 0
-    last: np.ndarray | None = None
-    while done < n:
-        t = np.asarray(ds[done : min(n, done + SCAN_ROWS)], dtype=float)
-        # the rule over the whole column, block by block: each block is checked with the last row before it
-        k = valid_rows(t) if last is None else valid_rows(np.concatenate((last, t))) - 1
-        if k < t.shape[0]:
-            return done + k
-        last = t[-1:]
-        done += t.shape[0]
-    return n
 
 
 def _attrs_of(ds: h5py.Dataset, group: str, name: str) -> tuple[str, str]:
@@ -140,39 +112,37 @@ def _attrs_of(ds: h5py.Dataset, group: str, name: str) -> tuple[str, str]:
     return str(units), str(desc)
 
 
-def read_group(h5: h5py.File, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
+def read_group(run: RunFile, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
     """Every 1-D column of /group (or those named, plus `time` when the group has one), whole valid rows only
-    (`whole_rows`). Fixed-length byte columns (`kind`, `status`, `message`, ...) come back as str arrays."""
-    if group not in h5:
-        raise StorageError(f"{h5.filename}: has no /{group} group")
-    grp = h5[group]
-    names = _columns_1d(grp)
+    (`RunFile.read`, the rule every reader applies: fill rows are never data). Fixed-length byte columns (`kind`,
+    `status`, `message`, ...) come back as str arrays."""
+    names = run.columns(group)
     if columns is not None:
         wanted = list(columns)
         unknown = sorted(set(wanted) - set(names))
         if unknown:
-            raise StorageError(f"{h5.filename}: /{group} has no columns {unknown}")
+            raise StorageError(f"{run.path}: /{group} has no columns {unknown}")
         names = [c for c in names if c in wanted or c == "time"]
     if group == "snapshots":
         names = [c for c in names if c != "json"]  # bytes of the documents, not rows: see Run.snapshots
     if not names:
         return {}
-    n = whole_rows(grp, names)
+    grp = run.h5[group]
+    rows = run.read(group, names)
     out: dict[str, Column] = {}
     for c in names:
-        ds = grp[c]
-        values = ds[:n]
+        values = rows[c]
         if values.dtype.kind == "S":
             values = np.array([v.decode("utf-8", "replace") for v in values], dtype=str)
-        out[c] = Column(values, *_attrs_of(ds, group, c))
+        out[c] = Column(values, *_attrs_of(grp[c], group, c))
     return out
 
 
-def _snapshots(h5: h5py.File) -> list[dict[str, Any]]:
-    if "snapshots" not in h5:
+def _snapshots(run: RunFile) -> list[dict[str, Any]]:
+    if "snapshots" not in run.h5:
         return []
-    rows = read_group(h5, "snapshots")
-    blob = h5["snapshots/json"][:].tobytes()
+    rows = read_group(run, "snapshots")
+    blob = run.h5["snapshots/json"][:].tobytes()
     docs = []
     for i in range(rows["time"].values.shape[0]):
         o, k = int(rows["offset"].values[i]), int(rows["length"].values[i])
@@ -271,7 +241,7 @@ class Run:
 
     def columns(self, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
         """The columns of one group with their units and descriptions, read now."""
-        return read_group(self._file.get(), group, columns)
+        return read_group(self._file.run(), group, columns)
 
     def to_pandas(self, group: str, columns: Iterable[str] | None = None) -> pd.DataFrame:
         """One group as a DataFrame indexed by run time (s since t0_unix); units and descriptions in
@@ -292,24 +262,22 @@ class Run:
         import xarray as xr
 
         wanted = list(groups) if groups is not None else [*self.groups, "steps", "events"]
-        h5 = self._file.get()
-        nodes = {f"/{g}": self._node(h5, g, chunks) for g in wanted}
+        run = self._file.run()
+        nodes = {f"/{g}": self._node(run, g, chunks) for g in wanted}
         root = xr.Dataset(attrs={k: v for k, v in self.attrs.items() if k != "config_toml"})
         tree = xr.DataTree.from_dict({"/": root, **nodes})
         tree.set_close(self.close)
         return tree
 
-    def _node(self, h5: h5py.File, group: str, chunks: Any) -> xr.Dataset:
+    def _node(self, run: RunFile, group: str, chunks: Any) -> xr.Dataset:
         """One group as a Dataset of lazily indexed columns (text columns, only in /steps and /events, are read)."""
         import xarray as xr
 
         from qmg_lab.data.lazy import lazy_column
 
-        if group not in h5:
-            raise StorageError(f"{h5.filename}: has no /{group} group")
-        grp = h5[group]
-        names = [c for c in _columns_1d(grp) if not (group == "snapshots" and c == "json")]
-        n = whole_rows(grp, names)
+        names = [c for c in run.columns(group) if not (group == "snapshots" and c == "json")]
+        grp = run.h5[group]
+        n = run.rows(group, names)
         dim = "time" if group in DATA_GROUPS else ("step" if group == "steps" else "event")
         variables: dict[str, xr.Variable] = {}
         for c in names:
@@ -351,10 +319,10 @@ class Run:
         interpolated likewise; NaN on the bench, which has no truth). Outside a source's time span the value is
         NaN: nothing is extrapolated.
         """
-        h5 = self._file.get()
-        clsf = read_group(h5, "clsf")
-        chamber = read_group(h5, "chamber") if "chamber" in h5 else {}
-        truth = read_group(h5, "truth", ["temperature"]) if "truth" in h5 else {}
+        run = self._file.run()
+        clsf = read_group(run, "clsf")
+        chamber = read_group(run, "chamber") if "chamber" in run.h5 else {}
+        truth = read_group(run, "truth", ["temperature"]) if "truth" in run.h5 else {}
         df = _frame(clsf)
         t = np.asarray(df.index, dtype=float)
         df["sf_change_estimate_60s"] = trailing_mean(t, df["sf_change_estimate"].to_numpy(), SF_MEAN_WINDOW_S)
@@ -382,16 +350,15 @@ def open_run(path: str | Path) -> Run:
     import pandas as pd
 
     p = Path(path)
-    with _open(p) as h5:
-        attrs = {k: attr_value(v) for k, v in h5.attrs.items()}
-        if attrs.get("format") != FORMAT:
-            raise StorageError(f"{p}: not a {FORMAT} run file (root attribute format = {attrs.get('format')!r})")
+    with open_run_file(p) as run:
+        h5 = run.h5
+        attrs = dict(run.attrs)
         try:
             config = tomllib.loads(str(attrs.get("config_toml", "")))
         except tomllib.TOMLDecodeError as exc:
             raise StorageError(f"{p}: the stored configuration (config_toml) is not TOML: {exc}") from None
-        steps = _frame(read_group(h5, "steps"), index=None) if "steps" in h5 else pd.DataFrame()
-        events = _frame(read_group(h5, "events"), index=None) if "events" in h5 else pd.DataFrame()
-        snapshots = _snapshots(h5)
+        steps = _frame(read_group(run, "steps"), index=None) if "steps" in h5 else pd.DataFrame()
+        events = _frame(read_group(run, "events"), index=None) if "events" in h5 else pd.DataFrame()
+        snapshots = _snapshots(run)
         groups = [g for g in DATA_GROUPS if g in h5]
     return Run(p, attrs, config, snapshots, steps, events, groups)

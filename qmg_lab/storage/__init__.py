@@ -1,1 +1,1 @@
-"""The run file (HDF5, layout qmg-lab/1): writing, reading, resuming, records."""
+"""The run file (HDF5, layout qmg-lab/2; /1 still read): writing, reading, resuming, records."""

@@ -65,7 +65,9 @@ _SIGNATURE = b"\x89HDF\r\n\x1a\n"
 def _superblock(path: Path) -> tuple[bytes, int]:
     """Read a v2/v3 superblock at offset 0: (its bytes without the checksum, its length with the checksum)."""
     with open(path, "rb") as fh:
-        head = fh.read(64)
+        head = fh.read(96)
+    if len(head) < 12:
+        raise StorageError(f"{path}: the HDF5 superblock is cut off (the file is {len(head)} bytes)")
     if head[:8] != _SIGNATURE:
         raise StorageError(f"{path}: not an HDF5 file (no HDF5 signature at offset 0)")
     version = head[8]
@@ -75,12 +77,27 @@ def _superblock(path: Path) -> tuple[bytes, int]:
             f"(libver='latest'); this file was not written by qmg-lab"
         )
     size_offsets = head[9]
+    if size_offsets not in (2, 4, 8, 16):
+        raise StorageError(f"{path}: HDF5 superblock: size of offsets {size_offsets} is not 2, 4, 8 or 16: damaged")
     length = 12 + 4 * size_offsets + 4  # signature..flags, 4 addresses, checksum
+    if len(head) < length:
+        raise StorageError(f"{path}: the HDF5 superblock is cut off (the file is {len(head)} bytes)")
     body = head[: length - 4]
     (stored,) = struct.unpack_from("<I", head, length - 4)
     if _lookup3(body) != stored:
         raise StorageError(f"{path}: HDF5 superblock checksum mismatch: the file is damaged")
     return body, length
+
+
+def superblock_bytes(path: str | Path) -> bytes:
+    """A v2/v3 superblock at offset 0 without its checksum, checked (StorageError if it is not one or its
+    checksum fails)."""
+    return _superblock(Path(path))[0]
+
+
+def superblock_checksum(body: bytes) -> int:
+    """The lookup3 checksum HDF5 stores after a v2/v3 superblock's `body`."""
+    return _lookup3(body)
 
 
 def writer_flags_set(path: str | Path) -> bool:

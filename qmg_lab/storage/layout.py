@@ -1,4 +1,5 @@
-"""The "qmg-lab/1" run-file layout (docs/hdf5.md): groups, columns, units, descriptions, dtypes, chunking.
+"""The run-file layout, format "qmg-lab/2" ("qmg-lab/1" files read too; docs/hdf5.md): groups, columns, units,
+descriptions, dtypes, chunking.
 
 Shared by the writer (qmg_lab/storage/writer.py) and the reader (qmg_lab/storage/reader.py); docs/hdf5.md explains it.
 """
@@ -9,7 +10,23 @@ from typing import Any
 
 import numpy as np
 
-FORMAT = "qmg-lab/1"
+#: the run-file format new files are written in (root attribute `format`; docs/hdf5.md, "Format versions")
+FORMAT = "qmg-lab/2"
+#: the formats every reader accepts (qmg_lab/storage/runfile.py check_format); /1 files lack what /2 added
+READ_FORMATS = ("qmg-lab/1", "qmg-lab/2")
+#: columns a format added: a file of an earlier format lacks them, and its readers do not ask for them
+#: (docs/hdf5.md, "Format versions"; the campaign attributes and salvage attributes /2 added are optional anyway)
+COLUMNS_ADDED: dict[str, dict[str, tuple[str, ...]]] = {"qmg-lab/2": {"lockin": ("table_encoder", "pll_locked")}}
+
+
+def group_columns(group: str, fmt: str) -> list[str]:
+    """The columns of a data group or /steps that a file of format `fmt` has (GROUP_UNITS, STEPS_UNITS less the
+    columns later formats added)."""
+    cols = list(GROUP_UNITS.get(group, STEPS_UNITS))
+    later = READ_FORMATS[READ_FORMATS.index(fmt) + 1 :] if fmt in READ_FORMATS else ()
+    added = {c for f in later for c in COLUMNS_ADDED.get(f, {}).get(group, ())}
+    return [c for c in cols if c not in added]
+
 
 LOCKIN_UNITS = {
     "time": "s",

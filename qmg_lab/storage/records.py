@@ -41,6 +41,7 @@ EVENT_KINDS = (
     "safe_state",
     "completed",
     "started",
+    "salvaged",
 )
 CHUNK = 64
 JSON_CHUNK = 16384

@@ -21,6 +21,7 @@ from qmg_lab.storage.h5clear import clear_superblock_flags, left_open_without_sw
 from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError, whole_chunk_layout
 from qmg_lab.storage.lock import held_here, holder, lock_path, writer_state
 from qmg_lab.storage.reader import RunData, read_run, valid_rows
+from qmg_lab.storage.runfile import open_run_file
 from qmg_lab.storage.salvage import H5_ERRORS, padded_copy, readable_rows
 from qmg_lab.storage.superblock import read_superblock
 
@@ -105,13 +106,8 @@ def _check_resumable(
         raise StorageError(f"{p}: is still being written by another process ({holder(p)}); stop it first")
     if instrument_modes is not None:
         _check_modes(p, file_instrument_modes(run.attrs), dict(instrument_modes))
-    try:
-        with h5py.File(readable, "r", swmr=True, libver="latest") as h5:
-            plan = plan_repair(h5, thorough=thorough)
-    except (OSError, RuntimeError) as exc:
-        raise DamagedFileError(
-            f"{p}: HDF5 cannot read it: {exc}; nothing was changed: {SALVAGE.format(path=p)}"
-        ) from None
+    with open_run_file(readable) as opened:  # the readers' guarded open: bounded, StorageError in words
+        plan = plan_repair(opened.h5, thorough=thorough)
     refuse_discarding_repair(p, plan)
     return run
 
@@ -205,8 +201,8 @@ def plan_repair(h5: h5py.File, *, thorough: bool = False) -> RepairPlan:
 
     1. every group keeps its whole rows that are data: its shortest column, no row at or after a fill value (NaN)
        in any of its columns (the last FILL_CHECK_ROWS; every row when thorough), and of its time column only the
-       rows `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in files from
-       issue 27 on, 0.0 before: never data);
+       rows `valid_rows` accepts (rows a kill left allocated but unwritten hold the fill value, NaN in qmg-lab/2 files
+       and the later /1 ones, 0.0 in the earliest: never data);
     2. the end instant is the last /lockin time, or the last /truth time if earlier (unless /truth has no rows);
        in the twins' whole-chunk layout it moves back to the last /table or /chamber reading at or before it;
     3. /steps keeps its leading rows that are "completed" and end at or before that instant.

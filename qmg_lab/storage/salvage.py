@@ -2,21 +2,29 @@
 
 A run file can be damaged in two ways a kill cannot: cut short (an incomplete copy, a disk that filled: it ends
 before the end-of-file address its superblock records) or with bytes that no longer decode (a chunk whose
-deflate stream or checksum fails). `scan` reads every dataset chunk by chunk and reports, for each, how many
-leading rows read and the error that stopped it; `qmg-lab analyze` shows that when the analysis cannot read a
-file. `salvage` copies what reads into a new file of the same layout (`qmg-lab salvage RUN.h5 -o NEW.h5`):
+deflate stream or checksum fails, a header or index block overwritten). `scan` reads every dataset chunk by
+chunk and reports, for each, how many leading rows read and the error that stopped it; `qmg-lab analyze` shows
+that when the analysis cannot read a file. `salvage` copies what reads into a new file of the same layout
+(`qmg-lab salvage RUN.h5 -o NEW.h5`):
 
-1. the damaged file is copied to a hidden temporary name next to the new one (the original is never written),
-   padded with zero bytes up to its recorded end-of-file address if it was cut short (HDF5 refuses a short
-   file; metadata that lay in the lost tail reads as damaged, not as data), and its superblock's writer flags are
-   cleared (what `h5clear -s` does) so that HDF5 opens it without SWMR: a SWMR open retries a damaged metadata
-   read for minutes, a plain one fails at once;
-2. every group and dataset is created in the new file with the same dtype, chunks, filters and attributes, and
-   filled with the leading rows that read (chunk by chunk, up to the first failure);
-3. every group with a `time` column is cut to its shortest column and to the rows `valid_rows` takes as data;
-4. the root attributes are copied; `salvaged_from` (the damaged file's path) and `salvage_report` (JSON: per
-   dataset, the rows kept of the rows recorded and the error) are added. `status` is kept: a salvaged run is
-   analysed as it is (`--resume` of it is possible when it was not completed).
+1. the damaged file is opened by `open_run_file(..., damaged=True)` (qmg_lab/storage/runfile.py): through a
+   read-only view padded with zero bytes up to its recorded end of file and with its superblock's writer flags
+   read as cleared, without SWMR (a SWMR open retries a damaged metadata read for minutes, a plain one fails at
+   once); the damaged file is never written;
+2. every dataset's leading rows that read are taken (chunk by chunk, up to the first failure);
+3. each group keeps its own longest valid prefix (not the file's): the rows every one of its columns read, in a
+   data group (GROUP_UNITS) cut further to the rows `valid_rows` takes as data and before the first row holding
+   the fill value (NaN) in any column. A damaged /lockin chunk cuts /lockin, not /clsf or /table;
+4. /steps keeps only the steps whose data survived: where a data group was cut, its rows up to the first one
+   that ends after the earliest cut group's last kept time (a step the analysis would otherwise claim without
+   its samples). The root attribute completed_steps counts the completed steps kept;
+5. every group and dataset is created in the new file with the same dtype, chunks, filters and attributes; the
+   root attributes are copied, and what was dropped is recorded: root attributes `salvaged_from` (the damaged
+   file's path), `salvage_groups` (JSON: per group, rows_kept, rows_found and why), `salvage_steps` (JSON: kept,
+   found, dropped: the indices of completed steps dropped), `salvage_report` (JSON: per dataset, rows read of
+   rows recorded and the error), and one /events row of kind "salvaged" per group cut. `status` is kept.
+
+`salvage_summary` is what `qmg-lab analyze` prints at the top of a salvaged file's results.
 """
 
 from __future__ import annotations
@@ -24,6 +32,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,12 +42,23 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.h5clear import clear_superblock_flags
-from qmg_lab.storage.layout import StorageError
-from qmg_lab.storage.reader import valid_rows
+from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError
+from qmg_lab.storage.runfile import H5_ERRORS, child_env, open_run_file, valid_rows
 from qmg_lab.storage.superblock import read_superblock
 
-#: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
-H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
+__all__ = [
+    "H5_ERRORS",
+    "DatasetScan",
+    "padded_copy",
+    "readable_rows",
+    "salvage",
+    "salvage_isolated",
+    "salvage_summary",
+    "scan",
+    "scan_isolated",
+]
+#: columns that are not rows (the snapshots' JSON bytes, addressed by offset and length): kept whole
+NOT_ROWS = ("/snapshots/json",)
 
 
 @dataclass(frozen=True)
@@ -111,12 +132,10 @@ def _datasets(h5: h5py.File, unreadable: list[DatasetScan] | None = None) -> lis
 
 def scan(path: str | Path) -> list[DatasetScan]:
     """Every 1-D dataset of a run file that opens: rows that read and the first error (nothing is written).
-    Opens a padded, flag-cleared temporary copy without SWMR when the file is cut short or was left open by a
-    writer (see the module docstring); StorageError if HDF5 cannot open it at all."""
-    p = Path(path)
-    with _OpenableCopy(p, p.with_name(f".{p.name}.{os.getpid()}.scan")) as h5:
+    Opened as the module docstring says (step 1); StorageError if HDF5 cannot open it at all."""
+    with open_run_file(path, damaged=True) as run:
         unreadable: list[DatasetScan] = []
-        return [_scan_one(ds)[1] for ds in _datasets(h5, unreadable)] + unreadable
+        return [_scan_one(ds)[1] for ds in _datasets(run.h5, unreadable)] + unreadable
 
 
 def _scan_one(ds: h5py.Dataset) -> tuple[np.ndarray, DatasetScan]:
@@ -135,42 +154,6 @@ def padded_copy(path: Path, tmp: Path) -> None:
         clear_superblock_flags(tmp)
 
 
-class _OpenableCopy:
-    """The file opened read-only without SWMR; a damaged one (cut short, or its writer flags set) through a
-    temporary copy, padded to its recorded end and its flags cleared, deleted on exit."""
-
-    def __init__(self, path: Path, tmp: Path) -> None:
-        self.path, self.tmp, self.h5 = path, tmp, None
-
-    def __enter__(self) -> h5py.File:
-        sb = read_superblock(self.path)
-        size = os.path.getsize(self.path)
-        source = self.path
-        short = sb.eof_address is not None and size < sb.eof_address
-        try:
-            if short or _flags_set(self.path, sb.version):
-                padded_copy(self.path, self.tmp)
-                source = self.tmp
-            self.h5 = h5py.File(source, "r")
-        except (*H5_ERRORS, StorageError) as exc:
-            self.tmp.unlink(missing_ok=True)
-            raise StorageError(f"{self.path}: HDF5 cannot open it at all, nothing can be read: {exc}") from None
-        return self.h5
-
-    def __exit__(self, *exc: object) -> None:
-        if self.h5 is not None:
-            self.h5.close()
-        self.tmp.unlink(missing_ok=True)
-
-
-def _flags_set(path: Path, version: int) -> bool:
-    if version not in (2, 3):
-        return False
-    with open(path, "rb") as fh:
-        head = fh.read(12)
-    return len(head) == 12 and head[11] != 0
-
-
 def salvage(source: str | Path, target: str | Path) -> list[DatasetScan]:
     """Copy what reads of a damaged run file into a new file (module docstring); returns the scan. Refuses
     (StorageError) an existing target and a source HDF5 cannot open at all."""
@@ -181,7 +164,8 @@ def salvage(source: str | Path, target: str | Path) -> list[DatasetScan]:
         raise StorageError(f"{dst}: the copy must be a new file, not the damaged one")
     tmp_out = dst.with_name(f".{dst.name}.{os.getpid()}.salvaging")
     report: list[DatasetScan] = []
-    with _OpenableCopy(src, dst.with_name(f".{dst.name}.{os.getpid()}.source")) as h5:
+    with open_run_file(src, damaged=True) as run:
+        h5 = run.h5
         try:
             with h5py.File(tmp_out, "w", libver="latest") as out:
                 data: dict[str, np.ndarray] = {}
@@ -191,12 +175,18 @@ def salvage(source: str | Path, target: str | Path) -> list[DatasetScan]:
                     values, row = _scan_one(ds)
                     report.append(row)
                     data[ds.name] = values
-                _cut_groups(data)
+                report += unreadable
+                groups = _cut_groups(data, report)
+                steps = _cut_steps(data, groups)
+                _add_events(data, groups)
                 for ds in datasets:
                     _copy_dataset(ds, out, data[ds.name])
                 _copy_attrs(h5.attrs, out.attrs)
-                report += unreadable
+                if steps["kept"] < steps["found"]:
+                    out.attrs["completed_steps"] = int(steps["completed_kept"])
                 out.attrs["salvaged_from"] = str(src)
+                out.attrs["salvage_groups"] = json.dumps(groups)
+                out.attrs["salvage_steps"] = json.dumps({k: steps[k] for k in ("kept", "found", "dropped")})
                 out.attrs["salvage_report"] = json.dumps(
                     [{**r.__dict__, "rows_kept": int(data[r.name].shape[0]) if r.name in data else 0} for r in report]
                 )
@@ -207,19 +197,123 @@ def salvage(source: str | Path, target: str | Path) -> list[DatasetScan]:
     return report
 
 
-def _cut_groups(data: dict[str, np.ndarray]) -> None:
-    """Whole rows only: every group with a `time` column cut to its shortest column and its valid time rows."""
-    groups: dict[str, list[str]] = {}
+def _cut_groups(data: dict[str, np.ndarray], report: list[DatasetScan]) -> dict[str, dict[str, Any]]:
+    """Each group cut to its own longest valid prefix (module docstring, step 3); returns, per group, rows_kept,
+    rows_found (its longest column) and why (the first reading error of its columns, or the rule that cut)."""
+    errors = {r.name: r.error for r in report if r.error}
+    members: dict[str, list[str]] = {}
     for name in data:
-        groups.setdefault(name.rsplit("/", 1)[0], []).append(name)
-    for g, names in groups.items():
-        n = min(data[c].shape[0] for c in names)
+        if name not in NOT_ROWS:
+            members.setdefault(name.rsplit("/", 1)[0] or "/", []).append(name)
+    groups: dict[str, dict[str, Any]] = {}
+    for g, names in members.items():
+        if g == "/":
+            continue
+        found = max(int(data[c].shape[0]) for c in names)
+        n = min(int(data[c].shape[0]) for c in names)
+        why = [f"{c.rsplit('/', 1)[1]}: {errors[c]}" for c in names if c in errors]
         time = f"{g}/time"
+        if n < found and not why:
+            why.append("its columns end at different rows (whole rows only)")
+        if time in data and g.strip("/") in GROUP_UNITS:
+            k = valid_rows(data[time][:n])
+            if k < n:
+                why.append(f"rows from {k} on hold no valid time (fill values or a time that steps back)")
+            n = k
         if time in data:
-            n = valid_rows(data[time][:n])
-        if g == "/steps" or time in data:
+            fill = np.zeros(n, dtype=bool)
             for c in names:
-                data[c] = data[c][:n]
+                if data[c].dtype.kind == "f":
+                    fill |= np.isnan(data[c][:n])
+            if fill.any():
+                n = int(np.argmax(fill))
+                why.append(f"rows from {n} on hold the fill value (NaN): never written")
+        for c in names:
+            data[c] = data[c][:n]
+        groups[g.strip("/")] = {"rows_kept": n, "rows_found": found, "why": "; ".join(why)}
+    return groups
+
+
+def _cut_steps(data: dict[str, np.ndarray], groups: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """/steps cut to the steps whose data survived (module docstring, step 4)."""
+    names = [c for c in data if c.startswith("/steps/")]
+    found = min((int(data[c].shape[0]) for c in names), default=0)
+    ends = []
+    for g, row in groups.items():
+        if g in GROUP_UNITS and row["rows_kept"] < row["rows_found"]:
+            t = data.get(f"/{g}/time", np.empty(0))
+            ends.append(float(t[-1]) if t.shape[0] else -np.inf)
+    keep = found
+    if ends and "/steps/t_end" in data:
+        t_end = data["/steps/t_end"][:found]
+        late = ~(t_end <= min(ends))
+        keep = int(np.argmax(late)) if late.any() else found
+    status = data.get("/steps/status", np.empty(0, dtype="S16"))[:found]
+    index = data.get("/steps/index", np.arange(found))[:found]
+    dropped = [int(index[i]) for i in range(keep, found) if status[i] == b"completed"]
+    for c in names:
+        data[c] = data[c][:keep]
+    completed = int(np.count_nonzero(status[:keep] == b"completed"))
+    if groups.get("steps") is not None:
+        groups["steps"]["rows_kept"] = keep
+        if keep < found:
+            groups["steps"]["why"] = "; ".join(
+                x for x in (groups["steps"]["why"], f"steps {dropped} end after the data that survived") if x
+            )
+    return {"kept": keep, "found": found, "dropped": dropped, "completed_kept": completed}
+
+
+def _add_events(data: dict[str, np.ndarray], groups: dict[str, dict[str, Any]]) -> None:
+    """One /events row of kind "salvaged" per group cut, at the latest time kept (if the file has /events)."""
+    cols = ("/events/time", "/events/kind", "/events/instrument", "/events/message")
+    if any(c not in data for c in cols):
+        return
+    times = [float(data[f"/{g}/time"][-1]) for g in groups if f"/{g}/time" in data and data[f"/{g}/time"].shape[0]]
+    at = max(times, default=0.0)
+    rows = [
+        f"salvage: /{g} kept {r['rows_kept']} of {r['rows_found']} rows ({r['why']})"
+        for g, r in groups.items()
+        if r["rows_kept"] < r["rows_found"]
+    ]
+    if not rows:
+        return
+    width = {c: data[c].dtype.itemsize for c in cols[1:]}
+    new = {
+        "/events/time": np.full(len(rows), at),
+        "/events/kind": np.array([b"salvaged"] * len(rows), dtype=f"S{width['/events/kind']}"),
+        "/events/instrument": np.array([b""] * len(rows), dtype=f"S{width['/events/instrument']}"),
+        "/events/message": np.array(
+            [_fit(m, width["/events/message"]) for m in rows], dtype=f"S{width['/events/message']}"
+        ),
+    }
+    for c in cols:
+        data[c] = np.concatenate([data[c].astype(new[c].dtype), new[c]])
+
+
+def _fit(text: str, size: int) -> bytes:
+    raw = text.encode("utf-8")
+    return raw if len(raw) <= size else raw[: size - 3].decode("utf-8", "ignore").encode("utf-8") + b"..."
+
+
+def salvage_summary(attrs: dict[str, Any]) -> str:
+    """What a salvaged file lost, in words, for the top of `qmg-lab analyze` ("" for a file never salvaged)."""
+    source = attrs.get("salvaged_from")
+    if not source:
+        return ""
+    lines = [f"SALVAGED from {source}: this file holds only what still read"]
+    try:
+        groups = json.loads(str(attrs.get("salvage_groups", "{}")))
+        steps = json.loads(str(attrs.get("salvage_steps", "{}")))
+    except ValueError:
+        groups, steps = {}, {}
+    for g, r in groups.items():
+        if r.get("rows_kept", 0) < r.get("rows_found", 0):
+            lines.append(f"  /{g}: {r['rows_kept']} of {r['rows_found']} rows kept ({r.get('why') or 'cut'})")
+    if steps.get("dropped"):
+        lines.append(f"  steps dropped (their data did not survive): {steps['dropped']}")
+    if len(lines) == 1:
+        lines.append("  every group whole")
+    return "\n".join(lines)
 
 
 def _copy_dataset(ds: h5py.Dataset, out: h5py.File, values: np.ndarray) -> None:
@@ -249,3 +343,63 @@ def _copy_attrs(source: h5py.AttributeManager, target: h5py.AttributeManager) ->
             target[k] = source[k]
         except H5_ERRORS:
             continue
+
+
+#: `scan_isolated`'s time limit, s; `salvage_isolated`'s: this plus SALVAGE_S_PER_MB per MB of the file (a
+#: copy of a long run legitimately takes minutes)
+ISOLATED_S = 30.0
+SALVAGE_S_PER_MB = 2.0
+
+
+def _in_child(argv: list[str], timeout_s: float, what: str, path: Path) -> str:
+    """Run `python -m qmg_lab.storage.salvage ARGV` with a time limit: HDF5 can loop inside its C code on bytes
+    that decode as nonsense (a zero-filled attribute heap was seen to), where only a child can be stopped.
+    Returns its stdout; StorageError in words if it fails or runs out of time."""
+    full = [sys.executable, "-m", "qmg_lab.storage.salvage", *argv]
+    try:
+        done = subprocess.run(full, capture_output=True, text=True, timeout=timeout_s, env=child_env(), check=False)
+    except subprocess.TimeoutExpired:
+        raise DamagedFileError(
+            f"{path}: {what} did not finish within {timeout_s:g} s: HDF5 loops on a damaged part of the file"
+        ) from None
+    if done.returncode != 0:
+        said = " ".join(done.stderr.split()[-60:]) or f"exit {done.returncode}"
+        raise StorageError(f"{path}: {what} failed: {said}")
+    return done.stdout
+
+
+def scan_isolated(path: str | Path, timeout_s: float = ISOLATED_S) -> list[DatasetScan]:
+    """`scan` in a child process with a time limit (`_in_child`)."""
+    out = _in_child(["scan", str(path)], timeout_s, "the scan of what still reads", Path(path))
+    return [DatasetScan(**row) for row in json.loads(out)]
+
+
+def salvage_isolated(source: str | Path, target: str | Path) -> list[DatasetScan]:
+    """`salvage` in a child process with a time limit growing with the file (`_in_child`); nothing is left at
+    `target` if it fails."""
+    src = Path(source)
+    size_mb = src.stat().st_size / 1e6 if src.is_file() else 0.0
+    dst = Path(target)
+    try:
+        out = _in_child(["salvage", str(source), str(target)], ISOLATED_S + SALVAGE_S_PER_MB * size_mb, "salvage", src)
+    except StorageError:
+        for partial in dst.parent.glob(f".{dst.name}.*.salvaging"):  # a stopped child's unfinished copy
+            partial.unlink(missing_ok=True)
+        raise
+    return [DatasetScan(**row) for row in json.loads(out)]
+
+
+def _main(argv: list[str]) -> int:
+    """The child of `scan_isolated` / `salvage_isolated`: the scan as JSON on stdout; exit 1 with the words on
+    stderr for a StorageError."""
+    try:
+        rows = scan(argv[1]) if argv[0] == "scan" else salvage(argv[1], argv[2])
+    except StorageError as exc:
+        print(str(exc), file=sys.stderr)
+        return 1
+    print(json.dumps([r.__dict__ for r in rows]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

@@ -24,6 +24,7 @@ from typing import Any, Protocol
 import h5py
 import numpy as np
 
+from qmg_lab.storage.runfile import open_run_file
 from qmg_lab.storage.writer import RunWriter, StorageError
 
 LEVEL_ATTR = "storage_level"
@@ -71,33 +72,29 @@ def read_summary(path: str | Path) -> StudySummary | None:
     """/windows and /edges of a study-level run file (every column cut to the shortest: a kill can fall between
     two columns' writes); None for a file written at the full level."""
     p = Path(path)
-    try:
-        h5 = h5py.File(p, "r", swmr=True, libver="latest")
-    except OSError as exc:
-        raise StorageError(f"{p}: HDF5 cannot open it: {exc}") from None
-    with h5:
+    with open_run_file(p) as run:
+        h5 = run.h5
         if _level(h5) != "study":
             return None
         out: dict[str, dict[str, np.ndarray]] = {}
         for g, units in (("windows", WINDOWS_UNITS), ("edges", EDGES_UNITS)):
             if g not in h5:
                 raise StorageError(f"{p}: a study-level file without its /{g} group")
-            n = min(h5[g][c].shape[0] for c in units)
-            out[g] = {c: h5[g][c][:n] for c in units}
+            out[g] = run.read(g, list(units))  # whole rows (fill rows are never data)
     return StudySummary(windows=out["windows"], edges=out["edges"])
 
 
 def is_study_level(path: str | Path) -> bool:
     """True if the run file was written at the study storage level."""
-    with h5py.File(Path(path), "r", swmr=True, libver="latest") as h5:
-        return _level(h5) == "study"
+    with open_run_file(path) as run:
+        return _level(run.h5) == "study"
 
 
 def refuse_study_resume(path: Path) -> None:
     """StorageError if `path` is a study-level run file (those are rerun, not resumed)."""
     try:
         study = is_study_level(path)
-    except OSError:
+    except StorageError:
         return  # check_resumable reports an unreadable file in its own words
     if study:
         raise StorageError(

@@ -71,6 +71,11 @@ def read_superblock(path: str | Path) -> Superblock:
 
 
 def _parse(p: Path, offset: int, head: bytes) -> Superblock:
+    if len(head) < 9:
+        raise StorageError(
+            f"{p}: the HDF5 superblock is cut off: the file ends {len(head)} bytes after its signature "
+            f"(the file is {offset + len(head)} bytes)"
+        )
     version = head[8]
     if version in (0, 1):
         if len(head) < 16:

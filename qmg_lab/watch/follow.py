@@ -1,6 +1,7 @@
 """Following a run file from another process: the rows that arrived since the last look (no Bokeh here).
 
-Each `RunFollower.poll()` opens the file read-only through HDF5 SWMR, reads what the writer has flushed since
+Each `RunFollower.poll()` opens the file read-only (qmg_lab.storage.runfile.open_run_file: SWMR while a writer
+has it open; a damaged file is a `problem` in words, never a hang), reads what the writer has flushed since
 the previous poll, and closes it again: a reopen costs about a millisecond and sees every flush, a killed
 writer's file and a resumed one alike; nothing is ever written.
 
@@ -51,6 +52,8 @@ import numpy as np
 from qmg_lab.analysis.reductions import rate_pairs
 from qmg_lab.clsf.moving_mean import SF_MEAN_WINDOW_S as MOVING_MEAN_S
 from qmg_lab.clsf.moving_mean import window_mean
+from qmg_lab.storage.layout import StorageError
+from qmg_lab.storage.runfile import open_run_file
 
 SAMPLED_CHUNKS = 4  # lock-in stream: whole chunks read per poll at most (module docstring)
 FIRST_CHUNKS = 40  # ... and on a file's first poll: a finished file's replay shows its whole length, drawn in ~1 s
@@ -142,6 +145,7 @@ class RunFollower:
         self.clsf_t = np.zeros(0)
         self.clsf_s = np.zeros(0)
         self.clsf_out = np.zeros(0)
+        self.probed = False  # open_run_file walked this file's structure (in a child) without fault
 
     def _restart(self) -> None:
         self.read = dict.fromkeys(COLUMNS, 0)
@@ -150,25 +154,41 @@ class RunFollower:
 
     def attrs(self) -> dict[str, Any] | None:
         """The file's root attributes alone (status, writer), or None if it cannot be opened yet: the page's
-        cheap check between polls."""
+        cheap check between polls (`open_run_file` without its child walk, which the polls make)."""
         try:
-            h5 = h5py.File(self.path, "r", swmr=True, libver="latest")
-        except (OSError, FileNotFoundError):
+            with open_run_file(self.path, probe=False) as run:
+                return dict(run.attrs)
+        except StorageError:
             return None
-        with h5:
-            return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in h5.attrs.items()}
 
     def poll(self, writer_gone: bool = False) -> Update:
         """What the writer flushed since the last poll, up to the common horizon (module docstring). writer_gone:
         the caller found the file's writer dead, so the file is final although its status says "running"."""
         up = Update()
-        try:
-            h5 = h5py.File(self.path, "r", swmr=True, libver="latest")
-        except (OSError, FileNotFoundError) as exc:
-            up.problem = "waiting for the run file" if not self.path.exists() else f"cannot open it yet ({exc})"
+        if not self.path.exists():
+            up.problem = "waiting for the run file"
             return up
-        with h5:
-            up.attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in h5.attrs.items()}
+        try:
+            self._read_new(up, writer_gone)
+        except StorageError as exc:  # open_run_file: not (yet) a readable run file, or damaged; said in words
+            self.probed = False  # walked again, in a child process with a time limit, at the next poll
+            up.problem = f"cannot read it yet ({exc})"
+            return up
+        clsf = up.groups.get("clsf")
+        if clsf is not None:
+            self.clsf_t = np.concatenate((self.clsf_t, clsf["time"]))
+            self.clsf_s = np.concatenate((self.clsf_s, clsf["sf_change_estimate"]))
+            self.clsf_out = np.concatenate((self.clsf_out, clsf["rate_output_mean"]))
+        up.ready = True
+        return up
+
+    def _read_new(self, up: Update, writer_gone: bool) -> None:
+        """One poll's reading (`poll`): the file opened by `open_run_file` (its structure walked in a child
+        process with a time limit at the first poll and after a failed one; SWMR while a writer has it open)."""
+        with open_run_file(self.path, probe=not self.probed) as run:
+            self.probed = True
+            h5 = run.h5
+            up.attrs = dict(run.attrs)
             up.final = writer_gone or up.attrs.get("status", "running") != "running"
             lengths, present = {}, {}
             for g, cols in COLUMNS.items():
@@ -201,13 +221,6 @@ class RunFollower:
                 self.read[g] = b
             up.steps = _whole(h5, "steps")
             up.events = _whole(h5, "events")
-        clsf = up.groups.get("clsf")
-        if clsf is not None:
-            self.clsf_t = np.concatenate((self.clsf_t, clsf["time"]))
-            self.clsf_s = np.concatenate((self.clsf_s, clsf["sf_change_estimate"]))
-            self.clsf_out = np.concatenate((self.clsf_out, clsf["rate_output_mean"]))
-        up.ready = True
-        return up
 
     def moving_mean_of_new(self, new_rows: int) -> np.ndarray:
         """The trailing MOVING_MEAN_S mean of the CLSF estimate at its newest `new_rows` rows (from the kept

@@ -147,7 +147,7 @@ def test_paper_run_writes_every_contract_item(zero_residual_run: Path) -> None:
     with h5py.File(zero_residual_run, "r") as f:
         for a in ROOT_ATTRS:
             assert a in f.attrs, a
-        assert f.attrs["format"] == "qmg-lab/1" and f.attrs["mode"] == "sim" and f.attrs["status"] == "completed"
+        assert f.attrs["format"] == "qmg-lab/2" and f.attrs["mode"] == "sim" and f.attrs["status"] == "completed"
         for group, cols in CONTRACT.items():
             for c in cols:
                 ds = f[group][c]

@@ -52,7 +52,7 @@ def test_a_finished_file(tmp_path: Path) -> None:
     assert sf.attrs["units"] == "1" and "SF/SF0" in sf.attrs["description"]
     assert tree["clsf"]["time"].attrs["units"] == "s"
     assert tree["chamber"]["temperature"].attrs["units"] == "degC"
-    assert tree.attrs["format"] == "qmg-lab/1"
+    assert tree.attrs["format"] == "qmg-lab/2"
     chamber = run.to_pandas("chamber")
     np.testing.assert_allclose(chamber["temperature"], syn.temperature(chamber.index.to_numpy()), rtol=0, atol=1e-12)
     assert tree["chamber"].sizes["time"] == chamber.shape[0]

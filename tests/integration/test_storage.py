@@ -95,7 +95,7 @@ def test_every_contract_item_present_with_units(tmp_path: Path) -> None:
     with h5py.File(p, "r") as f:
         for a in ROOT_ATTRS:
             assert a in f.attrs, a
-        assert f.attrs["format"] == "qmg-lab/1"
+        assert f.attrs["format"] == "qmg-lab/2"  # new files: layout.FORMAT
         assert f.attrs["status"] == "running"
         assert f.attrs["config_toml"] == CONFIG and f.attrs["config_sha256"] == SHA
         assert f.attrs["created"].endswith("Z") and f.attrs["created"][4] == "-"
@@ -263,8 +263,15 @@ def test_reader_refuses_what_is_not_a_run_file(tmp_path: Path) -> None:
     other = tmp_path / "other.h5"
     with h5py.File(other, "w", libver="latest") as f:
         f.attrs["format"] = "something/2"
-    with pytest.raises(StorageError, match=r"other\.h5: not a qmg-lab/1 run file"):
+    with pytest.raises(
+        StorageError, match=r"other\.h5: not a qmg-lab run file: its root attribute format is 'something/2'"
+    ):
         read_run(other)
+    newer = tmp_path / "newer.h5"
+    with h5py.File(newer, "w", libver="latest") as f:
+        f.attrs["format"] = "qmg-lab/3"
+    with pytest.raises(StorageError, match=r"format qmg-lab/3, which this version of qmg-lab does not read"):
+        read_run(newer)
 
 
 def test_context_manager_marks_aborted(tmp_path: Path) -> None:

@@ -196,7 +196,7 @@ def test_the_cli_runs_without_posix_only_modules(tmp_path: Path) -> None:
     assert "sent" in out[4] and "received" in out[4]
 
     with h5py.File(run_file, "r") as f:
-        assert f.attrs["format"] == "qmg-lab/1"
+        assert f.attrs["format"] == "qmg-lab/2"
         assert f.attrs["status"] == "completed"
         assert f.attrs["mode"] == "sim"
         assert [s.decode() for s in f["steps/status"][:]] == ["completed"] * SHORT_STEPS

@@ -1,0 +1,371 @@
+"""Opening a run file for reading: `open_run_file`, the one way every reader of qmg-lab opens one.
+
+`analyze`, `runs`, `salvage`'s scan, `watch`, `qmg_lab.open_run` and the read-only checks of `--resume` all
+open run files here (a test holds `h5py.File(` to qmg_lab/storage/), so that each of them answers within
+seconds, with words, whatever the file's bytes:
+
+1. the path must be a regular file (a folder, a FIFO or a device is refused before anything reads it);
+2. the superblock check (qmg_lab/storage/superblock.py): no HDF5 signature, a superblock cut off or with a bad
+   checksum, or a file that ends before the end of file its superblock records is answered at once; a SWMR
+   open of such a file retries its metadata reads for minutes;
+3. a file closed cleanly (its superblock's consistency flags clear: no writer has it open) is opened read-only
+   without SWMR, in this process: HDF5 checks every metadata checksum of a `libver="latest"` file and fails a
+   damaged read at once (nothing is retried);
+4. a file whose flags are set (its writer is still writing, or was killed) must be read through SWMR, which
+   retries a failing metadata read for minutes, inside HDF5's C code where no thread can interrupt it. So its
+   structure is first walked in a child process with a time limit (`probe_structure`: every group, attribute,
+   dataset header and chunk index), without SWMR, through `ClearedView` (the flags read as cleared, nothing
+   written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if it failed (a live
+   writer's flush caught half-way is whole a moment later). A child that fails or runs out of time makes the
+   file damaged (DamagedFileError); one that succeeds leaves a structure the SWMR open here reads without
+   retries.
+   The cost, a Python start with h5py (about 0.4 s), is paid only for such files (measured by
+   benchmarks/damaged_files.py); a caller that reopens the same live file again and again (the watch page)
+   probes it once (`probe=False` after);
+5. the root attribute `format` must be one this version reads (READ_FORMATS): "qmg-lab/1" or "qmg-lab/2".
+
+What the body of `with open_run_file(...)` raises from HDF5 (a chunk or a header that does not decode) comes out
+as DamagedFileError naming the file (StorageError for a group or column the layout lacks).
+
+Whole valid rows, one rule for every reader (`RunFile.rows`, `RunFile.read`): a group is cut to its shortest
+column (a kill, or a reader between two column writes, may leave one column a block longer); in a data group
+(one with a `time` column) the rows `valid_rows` takes as data, and of those, rows holding the fill value (NaN)
+in any column read are dropped: rows allocated but never written (a kill, a full disk) are never data.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from qmg_lab.storage.h5clear import writer_flags_set
+from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, READ_FORMATS, DamagedFileError, StorageError
+from qmg_lab.storage.superblock import check_file_end
+from qmg_lab.storage.view import ClearedView
+
+#: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
+H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
+#: the child process's time to walk a file's structure (step 4), s. The walk itself never retries (no SWMR): this
+#: is a guard against the unforeseen, not the expected answer time. A start with h5py takes about 0.4 s on an
+#: idle machine and the walk of an intact 12-hour file well under a second, but a start takes several seconds
+#: on a machine loaded 5x over its cores (measured: benchmarks/damaged_files.py), and a healthy file must not be
+#: called damaged because the machine is busy
+PROBE_TIMEOUT_S = 10.0
+#: a failed walk is tried again this often, this far apart (s): a live writer's flush caught half-way
+PROBE_RETRIES = 2
+PROBE_PAUSE_S = 0.2
+
+
+def attr_value(value: Any) -> Any:
+    """An HDF5 attribute as a Python value: bytes decoded as UTF-8, numpy scalars as Python scalars."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+SCAN_ROWS = 1 << 22  # time rows read at once by the valid-rows scan: 32 MiB of float64, 256 /lockin chunks
+
+
+def valid_rows(t: np.ndarray, previous: float | None = None) -> int:
+    """How many leading rows of a time column are data: the longest prefix that is finite and does not decrease,
+    less a trailing run of exact 0.0 after the first row.
+
+    Rows a killed writer (or a killed repair: shrinking a dataset writes fill values at once, its new extent only
+    at the next flush) left allocated but unwritten hold the dataset's fill value: NaN (not finite) in files
+    whose datasets declare it, 0.0 in the earliest files (a step back to 0.0, or 0.0 repeated after a first row
+    at 0.0). A time of exactly 0.0 can only be a run's first row, so neither is ever taken as data.
+    previous: the time of the row before t[0] when t continues rows already taken as data.
+    """
+    n = int(t.shape[0])
+    if n == 0:
+        return 0
+    bad = ~np.isfinite(t)
+    bad[1:] |= t[1:] < t[:-1]
+    if previous is not None:
+        bad[0] |= bool(t[0] < previous)
+    k = int(np.argmax(bad)) if bad.any() else n
+    first = 1 if previous is None else 0
+    while k > first and t[k - 1] == 0.0:
+        k -= 1
+    return k
+
+
+@dataclass
+class RunFile:
+    """A run file open for reading (`open_run_file`). h5: the open HDF5 file (read-only); format: its root
+    attribute `format`; writer_open: its superblock says a writer has it open or was killed; attrs: the root
+    attributes decoded (`attr_value`)."""
+
+    path: Path
+    h5: h5py.File
+    format: str
+    writer_open: bool
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    def columns(self, group: str) -> list[str]:
+        """The 1-D datasets of /group, in file order (StorageError if there is no such group)."""
+        if group not in self.h5:
+            raise StorageError(f"{self.path}: has no /{group} group")
+        grp = self.h5[group]
+        return [c for c in grp if isinstance(grp[c], h5py.Dataset) and grp[c].ndim == 1]
+
+    def rows(self, group: str, columns: Iterable[str] | None = None) -> int:
+        """Whole rows of /group: its shortest column (of `columns`, default all), and in a data group (one of
+        GROUP_UNITS: rows stamped with a sample or reading time) the leading rows `valid_rows` takes as data."""
+        grp = self.h5[group]
+        names = self.columns(group) if columns is None else list(columns)
+        if self.writer_open:  # SWMR: see the writer's last flush
+            for c in names:
+                grp[c].refresh()
+        n = min((int(grp[c].shape[0]) for c in names), default=0)
+        if group not in GROUP_UNITS or "time" not in grp:
+            return n
+        n = min(n, int(grp["time"].shape[0]))
+        done, previous = 0, None  # the rule over the whole column, SCAN_ROWS at a time: no memory on a long run
+        while done < n:
+            t = np.asarray(self._read(grp["time"], done, min(n, done + SCAN_ROWS)), dtype=float)
+            k = valid_rows(t, previous=previous)
+            if k < t.shape[0]:
+                return done + k
+            previous = float(t[-1])
+            done += t.shape[0]
+        return n
+
+    def read(self, group: str, columns: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """Columns of /group (default every 1-D column; `time` always, when the group has one), whole rows only
+        (module docstring): in a group with a time column, a row holding NaN (the fill value) in any float
+        column read is a row never written, not data, and is dropped. Text columns stay bytes."""
+        names = self.columns(group)
+        if columns is not None:
+            wanted = list(columns)
+            unknown = sorted(set(wanted) - set(names))
+            if unknown:
+                raise StorageError(f"{self.path}: /{group} has no columns {unknown}")
+            names = [c for c in names if c in wanted or c == "time"]
+        grp = self.h5[group]
+        n = self.rows(group, names)
+        out = {c: self._read(grp[c], 0, n) for c in names}
+        if "time" in out:
+            fill = np.zeros(n, dtype=bool)
+            for v in out.values():
+                if v.dtype.kind == "f":
+                    fill |= np.isnan(v)
+            if fill.any():
+                out = {c: v[~fill] for c, v in out.items()}
+        return out
+
+    def tail(self, group: str, columns: Iterable[str], rows: int) -> dict[str, np.ndarray]:
+        """The last `rows` whole rows of /group's `columns` (and `time`), by the rule of `read` applied from the
+        end: fill rows only ever follow a group's data (a kill or a full disk leaves them at its end), so the
+        tail's time rows are checked continuing the row before it, and NaN rows dropped. Reads only the tail."""
+        grp = self.h5[group]
+        names = [c for c in self.columns(group) if c in set(columns) or c == "time"]
+        n = min((int(grp[c].shape[0]) for c in names), default=0)
+        if group in GROUP_UNITS and "time" in grp:
+            i0 = max(0, n - rows)
+            t = self._read(grp["time"], i0, n)
+            before = float(self._read(grp["time"], i0 - 1, i0)[0]) if i0 else None
+            k = valid_rows(t, previous=before)
+            n = i0 + k if k or not i0 else self.rows(group, names)
+        i0 = max(0, n - rows)
+        out = {c: self._read(grp[c], i0, n) for c in names}
+        if "time" in out:
+            fill = np.zeros(n - i0, dtype=bool)
+            for v in out.values():
+                if v.dtype.kind == "f":
+                    fill |= np.isnan(v)
+            if fill.any():
+                out = {c: v[~fill] for c, v in out.items()}
+        return out
+
+    def _read(self, ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:
+        try:
+            return np.asarray(ds[start:stop])
+        except H5_ERRORS as exc:
+            raise DamagedFileError(
+                f"{self.path}: the dataset {ds.name} cannot be read (the file is damaged): {exc}"
+            ) from None
+
+
+@contextmanager
+def open_run_file(
+    path: str | Path, *, probe: bool = True, timeout_s: float = PROBE_TIMEOUT_S, damaged: bool = False
+) -> Iterator[RunFile]:
+    """`with open_run_file(path) as run:` a qmg-lab run file open read-only (module docstring, steps 1-5).
+
+    Yields a RunFile (`run.h5` the h5py.File, `run.attrs`, `run.format`, `run.writer_open`, `run.read(group)`).
+    Raises StorageError naming the file and what is wrong (DamagedFileError for damaged bytes), never an h5py
+    exception. probe=False skips the child-process walk of a file whose writer flags are set (step 4): only for
+    a file this caller has already probed. damaged=True (salvage and its scan): a file cut short or left open
+    by a writer is opened too, always through `ClearedView` without SWMR (bounded by the bytes on disk: nothing
+    is retried), and root attributes that do not read are left out instead of refused.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise StorageError(f"{p}: no such run file")
+    if not p.is_file():
+        raise StorageError(f"{p}: not a run file (a folder, a pipe or a device, not a regular file)")
+    view: ClearedView | None = None
+    if damaged:
+        writer_open = False
+        try:
+            view = ClearedView(p)
+            h5 = h5py.File(view, "r")
+        except (*H5_ERRORS, StorageError) as exc:
+            if view is not None:
+                view.close()
+            raise DamagedFileError(f"{p}: HDF5 cannot open it at all, nothing can be read: {exc}") from None
+    else:
+        check_file_end(p)
+        writer_open = writer_flags_set(p)
+        if writer_open and probe and _file_key(p) not in _PROBED:
+            _probe_in_child(p, timeout_s)
+            _PROBED.add(_file_key(p))
+        try:
+            h5 = h5py.File(p, "r", swmr=writer_open, libver="latest")
+        except H5_ERRORS as exc:
+            raise DamagedFileError(f"{p}: HDF5 cannot open it: {exc}") from None
+    try:
+        with h5:
+            attrs = _root_attrs(p, h5, tolerant=damaged)
+            fmt = str(attrs.get("format", ""))
+            if not (damaged and fmt == ""):
+                check_format(p, fmt)
+            yield RunFile(p, h5, fmt, writer_open, attrs)
+    except StorageError:
+        raise
+    except KeyError as exc:
+        if "doesn't exist" in str(exc) or "does not exist" in str(exc):
+            raise StorageError(f"{p}: {exc.args[0] if exc.args else exc}") from None
+        raise DamagedFileError(f"{p}: HDF5 cannot read it (the file is damaged): {exc}") from None
+    except H5_ERRORS as exc:
+        raise DamagedFileError(f"{p}: HDF5 cannot read it (the file is damaged): {exc}") from None
+    finally:
+        if view is not None:
+            view.close()
+
+
+def _root_attrs(p: Path, h5: h5py.File, *, tolerant: bool) -> dict[str, Any]:
+    """The root attributes decoded; one that does not read is a DamagedFileError, or left out if tolerant."""
+    try:
+        names = list(h5.attrs)
+    except H5_ERRORS as exc:
+        if tolerant:
+            return {}
+        raise DamagedFileError(f"{p}: its root attributes do not read (the file is damaged): {exc}") from None
+    attrs: dict[str, Any] = {}
+    for k in names:
+        try:
+            attrs[k] = attr_value(h5.attrs[k])
+        except H5_ERRORS as exc:
+            if not tolerant:
+                raise DamagedFileError(f"{p}: its root attribute {k!r} does not read (damaged): {exc}") from None
+    return attrs
+
+
+def check_structure(path: str | Path) -> None:
+    """Open the file (`open_run_file`) and read every attribute, member, dataset header and chunk index of it
+    (the walk of step 4, here in this process: a file whose writer flags are set was walked in a child already,
+    a cleanly closed one is read without SWMR, so nothing retries). StorageError/DamagedFileError in words. For
+    commands that want to answer for a damaged file before loading anything heavy (`analyze`, `watch`)."""
+    with open_run_file(path) as run:
+        if not run.writer_open:
+            _walk(run.h5)
+
+
+def check_format(path: Path, fmt: str) -> None:
+    """Refuse (StorageError, in words) a file whose root attribute `format` this version does not read."""
+    if fmt in READ_FORMATS:
+        return
+    if fmt.startswith("qmg-lab/"):
+        raise StorageError(
+            f"{path}: written in the run-file format {fmt}, which this version of qmg-lab does not read (it reads "
+            f"{' and '.join(READ_FORMATS)}); read it with the qmg-lab version that wrote it, or a newer one"
+        )
+    raise StorageError(
+        f"{path}: not a qmg-lab run file: its root attribute format is {fmt!r}, not {FORMAT!r} "
+        f"(nor any of {', '.join(READ_FORMATS)})"
+    )
+
+
+#: files whose structure a child walked without fault, as (path, size, mtime ns): a file that has not changed
+#: since is not walked again by this process (analyze opens the same killed file several times)
+_PROBED: set[tuple[str, int, int]] = set()
+
+
+def _file_key(path: Path) -> tuple[str, int, int]:
+    st = path.stat()
+    return (str(path.resolve()), st.st_size, st.st_mtime_ns)
+
+
+def child_env() -> dict[str, str]:
+    """The environment of a child process that must import this qmg_lab (not another installed one)."""
+    root = str(Path(__file__).resolve().parents[2])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH", "")) if x)}
+
+
+def _probe_in_child(path: Path, timeout_s: float) -> None:
+    """Walk the file's structure in a child process (module docstring, step 4); DamagedFileError if the walk
+    fails, crashes or is not done within timeout_s."""
+    env = child_env()
+    argv = [sys.executable, "-m", "qmg_lab.storage.probe", str(path)]
+    try:
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)
+    except subprocess.TimeoutExpired:
+        raise DamagedFileError(
+            f"{path}: HDF5 did not finish reading the file's structure within {timeout_s:g} s (its writer did not "
+            f"close it, and its metadata does not read: the file is damaged)"
+        ) from None
+    except OSError as exc:
+        raise StorageError(f"{path}: cannot start the child process that checks it: {exc}") from None
+    if done.returncode == 0:
+        return
+    said = " ".join(done.stdout.split())
+    if done.returncode < 0 or not said:
+        said = f"HDF5 ended the checking process (exit {done.returncode})"
+    raise DamagedFileError(f"{path}: its structure does not read (the file is damaged): {said}")
+
+
+def probe_structure(path: Path) -> str:
+    """In the child process: walk the structure of `path` without SWMR, through ClearedView (nothing retries: a
+    damaged metadata block fails at once); "" if the walk went through, else its error. A failed walk is tried
+    again PROBE_RETRIES times PROBE_PAUSE_S apart: a live writer's flush caught half-way is whole a moment later,
+    a damaged block stays damaged."""
+    problem = ""
+    for attempt in range(1 + PROBE_RETRIES):
+        if attempt:
+            time.sleep(PROBE_PAUSE_S)
+        try:
+            with ClearedView(path) as view, h5py.File(view, "r") as h5:
+                _walk(h5)
+            return ""
+        except (*H5_ERRORS, StorageError) as exc:
+            problem = problem or f"{type(exc).__name__}: {exc}"
+    return problem
+
+
+def _walk(group: h5py.Group) -> None:
+    """Read every attribute, member, dataset header and chunk index below `group`."""
+    for k in group.attrs:
+        group.attrs[k]
+    for name in group:
+        obj = group[name]
+        if isinstance(obj, h5py.Group):
+            _walk(obj)
+        elif isinstance(obj, h5py.Dataset):
+            for k in obj.attrs:
+                obj.attrs[k]
+            if obj.chunks is not None and obj.shape and obj.shape[0]:
+                obj.id.chunk_iter(lambda info: None)
