@@ -52,6 +52,7 @@ import h5py
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from qmg_lab.storage.runfile import open_run_file  # noqa: E402
 from tests.support.campaigns import config_text  # noqa: E402 - imported after sys.path points at this checkout
 
 ANSWER_S = 5.0
@@ -90,7 +91,8 @@ def references(tmp: Path) -> tuple[Path, Path]:
 
 def _chunk_spans(path: Path) -> list[tuple[int, int]]:
     spans: list[tuple[int, int]] = []
-    with h5py.File(path, "r", swmr=True, libver="latest") as h5:
+    with open_run_file(path) as run:
+        h5 = run.h5
 
         def visit(_: str, obj: object) -> None:
             if isinstance(obj, h5py.Dataset) and obj.chunks is not None:
@@ -260,8 +262,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="qmg-damaged-") as d:
         tmp = Path(d)
         done, killed = references(tmp)
-        with h5py.File(done, "r") as h5:
-            sha = str(h5.attrs["config_sha256"])
+        with open_run_file(done) as run:
+            sha = str(run.attrs["config_sha256"])
         cost = {"completed_open_s": round(open_cost(done), 4), "killed_open_s": round(open_cost(killed), 4)}
         baseline = {  # the same commands on the intact references: what a command costs before any damage
             f"{c}/{label}": run_one(_one(c, ref, tmp, done, sha), c, tmp)

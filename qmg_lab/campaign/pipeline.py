@@ -37,13 +37,13 @@ from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard, exit_code
 from qmg_lab.campaign.plan import CheckedPlan, checked_plan, plan_duration_s
 from qmg_lab.campaign.runner import CampaignRunner, Progress, RunSummary, run_space_need
-from qmg_lab.campaign.study_level import create_run_writer
+from qmg_lab.campaign.study_level import study_reductions
 from qmg_lab.config.schema import Config, ConfigError, config_fingerprint
 from qmg_lab.instruments import InstrumentError, LimitError, Station
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS, DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
-from qmg_lab.storage.study_level import refuse_study_resume
+from qmg_lab.storage.study_level import create_study_writer, refuse_study_resume
 from qmg_lab.storage.writer import RunFileWriteError, RunWriter, read_run
 
 log = logging.getLogger(__name__)
@@ -65,18 +65,21 @@ def new_run_file(
     own note (`run --note`), stored with the configuration's operator, device serial and notes."""
     who = cfg.campaign
     context = dict(zip(RUN_CONTEXT_ATTRS, (who.operator, who.device_serial, who.notes, note), strict=True))
-    return create_run_writer(
-        path,
-        cfg,
-        plan.steps,
+    kwargs: dict[str, Any] = dict(
         config_text=config_text,
         config_sha256=config_fingerprint(config_text),
         mode="sim" if cfg.all_sim else "hardware",
         software_version=software_version,
         t0_unix=datetime.now(UTC).timestamp() if t0_unix is None else t0_unix,
+        flush_interval_s=cfg.storage.flush_interval_s,
+        compression=cfg.storage.resolved_compression(cfg.lockin.sim),
         instrument_modes=cfg.instrument_modes(),
+        realtime=not cfg.lockin.sim,
         extra_attrs=context,
     )
+    if cfg.storage.level == "full":  # `[storage] level`: the raw streams, or the study level's reductions
+        return RunWriter.create(path, truth=cfg.lockin.sim, **kwargs)
+    return create_study_writer(path, study_reductions(cfg, plan.steps), **kwargs)
 
 
 @dataclass

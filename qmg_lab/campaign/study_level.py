@@ -1,5 +1,5 @@
-"""The run file a campaign writes, at its configuration's storage level; at the study level, the analysis's
-reductions computed while the campaign runs (docs/hdf5.md, "The study storage level").
+"""The study storage level's reducer: the analysis's reductions computed while the campaign runs (docs/hdf5.md,
+"The study storage level").
 
 The study level keeps what `qmg-lab analyze` reads of the raw streams, computed by the same code it uses on a full
 file (qmg_lab/analysis/reductions.py):
@@ -13,8 +13,7 @@ file (qmg_lab/analysis/reductions.py):
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,8 +22,7 @@ from qmg_lab.analysis.reductions import EdgeIntegrator, WindowSums, analysis_set
 from qmg_lab.campaign.plan import Step
 from qmg_lab.clsf.dither_edges import EdgeTracker, edge_threshold_v
 from qmg_lab.config.schema import Config, dither_amplitude_vpp
-from qmg_lab.storage.study_level import StudyRunWriter, create_study_writer
-from qmg_lab.storage.writer import RunWriter
+from qmg_lab.storage.study_level import StudyRunWriter
 
 #: lock-in rows kept before the settling step: the settling analysis reads from 1 s plus one dither period before
 TAIL_S = 2.5
@@ -87,39 +85,9 @@ class StudyReductions:
             out.write_edges(rising, integral)
 
 
-def create_run_writer(
-    path: Path,
-    cfg: Config,
-    steps: Sequence[Step],
-    *,
-    config_text: str,
-    config_sha256: str,
-    mode: str,
-    software_version: str,
-    t0_unix: float,
-    instrument_modes: Mapping[str, str],
-    clock: Callable[[], float] | None = None,
-    extra_attrs: Mapping[str, Any] | None = None,
-) -> RunWriter:
-    """A new run file at the configuration's storage level (`[storage] level`): a RunWriter ("full") or a
-    StudyRunWriter with the analysis's reductions ("study")."""
-    kwargs: dict[str, Any] = dict(
-        config_text=config_text,
-        config_sha256=config_sha256,
-        mode=mode,
-        software_version=software_version,
-        t0_unix=t0_unix,
-        flush_interval_s=cfg.storage.flush_interval_s,
-        compression=cfg.storage.resolved_compression(cfg.lockin.sim),
-        instrument_modes=instrument_modes,
-        realtime=not cfg.lockin.sim,
-        extra_attrs=extra_attrs,
-    )
-    if clock is not None:
-        kwargs["clock"] = clock
-    if cfg.storage.level == "full":
-        return RunWriter.create(path, truth=cfg.lockin.sim, **kwargs)
-    reducer = StudyReductions(
+def study_reductions(cfg: Config, steps: Sequence[Step]) -> StudyReductions:
+    """The reducer a study-level run file of `cfg` hands its /lockin and /truth blocks to (the analysis's settle
+    time, the settling step, the dither edge threshold)."""
+    return StudyReductions(
         analysis_settle_s(cfg), settling_step_index(steps), edge_threshold_v(dither_amplitude_vpp(cfg))
     )
-    return create_study_writer(path, reducer, **kwargs)

@@ -16,7 +16,7 @@ message then says the holder is not recorded).
 
 Liveness (`writer_state`): a run file's writer is alive exactly while its lock is held. A free lock means the
 writer is gone, whatever its recorded process id now names (a reused PID is not a writer). No process is signalled
-to find out: `os.kill(pid, 0)` sends Ctrl-C on Windows (signal 0 is CTRL_C_EVENT).
+to find out: `os.kill` with signal 0 sends Ctrl-C on Windows (signal 0 is CTRL_C_EVENT).
 
 Within one process the lock is re-entrant (counted): the CLI takes it, and `RunWriter.create` / `reopen`, which
 always take it too, share it. A writer waits up to ACQUIRE_WAIT_S for a lock that another process holds: a
