@@ -146,17 +146,7 @@ CHUNK_ROWS_REALTIME = {"lockin": 2048, "truth": 2048, "clsf": 256, "table": 256,
 #: compresses only the columns that compress well: for the noisy ones the dead copies of their partial chunks
 #: (see CHUNK_ROWS) outweigh what the filter saves.
 COMPRESSED_COLUMNS = {
-    "lockin": (
-        "time",
-        "x_sense",
-        "y_sense",
-        "rate_output",
-        "drive_amplitude",
-        "drive_frequency",
-        "dither",
-        "table_encoder",
-        "pll_locked",
-    ),
+    "lockin": tuple(LOCKIN_UNITS),  # every /lockin column
     "truth": ("time", "scale_factor", "temperature", "rate"),
 }
 COMPRESSED_COLUMNS_REALTIME = {

@@ -102,6 +102,18 @@ def valid_rows(t: np.ndarray, previous: float | None = None) -> int:
     return k
 
 
+def _without_fill_rows(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Rows of a group with a time column (equal-length `columns`) less those holding NaN, the fill value, in any
+    float column: rows never written (a kill or a full disk) are not data."""
+    if "time" not in columns:
+        return columns
+    fill = np.zeros(columns["time"].shape[0], dtype=bool)
+    for v in columns.values():
+        if v.dtype.kind == "f":
+            fill |= np.isnan(v)
+    return {c: v[~fill] for c, v in columns.items()} if fill.any() else columns
+
+
 @dataclass
 class RunFile:
     """A run file open for reading (`open_run_file`). h5: the open HDF5 file (read-only); format: its root
@@ -156,15 +168,7 @@ class RunFile:
             names = [c for c in names if c in wanted or c == "time"]
         grp = self.h5[group]
         n = self.rows(group, names)
-        out = {c: self._read(grp[c], 0, n) for c in names}
-        if "time" in out:
-            fill = np.zeros(n, dtype=bool)
-            for v in out.values():
-                if v.dtype.kind == "f":
-                    fill |= np.isnan(v)
-            if fill.any():
-                out = {c: v[~fill] for c, v in out.items()}
-        return out
+        return _without_fill_rows({c: self._read(grp[c], 0, n) for c in names})
 
     def tail(self, group: str, columns: Iterable[str], rows: int) -> dict[str, np.ndarray]:
         """The last `rows` whole rows of /group's `columns` (and `time`), by the rule of `read` applied from the
@@ -180,15 +184,7 @@ class RunFile:
             k = valid_rows(t, previous=before)
             n = i0 + k if k or not i0 else self.rows(group, names)
         i0 = max(0, n - rows)
-        out = {c: self._read(grp[c], i0, n) for c in names}
-        if "time" in out:
-            fill = np.zeros(n - i0, dtype=bool)
-            for v in out.values():
-                if v.dtype.kind == "f":
-                    fill |= np.isnan(v)
-            if fill.any():
-                out = {c: v[~fill] for c, v in out.items()}
-        return out
+        return _without_fill_rows({c: self._read(grp[c], i0, n) for c in names})
 
     def _read(self, ds: h5py.Dataset, start: int, stop: int) -> np.ndarray:
         try:
