@@ -8,20 +8,17 @@ seconds, with words, whatever the file's bytes:
 2. the superblock check (qmg_lab/storage/superblock.py): no HDF5 signature, a superblock cut off or with a bad
    checksum, or a file that ends before the end of file its superblock records is answered at once; a SWMR
    open of such a file retries its metadata reads for minutes;
-3. a file closed cleanly (its superblock's consistency flags clear: no writer has it open) is opened read-only
-   without SWMR, in this process: HDF5 checks every metadata checksum of a `libver="latest"` file and fails a
-   damaged read at once (nothing is retried);
-4. a file whose flags are set (its writer is still writing, or was killed) must be read through SWMR, which
-   retries a failing metadata read for minutes, inside HDF5's C code where no thread can interrupt it. So its
-   structure is first walked in a child process with a time limit (`probe_structure`: every group, attribute,
-   dataset header and chunk index), without SWMR, through `ClearedView` (the flags read as cleared, nothing
-   written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if it failed (a live
-   writer's flush caught half-way is whole a moment later). A child that fails or runs out of time makes the
-   file damaged (DamagedFileError); one that succeeds leaves a structure the SWMR open here reads without
-   retries.
-   The cost, a Python start with h5py (about 0.4 s), is paid only for such files (measured by
-   benchmarks/damaged_files.py); a caller that reopens the same live file again and again (the watch page)
-   probes it once (`probe=False` after);
+3. the file's structure is walked once in a child process with a time limit (`probe_structure`: every group,
+   attribute, dataset header and chunk index), without SWMR, through `ClearedView` (a writer's flags read as
+   cleared, nothing written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if it
+   failed (a live writer's flush caught half-way is whole a moment later). HDF5 can loop inside its C code on
+   damaged metadata, in a closed file too (a zeroed object header), and retries a failing SWMR read for minutes;
+   no thread can interrupt either, a child process can. A child that fails or runs out of time makes the file
+   damaged (DamagedFileError). The cost, a Python start with h5py (about 0.4 s), is paid once per file state
+   (path, size, modification time) per process; a caller that reopens a live file again and again (the watch
+   page) passes `probe=False` after its first open;
+4. the file is opened here read-only: through SWMR if its flags are set (its writer is still writing, or was
+   killed), else without;
 5. the root attribute `format` must be one this version reads (READ_FORMATS): "qmg-lab/1" or "qmg-lab/2".
 
 What the body of `with open_run_file(...)` raises from HDF5 (a chunk or a header that does not decode) comes out
@@ -203,8 +200,8 @@ def open_run_file(
 
     Yields a RunFile (`run.h5` the h5py.File, `run.attrs`, `run.format`, `run.writer_open`, `run.read(group)`).
     Raises StorageError naming the file and what is wrong (DamagedFileError for damaged bytes), never an h5py
-    exception. probe=False skips the child-process walk of a file whose writer flags are set (step 4): only for
-    a file this caller has already probed. damaged=True (salvage and its scan): a file cut short or left open
+    exception. probe=False skips the child-process walk of the file's structure (step 4): only for a file this
+    caller has already probed. damaged=True (salvage and its scan): a file cut short or left open
     by a writer is opened too, always through `ClearedView` without SWMR (bounded by the bytes on disk: nothing
     is retried), and root attributes that do not read are left out instead of refused.
     """
@@ -226,7 +223,10 @@ def open_run_file(
     else:
         check_file_end(p)
         writer_open = writer_flags_set(p)
-        if writer_open and probe and _file_key(p) not in _PROBED:
+        # every file's structure is walked once in a child with a time limit before this process reads it: HDF5
+        # can loop inside its C code on damaged metadata (a zeroed object header, a flipped chunk-index byte),
+        # closed file or not, and only a child process can be stopped there
+        if probe and _file_key(p) not in _PROBED:
             _probe_in_child(p, timeout_s)
             _PROBED.add(_file_key(p))
         try:
