@@ -24,18 +24,22 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from qmg_lab.storage.layout import GROUP_UNITS
+import numpy as np
+
+from qmg_lab.storage.layout import GROUP_UNITS, column_dtype
 
 MARGIN = 1.5
 MEASURE_AFTER_S = 60.0
 RESERVE_BYTES = 4 << 20
-VALUE_BYTES = 8  # float64
 
 
 def raw_bytes_per_s(rows_per_s: Mapping[str, float]) -> float:
     """Bytes per second of run time of the groups' columns stored without compression: rows per second of each
-    group (GROUP_UNITS names; a group left out writes nothing) times its column count times 8 bytes."""
-    return sum(rate * len(GROUP_UNITS[g]) * VALUE_BYTES for g, rate in rows_per_s.items())
+    group (GROUP_UNITS names; a group left out writes nothing) times the bytes of one row: each column's stored
+    dtype (8 bytes for float64, layout.column_dtype)."""
+    return sum(
+        rate * sum(np.dtype(column_dtype(g, c)).itemsize for c in GROUP_UNITS[g]) for g, rate in rows_per_s.items()
+    )
 
 
 def measured_bytes_per_s(path: Path, run_time_s: float) -> float | None:

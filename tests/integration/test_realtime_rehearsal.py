@@ -56,10 +56,12 @@ def test_a_paced_campaign_lasts_its_campaign_time_on_the_wall_clock(tmp_path: Pa
     try:
         assert station.poll_interval_s == cfg.lockin.poll_interval_s  # hardware-length blocks, not the twins'
         wall0 = time.monotonic()
-        summary = run_campaign(cfg, TEN_SECONDS, station, tmp_path / "paced.h5")
+        end = run_campaign(cfg, TEN_SECONDS, tmp_path / "paced.h5", station=station)
         wall_s = time.monotonic() - wall0
     finally:
         station.close()
+    assert end.ok and end.summary is not None, end.message
+    summary = end.summary
     assert summary.status == "completed"
     assert summary.simulated_s == pytest.approx(CAMPAIGN_S, abs=cfg.lockin.poll_interval_s)
     assert summary.simulated_s - cfg.lockin.poll_interval_s <= wall_s <= summary.simulated_s + REALTIME_TOLERANCE_S
@@ -74,10 +76,12 @@ def test_unpaced_the_same_campaign_runs_ahead_of_the_wall_clock(tmp_path: Path) 
     try:
         assert station.poll_interval_s == cfg.lockin.sim_poll_interval_s
         wall0 = time.monotonic()
-        summary = run_campaign(cfg, TEN_SECONDS, station, tmp_path / "virtual.h5")
+        end = run_campaign(cfg, TEN_SECONDS, tmp_path / "virtual.h5", station=station)
         wall_s = time.monotonic() - wall0
     finally:
         station.close()
+    assert end.ok and end.summary is not None, end.message
+    summary = end.summary
     assert summary.status == "completed"
     assert wall_s < summary.simulated_s - REALTIME_TOLERANCE_S  # the flag, not the machine, makes the pace
 

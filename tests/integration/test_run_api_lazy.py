@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import qmg_lab
-from qmg_lab.data import run as data_run
+from qmg_lab.storage import runfile
 from qmg_lab.storage.layout import DESCRIPTIONS, GROUP_UNITS
 from qmg_lab.storage.reader import read_run, valid_rows
 from tests.support import synthetic_runs as syn
@@ -111,8 +111,8 @@ def test_fill_rows_with_nan_time_are_not_data(sweep: Path, tmp_path: Path, monke
             for c in h5[g]:
                 ds = h5[g][c]
                 ds.resize((rows[g] + 37,))
-                ds[rows[g] :] = np.nan
-    monkeypatch.setattr(data_run, "SCAN_ROWS", 1000)
+                ds[rows[g] :] = np.nan if ds.dtype.kind == "f" else 0  # pll_locked (uint8) has the fill value 0
+    monkeypatch.setattr(runfile, "SCAN_ROWS", 1000)
     with qmg_lab.open_run(copy) as run:
         tree = run.to_xarray(["clsf", "lockin"])
         assert tree["clsf"].sizes["time"] == rows["clsf"] and tree["lockin"].sizes["time"] == rows["lockin"]
@@ -127,7 +127,7 @@ def test_fill_rows_with_nan_time_are_not_data(sweep: Path, tmp_path: Path, monke
 def test_run_is_a_context_manager_with_a_short_repr(sweep: Path) -> None:
     with qmg_lab.open_run(sweep) as run:
         tree = run.to_xarray(["clsf"])
-        handle = run._file._h5
+        handle = run._file.get()
         assert handle is not None and handle.id.valid
         text = repr(run)
     assert not handle.id.valid  # leaving `with` closed the handle

@@ -9,9 +9,12 @@ from pathlib import Path
 from qmg_lab.storage.space import MARGIN, RESERVE_BYTES, SpaceNeed, raw_bytes_per_s, space_need
 
 
-def test_the_raw_rate_is_eight_bytes_per_value_of_every_column() -> None:
-    # /lockin has 7 columns, /truth 4: 1800 Sa/s each; /clsf 5 columns at 7 rows/s
-    assert raw_bytes_per_s({"lockin": 1800.0, "truth": 1800.0, "clsf": 7.0}) == 8 * (1800 * 7 + 1800 * 4 + 7 * 5)
+def test_the_raw_rate_is_the_stored_bytes_of_every_column() -> None:
+    # /lockin: 8 float64 columns and the uint8 pll_locked, /truth 4 float64: 1800 Sa/s each; /clsf 5 at 7 rows/s
+    lockin_row = 8 * 8 + 1
+    assert raw_bytes_per_s({"lockin": 1800.0, "truth": 1800.0, "clsf": 7.0}) == 1800 * lockin_row + 8 * (
+        1800 * 4 + 7 * 5
+    )
 
 
 def test_the_need_is_the_margin_times_the_rate_times_the_time_left_plus_the_reserve(tmp_path: Path) -> None:
