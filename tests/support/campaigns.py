@@ -19,6 +19,7 @@ from qmg_lab.campaign.runner import RunSummary
 from qmg_lab.config.schema import Config, parse_config
 from qmg_lab.instruments import Station
 from qmg_lab.station import build_station, make_world
+from qmg_lab.storage.runfile import open_run_file
 from qmg_lab.storage.writer import RunData, RunWriter, StorageError, read_run
 from sims.world import World
 
@@ -134,8 +135,11 @@ def qmg(*args: str) -> list[str]:
 
 
 def completed_steps(path: Path) -> int:
-    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be read yet."""
+    """The run file's completed_steps attribute, read as a SWMR reader; -1 while it cannot be read yet. The file is
+    a live campaign's, polled every few ms: opened without open_run_file's child walk (probe=False), whose start
+    would let a short campaign finish between two polls."""
     try:
-        return int(read_run(path, select=()).attrs["completed_steps"])
+        with open_run_file(path, probe=False) as run:
+            return int(run.attrs["completed_steps"])
     except (StorageError, OSError, RuntimeError, KeyError):  # HDF5's own errors while the writer lays it out
         return -1
