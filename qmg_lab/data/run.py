@@ -116,24 +116,15 @@ def read_group(run: RunFile, group: str, columns: Iterable[str] | None = None) -
     """Every 1-D column of /group (or those named, plus `time` when the group has one), whole valid rows only
     (`RunFile.read`, the rule every reader applies: fill rows are never data). Fixed-length byte columns (`kind`,
     `status`, `message`, ...) come back as str arrays."""
-    names = run.columns(group)
-    if columns is not None:
-        wanted = list(columns)
-        unknown = sorted(set(wanted) - set(names))
-        if unknown:
-            raise StorageError(f"{run.path}: /{group} has no columns {unknown}")
-        names = [c for c in names if c in wanted or c == "time"]
-    if group == "snapshots":
-        names = [c for c in names if c != "json"]  # bytes of the documents, not rows: see Run.snapshots
-    if not names:
+    if group == "snapshots" and columns is None:
+        columns = [c for c in run.columns(group) if c != "json"]  # bytes of the documents: see Run.snapshots
+    if columns is not None and not list(columns):
         return {}
     grp = run.h5[group]
-    rows = run.read(group, names)
+    rows = run.read(group, columns)  # the named columns (StorageError for one the group lacks), plus `time`
     out: dict[str, Column] = {}
-    for c in names:
-        values = rows[c]
-        if values.dtype.kind == "S":
-            values = np.array([v.decode("utf-8", "replace") for v in values], dtype=str)
+    for c, raw in rows.items():
+        values = np.array([v.decode("utf-8", "replace") for v in raw], dtype=str) if raw.dtype.kind == "S" else raw
         out[c] = Column(values, *_attrs_of(grp[c], group, c))
     return out
 
