@@ -1,0 +1,100 @@
+"""The worker process that walks run files' structure for `open_run_file` (qmg_lab/storage/runfile.py step 3,
+qmg_lab/storage/probe.py): one worker serves a process's files one after another; a walk over its time limit
+kills it and is answered in words; a worker that ended between two files is replaced without blaming the next
+file; a worker whose input closes ends by itself; it runs in a process group of its own, so that a Ctrl-C
+meant for the campaign does not reach it."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from qmg_lab.storage import runfile
+from qmg_lab.storage.layout import DamagedFileError
+
+
+def _small_file(path: Path) -> Path:
+    """An HDF5 file laid out like a run file's data group: chunked, extensible, with attributes."""
+    with h5py.File(path, "w", libver="latest") as h5:
+        h5.attrs["format"] = "qmg-lab/2"
+        grp = h5.create_group("lockin")
+        ds = grp.create_dataset("time", data=np.arange(5000.0), chunks=(1024,), maxshape=(None,))
+        ds.attrs["units"] = "s"
+    return path
+
+
+@pytest.fixture
+def service() -> runfile._ProbeService:
+    """A service of its own, closed at the end (the module's one service is the process's)."""
+    svc = runfile._ProbeService()
+    yield svc
+    svc.close()
+
+
+def test_one_worker_walks_file_after_file(tmp_path: Path, service: runfile._ProbeService) -> None:
+    files = [_small_file(tmp_path / f"f{i}.h5") for i in range(3)]
+    service.walk(files[0], runfile.PROBE_TIMEOUT_S)
+    assert service.worker is not None
+    pid = service.worker.proc.pid
+    for f in files[1:]:
+        service.walk(f, runfile.PROBE_TIMEOUT_S)
+    assert service.worker.proc.pid == pid
+
+
+def test_a_walk_over_its_limit_is_answered_and_its_worker_replaced(
+    tmp_path: Path, service: runfile._ProbeService
+) -> None:
+    """A limit shorter than any walk stands for HDF5 looping in its C code: the worker is killed, the file is
+    called damaged in words, and the next file gets a new worker that walks it."""
+    f = _small_file(tmp_path / "f.h5")
+    service.walk(f, runfile.PROBE_TIMEOUT_S)
+    assert service.worker is not None
+    first = service.worker.proc
+    with pytest.raises(DamagedFileError, match=r"did not finish reading the file's structure within 1e-06 s"):
+        service.walk(f, 1e-6)
+    assert first.poll() is not None  # killed, not left walking
+    service.walk(f, runfile.PROBE_TIMEOUT_S)
+    assert service.worker is not None and service.worker.proc.pid != first.pid
+
+
+def test_a_walk_that_fails_names_the_file_and_the_error(tmp_path: Path, service: runfile._ProbeService) -> None:
+    """Bytes that are not HDF5 past a valid superblock: HDF5's error comes back in words with the file's name."""
+    f = _small_file(tmp_path / "f.h5")
+    raw = bytearray(f.read_bytes())
+    at = raw.index(b"OHDR", 64)
+    raw[at : at + 64] = b"\xa5" * 64
+    f.write_bytes(bytes(raw))
+    with pytest.raises(DamagedFileError, match=rf"{f.name}: its structure does not read \(the file is damaged\): "):
+        service.walk(f, runfile.PROBE_TIMEOUT_S)
+    assert service.worker is None  # a worker that met damaged metadata is not reused
+
+
+def test_a_worker_ended_between_files_is_replaced_without_blame(tmp_path: Path, service: runfile._ProbeService) -> None:
+    f = _small_file(tmp_path / "f.h5")
+    service.walk(f, runfile.PROBE_TIMEOUT_S)
+    assert service.worker is not None
+    service.worker.proc.kill()  # a signal meant for it, or its watchdog
+    service.worker.proc.wait()
+    service.walk(f, runfile.PROBE_TIMEOUT_S)  # no DamagedFileError: the file is whole
+    assert service.worker is not None and service.worker.proc.poll() is None
+
+
+def test_a_worker_whose_input_closes_ends_by_itself(tmp_path: Path, service: runfile._ProbeService) -> None:
+    """The parent's death closes the worker's input: it ends (exit 0), it is not left running."""
+    service.walk(_small_file(tmp_path / "f.h5"), runfile.PROBE_TIMEOUT_S)
+    worker = service.worker
+    assert worker is not None and worker.proc.stdin is not None
+    worker.proc.stdin.close()
+    assert worker.proc.wait(timeout=runfile.WORKER_STOP_S * 10) == 0
+
+
+@pytest.mark.skipif(os.name == "nt", reason="process groups are POSIX; Windows uses CREATE_NEW_PROCESS_GROUP")
+def test_the_worker_has_a_process_group_of_its_own(tmp_path: Path, service: runfile._ProbeService) -> None:
+    """A terminal's Ctrl-C or hang-up goes to the foreground process group: the campaign's, not the worker's."""
+    service.walk(_small_file(tmp_path / "f.h5"), runfile.PROBE_TIMEOUT_S)
+    assert service.worker is not None
+    assert os.getpgid(service.worker.proc.pid) != os.getpgid(0)
