@@ -7,6 +7,7 @@ meant for the campaign does not reach it."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -28,7 +29,7 @@ def _small_file(path: Path) -> Path:
 
 
 @pytest.fixture
-def service() -> runfile._ProbeService:
+def service() -> Iterator[runfile._ProbeService]:
     """A service of its own, closed at the end (the module's one service is the process's)."""
     svc = runfile._ProbeService()
     yield svc
