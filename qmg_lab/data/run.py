@@ -92,6 +92,10 @@ class _RunFile:
         self._probed = False  # open_run_file walked the structure once: a growing file is not walked per read
         self._lock = threading.Lock()
 
+    def probed(self) -> None:
+        """The file's structure was walked (`open_run_file`'s child) by the caller: no read walks it again."""
+        self._probed = True
+
     def hold(self) -> None:
         """Keep one handle open for the reads to come, until `close()`."""
         with self._lock:
@@ -382,4 +386,6 @@ def open_run(path: str | Path) -> Run:
         events = _frame(read_group(run, "events"), index=None) if "events" in h5 else pd.DataFrame()
         snapshots = _snapshots(run)
         groups = [g for g in DATA_GROUPS if g in h5]
-    return Run(p, attrs, config, snapshots, steps, events, groups)
+    opened = Run(p, attrs, config, snapshots, steps, events, groups)
+    opened._file.probed()  # walked just now: the reads to come skip the child walk, even of a growing file
+    return opened
