@@ -11,6 +11,10 @@ Two cases, side by side, each in its own fresh process (`--runs` rounds, alterna
 and the walk alone: `_probe_in_child` timed in this process (`--runs` times; it keeps no record). The reads run
 outside `with`, where each read opens the file for itself (qmg_lab/data/run.py `_RunFile`), and inside it.
 
+Then the price of that per-read open: in one fresh process, the dask mean of /lockin/rate_output over the file's
+own chunks (`to_xarray(["lockin"], chunks={})`, one read per chunk), outside and inside `with`, alternating,
+`--runs` times each.
+
     python benchmarks/data_api_probe.py RUN.h5 [--runs N] [--json]
 
 A finished paper campaign to measure on:
@@ -62,6 +66,27 @@ def run_case(case: str, path: Path, held: bool) -> dict[str, Any]:
     }
 
 
+def dask_mean(path: Path, runs: int) -> dict[str, Any]:
+    """Wall time (s) of the dask mean of /lockin/rate_output outside and inside `with` (module doc)."""
+    import qmg_lab
+
+    qmg_lab.open_run(path).to_xarray(["clsf"], chunks={})  # imports xarray and dask before any timing
+    times: dict[str, list[float]] = {"outside_with": [], "inside_with": []}
+    chunks = rows = 0
+    for _ in range(runs):
+        for held in (False, True):
+            run = qmg_lab.open_run(path)
+            if held:
+                run.__enter__()
+            arr = run.to_xarray(["lockin"], chunks={})["lockin"]["rate_output"]
+            chunks, rows = int(arr.data.numblocks[0]), int(arr.shape[0])
+            t0 = time.perf_counter()
+            float(arr.mean().compute())
+            times["inside_with" if held else "outside_with"].append(time.perf_counter() - t0)
+            run.close()
+    return {"chunks": chunks, "rows": rows, **{k: statistics.median(v) for k, v in times.items()}}
+
+
 def probe_alone(path: Path, runs: int) -> list[float]:
     """Wall time (s) of the child walk alone, `runs` times."""
     from qmg_lab.storage import runfile
@@ -80,10 +105,14 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--case", choices=CASES, help="run one case in this process (what the parent asks a child)")
     ap.add_argument("--held", action="store_true", help="with --case: read inside `with open_run(...)`")
+    ap.add_argument("--dask", action="store_true", help="run the dask part in this process (the parent asks)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.case:
         print(json.dumps(run_case(args.case, args.run_file, args.held)))
+        return
+    if args.dask:
+        print(json.dumps(dask_mean(args.run_file, args.runs)))
         return
     results: dict[tuple[str, bool], list[dict[str, Any]]] = {(c, h): [] for c in CASES for h in (False, True)}
     for k in range(args.runs):
@@ -94,6 +123,8 @@ def main() -> None:
                 done = subprocess.run(argv, capture_output=True, text=True, check=True)
                 results[(case, held)].append(json.loads(done.stdout.strip().splitlines()[-1]))
     alone = probe_alone(args.run_file, args.runs)
+    argv = [sys.executable, __file__, str(args.run_file), "--dask", "--runs", str(args.runs)]
+    dask = json.loads(subprocess.run(argv, capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1])
     keys = ("open_run_s", "to_xarray_s", "mean_s", "total_s")
     medians = {
         f"{c}{'_held' if h else ''}": {k: statistics.median(r[k] for r in rs) for k in keys}
@@ -106,6 +137,7 @@ def main() -> None:
         "median_s": medians,
         "probe_alone_median_s": statistics.median(alone),
         "means_agree": len({r["mean"] for rs in results.values() for r in rs}) == 1,
+        "dask_mean_lockin_s": dask,
     }
     if args.json:
         print(json.dumps(out, indent=2))
@@ -118,6 +150,11 @@ def main() -> None:
         p, n = medians[f"probe{held}"]["total_s"], medians[f"no_probe{held}"]["total_s"]
         print(f"probe / no_probe{held or ' (outside with)'}: {p / n:.2f}x ({p - n:+.3f} s)")
     print(f"the child walk alone: {out['probe_alone_median_s']:.3f} s; the means agree: {out['means_agree']}")
+    print(
+        f"dask mean of /lockin/rate_output ({dask['chunks']} chunks, {dask['rows']} rows): outside with "
+        f"{dask['outside_with']:.2f} s, inside with {dask['inside_with']:.2f} s "
+        f"({dask['outside_with'] / dask['inside_with']:.1f}x)"
+    )
 
 
 if __name__ == "__main__":
