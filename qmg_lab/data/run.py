@@ -79,7 +79,8 @@ class _RunFile:
     file and closes it again (`reading`), so that a Run or a tree kept in a notebook, or waiting in a reference
     cycle for the garbage collector (an xarray DataTree is one: its nodes point at their parent), never keeps the
     file open: HDF5 refuses a writer (`qmg-lab run --resume`) a file that a reader holds open, in this process
-    ("file is already open for read-only") and, through its file lock, in another one on POSIX.
+    ("file is already open for read-only") and, through its file lock (flock on POSIX, LockFileEx on Windows), in
+    another one (storage/holders.py).
 
     Pickles as its path (a dask worker in another process opens its own handles). h5py serialises its calls, so
     dask's threads may read through one handle."""
