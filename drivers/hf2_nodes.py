@@ -25,8 +25,8 @@ Mixer channels (``mixer_layout``), from the instrument's ``features/options``:
   (``carrier_plan``). Channel 7 runs on oscillator 2 (index 1): the HF2 user manual's External Reference tutorial
   generates Output 2's signal with "Demodulator 8 Amplitude 2 ... Oscillator 2 frequency" (channel 7 is
   "Demodulator 8" counted from 1); channel 6 on oscillator 1 (index 0) by the same construction (*inferred*: the
-  tutorial shows Output 2 only). ``[lockin] fixed_channel_oscillators`` (default [0, 1]) holds the two indices, to
-  be changed if the scope at bring-up shows otherwise (docs/wiring.md).
+  tutorial shows Output 2 only). ``[lockin] fixed_channel_oscillators`` holds the two indices, to be changed if the
+  scope at bring-up shows otherwise (docs/wiring.md).
 
 Carrier coherence (``carrier_plan``): the drive and the forcer carrier must run at the drive frequency in phase
 with the PLL. PLL 1 (``plls/0``) locks oscillator ``plls/0/oscselect`` to the drive pickoff; every demodulator the
@@ -44,12 +44,19 @@ scope: docs/wiring.md).
   otherwise (it must be one the instrument lists).
 * PLL and PID are required options (the PLL closes the drive loop, the PIDs the AGC, rate and quadrature loops):
   a lock-in without one is refused (MissingOptionError, an InstrumentError: exit 3).
+
+The wiring (`LockInWiring`) is the validated [lockin] section: qmg_lab/config/schema.py LockInSection declares
+its defaults, its bounds and the pairs that must differ, once; nothing here checks them again. What is checked here
+is what the instrument reports: its options (`check_options`), the mixer channels its outputs list
+(`mixer_layout`), the PLLs that drive the carriers' oscillators (`carrier_plan`), and the limits of a setup
+(`check_setup`).
 """
 
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -57,7 +64,6 @@ from qmg_lab.instruments import InstrumentError, LimitError, LockInSetup, PidGai
 
 DRIVE_DEMOD, SENSE_DEMOD = 0, 1  # SENSE_DEMOD: unless a tracking PLL uses it (carrier_plan)
 DRIVE_PLL = 0
-FIXED_CHANNEL_OSCILLATORS = (0, 1)  # oscillators of mixer channels 6 and 7 (module doc; [lockin] key's default)
 AGC_PID, RATE_PID, QUAD_PID, SPARE_PID = 0, 1, 2, 3
 # AuxIn ADC sample rate, Sa/s. *Assumed*: the HF2 documentation says the AuxIns average 2^n (1..32768) ADC
 # samples and align the result by timestamp with the demodulator sample, but the ADC rate was not found. With the
@@ -77,7 +83,9 @@ N_MIXER_CHANNELS = 8
 
 
 class LockInWiring(Protocol):
-    """The cabling fields of qmg_lab.config.schema.LockInSection (or any object with them), read-only."""
+    """The cabling fields of qmg_lab.config.schema.LockInSection, read-only: that section, validated (module
+    doc), is what the station passes. drive_mixer_channel / forcer_mixer_channel: None = derived from the options
+    (`mixer_layout`); fixed_channel_oscillators: the oscillators of mixer channels 6 and 7."""
 
     @property
     def drive_sigin(self) -> int: ...
@@ -97,6 +105,12 @@ class LockInWiring(Protocol):
     def rate_auxin(self) -> int: ...
     @property
     def dither_auxin(self) -> int: ...
+    @property
+    def drive_mixer_channel(self) -> int | None: ...
+    @property
+    def forcer_mixer_channel(self) -> int | None: ...
+    @property
+    def fixed_channel_oscillators(self) -> Sequence[int]: ...
 
 
 class MissingOptionError(InstrumentError):
@@ -140,10 +154,8 @@ def mixer_layout(options: tuple[str, ...], wiring: LockInWiring) -> MixerLayout:
     else:
         channels = NON_MF_OUTPUT_MIXER_CHANNELS
         drive, forcer = channels[w.drive_sigout], channels[w.forcer_sigout]
-    override_drive = getattr(w, "drive_mixer_channel", None)
-    override_forcer = getattr(w, "forcer_mixer_channel", None)
-    drive = drive if override_drive is None else int(override_drive)
-    forcer = forcer if override_forcer is None else int(override_forcer)
+    drive = drive if w.drive_mixer_channel is None else int(w.drive_mixer_channel)
+    forcer = forcer if w.forcer_mixer_channel is None else int(w.forcer_mixer_channel)
     for name, m in (("drive_mixer_channel", drive), ("forcer_mixer_channel", forcer)):
         if m not in channels:
             kind = "with" if "MF" in options else "without"
@@ -174,7 +186,7 @@ class CarrierPlan:
 
 def fixed_channel_oscillators(wiring: LockInWiring) -> dict[int, int]:
     """{6: oscillator of channel 6, 7: oscillator of channel 7} from [lockin] fixed_channel_oscillators."""
-    pair = getattr(wiring, "fixed_channel_oscillators", None) or FIXED_CHANNEL_OSCILLATORS
+    pair = wiring.fixed_channel_oscillators
     return {NON_MF_OUTPUT_MIXER_CHANNELS[0]: int(pair[0]), NON_MF_OUTPUT_MIXER_CHANNELS[1]: int(pair[1])}
 
 
@@ -216,38 +228,6 @@ def carrier_plan(
     return CarrierPlan(ref, drive_osc, forcer_osc, tuple(tracking), drive_demod, sense_demod)
 
 
-def check_wiring(wiring: LockInWiring) -> None:
-    """Raise ValueError naming the first impossible wiring field."""
-    for name, hi in (
-        ("drive_sigin", 1),
-        ("sense_sigin", 1),
-        ("drive_sigout", 1),
-        ("forcer_sigout", 1),
-        ("rate_auxout", 3),
-        ("quadrature_auxout", 3),
-        ("rate_auxin", 1),
-        ("dither_auxin", 1),
-    ):
-        v = getattr(wiring, name, None)
-        if not isinstance(v, int) or not 0 <= v <= hi:
-            raise ValueError(f"lock-in wiring: {name} = {v!r} must be an integer in [0, {hi}]")
-    for name in ("drive_mixer_channel", "forcer_mixer_channel"):
-        m = getattr(wiring, name, None)
-        if m is not None and (not isinstance(m, int) or not 0 <= m < N_MIXER_CHANNELS):
-            raise ValueError(f"lock-in wiring: {name} = {m!r} must be an integer in [0, 7] (or unset)")
-    fixed = getattr(wiring, "fixed_channel_oscillators", None)
-    if fixed is not None and (len(fixed) != 2 or any(not isinstance(o, int) or not 0 <= o < 6 for o in fixed)):
-        raise ValueError(f"lock-in wiring: fixed_channel_oscillators = {fixed!r} must be two oscillator indices 0..5")
-    if not 0.0 < float(wiring.forcer_carrier_amplitude) <= 1.0:
-        raise ValueError(
-            f"lock-in wiring: forcer_carrier_amplitude = {wiring.forcer_carrier_amplitude!r} must be "
-            "in (0, 1] (fraction of the output range)"
-        )
-    for a, b in (("drive_sigin", "sense_sigin"), ("rate_auxin", "dither_auxin"), ("rate_auxout", "quadrature_auxout")):
-        if getattr(wiring, a) == getattr(wiring, b):
-            raise ValueError(f"lock-in wiring: {a} and {b} must differ (both {getattr(wiring, a)})")
-
-
 def forcer_amplitude(wiring: LockInWiring, gain: float) -> float:
     """Forcer carrier amplitude (fraction of range) for a forcer-path gain; LimitError outside the limits."""
     check_limit("forcer_gain", gain, *FORCER_GAIN_LIMITS, "")
@@ -284,7 +264,6 @@ def _check_pid(name: str, g: PidGains, limit_v: float | None) -> None:
 
 def check_setup(setup: LockInSetup, wiring: LockInWiring) -> None:
     """Every limit of a LockInSetup, checked before anything is sent (LimitError names the limit)."""
-    check_wiring(wiring)
     check_limit("f0_hz", setup.f0_hz, 1.0, 100e6, "Hz")
     check_limit("pll_range_hz", setup.pll_range_hz, 1e-3, min(setup.f0_hz, 100e6), "Hz")
     check_limit("demod_rate_hz", setup.demod_rate_hz, 1.0, 460e3, "Sa/s")

@@ -62,7 +62,6 @@ from drivers.hf2_nodes import (
     carrier_plan,
     check_options,
     check_setup,
-    check_wiring,
     forcer_amplitude,
     mixer_layout,
     parse_options,
@@ -180,8 +179,8 @@ class HF2LI(LockIn):
 
     ``HF2LI(session_or_host, device_id, wiring, output_safe_v=0.0, port=8005, allow_version_mismatch=False)``:
     pass a toolkit Session (already constructed; the device is connected here) or a host name (a Session is
-    created, hf2=True). ``wiring`` is qmg_lab.config.schema.LockInSection or any object with its cabling fields
-    (and optionally drive_mixer_channel / forcer_mixer_channel overrides).
+    created, hf2=True). ``wiring`` is the validated qmg_lab.config.schema.LockInSection (`LockInWiring`), whose
+    schema is the one place of the wiring's defaults and bounds (drivers/hf2_nodes.py).
     """
 
     def __init__(
@@ -193,7 +192,6 @@ class HF2LI(LockIn):
         port: int = DEFAULT_HF2_PORT,
         allow_version_mismatch: bool = False,
     ) -> None:
-        check_wiring(wiring)
         check_limit("output_safe_v", output_safe_v, -10.0, 10.0, "V")
         self.device_id = device_id.lower()
         self.wiring = wiring

@@ -1,8 +1,10 @@
 """One HDF5 column of a run file as xarray's lazily indexed array (qmg_lab/data/run.py `Run.to_xarray`).
 
 A module of its own so that xarray is imported only when a tree is asked for (`import qmg_lab` stays light), and
-so that the array class pickles by name (dask's distributed scheduler sends it to its workers; the file handle
-it reads through pickles as its path, run.py `_RunFile`).
+so that the array class pickles by name (dask's distributed scheduler sends it to its workers; the file it reads
+through pickles as its path, run.py `_RunFile`). Each read takes the file from `_RunFile.reading()`: the Run's
+held handle inside `with open_run(...)`, else one opened for that read and closed after it, so that a tree kept
+alive holds no file open between reads.
 
 Indexing: xarray hands basic keys (an int or a slice, `IndexingSupport.BASIC`) and does the rest in memory; a
 slice is clipped to the column's valid rows, so a read never reaches the fill rows past them.
@@ -18,7 +20,7 @@ from xarray.core import indexing
 
 
 class H5Column(BackendArray):
-    """Rows [0, n) of /group/name read through `file.get()` (an open h5py.File); with t0_unix, the UTC
+    """Rows [0, n) of /group/name read through `file.reading()` (run.py `_RunFile`); with t0_unix, the UTC
     datetime64[ns] t0_unix + time of each row instead of the time (s)."""
 
     def __init__(self, file: Any, group: str, name: str, n: int, dtype: Any, t0_unix: float | None = None) -> None:
@@ -38,7 +40,8 @@ class H5Column(BackendArray):
             raise IndexError(f"row {k} of /{self.group}/{self.name} is outside its {n} rows")
         else:
             k = int(k) % n
-        values = np.asarray(self.file.get()[self.group][self.name][k])
+        with self.file.reading() as run:
+            values = np.asarray(run.h5[self.group][self.name][k])
         if self.t0_unix is None:
             return values
         ns = np.round(values * 1e9).astype(np.int64)

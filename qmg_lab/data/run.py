@@ -10,8 +10,11 @@ exception), so a file that a campaign is still writing (or that a
 killed writer left) reads as of the writer's last flush; nothing here ever writes. `Run` holds what is small (root
 attributes, configuration, steps, events, snapshots) as read at `open_run`; the data groups are read when asked
 for (`to_pandas`, `to_xarray`, `clsf_with_temperatures`), so they are current at that call. `run.reload()` reads
-the small parts again. The data reads share one read-only file handle, opened at the first of them and closed by
-`run.close()` (or on leaving `with open_run(...) as run:`); a read after `close()` opens it again.
+the small parts again. Inside `with open_run(...) as run:` the data reads (the lazy arrays of its trees too) share
+one read-only file handle, opened at the first of them and closed on leaving `with` (or by `run.close()`,
+`tree.close()`); outside it every read opens the file and closes it again, so that no Run or tree left alive (in
+a notebook, or in a reference cycle awaiting the garbage collector) holds the file open: HDF5 refuses a writer
+(`qmg-lab run --resume`) a file a reader holds open.
 
 Whole valid rows only, as `qmg_lab.storage.reader.read_run` reads them: every group is cut to its shortest
 column (a kill, or a reader between two column writes, may leave one column a block longer), and to the rows
@@ -35,8 +38,8 @@ from __future__ import annotations
 import json
 import threading
 import tomllib
-from collections.abc import Iterable, Sequence
-from contextlib import ExitStack
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -69,34 +72,64 @@ class Column:
 
 
 class _RunFile:
-    """The read-only handle the data reads of one `Run` share (`open_run_file`, held open): opened at the first
-    read, closed by `close()`.
+    """The file handle of one `Run`'s data reads and of the lazy arrays of its trees (`open_run_file`).
 
-    Pickles as its path (a dask worker in another process opens its own handle). h5py serialises its calls, so
+    Held only while the user says so: between `Run.__enter__` and `close()` (leaving `with open_run(...)`, or
+    `tree.close()`) one handle, opened at the first read, serves every read. Outside `with`, every read opens the
+    file and closes it again (`reading`), so that a Run or a tree kept in a notebook, or waiting in a reference
+    cycle for the garbage collector (an xarray DataTree is one: its nodes point at their parent), never keeps the
+    file open: HDF5 refuses a writer (`qmg-lab run --resume`) a file that a reader holds open, in this process
+    ("file is already open for read-only") and, through its file lock (flock on POSIX, LockFileEx on Windows), in
+    another one (storage/holders.py).
+
+    Pickles as its path (a dask worker in another process opens its own handles). h5py serialises its calls, so
     dask's threads may read through one handle."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._stack: ExitStack | None = None
         self._run: RunFile | None = None
+        self._held = False
+        self._probed = False  # open_run_file walked the structure once: a growing file is not walked per read
         self._lock = threading.Lock()
 
-    def run(self) -> RunFile:
-        with self._lock:
-            if self._run is None or not self._run.h5.id.valid:
-                stack = ExitStack()
-                self._run = stack.enter_context(open_run_file(self.path))
-                self._stack = stack
-            return self._run
+    def probed(self) -> None:
+        """The file's structure was walked (`open_run_file`'s child) by the caller: no read walks it again."""
+        self._probed = True
 
-    def get(self) -> h5py.File:
-        return self.run().h5
+    def hold(self) -> None:
+        """Keep one handle open for the reads to come, until `close()`."""
+        with self._lock:
+            self._held = True
+
+    @contextmanager
+    def reading(self) -> Iterator[RunFile]:
+        """`with file.reading() as run:` the open file for one read: the held handle, or one opened for this
+        read alone and closed after it."""
+        with self._lock:
+            held = self._held
+            if held and (self._run is None or not self._run.h5.id.valid):
+                stack = ExitStack()
+                self._run = stack.enter_context(open_run_file(self.path, probe=not self._probed))
+                self._stack, self._probed = stack, True
+            run = self._run
+        if held and run is not None:
+            yield run
+            return
+        with open_run_file(self.path, probe=not self._probed) as run:
+            self._probed = True
+            yield run
+
+    def is_open(self) -> bool:
+        """A handle is held open (between `hold()` and `close()`, after a read)."""
+        return self._run is not None and self._run.h5.id.valid
 
     def close(self) -> None:
+        """Close the held handle, if any; reads from now on open the file each for itself."""
         with self._lock:
             if self._stack is not None:
                 self._stack.close()
-            self._stack, self._run = None, None
+            self._stack, self._run, self._held = None, None, False
 
     def __getstate__(self) -> dict[str, Any]:
         return {"path": self.path}
@@ -177,13 +210,14 @@ class Run:
         self._file = _RunFile(self.path)
 
     def __enter__(self) -> Run:
+        self._file.hold()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:
-        """Close the file handle of the data reads (a later read opens it again)."""
+        """Close the file handle the data reads share inside `with` (a later read opens the file for itself)."""
         self._file.close()
 
     def __repr__(self) -> str:
@@ -232,7 +266,8 @@ class Run:
 
     def columns(self, group: str, columns: Iterable[str] | None = None) -> dict[str, Column]:
         """The columns of one group with their units and descriptions, read now."""
-        return read_group(self._file.run(), group, columns)
+        with self._file.reading() as run:
+            return read_group(run, group, columns)
 
     def to_pandas(self, group: str, columns: Iterable[str] | None = None) -> pd.DataFrame:
         """One group as a DataFrame indexed by run time (s since t0_unix); units and descriptions in
@@ -253,11 +288,11 @@ class Run:
         import xarray as xr
 
         wanted = list(groups) if groups is not None else [*self.groups, "steps", "events"]
-        run = self._file.run()
-        nodes = {f"/{g}": self._node(run, g, chunks) for g in wanted}
+        with self._file.reading() as run:
+            nodes = {f"/{g}": self._node(run, g, chunks) for g in wanted}
         root = xr.Dataset(attrs={k: v for k, v in self.attrs.items() if k != "config_toml"})
         tree = xr.DataTree.from_dict({"/": root, **nodes})
-        tree.set_close(self.close)
+        tree.set_close(self._file.close)  # the handle, not the Run: the tree must not keep the Run alive
         return tree
 
     def _node(self, run: RunFile, group: str, chunks: Any) -> xr.Dataset:
@@ -310,10 +345,10 @@ class Run:
         interpolated likewise; NaN on the bench, which has no truth). Outside a source's time span the value is
         NaN: nothing is extrapolated.
         """
-        run = self._file.run()
-        clsf = read_group(run, "clsf")
-        chamber = read_group(run, "chamber") if "chamber" in run.h5 else {}
-        truth = read_group(run, "truth", ["temperature"]) if "truth" in run.h5 else {}
+        with self._file.reading() as run:
+            clsf = read_group(run, "clsf")
+            chamber = read_group(run, "chamber") if "chamber" in run.h5 else {}
+            truth = read_group(run, "truth", ["temperature"]) if "truth" in run.h5 else {}
         df = _frame(clsf)
         t = np.asarray(df.index, dtype=float)
         df["sf_change_estimate_60s"] = trailing_mean(t, df["sf_change_estimate"].to_numpy(), SF_MEAN_WINDOW_S)
@@ -352,4 +387,6 @@ def open_run(path: str | Path) -> Run:
         events = _frame(read_group(run, "events"), index=None) if "events" in h5 else pd.DataFrame()
         snapshots = _snapshots(run)
         groups = [g for g in DATA_GROUPS if g in h5]
-    return Run(p, attrs, config, snapshots, steps, events, groups)
+    opened = Run(p, attrs, config, snapshots, steps, events, groups)
+    opened._file.probed()  # walked just now: the reads to come skip the child walk, even of a growing file
+    return opened

@@ -58,6 +58,7 @@ from qmg_lab.instruments import INSTRUMENT_MODES, INSTRUMENT_NAMES
 from qmg_lab.storage.background import BackgroundWrites
 from qmg_lab.storage.deflate import shuffled_deflate
 from qmg_lab.storage.h5clear import clear_superblock_flags, writer_flags_set
+from qmg_lab.storage.holders import named_holders
 from qmg_lab.storage.layout import (  # noqa: F401 - re-exported names are part of the API
     CHAMBER_UNITS,
     CHUNK_ROWS,
@@ -887,7 +888,7 @@ READER_WAIT_S = 3.0
 def _open_for_writing(p: Path, what: str) -> h5py.File:
     """Open `p` for writing (not yet SWMR). HDF5 locks a file for each open; a reader that has it open (not as a
     SWMR reader of a SWMR-writing file) makes the open fail with "unable to lock file": retried for READER_WAIT_S,
-    then refused with words saying a reader holds it."""
+    then refused with words saying a reader holds it, naming the process where the OS shows it (storage/holders.py)."""
     deadline = _time.monotonic() + READER_WAIT_S
     while True:
         try:
@@ -898,9 +899,11 @@ def _open_for_writing(p: Path, what: str) -> h5py.File:
                 _time.sleep(0.05)
                 continue
             if held:
+                who = (
+                    named_holders(p) or " (a `qmg-lab analyze`, `watch` or `runs`, or a program using h5py or HDFView)"
+                )
                 raise StorageError(
-                    f"{p}: another process holds {what} open for reading (a `qmg-lab analyze`, `watch` or `runs`, "
-                    "or a program using h5py or HDFView): close it, then run the command again"
+                    f"{p}: another process holds {what} open for reading{who}: close it, then run the command again"
                 ) from None
             raise StorageError(f"{p}: cannot open {what} for writing: {exc}") from None
 

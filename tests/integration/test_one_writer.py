@@ -183,7 +183,7 @@ def test_a_reused_pid_is_not_a_writer_and_a_held_lock_is(tmp_path: Path) -> None
 def test_a_reader_holding_the_file_is_named_when_a_resume_cannot_open_it(tmp_path: Path) -> None:
     """HDF5 locks a file for each open: a plain (non-SWMR) reader in another process makes the writer's open fail
     with "unable to lock file". The resume waits a moment (a polling reader lets go within milliseconds), then says
-    that a reader holds the file, and changes nothing."""
+    that a reader holds the file, naming the reader's process, and changes nothing."""
     path = tmp_path / "F.h5"
     w = RunWriter.create(
         path, config_text="", config_sha256="x", mode="sim", software_version="t", t0_unix=0.0, truth=False
@@ -197,8 +197,9 @@ def test_a_reader_holding_the_file_is_named_when_a_resume_cannot_open_it(tmp_pat
     )
     try:
         assert reader.stdout is not None and reader.stdout.readline().strip() == "open"
-        with pytest.raises(StorageError, match="another process holds the run file open for reading"):
+        with pytest.raises(StorageError, match="another process holds the run file open for reading") as err:
             RunWriter.reopen(path, config_sha256="x")
+        assert f"(process {reader.pid} (" in str(err.value)  # named: its id and command line (storage/holders.py)
     finally:
         reader.communicate("")
     assert path.read_bytes() == before

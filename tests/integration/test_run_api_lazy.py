@@ -127,13 +127,12 @@ def test_fill_rows_with_nan_time_are_not_data(sweep: Path, tmp_path: Path, monke
 def test_run_is_a_context_manager_with_a_short_repr(sweep: Path) -> None:
     with qmg_lab.open_run(sweep) as run:
         tree = run.to_xarray(["clsf"])
-        handle = run._file.get()
-        assert handle is not None and handle.id.valid
+        assert run._file.is_open()  # inside `with`, the reads share one handle
         text = repr(run)
-    assert not handle.id.valid  # leaving `with` closed the handle
+    assert not run._file.is_open()  # leaving `with` closed it
     lines = text.splitlines()
     assert len(lines) == 4 and len(text) < 400
     assert lines[0].startswith("<qmg_lab.Run sweep.h5") and "completed" in lines[0]
     assert "groups: lockin, clsf, table, chamber, truth" in text
-    # a read after close opens the file again
+    # a read after `with` opens the file for itself
     assert tree["clsf"]["eta"].to_numpy().shape[0] == tree["clsf"].sizes["time"]
