@@ -21,6 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -37,27 +38,81 @@ from tests.support.campaigns import config_text, qmg
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL of a subprocess")
 
+# One process imports h5py and the writer once, then forks a child per kill (a Python start with h5py per kill
+# made this file take minutes): each child reopens the file for a resume with the k-th resize of its repair
+# followed by SIGKILL, and tells its parent through a pipe, before its SIGKILL, whether the repair ended before
+# the k-th resize. Requests "<k> <path>" on stdin, answers "killed" or "finished" on stdout.
 KILL_INSIDE_REPAIR = """
 import os, signal, sys
 import h5py
 from qmg_lab.storage.writer import RunWriter
 
-path, sha, k = sys.argv[1], sys.argv[2], int(sys.argv[3])
-count = 0
+sha = sys.argv[1]
 resize = h5py.Dataset.resize
 
-def killing_resize(self, size, axis=None):
-    global count
-    resize(self, size) if axis is None else resize(self, size, axis)
-    count += 1
-    if count == k:  # the fill values are written, the new extent not yet flushed
-        os.kill(os.getpid(), signal.SIGKILL)
+def repair_killed_at(path, k, report):
+    count = 0
 
-h5py.Dataset.resize = killing_resize
-RunWriter.reopen(path, config_sha256=sha)
-print(count, flush=True)  # the repair finished before the k-th resize
-os.kill(os.getpid(), signal.SIGKILL)
+    def killing_resize(self, size, axis=None):
+        nonlocal count
+        resize(self, size) if axis is None else resize(self, size, axis)
+        count += 1
+        if count == k:  # the fill values are written, the new extent not yet flushed
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    h5py.Dataset.resize = killing_resize
+    RunWriter.reopen(path, config_sha256=sha)
+    os.write(report, b"finished")  # the repair finished before the k-th resize
+    os.kill(os.getpid(), signal.SIGKILL)
+
+for line in sys.stdin:
+    k, path = line.rstrip("\\n").split(" ", 1)
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        try:
+            repair_killed_at(path, int(k), w)
+        finally:  # an error in the repair: the child must not go on reading requests
+            os._exit(1)
+    os.close(w)
+    _, status = os.waitpid(pid, 0)
+    said = os.read(r, 64)
+    os.close(r)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, status
+    print("finished" if said else "killed", flush=True)
 """
+
+
+class RepairKiller:
+    """The forking process above, for one killed file's fingerprint."""
+
+    def __init__(self, sha: str) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", KILL_INSIDE_REPAIR, sha], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+
+    def kill_inside_repair(self, path: Path, k: int) -> bool:
+        """Reopen `path` for a resume, SIGKILLed after the k-th resize of its repair; False if the repair had
+        fewer."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(f"{k} {path}\n")
+        self.proc.stdin.flush()
+        said = self.proc.stdout.readline().strip()
+        assert said in ("killed", "finished"), f"the killing process ended: {self.proc.wait(timeout=60)}"
+        return said == "killed"
+
+    def close(self) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.close()
+        assert self.proc.wait(timeout=60) == 0
+
+
+@pytest.fixture
+def repair_killer(killed_run: tuple[Path, Path, str]) -> Iterator[RepairKiller]:
+    killer = RepairKiller(killed_run[2])
+    yield killer
+    killer.close()
 
 
 @pytest.fixture(scope="module")
@@ -77,15 +132,6 @@ def killed_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, st
     return path, cfg, config_fingerprint(text)
 
 
-def _kill_inside_repair(path: Path, sha: str, k: int) -> bool:
-    """Reopen `path` for a resume, SIGKILLed after the k-th resize of its repair; False if the repair had fewer."""
-    done = subprocess.run(
-        [sys.executable, "-c", KILL_INSIDE_REPAIR, str(path), sha, str(k)], capture_output=True, text=True, timeout=120
-    )
-    assert done.returncode == -signal.SIGKILL, done.stderr
-    return not done.stdout.strip()
-
-
 def _plan_and_rows(path: Path) -> tuple[object, dict[str, dict[str, np.ndarray]]]:
     with h5py.File(path, "r", swmr=True, libver="latest") as h5:
         plan = plan_repair(h5)
@@ -103,8 +149,10 @@ def _assert_same(plan, rows, ref_plan, ref_rows, where: str) -> None:
             assert np.array_equal(rows[g][c], ref), f"{where}: /{g}/{c}"
 
 
-def test_a_repair_killed_at_every_resize_keeps_every_recorded_row(killed_run, tmp_path: Path) -> None:
-    path, _, sha = killed_run
+def test_a_repair_killed_at_every_resize_keeps_every_recorded_row(
+    killed_run, repair_killer: RepairKiller, tmp_path: Path
+) -> None:
+    path, _, _ = killed_run
     ref_plan, ref_rows = _plan_and_rows(path)
     assert ref_plan.steps_rows >= 5 and not ref_plan.dropped_steps
     assert ref_plan.t_end > 0.0
@@ -112,13 +160,13 @@ def test_a_repair_killed_at_every_resize_keeps_every_recorded_row(killed_run, tm
     while True:
         copy = tmp_path / f"k{k}.h5"
         shutil.copyfile(path, copy)
-        killed_inside = _kill_inside_repair(copy, sha, k)
+        killed_inside = repair_killer.kill_inside_repair(copy, k)
         _assert_same(*_plan_and_rows(copy), ref_plan, ref_rows, f"killed after resize {k}")
         # and killed once more inside the next repair, at its first and at a later resize
         for k2 in (1, k):
             again = tmp_path / f"k{k}-{k2}.h5"
             shutil.copyfile(copy, again)
-            _kill_inside_repair(again, sha, k2)
+            repair_killer.kill_inside_repair(again, k2)
             _assert_same(*_plan_and_rows(again), ref_plan, ref_rows, f"killed after resize {k}, then {k2}")
         if not killed_inside:
             break
@@ -126,12 +174,14 @@ def test_a_repair_killed_at_every_resize_keeps_every_recorded_row(killed_run, tm
     assert k > 3  # the repair had resizes to be killed at
 
 
-def test_resume_after_two_kills_inside_the_repair_completes_the_plan(killed_run, tmp_path: Path) -> None:
-    path, cfg, sha = killed_run
+def test_resume_after_two_kills_inside_the_repair_completes_the_plan(
+    killed_run, repair_killer: RepairKiller, tmp_path: Path
+) -> None:
+    path, cfg, _ = killed_run
     copy = tmp_path / "twice.h5"
     shutil.copyfile(path, copy)
-    _kill_inside_repair(copy, sha, 2)
-    _kill_inside_repair(copy, sha, 1)
+    repair_killer.kill_inside_repair(copy, 2)
+    repair_killer.kill_inside_repair(copy, 1)
     ref_plan, _ = _plan_and_rows(path)
     done = subprocess.run(qmg("run", str(cfg), "--resume", str(copy), "-q"), capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
