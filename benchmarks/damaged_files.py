@@ -237,12 +237,13 @@ def soak_file(i: int, src: Path, kind: str, seed: int, tmp: Path, intact: Path, 
 
 def open_cost(path: Path) -> float:
     """Median wall time of `open_run_file` on `path` in this process (s), 5 opens after one warm-up; the probe
-    cache is cleared each time, so a file with writer flags pays its child-process walk every time."""
+    cache is cleared each time (`forget_walks`), so each open pays the worker's walk of the file (the worker
+    itself is started once, at the warm-up)."""
     from qmg_lab.storage import runfile
 
     times = []
     for _ in range(6):
-        runfile._PROBED.clear()
+        runfile.forget_walks()
         t0 = time.perf_counter()
         with runfile.open_run_file(path):
             pass

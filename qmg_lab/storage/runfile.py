@@ -17,8 +17,8 @@ seconds, with words, whatever the file's bytes:
    time (PROBE_TIMEOUT_S) makes the file damaged (DamagedFileError), and the worker is replaced. One worker
    serves a process's every file: its start (a Python start with h5py, about 0.4 s) is paid once per process,
    not per file, and is not counted in a file's time limit. A file is walked once per state (path, size,
-   modification time) per process; a caller that reopens a live file again and again (the watch page) passes
-   `probe=False` after its first open;
+   modification time) per process, and a state found damaged is answered at once the next time; a caller that
+   reopens a live file again and again (the watch page) passes `probe=False` after its first open;
 4. the file is opened here read-only: through SWMR if its flags are set (its writer is still writing, or was
    killed), else without;
 5. the root attribute `format` must be one this version reads (READ_FORMATS): "qmg-lab/1" or "qmg-lab/2".
@@ -230,9 +230,8 @@ def open_run_file(
         # every file's structure is walked once in a child with a time limit before this process reads it: HDF5
         # can loop inside its C code on damaged metadata (a zeroed object header, a flipped chunk-index byte),
         # closed file or not, and only a child process can be stopped there
-        if probe and _file_key(p) not in _PROBED:
-            _probe_in_child(p, timeout_s)
-            _PROBED.add(_file_key(p))
+        if probe:
+            _probe_once(p, timeout_s)
         try:
             h5 = h5py.File(p, "r", swmr=writer_open, libver="latest")
         except H5_ERRORS as exc:
@@ -303,6 +302,33 @@ def check_format(path: Path, fmt: str) -> None:
 #: files whose structure a child walked without fault, as (path, size, mtime ns): a file that has not changed
 #: since is not walked again by this process (analyze opens the same killed file several times)
 _PROBED: set[tuple[str, int, int]] = set()
+
+
+#: file states a walk found damaged, with the time limit it had and what it said: the same bytes are answered
+#: at once the next time this process opens them (a reader that opens a file several times, `runs` beside
+#: `analyze`), unless the new limit is longer than the one that ran out
+_DAMAGED: dict[tuple[str, int, int], tuple[float, str]] = {}
+
+
+def _probe_once(path: Path, timeout_s: float) -> None:
+    """The worker's walk of `path` (step 3), once per file state per process, a damaged state's answer kept."""
+    key = _file_key(path)
+    if key in _PROBED:
+        return
+    if key in _DAMAGED and timeout_s <= _DAMAGED[key][0]:
+        raise DamagedFileError(_DAMAGED[key][1])
+    try:
+        _probe_in_child(path, timeout_s)
+    except DamagedFileError as exc:
+        _DAMAGED[key] = (timeout_s, str(exc))
+        raise
+    _PROBED.add(key)
+
+
+def forget_walks() -> None:
+    """Forget which file states this process walked (a benchmark that times each reader's first answer)."""
+    _PROBED.clear()
+    _DAMAGED.clear()
 
 
 def _file_key(path: Path) -> tuple[str, int, int]:
