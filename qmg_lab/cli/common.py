@@ -68,8 +68,9 @@ characterize_app = typer.Typer(
 
 
 def fail(code: int, message: str) -> NoReturn:
-    # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written
-    say(console.print, f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True)
+    # the message is text, not markup: "[plan]" or "[-100, 100] deg/s" must reach the operator as written; and
+    # soft-wrapped (the terminal folds it, no newline is written into it), so a long path in it copies whole
+    say(console.print, f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -80,7 +81,7 @@ def warn_network_share(run_file: Path) -> None:
 
     warning = swmr_warning(run_file)
     if warning is not None:
-        say(console.print, f"[bold yellow]warning:[/] {escape(warning)}", highlight=False, markup=True)
+        say(console.print, f"[bold yellow]warning:[/] {escape(warning)}", highlight=False, markup=True, soft_wrap=True)
 
 
 def load(path: Path, sim: bool, campaign: bool = False) -> tuple[Config, str]:

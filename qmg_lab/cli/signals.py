@@ -68,5 +68,5 @@ def stop_exits(console_print: Callable[..., Any]) -> Iterator[None]:
     try:
         yield
     except StopRequested as exc:
-        say(console_print, f"error: {exc}", highlight=False, markup=False)
+        say(console_print, f"error: {exc}", highlight=False, markup=False, soft_wrap=True)
         raise typer.Exit(exit_code(exc.signum)) from None

@@ -345,3 +345,15 @@ def test_a_study_file_syntax_error_is_worded_like_a_configuration(tmp_path):
         RUNNER.invoke(app, ["study", str(bom), "-o", str(tmp_path / "out")]), "base configuration", "without BOM"
     )
     assert not (tmp_path / "out").exists()
+
+
+def test_a_path_longer_than_the_terminal_is_printed_whole(tmp_path):
+    """An error naming a path longer than the console's width (80 columns here) is soft-wrapped: the terminal
+    folds it, no newline is written inside the path, so it copies whole."""
+    deep = tmp_path / ("a" * 60) / ("b" * 60)
+    deep.mkdir(parents=True)
+    path = deep / "junk.toml"
+    path.write_bytes(b"\x00")
+    result = RUNNER.invoke(app, ["check", str(path)])
+    assert result.exit_code == 2
+    assert str(path) in result.output
