@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from qmg_lab.budget.sweep import SweepAccuracy, sweep_accuracy
+from qmg_lab.campaign.loops import config_rate_loop, rate_loop_t
 from qmg_lab.clsf.stream_plan import hf2_rate
 from qmg_lab.config.schema import Config
 
@@ -302,7 +303,7 @@ def noise_budget(cfg: Config, sim_blocks: bool = False, taus: tuple[float, ...] 
     m = _harmonics()
     f = m * f_d
     h = demod_filter_response(f, cfg.lockin.demod_timeconstant_s, cfg.lockin.demod_order)
-    s_m = rate_loop_sensitivity(f, cfg.loops.rate_bandwidth_hz)
+    s_m = 1.0 - rate_loop_t(config_rate_loop(cfg), 1.0 / cfg.device.tau_s, 2j * math.pi * f)
     omega_v = cfg.dither.virtual_rate_dps * RAD_PER_DEG
     h_s = sample_interval_s(cfg)
     block = cfg.lockin.sim_poll_interval_s if sim_blocks else cfg.lockin.poll_interval_s
