@@ -107,7 +107,7 @@ def rate_loop_t(loop: RateLoopDesign, plant_pole_rad_s: float, s: complex | np.n
 def config_rate_loop(cfg: Config) -> RateLoopDesign:
     """rate_loop_design of a configuration's [device] and [loops]."""
     lp = cfg.loops
-    return rate_loop_design(cfg.device, lp.rate_bandwidth_hz, lp.rate_pi_design, lp.rate_zero_offset_hz)
+    return rate_loop_design(cfg.device, lp.rate_bandwidth_hz, lp.sense_pi_design, lp.rate_zero_offset_hz)
 
 
 def rate_pi(
@@ -120,11 +120,18 @@ def rate_pi(
     return PidGains(p=p, i=p * loop.zero_rad_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
 
 
-def quadrature_pi(device: DeviceSection, bandwidth_hz: float) -> PidGains:
-    """Quadrature PI on Y: the plant gain is -b, so the gains are negative."""
+def quadrature_pi(device: DeviceSection, bandwidth_hz: float, design: RatePiDesign = "zero_on_pole") -> PidGains:
+    """Quadrature PI on Y, the same plant as the rate loop's with gain -b, so the gains are negative: P = -w_l / b,
+    I = P z (rate_loop_design at zero offset). Its slow mode would reach the rate output through a mode split."""
     plant = rate_plant(device)
-    p = -2.0 * math.pi * bandwidth_hz / plant.b
-    return PidGains(p=p, i=p / plant.tau_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+    loop = rate_loop_design(device, bandwidth_hz, design)
+    p = -loop.gain_rad_s / plant.b
+    return PidGains(p=p, i=p * loop.zero_rad_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+
+
+def config_quadrature_loop(cfg: Config) -> RateLoopDesign:
+    """rate_loop_design of the quadrature loop of a configuration's [device] and [loops]."""
+    return rate_loop_design(cfg.device, cfg.loops.quadrature_bandwidth_hz, cfg.loops.sense_pi_design)
 
 
 def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
@@ -164,8 +171,8 @@ def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
         pll=pll,
         pll_range_hz=pll.range,
         agc=agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
-        rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.rate_pi_design),
-        quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+        rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.sense_pi_design),
+        quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz, lp.sense_pi_design),
         demod_rate_hz=cfg.lockin.demod_rate_hz,
         demod_timeconstant_s=cfg.lockin.demod_timeconstant_s,
         demod_order=cfg.lockin.demod_order,

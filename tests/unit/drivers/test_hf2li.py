@@ -77,8 +77,8 @@ def test_configure_writes_the_loop_gains_in_one_transaction() -> None:
     dev, lp = cfg.device, cfg.loops
     expected = {
         0: agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
-        1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.rate_pi_design),
-        2: quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+        1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.sense_pi_design),
+        2: quadrature_pi(dev, lp.quadrature_bandwidth_hz, lp.sense_pi_design),
     }
     for n, g in expected.items():
         got = pid_nodes(twin, n)
