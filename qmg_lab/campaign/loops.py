@@ -58,6 +58,34 @@ def rate_plant(device: DeviceSection) -> RatePlant:
     )
 
 
+FORCER_PATH_PLAUSIBLE = (0.5, 2.0)  # rho_0 / b outside this: the forcer does not act as the configuration says
+
+
+def forcer_path_problem(rho_ref: float, device: DeviceSection, forcer_gain: float = 1.0) -> str | None:
+    """Words for a forcer path that cannot be the configured one, else None.
+
+    The CLSF reference rho_0 (qmg_lab/clsf/estimator.py) measures beta of dX/dt = -X/tau + beta u - kappa Omega,
+    the forcer path's gain; the loops were designed on b = k R_d / SF ([device]), which beta equals times the
+    forcer gain in force, up to the device's spread and temperature (percent, not a factor). A ratio outside
+    0.5-2 is a wiring or configuration fault: a forcer carrier on an oscillator that does not run at the drive
+    frequency (no force: rho_0 ~ 0), a forcer output off or on another channel, an inverted forcer, or [device]
+    constants off by more than a factor 2. Every SF figure of such a run would be meaningless.
+    """
+    b = rate_plant(device).b * forcer_gain
+    ratio = rho_ref / b
+    lo, hi = FORCER_PATH_PLAUSIBLE
+    if lo <= ratio <= hi:
+        return None
+    return (
+        f"the CLSF reference forcer-path gain rho_0 = {rho_ref:.4g} Vrms/(V s) is {ratio:.3g} times the plant gain "
+        f"the loops were designed on, b = k R_d / SF = {b:.4g} ([device] angular_gain, drive_amplitude_vrms, "
+        f"sf_nominal_v_per_dps; outside {lo:g}-{hi:g}): the forcer does not act as configured. Check that the "
+        "forcer carrier runs on an oscillator locked to the drive (on an HF2 without MF, the oscillator of the "
+        "forcer's output channel; [lockin] wiring), that the forcer output is on and on the sense electrode, its "
+        "sign, and the [device] constants"
+    )
+
+
 RatePiDesign = Literal["critically_damped", "zero_on_pole"]
 CRITICAL_BANDWIDTH_RATIO = math.sqrt(3.0 + math.sqrt(10.0))  # -3 dB of (2p s + p^2)/(s + p)^2 at w = 2.4824 p
 
