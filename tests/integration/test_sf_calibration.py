@@ -7,7 +7,10 @@
   its lag (the board), and the calibrated SF then follows /truth.
 * Budget against twin (qmg_lab/budget/calibrated.py): the calibrated SF's residual against the table steps lands
   within 30 % of the prediction plus 3 ppm. With the default critically damped sense PIs the prediction is ~0 (no
-  source leaves more than 0.01 ppm), so the twin must land within the 3 ppm floor; with the zero-on-pole PIs
+  source leaves more than 0.02 ppm), so what the twin shows is the noise QUIET leaves on: the AuxIn's reading
+  noise and quantisation in the CLSF estimate, white at q = 16 ppm sqrt(s) (qmg_lab.budget.noise), 1.5 ppm over a
+  pair's 2 x 55 s; the residual against pair 0 must then stay within the 3 ppm floor plus 3 sqrt(2) of that
+  (9.5 ppm); with the zero-on-pole PIs
   ([loops] sense_pi_design) the mode split's loop tail in the table steps leaves a residual the budget must size,
   for the default sources together and for the split alone. The shares of a combined run depend on the lag the fit
   picks for all sources together, so a share cannot be run alone in the twin; the sources alone are run instead.
@@ -16,6 +19,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +29,7 @@ import numpy as np
 import pytest
 
 from qmg_lab.budget.calibrated import calibrated_accuracy
+from qmg_lab.budget.noise import noise_budget
 from qmg_lab.budget.sweep import DETERMINISTIC_OFF, sim_lines
 from qmg_lab.clsf.pickoff_model import first_order_lag
 from qmg_lab.config.schema import parse_config
@@ -147,7 +152,11 @@ def test_calibrated_residual_lands_on_the_budget(case: str, design: str, tmp_pat
     measured = result["calibrated_sf"]["accuracy_vs_table_ppm"]
     figures = f"twin {measured:.2f} ppm, budget {budget.to_json()}"
     if design == "critically_damped":
+        cfg = parse_config(eval_text)
+        q = math.sqrt(sum(src.white_ppm_rt_s**2 for src in noise_budget(cfg, sim_blocks=True).sources))
+        sigma_pair = q / math.sqrt(2.0 * (cfg.plan.dwell_s - cfg.plan.settle_s))
         assert budget.total_ppm < 0.1, figures
+        assert measured <= budget.total_ppm + PPM_FLOOR + 3 * math.sqrt(2) * sigma_pair, figures
     else:
         assert budget.total_ppm > 2 * PPM_FLOOR, figures
-    assert measured == pytest.approx(budget.total_ppm, rel=REL_TOL, abs=PPM_FLOOR), figures
+        assert measured == pytest.approx(budget.total_ppm, rel=REL_TOL, abs=PPM_FLOOR), figures
