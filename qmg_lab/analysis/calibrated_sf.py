@@ -9,8 +9,9 @@ Two uses, kept apart so that no table step of an evaluated run enters its own es
   `analyze`) and, on a twin, against /truth. The estimate uses /clsf/sf_change_estimate and /lockin/drive_frequency
   alone; the table steps enter `accuracy_vs_table_ppm` and nothing else.
 
-This is a minimal evaluation of its own, written beside compute.py's pairs (it reuses their windows and changes):
-a shared evaluation function of an SF series against encoder-timed table steps may replace `_judge`.
+Both series, the calibrated one and the CLSF estimate it starts from, are judged by one rule:
+qmg_lab.analysis.compute.series_accuracy, the function `analyze` judges the CLSF estimate by (its windows are the
+encoder-timed step windows of `analyze`'s pairs).
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ from typing import Any
 import numpy as np
 
 from qmg_lab.analysis.adev import overlapping_adev
-from qmg_lab.analysis.compute import AnalysisResult, StepPair, analyze, stored_config
+from qmg_lab.analysis.compute import AnalysisResult, StepPair, analyze, series_accuracy, stored_config
 from qmg_lab.analysis.reductions import analysis_settle_s
-from qmg_lab.clsf.pickoff_model import PickoffRatioModel, binned, fit_pickoff_model, window_means
+from qmg_lab.clsf.pickoff_model import PickoffRatioModel, binned, fit_pickoff_model
 from qmg_lab.storage.reader import RunData, read_run
 
 PPM = 1e6
@@ -102,11 +103,6 @@ def characterise(run_file: str | Path, result: AnalysisResult | None = None) -> 
     return fit_pickoff_model(t, f, _pair_windows(run, settle, pairs), y, source=source).model
 
 
-def _rms(x: np.ndarray) -> float:
-    x = x[np.isfinite(x)]
-    return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
-
-
 def calibrated_series(run: RunData, model: PickoffRatioModel, reference_periods: int) -> tuple[np.ndarray, np.ndarray]:
     """(time, s_cal) at the CLSF periods: 1 + s_cal = (1 + s) exp(m - m_ref), m_ref the mean of m over the first
     `reference_periods` periods (CLSF's own reference). The SF series an outside evaluation takes."""
@@ -135,27 +131,16 @@ def _truth_error_adev(run: RunData, t_k: np.ndarray, s_k: np.ndarray) -> float |
 def evaluate(run_file: str | Path, model: PickoffRatioModel, result: AnalysisResult) -> CalibratedSF:
     """The calibrated SF of a run (its own CLSF and drive frequency, the model from another run), judged against
     its table steps and its /truth (module docstring)."""
-    run, settle = _load(run_file)
+    run, _ = _load(run_file)
     cfg, _ = stored_config(run)
     warnings: list[str] = []
     t_k, s_cal = calibrated_series(run, model, cfg.clsf.reference_periods)
-    t, f = _drive_frequency(run)
-    pairs = result.pairs
-    cal = np.full(len(pairs), np.nan)
-    if pairs:
-        mm = window_means(t, model.log_ratio(t, f)[np.newaxis, :], _pair_windows(run, settle, pairs))[:, 0]
-        c = np.array([p.clsf_change_ppm for p in pairs]) / PPM
-        cal = ((1.0 + c) * np.exp(mm - mm[0]) - 1.0) * PPM
-    e = np.array([p.true_change_ppm for p in pairs])
-    tr = np.array([p.truth_change_ppm for p in pairs])
-    c_ppm = np.array([p.clsf_change_ppm for p in pairs])
-    d = (cal - e)[1:]
-    d = d[np.isfinite(d)]
-    acc = _rms(d)
-    acc_mr = _rms(d - d.mean()) if d.size else float("nan")
-    has_truth = bool(pairs) and bool(np.all(np.isfinite(tr)))
-    clsf = run.groups.get("clsf")
-    clsf_adev = _truth_error_adev(run, t_k, clsf["sf_change_estimate"]) if clsf is not None else None
+    _, f = _drive_frequency(run)
+    clsf = run.groups["clsf"]  # calibrated_series found it
+    cal = series_accuracy(result.pairs, t_k, s_cal)
+    est = series_accuracy(result.pairs, clsf["time"], clsf["sf_change_estimate"])
+    acc = cal.rms_vs_table_ppm
+    clsf_adev = _truth_error_adev(run, t_k, clsf["sf_change_estimate"])
     # the model's assumptions, checked on what the run shows (the table only judges: it never enters s_cal)
     x_lo, x_hi = model.x_range_hz
     span = max(x_hi - x_lo, 1e-9)
@@ -182,12 +167,12 @@ def evaluate(run_file: str | Path, model: PickoffRatioModel, result: AnalysisRes
             "lagging board, or f0 moved for a reason other than temperature)"
         )
     return CalibratedSF(
-        pair_changes_ppm=[float(v) for v in cal],
+        pair_changes_ppm=list(cal.change_ppm),
         accuracy_vs_table_ppm=acc,
-        accuracy_vs_table_ppm_mean_removed=acc_mr,
-        vs_truth_ppm=_rms((cal - tr)[1:]) if has_truth else None,
-        clsf_accuracy_vs_table_ppm=_rms((c_ppm - e)[1:]),
-        clsf_vs_truth_ppm=_rms((c_ppm - tr)[1:]) if has_truth else None,
+        accuracy_vs_table_ppm_mean_removed=cal.rms_vs_table_ppm_mean_removed,
+        vs_truth_ppm=cal.rms_vs_truth_ppm,
+        clsf_accuracy_vs_table_ppm=est.rms_vs_table_ppm,
+        clsf_vs_truth_ppm=est.rms_vs_truth_ppm,
         adev_2000s_error_ppm=_truth_error_adev(run, t_k, s_cal),
         clsf_adev_2000s_error_ppm=clsf_adev,
         warnings=warnings,

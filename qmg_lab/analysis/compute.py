@@ -11,8 +11,8 @@ Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
   dither to a later one (edges located as the CLSF estimator locates them, qmg_lab/clsf/dither_edges.py: within the
   gap between two readings, then refined by a line through 32 edges; the rate output
   integrated with the trapezoid rule between them), so the dither leaking through the rate loop
-  (|T(7 Hz)| = 0.276 of the virtual rate) cancels whether or not a period is a whole number of samples: the
-  DS345 and the HF2 share no clock.
+  (|T(7 Hz)| = 0.23 of the virtual rate with the default critically damped loop) cancels whether or not a
+  period is a whole number of samples: the DS345 and the HF2 share no clock.
 * True SF from a step pair (a completed "rate" step with Omega > 0 followed by the next-index "rate" step with
   Omega < 0): SF = (O+ - O-)/(Omega+ - Omega-), bias = (O+ + O-)/2; O = mean /lockin/rate_output (V), Omega =
   the encoder's rate over the window (the slope of its count against time), else the median /table/rate_command

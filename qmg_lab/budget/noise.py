@@ -22,9 +22,10 @@ Equations and their derivation: docs/noise-budget.md. In short, for the ratio es
 
 2. **One dither period.** The estimate projects the equation error on r, the filtered triangle with its mean and
    slope removed, and divides by the same projection of the forcer input's integral, which the closed rate loop
-   shapes by its sensitivity S(s) = s / (s + w_c) (w_c = 2 pi rate bandwidth; the PI zero on 1/tau makes the
-   loop first order). With the triangle's Fourier coefficients 4 A / (pi^2 m^2) at the odd harmonics m f_d
-   (A = Omega_v / (4 f_d)) and the demodulator filter H, the per-period estimates are independent and white, of
+   shapes by its sensitivity S(s) = 1 - T(s), T the closed loop of the configured sense PI
+   (qmg_lab.campaign.loops.rate_loop_t; s / (s + w_c) for the zero-on-pole design, w_c = 2 pi rate bandwidth).
+   With the triangle's Fourier coefficients 4 A / (pi^2 m^2) at the odd harmonics m f_d (A = Omega_v / (4 f_d))
+   and the demodulator filter H, the per-period estimates are independent and white, of
    level (ADEV = q / sqrt(tau))
 
        q^2 = (pi^4 / (32 A^2)) sum_m S_theta(m f_d) |H_m|^4 / m^4 / (sum_m |H_m|^2 Re S_m / m^4)^2.
@@ -46,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from qmg_lab.budget.sweep import SweepAccuracy, sweep_accuracy
+from qmg_lab.campaign.loops import config_rate_loop, rate_loop_t
 from qmg_lab.clsf.stream_plan import hf2_rate
 from qmg_lab.config.schema import Config
 
@@ -136,7 +138,8 @@ def demod_filter_response(f_hz: np.ndarray, tc_s: float, order: int) -> np.ndarr
 
 
 def rate_loop_sensitivity(f_hz: np.ndarray, bandwidth_hz: float) -> np.ndarray:
-    """S = 1 / (1 + L), L = w_c / s: the share of the dither the forcer input keeps under the first-order loop."""
+    """S = 1 / (1 + L), L = w_c / s: the share of the dither the forcer input keeps under the first-order
+    (zero-on-pole) loop; noise_budget takes S = 1 - T of the configured loop."""
     s = 2j * math.pi * f_hz
     return s / (s + 2.0 * math.pi * bandwidth_hz)
 
@@ -302,7 +305,7 @@ def noise_budget(cfg: Config, sim_blocks: bool = False, taus: tuple[float, ...] 
     m = _harmonics()
     f = m * f_d
     h = demod_filter_response(f, cfg.lockin.demod_timeconstant_s, cfg.lockin.demod_order)
-    s_m = rate_loop_sensitivity(f, cfg.loops.rate_bandwidth_hz)
+    s_m = 1.0 - rate_loop_t(config_rate_loop(cfg), 1.0 / cfg.device.tau_s, 2j * math.pi * f)
     omega_v = cfg.dither.virtual_rate_dps * RAD_PER_DEG
     h_s = sample_interval_s(cfg)
     block = cfg.lockin.sim_poll_interval_s if sim_blocks else cfg.lockin.poll_interval_s

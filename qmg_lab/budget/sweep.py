@@ -43,6 +43,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from qmg_lab.analysis.reductions import analysis_settle_s, rate_pairs
+from qmg_lab.campaign.loops import config_quadrature_loop, config_rate_loop, rate_loop_t
 from qmg_lab.campaign.plan import Step, build_plan
 from qmg_lab.config.schema import Config
 
@@ -197,13 +198,14 @@ def _demod_h2(cfg: Config, w: float) -> float:
 
 
 def loop_bandwidths_rad_s(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rate and quadrature loops' actual crossover w_c, w_q at T: the design bandwidth times the plant's actual
-    gain over the nominal one the PIs were designed on, b/b_nom = (k/k_nom)(SF_nom/SF(T)) G_py(T)."""
-    s, d, lp = cfg.sim, cfg.device, cfg.loops
+    """The rate and quadrature loops' actual loop gains w_c, w_q at T: the design's (b |P| of
+    campaign.loops.rate_loop_design) times the plant's actual gain over the nominal one the
+    PIs were designed on, b/b_nom = (k/k_nom)(SF_nom/SF(T)) G_py(T)."""
+    s, d = cfg.sim, cfg.device
     dt = temp_c - s.reference_temperature_c
     g_py = 1.0 + pickoff_linear_ppm_per_c(cfg) * 1e-6 * dt + s.pickoff_ratio_tempco2_ppm_per_c2 * 1e-6 * dt * dt
     ratio = (s.angular_gain / d.angular_gain) * (d.sf_nominal_v_per_dps * DEG_PER_RAD / _sf_rad(cfg, temp_c)) * g_py
-    return 2.0 * math.pi * lp.rate_bandwidth_hz * ratio, 2.0 * math.pi * lp.quadrature_bandwidth_hz * ratio
+    return config_rate_loop(cfg).gain_rad_s * ratio, config_quadrature_loop(cfg).gain_rad_s * ratio
 
 
 def pickoff_linear_ppm_per_c(cfg: Config) -> float:
@@ -232,14 +234,17 @@ def frontend_temperature_c(cfg: Config, t_s: np.ndarray, ramp_start_s: float, gr
 
 def projection(cfg: Config, f: Any, wc: float) -> float:
     """P[f]: the in-phase part of f(s) m_d on the dither's triangle m_d, over the triangle's projection of the
-    loop's forcer input m = (1 - T) m_d, T = w_c/(s + w_c) (module docstring); f is called with s = j n w_d."""
+    loop's forcer input m = (1 - T) m_d, T the rate loop's closed loop at loop gain w_c (campaign.loops.rate_loop_t:
+    w_c/(s + w_c) for the zero-on-pole design); f is called with s = j n w_d."""
     wd = 2.0 * math.pi * cfg.dither.frequency_hz
+    loop = config_rate_loop(cfg)
+    gain_scale = wc / loop.gain_rad_s
     num = den = 0.0
     for n in HARMONICS:
         s = 1j * n * wd
         weight = _demod_h2(cfg, n * wd) / n**4
         num += weight * complex(f(s)).real
-        den += weight * (1.0 - wc / (s + wc)).real
+        den += weight * (1.0 - complex(rate_loop_t(loop, 1.0 / cfg.device.tau_s, s, gain_scale))).real
     return num / den
 
 
@@ -341,20 +346,21 @@ def loop_tail_errors(
 ) -> np.ndarray:
     """Relative error of each step's window-mean rate output from the slow closed-loop tail (one per step).
 
-    Linear model of the FTR sense axis under its two PI loops (zero at z = 1/tau_n + 2 pi f_zoff, the loop's design):
+    Linear model of the FTR sense axis under its two PI loops (zeros z, z_q = I/P of campaign.loops.
+    rate_loop_design):
         c' = -g c + d s - w + b u_r,   b u_r = -w_c (c + z I_c),  I_c' = c
-        s' = -g s - d c + b u_q,       b u_q = -w_q (s + z I_s),  I_s' = s
+        s' = -g s - d c + b u_q,       b u_q = -w_q (s + z_q I_s),  I_s' = s
     w = k a Omega (the Coriolis term, unit per step rate), g the sense damping g_y(T), d the sense detuning. With
-    g = z and d = 0 the PI zero cancels the resonator's pole and the output is b u_r = w after a fast 2 Hz
-    transient; a mismatch (g != z) or a split (d != 0) leaves a slow mode near -z in the output, which the
-    analysis window [settle, dwell] of each step averages. Exact: x(t) = x_ss + e^{At}(x0 - x_ss) step by step
+    the zero-on-pole design, g = z and d = 0, the PI zero cancels the resonator's pole and the output is b u_r = w
+    after a fast 2 Hz transient; a mismatch (g != z) or a split (d != 0) leaves a slow mode near -z in the output,
+    which the analysis window [settle, dwell] of each step averages. The critically damped design has no slow
+    mode: its tail is gone before the window opens. Exact: x(t) = x_ss + e^{At}(x0 - x_ss) step by step
     (one A per step, from that step's d and g), window mean = y_ss + C A^-1 (e^{A t1} - e^{A t0})(x0 - x_ss)/(t1 -
     t0). Returned: mean b u_r - w for each step of rates_dps (the plan's table steps, back to back), in the units
     of rates_dps (w is taken as the step's rate: the tail is linear in the steps).
     """
-    lp = cfg.loops
-    z = 1.0 / cfg.device.tau_s + 2.0 * math.pi * lp.rate_zero_offset_hz
-    zq = 1.0 / cfg.device.tau_s
+    z = config_rate_loop(cfg).zero_rad_s
+    zq = config_quadrature_loop(cfg).zero_rad_s
     t0, t1 = analysis_settle_s(cfg), cfg.plan.dwell_s
     x = np.zeros(4)
     out = np.empty(len(rates_dps))

@@ -13,10 +13,10 @@ Plants (slow-variable model, docs/physics.md sections 1-3):
 
 * Rate loop. With FTR holding c_y ~ 0, the sense demod X_s obeys
   dX_s/dt = -X_s/tau - k R_d Omega + (k R_d / SF) G V,  SF the FTR scale factor in V per rad/s,
-  V = rate command (V), G = forcer-path gain. PI with I = P/tau puts the zero on the envelope pole
-  (paper eq. 5 with tau_cy = tau/2): the loop becomes b P / s, the closed loop first order with bandwidth
-  f_bw = b P / (2 pi), b = k R_d / SF. Hence P = 2 pi f_bw SF / (k R_d), I = P (1/tau + 2 pi f_z) with an
-  optional zero offset f_z (physics.md section 4: hides the slow mode of a mode mismatch).
+  V = rate command (V), G = forcer-path gain, b = k R_d / SF. Two PI designs (rate_loop_design):
+  "zero_on_pole", I = P (1/tau + 2 pi f_z): with f_z = 0 the zero cancels the envelope pole (paper eq. 5 with
+  tau_cy = tau/2), the loop is b P / s, the closed loop first order with f_bw = b P / (2 pi); and
+  "critically_damped" (the default): both closed-loop poles at -p, -3 dB at f_bw, no slow mode.
 * Quadrature loop: dY_s/dt = -Y_s/tau - (k R_d / SF) V_q: same magnitude, opposite sign.
 * AGC: dR_d/dt = -R_d/tau + b_d V_d with b_d = R_d0 / (tau V_d0), V_d0 the drive voltage that sustains the
   nominal amplitude. P = 2 pi f_agc / b_d, I = P (1/tau + 2 pi f_z,agc).
@@ -28,6 +28,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
 
 from qmg_lab.config.schema import Config, DeviceSection
 from qmg_lab.instruments import LockInSetup, PidGains
@@ -55,19 +58,108 @@ def rate_plant(device: DeviceSection) -> RatePlant:
     )
 
 
-def rate_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
-    """FTR rate PI: P = 2 pi f_bw / b, I = P (1/tau + 2 pi f_z). Output range = the forcer limit."""
-    plant = rate_plant(device)
-    p = 2.0 * math.pi * bandwidth_hz / plant.b
-    i = p * (1.0 / plant.tau_s + 2.0 * math.pi * zero_offset_hz)
-    return PidGains(p=p, i=i, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+FORCER_PATH_PLAUSIBLE = (0.5, 2.0)  # rho_0 / b outside this: the forcer does not act as the configuration says
 
 
-def quadrature_pi(device: DeviceSection, bandwidth_hz: float) -> PidGains:
-    """Quadrature PI on Y: the plant gain is -b, so the gains are negative."""
+def forcer_path_problem(rho_ref: float, device: DeviceSection, forcer_gain: float = 1.0) -> str | None:
+    """Words for a forcer path that cannot be the configured one, else None.
+
+    The CLSF reference rho_0 (qmg_lab/clsf/estimator.py) measures beta of dX/dt = -X/tau + beta u - kappa Omega,
+    the forcer path's gain; the loops were designed on b = k R_d / SF ([device]), which beta equals times the
+    forcer gain in force, up to the device's spread and temperature (percent, not a factor). A ratio outside
+    0.5-2 is a wiring or configuration fault: a forcer carrier on an oscillator that does not run at the drive
+    frequency (no force: rho_0 ~ 0), a forcer output off or on another channel, an inverted forcer, or [device]
+    constants off by more than a factor 2. Every SF figure of such a run would be meaningless.
+    """
+    b = rate_plant(device).b * forcer_gain
+    ratio = rho_ref / b
+    lo, hi = FORCER_PATH_PLAUSIBLE
+    if lo <= ratio <= hi:
+        return None
+    return (
+        f"the CLSF reference forcer-path gain rho_0 = {rho_ref:.4g} Vrms/(V s) is {ratio:.3g} times the plant gain "
+        f"the loops were designed on, b = k R_d / SF = {b:.4g} ([device] angular_gain, drive_amplitude_vrms, "
+        f"sf_nominal_v_per_dps; outside {lo:g}-{hi:g}): the forcer does not act as configured. Check that the "
+        "forcer carrier runs on an oscillator locked to the drive (on an HF2 without MF, the oscillator of the "
+        "forcer's output channel; [lockin] wiring), that the forcer output is on and on the sense electrode, its "
+        "sign, and the [device] constants"
+    )
+
+
+RatePiDesign = Literal["critically_damped", "zero_on_pole"]
+CRITICAL_BANDWIDTH_RATIO = math.sqrt(3.0 + math.sqrt(10.0))  # -3 dB of (2p s + p^2)/(s + p)^2 at w = 2.4824 p
+
+
+@dataclass(frozen=True)
+class RateLoopDesign:
+    """The FTR rate PI as loop quantities: loop gain w_l = b P and PI zero z = I / P, both rad/s."""
+
+    gain_rad_s: float
+    zero_rad_s: float
+
+
+def rate_loop_design(
+    device: DeviceSection, bandwidth_hz: float, design: RatePiDesign = "critically_damped", zero_offset_hz: float = 0.0
+) -> RateLoopDesign:
+    """Loop gain w_l = b P and zero z = I/P of the rate PI on the plant b/(s + g), g = 1/tau (nominal device).
+
+    Open loop L(s) = w_l (s + z) / (s (s + g)); closed loop from the rate to the rate output
+        T(s) = w_l (s + z) / (s^2 + (g + w_l) s + w_l z).
+    * zero_on_pole: z = g + 2 pi f_z, w_l = 2 pi f_bw. With f_z = 0, T = w_l/(s + w_l), first order. A plant whose
+      g differs from the design's (Q moves with temperature) or whose sense mode is detuned by a split d keeps a
+      closed-loop pole near -z, about 1/tau: after each table step a tail of relative size ~ (g - z)/w_l decaying
+      with tau = 2Q/omega (174 s), longer than a table dwell.
+    * critically_damped: s^2 + (g + w_l) s + w_l z = (s + p)^2, so w_l = 2p - g, z = p^2 / w_l, and
+      T(s) = w_l (s + z)/(s + p)^2; for g << p, |T(j w)|^2 = (4 p^2 w^2 + p^4)/(w^2 + p^2)^2 = 1/2 at
+      w = p sqrt(3 + sqrt 10): p = 2 pi f_bw / 2.4824 (1.61 Hz loop gain, 0.40 Hz zero for f_bw = 2 Hz). Step
+      response 1 - e^{-pt} (1 - p t): 13.5 % overshoot at t = 2/p, within 2 % after p t = 5.39 (1.07 s at 2 Hz).
+      Every closed-loop pole sits at -p: a drift of g or a split d << p moves them by O(dg, d^2/p), none becomes
+      slow, so nothing of a table step remains after a few 1/p (e^{-25} after the campaign's 5 s settle).
+    """
+    g = 1.0 / device.tau_s
+    if design == "zero_on_pole":
+        return RateLoopDesign(2.0 * math.pi * bandwidth_hz, g + 2.0 * math.pi * zero_offset_hz)
+    p = 2.0 * math.pi * bandwidth_hz / CRITICAL_BANDWIDTH_RATIO
+    gain = 2.0 * p - g
+    return RateLoopDesign(gain, p * p / gain)
+
+
+def rate_loop_t(loop: RateLoopDesign, plant_pole_rad_s: float, s: complex | np.ndarray, gain_scale: float = 1.0) -> Any:
+    """Closed loop T(s) = w (s + z)/(s (s + g) + w (s + z)), w = gain_scale w_l (the plant's actual gain over the
+    nominal one scales the loop gain, not the zero I/P), g the plant's pole (rad/s); S = 1 - T keeps the share
+    of a forcer-input disturbance the loop does not rebalance."""
+    w = gain_scale * loop.gain_rad_s
+    return w * (s + loop.zero_rad_s) / (s * (s + plant_pole_rad_s) + w * (s + loop.zero_rad_s))
+
+
+def config_rate_loop(cfg: Config) -> RateLoopDesign:
+    """rate_loop_design of a configuration's [device] and [loops]."""
+    lp = cfg.loops
+    return rate_loop_design(cfg.device, lp.rate_bandwidth_hz, lp.sense_pi_design, lp.rate_zero_offset_hz)
+
+
+def rate_pi(
+    device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0, design: RatePiDesign = "zero_on_pole"
+) -> PidGains:
+    """FTR rate PI from rate_loop_design: P = w_l / b, I = P z. Output range = the forcer limit."""
     plant = rate_plant(device)
-    p = -2.0 * math.pi * bandwidth_hz / plant.b
-    return PidGains(p=p, i=p / plant.tau_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+    loop = rate_loop_design(device, bandwidth_hz, design, zero_offset_hz)
+    p = loop.gain_rad_s / plant.b
+    return PidGains(p=p, i=p * loop.zero_rad_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+
+
+def quadrature_pi(device: DeviceSection, bandwidth_hz: float, design: RatePiDesign = "zero_on_pole") -> PidGains:
+    """Quadrature PI on Y, the same plant as the rate loop's with gain -b, so the gains are negative: P = -w_l / b,
+    I = P z (rate_loop_design at zero offset). Its slow mode would reach the rate output through a mode split."""
+    plant = rate_plant(device)
+    loop = rate_loop_design(device, bandwidth_hz, design)
+    p = -loop.gain_rad_s / plant.b
+    return PidGains(p=p, i=p * loop.zero_rad_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
+
+
+def config_quadrature_loop(cfg: Config) -> RateLoopDesign:
+    """rate_loop_design of the quadrature loop of a configuration's [device] and [loops]."""
+    return rate_loop_design(cfg.device, cfg.loops.quadrature_bandwidth_hz, cfg.loops.sense_pi_design)
 
 
 def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:
@@ -107,8 +199,8 @@ def lockin_setup(cfg: Config, forcer_gain: float = 1.0) -> LockInSetup:
         pll=pll,
         pll_range_hz=pll.range,
         agc=agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
-        rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
-        quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+        rate=rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.sense_pi_design),
+        quadrature=quadrature_pi(dev, lp.quadrature_bandwidth_hz, lp.sense_pi_design),
         demod_rate_hz=cfg.lockin.demod_rate_hz,
         demod_timeconstant_s=cfg.lockin.demod_timeconstant_s,
         demod_order=cfg.lockin.demod_order,

@@ -33,7 +33,7 @@ import numpy as np
 
 from qmg_lab.campaign.errors import CampaignAborted, CampaignInterrupted
 from qmg_lab.campaign.interrupts import InterruptGuard
-from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.campaign.loops import forcer_path_problem, lockin_setup
 from qmg_lab.campaign.plan import CheckedPlan, Step, StepKind, checked_plan, plan_duration_s
 from qmg_lab.campaign.recorder import BlockRecorder
 from qmg_lab.campaign.recovery import RecoveryPolicy
@@ -139,6 +139,7 @@ class CampaignRunner:
             reference_periods=self.cfg.clsf.reference_periods,
             dither_min_step_v=edge_threshold_v(dither_amplitude_vpp(self.cfg)),
         )
+        self._forcer_checked = False  # the CLSF reference checked against the configured plant (forcer_path_problem)
         self._offset = 0.0
         self._t = 0.0  # file time of the last sample, s
         self._dt = 1.0 / self.cfg.lockin.demod_rate_hz
@@ -270,6 +271,7 @@ class CampaignRunner:
             self._offset_target = state.last_time
             if state.rho_ref is not None:
                 self.clsf.rho_ref = state.rho_ref
+                self._forcer_checked = True  # by the run that formed it, at the forcer gain then in force
             if state.gain_correction is not None:
                 self.clsf.gain_correction = state.gain_correction
             if self.station.restore is not None:
@@ -476,6 +478,11 @@ class CampaignRunner:
             self._recorder.record(
                 t, block, periods, tab, self._read.table_cmd, cham, truth, self._dt, clsf_reference=self.clsf.rho_ref
             )
+        if not self._forcer_checked and self.clsf.rho_ref is not None:
+            self._forcer_checked = True
+            problem = forcer_path_problem(self.clsf.rho_ref, self.cfg.device, self.clsf.gain_correction)
+            if problem is not None and not self._recovery.finishing:
+                raise CampaignAborted(problem)
         if len(periods):
             self._read.sf_change = float(periods.sf_change_estimate[-1])
             for t_k, sf_k in zip(periods.time.tolist(), periods.sf_change_estimate.tolist(), strict=True):

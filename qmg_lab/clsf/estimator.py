@@ -41,11 +41,12 @@ How this differs from the paper. The paper keeps the dither out of the FTR loop 
 frequency in the FTR path, so the rate output carries no dither and X responds to V_d open loop; it then
 demodulates the raw c_y against the triangle (its eq. 8). That needs a notch (and its odd harmonics) in the
 lock-in's PID path, which the HF2's PIDs do not offer, and a notch adds phase to the 2 Hz loop. Here the loop is
-left alone, the dither is partly rebalanced (27.6 % at 7 Hz with 2 Hz), and the host divides by the response of
-a plant of gain 1 to the recorded forcer input instead. The cost: the estimate needs the rate output recorded
-(an AuxOut looped into an AuxIn) and modelled between samples; its noise includes the rate output's, which is the
-loop's own noise, correlated with x_s, so the ratio is a little noisier than a demodulation of c_y alone
-(`qmg_lab.clsf.estimator.observe_sensitivity` gives the plain demodulation's 14 % under-reading for comparison).
+left alone, the dither is partly rebalanced (23 % at 7 Hz with the default 2 Hz loop), and the host divides by
+the response of a plant of gain 1 to the recorded forcer input instead. The cost: the estimate needs the rate
+output recorded (an AuxOut looped into an AuxIn) and modelled between samples; its noise includes the rate
+output's, which is the loop's own noise, correlated with x_s, so the ratio is a little noisier than a
+demodulation of c_y alone (`qmg_lab.clsf.estimator.observe_sensitivity` gives the plain demodulation's 14 %
+under-reading for comparison).
 
     eta = rho / rho_0 - 1                  (rho_0: mean over the first `reference_periods` periods)
     sf_change_estimate = 1 / (1 + eta) - 1  (SF/SF0 - 1, exact to all orders in the gain change)

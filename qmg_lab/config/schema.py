@@ -133,12 +133,18 @@ class LoopsSection(_Section):
     agc_bandwidth_hz: float = Field(0.5, gt=0.0, le=50.0)
     rate_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0, description="FTR rate-loop bandwidth, Hz")
     quadrature_bandwidth_hz: float = Field(2.0, gt=0.0, le=50.0)
+    sense_pi_design: Literal["critically_damped", "zero_on_pole"] = Field(
+        "critically_damped",
+        description="the sense axis's two PIs (FTR rate and quadrature): critically_damped puts both closed-loop "
+        "poles at -p, p = 2 pi f_bw / sqrt(3 + sqrt 10), -3 dB at the loop's bandwidth, no slow mode left after a "
+        "table step (2 % settling 1.1 s at 2 Hz); zero_on_pole cancels the envelope pole 1/tau (first order, "
+        "0.31 s settling) and leaves a mismatch's slow mode (tau = 2Q/omega) in the rate output (campaign/loops.py)",
+    )
     rate_zero_offset_hz: float = Field(
         0.0,
         ge=0.0,
         le=5.0,
-        description="rate PI zero this far above 1/tau, Hz (hides the slow mode of a mode mismatch, "
-        "but leaves a rate-output tail that ppm-level SF measurements must wait out)",
+        description="with sense_pi_design = zero_on_pole: the rate PI's zero this far above 1/tau, Hz",
     )
     agc_zero_offset_hz: float = Field(
         0.05,
@@ -711,6 +717,12 @@ class Config(_Section):
             raise ValueError(
                 'storage.level = "study" keeps no raw lock-in stream, which the bandwidth campaign\'s Bode fits '
                 'need: use storage.level = "full" for campaign.kind = "bandwidth"'
+            )
+        if self.loops.rate_zero_offset_hz != 0.0 and self.loops.sense_pi_design != "zero_on_pole":
+            raise ValueError(
+                f"loops.rate_zero_offset_hz ({self.loops.rate_zero_offset_hz}) places the zero of the "
+                'sense_pi_design = "zero_on_pole" PI; the critically damped design (the default) places its own: '
+                'set loops.sense_pi_design = "zero_on_pole" or drop rate_zero_offset_hz'
             )
         if self.loops.rate_bandwidth_hz >= self.dither.frequency_hz:
             raise ValueError(

@@ -12,10 +12,12 @@ Expected figures come from the model, not from earlier runs:
 * The encoder's rate of each window is the servo's rate, the command times (1 + table_rate_scale_error_ppm), to
   1.5 dt / T (qmg_lab/analysis/encoder.py, the worst case of the transition-time quantisation).
 * The paper campaign as shipped: the truth check is the budget's own table-step error (SweepAccuracy.
-  table_errors_ppm: the slow loop tail of the mode split, the damping tail, the forcer cubic, the table ripple) plus
-  the gyro noise in the windows: per window sigma_w^2 = N^2/T + (0.664 B)^2 (ARW N, bias-instability floor B), per
-  pair SF sigma_w / (sqrt 2 Omega), per e_i - t_i sqrt 2 of that; expected sqrt(model^2 + sigma^2), within the
-  budget's first-order 15 % of the model plus one sigma.
+  table_errors_ppm: the loop tails of the mode split and the damping, the forcer cubic, the table ripple; with the
+  default critically damped sense PIs 0.01 ppm) plus the gyro noise in the windows: per window sigma_w^2 = N^2/T +
+  (0.664 B)^2 (ARW N, bias-instability floor B), per pair SF sigma_w / (sqrt 2 Omega), per e_i - t_i sqrt 2 of that
+  (11.6 ppm); expected sqrt(model^2 + sigma^2), within the budget's first-order 15 % of the model plus 30 % of sigma
+  (the RMS of 24 pairs scatters by 1/sqrt(48) = 14 %, and the flicker floor's 0.664 B is the Allan deviation's, a
+  first-order stand-in for the difference of two window means).
 """
 
 from __future__ import annotations
@@ -97,4 +99,4 @@ def test_paper_campaign_truth_check_is_the_budgets_table_error(tmp_path: Path) -
     sigma_w = math.sqrt(arw**2 / t_win + floor**2)
     sigma_ppm = math.sqrt(2) * sigma_w / (math.sqrt(2) * cfg.plan.table_rate_dps) * 1e6
     expected = math.sqrt(model_rms**2 + sigma_ppm**2)
-    assert abs(res["truth_check_rms_ppm"] - expected) <= 0.15 * model_rms + sigma_ppm
+    assert abs(res["truth_check_rms_ppm"] - expected) <= 0.15 * model_rms + 0.3 * sigma_ppm

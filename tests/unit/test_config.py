@@ -24,6 +24,8 @@ def test_shipped_configs_validate(name):
     [
         ("[loops]\nrate_bandwidth_hz = -1\n", "loops.rate_bandwidth_hz"),
         ("[loops]\nrate_bandwidth_hz = 8\n", "must be below dither.frequency_hz"),
+        ("[loops]\nrate_zero_offset_hz = 0.05\n", 'set loops.sense_pi_design = "zero_on_pole"'),
+        ("[loops]\nsense_pi_design = 'pd'\n", "loops.sense_pi_design"),
         ("[plan]\ndwell_s = 5\nsettle_s = 10\n", "plan.settle_s"),
         ("[plan]\nbogus = 1\n", "plan.bogus: unknown key"),
         ("[nosuchsection]\n", "nosuchsection: unknown key"),

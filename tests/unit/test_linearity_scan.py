@@ -8,6 +8,9 @@ Every expected number comes from the budget's model (docs/accuracy-budget.md), n
   order in T z, so halving dwell and settle halves it, up to the next order (T z = 0.06 at T = 10 s);
 * a source linear in its parameter needs parameter * target / (its nonlinearity alone);
 * an undithered n-bit converter over +-10 V: RMS error (20 V / 2^n) / sqrt(12) against SF * FS.
+
+The split's tail exists under the zero-on-pole sense PIs, which these scans use ([loops] sense_pi_design); the
+default critically damped PIs leave none (a split then costs only its CLSF-ratio term).
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper_campaign.toml"
 
 @pytest.fixture(scope="module")
 def paper() -> Config:
-    return load_config(PAPER)[0]
+    cfg = load_config(PAPER)[0]
+    return cfg.model_copy(update={"loops": cfg.loops.model_copy(update={"sense_pi_design": "zero_on_pole"})})
 
 
 @pytest.fixture(scope="module")

@@ -93,10 +93,11 @@ def test_the_rate_loop_rebalances_with_the_forcer_on_oscillator_2() -> None:
     world, _, li = bench(non_mf_config())
     poll_for(li, 1.0)
     world.set_table_rate(5.0, STEP_ACCEL)
-    plus = poll_for(li, 2.0)
-    o_plus = float(np.mean(plus.rate_output[plus.time > plus.time[0] + 1.0]))
+    plus = poll_for(li, 3.0)
+    # after 2 s the critically damped loop's step response 1 - e^{-pt}(1 - pt), p = 5.06 rad/s, is within 4e-4
+    o_plus = float(np.mean(plus.rate_output[plus.time > plus.time[0] + 2.0]))
     assert o_plus == pytest.approx(SF * 5.0 * (1 + TABLE_ERROR), rel=1e-3)
-    assert abs(float(plus.x_sense[-1])) < 0.01  # held near zero (slow mode -2.78 mV, test_hf2li_loops.py)
+    assert abs(float(plus.x_sense[-1])) < 0.01  # held near zero
 
 
 def test_a_driver_that_leaves_oscillator_2_alone_gets_no_rebalance() -> None:

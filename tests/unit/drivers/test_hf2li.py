@@ -9,6 +9,7 @@ clock (the HF2 rate 1800 Sa/s as whole 210 MHz ticks: 116667 ticks per sample) a
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import replace
 from typing import Any
 
@@ -26,6 +27,12 @@ from sims.world import World
 from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
+# rate PID of the default critically damped design (qmg_lab/campaign/loops.py rate_loop_design): P = (2p - 1/tau) / b,
+# p = 2 pi 2 Hz / sqrt(3 + sqrt 10), 1/tau = 2 pi 2200 / (2 * 1.2e6), b = k R_d / SF = 0.8 * 0.5 / (0.06 * 180/pi):
+# 86.96 V/Vrms
+RATE_P = (
+    (2 * 2 * math.pi * 2.0 / math.sqrt(3 + math.sqrt(10)) - 2 * math.pi * 2200 / 2.4e6) * (0.06 * 180 / math.pi) / 0.4
+)
 RATE = 210e6 / round(210e6 / 1800.0)  # the configured 1800 Sa/s as the HF2 twin applies it: whole clock ticks
 
 
@@ -70,8 +77,8 @@ def test_configure_writes_the_loop_gains_in_one_transaction() -> None:
     dev, lp = cfg.device, cfg.loops
     expected = {
         0: agc_pi(dev, lp.agc_bandwidth_hz, lp.agc_zero_offset_hz),
-        1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz),
-        2: quadrature_pi(dev, lp.quadrature_bandwidth_hz),
+        1: rate_pi(dev, lp.rate_bandwidth_hz, lp.rate_zero_offset_hz, lp.sense_pi_design),
+        2: quadrature_pi(dev, lp.quadrature_bandwidth_hz, lp.sense_pi_design),
     }
     for n, g in expected.items():
         got = pid_nodes(twin, n)
@@ -79,8 +86,7 @@ def test_configure_writes_the_loop_gains_in_one_transaction() -> None:
             {"p": g.p, "i": g.i, "setpoint": g.setpoint, "center": g.center, "range": g.range}, rel=1e-12
         )
         assert twin.getInt(f"{DEV}/pids/{n}/enable") == 1
-    # rate PID: P = 2 pi f_bw SF / (k R_d) = 2 pi 2 * (0.06 * 180/pi) / (0.8 * 0.5) = 108 V/Vrms
-    assert twin.getDouble(f"{DEV}/pids/1/p") == pytest.approx(108.0, rel=1e-12)
+    assert twin.getDouble(f"{DEV}/pids/1/p") == pytest.approx(RATE_P, rel=1e-12)
     pll = pll_pi(dev.f0_hz, lp.pll_bandwidth_hz, lp.pll_damping)
     assert twin.getDouble(f"{DEV}/plls/0/p") == pytest.approx(pll.p, rel=1e-12)
     assert twin.getDouble(f"{DEV}/plls/0/i") == pytest.approx(pll.i, rel=1e-12)
@@ -271,7 +277,7 @@ def test_reconnect_restores_the_configuration() -> None:
     li.set_forcer_gain(1.2)
     twin.set(f"{DEV}/pids/1/p", 0.0)  # somebody changed the instrument while the link was down
     li.reconnect()
-    assert twin.getDouble(f"{DEV}/pids/1/p") == pytest.approx(108.0, rel=1e-12)
+    assert twin.getDouble(f"{DEV}/pids/1/p") == pytest.approx(RATE_P, rel=1e-12)
     assert twin.getDouble(f"{DEV}/sigouts/1/amplitudes/1") == pytest.approx(0.6)
 
 
@@ -281,4 +287,4 @@ def test_state_is_json_serialisable() -> None:
     cfg, _, _, li = bench()
     li.configure(lockin_setup(cfg))
     st = json.loads(json.dumps(li.state()))
-    assert st["pids"]["rate"]["p"] == pytest.approx(108.0) and st["pll"]["enable"] == 1
+    assert st["pids"]["rate"]["p"] == pytest.approx(RATE_P) and st["pll"]["enable"] == 1

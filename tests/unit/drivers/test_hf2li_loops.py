@@ -3,8 +3,9 @@
 Expected numbers (docs/physics.md, qmg_lab/campaign/loops.py):
 * FTR output for a table rate Omega: V = SF * Omega * (1 + e_table), SF = 0.06 V per deg/s, e_table = 60 ppm
   (World default): +5 deg/s -> 0.3000180 V; (O+ - O-) / 10 deg/s = SF (1 + 60e-6), bias cancelled.
-* Rate loop with I = P/tau: the PI zero cancels the envelope pole, L = bP/s, closed loop first order with time
-  constant 1/(bP) = 1/(2 pi 2 Hz) = 79.6 ms; doubling P halves it (39.8 ms).
+* Rate loop of the zero-on-pole design ([loops] sense_pi_design = "zero_on_pole", set here) with I = P/tau: the PI
+  zero cancels the envelope pole, L = bP/s, closed loop first order with time constant 1/(bP) = 1/(2 pi 2 Hz) =
+  79.6 ms; doubling P halves it (39.8 ms). The default critically damped design: tests/unit/sims/test_gyro_rate_loop.py.
 * PLL on the 2200 Hz drive resonance, AGC holding R = 0.5 Vrms.
 * After a rate step the sense X keeps the slow mode -(k R_d Omega)/(bP) exp(-t/tau) of the pole-zero
   cancellation: -2.78 mV for 5 deg/s (open loop: -6.1 Vrms).
@@ -21,7 +22,7 @@ from zhinst.toolkit import Session
 
 from drivers.hf2li import HF2LI
 from qmg_lab.campaign.loops import lockin_setup
-from qmg_lab.config.schema import Config
+from qmg_lab.config.schema import Config, LoopsSection
 from qmg_lab.instruments import LockInBlock
 from sims.hf2_server import HF2DataServerTwin
 from sims.world import World
@@ -33,7 +34,7 @@ STEP_ACCEL = 1e6  # deg/s^2: a step as sharp as one 0.7 ms sample
 
 
 def bench(setup_edit=None) -> tuple[World, HF2DataServerTwin, HF2LI]:
-    cfg = Config()
+    cfg = Config(loops=LoopsSection(sense_pi_design="zero_on_pole"))
     world = paper_world()
     twin = HF2DataServerTwin(world, paper_gyro_params(), seed=11, wiring=paper_wiring(), **hf2_twin_settings())
     li = HF2LI(Session("localhost", hf2=True, connection=twin), "dev1234", cfg.lockin)
