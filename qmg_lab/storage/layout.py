@@ -171,6 +171,10 @@ MODES = ("sim", "hardware")
 STATUSES = ("running", "completed", "aborted")
 
 
+#: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
+H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
+
+
 class StorageError(Exception):
     """A run file that cannot be created, read or resumed; the message names the file and what is wrong."""
 

@@ -10,8 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from qmg_lab.storage.layout import GROUP_UNITS, OPTIONAL_COLUMNS, DamagedFileError, StorageError, group_columns
-from qmg_lab.storage.runfile import H5_ERRORS, attr_value, open_run_file, valid_rows
+from qmg_lab.storage.layout import (
+    GROUP_UNITS,
+    H5_ERRORS,
+    OPTIONAL_COLUMNS,
+    DamagedFileError,
+    StorageError,
+    group_columns,
+)
+from qmg_lab.storage.runfile import attr_value, open_run_file, valid_rows
 
 __all__ = ["RunData", "attr_value", "read_run", "read_window", "valid_rows"]
 

@@ -8,15 +8,17 @@ seconds, with words, whatever the file's bytes:
 2. the superblock check (qmg_lab/storage/superblock.py): no HDF5 signature, a superblock cut off or with a bad
    checksum, or a file that ends before the end of file its superblock records is answered at once; a SWMR
    open of such a file retries its metadata reads for minutes;
-3. the file's structure is walked once in a child process with a time limit (`probe_structure`: every group,
-   attribute, dataset header and chunk index), without SWMR, through `ClearedView` (a writer's flags read as
-   cleared, nothing written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if it
-   failed (a live writer's flush caught half-way is whole a moment later). HDF5 can loop inside its C code on
+3. the file's structure is walked once in a worker process with a time limit (qmg_lab/storage/probe.py: every
+   group, attribute, dataset header and chunk index), without SWMR, through `ClearedView` (a writer's flags read
+   as cleared, nothing written; bounded by the bytes on disk, nothing retried), tried again twice 0.2 s apart if
+   it failed (a live writer's flush caught half-way is whole a moment later). HDF5 can loop inside its C code on
    damaged metadata, in a closed file too (a zeroed object header), and retries a failing SWMR read for minutes;
-   no thread can interrupt either, a child process can. A child that fails or runs out of time makes the file
-   damaged (DamagedFileError). The cost, a Python start with h5py (about 0.4 s), is paid once per file state
-   (path, size, modification time) per process; a caller that reopens a live file again and again (the watch
-   page) passes `probe=False` after its first open;
+   no thread can interrupt either, the end of a process can. A walk that fails, crashes its worker or runs out of
+   time (PROBE_TIMEOUT_S) makes the file damaged (DamagedFileError), and the worker is replaced. One worker
+   serves a process's every file: its start (a Python start with h5py, about 0.4 s) is paid once per process,
+   not per file, and is not counted in a file's time limit. A file is walked once per state (path, size,
+   modification time) per process; a caller that reopens a live file again and again (the watch page) passes
+   `probe=False` after its first open;
 4. the file is opened here read-only: through SWMR if its flags are set (its writer is still writing, or was
    killed), else without;
 5. the root attribute `format` must be one this version reads (READ_FORMATS): "qmg-lab/1" or "qmg-lab/2".
@@ -32,12 +34,15 @@ in any column read are dropped: rows allocated but never written (a kill, a full
 
 from __future__ import annotations
 
+import atexit
+import json
 import os
+import queue
 import subprocess
 import sys
-import time
+import threading
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,21 +51,20 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.h5clear import writer_flags_set
-from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, READ_FORMATS, DamagedFileError, StorageError
+from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, H5_ERRORS, READ_FORMATS, DamagedFileError, StorageError
+from qmg_lab.storage.probe import walk_structure
 from qmg_lab.storage.superblock import check_file_end
 from qmg_lab.storage.view import ClearedView
 
-#: what h5py raises for bytes that do not decode (a chunk, a B-tree node, an object header)
-H5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
-#: the child process's time to walk a file's structure (step 4), s. The walk itself never retries (no SWMR): this
-#: is a guard against the unforeseen, not the expected answer time. A start with h5py takes about 0.4 s on an
-#: idle machine and the walk of an intact 12-hour file well under a second, but a start takes several seconds
-#: on a machine loaded 5x over its cores (measured: benchmarks/damaged_files.py), and a healthy file must not be
-#: called damaged because the machine is busy
-PROBE_TIMEOUT_S = 10.0
-#: a failed walk is tried again this often, this far apart (s): a live writer's flush caught half-way
-PROBE_RETRIES = 2
-PROBE_PAUSE_S = 0.2
+#: the worker's time to walk one file's structure (step 3), s. The walk itself never retries (no SWMR) and takes
+#: well under a second on an intact 12-hour file; the worker's start (a Python start with h5py) is not counted
+#: in it, so a busy machine does not make a healthy file look damaged. Within the 5 s a reader has to answer.
+PROBE_TIMEOUT_S = 4.0
+#: the worker's start, up to its "ready" line, s: about 0.4 s on an idle machine, several seconds on one loaded
+#: 5x over its cores (benchmarks/damaged_files.py)
+WORKER_START_TIMEOUT_S = 60.0
+#: how long a worker whose input is closed has to end by itself before it is killed, s
+WORKER_STOP_S = 2.0
 
 
 def attr_value(value: Any) -> Any:
@@ -278,7 +282,7 @@ def check_structure(path: str | Path) -> None:
     commands that want to answer for a damaged file before loading anything heavy (`analyze`, `watch`)."""
     with open_run_file(path) as run:
         if not run.writer_open:
-            _walk(run.h5)
+            walk_structure(run.h5)
 
 
 def check_format(path: Path, fmt: str) -> None:
@@ -312,56 +316,128 @@ def child_env() -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH", "")) if x)}
 
 
-def _probe_in_child(path: Path, timeout_s: float) -> None:
-    """Walk the file's structure in a child process (module docstring, step 4); DamagedFileError if the walk
-    fails, crashes or is not done within timeout_s."""
-    env = child_env()
-    argv = [sys.executable, "-m", "qmg_lab.storage.probe", str(path)]
-    try:
-        done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, env=env, check=False)
-    except subprocess.TimeoutExpired:
-        raise DamagedFileError(
-            f"{path}: HDF5 did not finish reading the file's structure within {timeout_s:g} s (its writer did not "
-            f"close it, and its metadata does not read: the file is damaged)"
-        ) from None
-    except OSError as exc:
-        raise StorageError(f"{path}: cannot start the child process that checks it: {exc}") from None
-    if done.returncode == 0:
-        return
-    said = " ".join(done.stdout.split())
-    if done.returncode < 0 or not said:
-        said = f"HDF5 ended the checking process (exit {done.returncode})"
-    raise DamagedFileError(f"{path}: its structure does not read (the file is damaged): {said}")
+class _ProbeWorker:
+    """One worker process of `python -m qmg_lab.storage.probe` (its protocol: qmg_lab/storage/probe.py) and the
+    thread that reads its replies into a queue, so that the parent waits for each with a time limit on Linux and
+    Windows alike (a pipe cannot be polled on Windows). The worker runs in its own process group: a Ctrl-C or a
+    hang-up meant for the campaign does not end it."""
 
-
-def probe_structure(path: Path) -> str:
-    """In the child process: walk the structure of `path` without SWMR, through ClearedView (nothing retries: a
-    damaged metadata block fails at once); "" if the walk went through, else its error. A failed walk is tried
-    again PROBE_RETRIES times PROBE_PAUSE_S apart: a live writer's flush caught half-way is whole a moment later,
-    a damaged block stays damaged."""
-    problem = ""
-    for attempt in range(1 + PROBE_RETRIES):
-        if attempt:
-            time.sleep(PROBE_PAUSE_S)
+    def __init__(self, start_timeout_s: float) -> None:
+        group = (
+            {"creationflags": getattr(subprocess, "CREATE_NEW_PROCESS_GROUP", 0)}
+            if os.name == "nt"
+            else {"start_new_session": True}
+        )
+        argv = [sys.executable, "-m", "qmg_lab.storage.probe"]
         try:
-            with ClearedView(path) as view, h5py.File(view, "r") as h5:
-                _walk(h5)
-            return ""
-        except (*H5_ERRORS, StorageError) as exc:
-            problem = problem or f"{type(exc).__name__}: {exc}"
-    return problem
+            self.proc = subprocess.Popen(
+                argv,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                encoding="utf-8",
+                env=child_env(),
+                **group,
+            )
+        except OSError as exc:
+            raise StorageError(f"cannot start the process that checks run files' structure: {exc}") from None
+        self.replies: queue.Queue[str | None] = queue.Queue()
+        threading.Thread(target=self._read_replies, name="qmg-lab-probe-replies", daemon=True).start()
+        try:
+            ready = self.replies.get(timeout=start_timeout_s)
+        except queue.Empty:
+            ready = None
+        if ready is None:
+            self.proc.kill()
+            self.stop()
+            raise StorageError(
+                f"the process that checks run files' structure did not start within {start_timeout_s:g} s "
+                "(the machine may be overloaded): try again"
+            )
+
+    def _read_replies(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.replies.put(line)
+        self.replies.put(None)
+
+    def walk(self, path: Path, timeout_s: float) -> None:
+        """Have the worker walk `path`: DamagedFileError if the walk fails, the worker dies, or it does not answer
+        within timeout_s (it is then killed: HDF5 may be looping in its C code). OSError if the worker had ended
+        before the request reached it."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(json.dumps({"path": str(path)}) + "\n")
+        self.proc.stdin.flush()
+        try:
+            line = self.replies.get(timeout=timeout_s)
+        except queue.Empty:
+            self.proc.kill()
+            self.stop()
+            raise DamagedFileError(
+                f"{path}: HDF5 did not finish reading the file's structure within {timeout_s:g} s (its metadata "
+                "does not read: the file is damaged)"
+            ) from None
+        if line is None:
+            self.stop()
+            raise DamagedFileError(
+                f"{path}: its structure does not read (the file is damaged): HDF5 ended the checking process "
+                f"(exit {self.proc.returncode})"
+            )
+        problem = " ".join(str(json.loads(line).get("problem", "")).split())
+        if problem:
+            self.stop()  # a worker that met damaged metadata is not reused
+            raise DamagedFileError(f"{path}: its structure does not read (the file is damaged): {problem}")
+
+    def stop(self) -> None:
+        """End the worker: close its input (it ends by itself) and kill it if it is still walking."""
+        if self.proc.stdin is not None:
+            with suppress(OSError):
+                self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=WORKER_STOP_S)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
 
 
-def _walk(group: h5py.Group) -> None:
-    """Read every attribute, member, dataset header and chunk index below `group`."""
-    for k in group.attrs:
-        group.attrs[k]
-    for name in group:
-        obj = group[name]
-        if isinstance(obj, h5py.Group):
-            _walk(obj)
-        elif isinstance(obj, h5py.Dataset):
-            for k in obj.attrs:
-                obj.attrs[k]
-            if obj.chunks is not None and obj.shape and obj.shape[0]:
-                obj.id.chunk_iter(lambda info: None)
+class _ProbeService:
+    """The process's one worker (started at its first file, kept for the next, replaced after a damaged file)."""
+
+    def __init__(self) -> None:
+        self.worker: _ProbeWorker | None = None
+        self.lock = threading.Lock()
+
+    def walk(self, path: Path, timeout_s: float) -> None:
+        """`_ProbeWorker.walk` on the current worker. A worker found ended between two files (a signal meant for
+        it, its watchdog) is replaced before the file is sent, so its end is never blamed on a file."""
+        with self.lock:
+            for attempt in (0, 1):
+                if self.worker is None or self.worker.proc.poll() is not None:
+                    self.worker = _ProbeWorker(WORKER_START_TIMEOUT_S)
+                try:
+                    self.worker.walk(path, timeout_s)
+                    return
+                except DamagedFileError:
+                    self.worker = None
+                    raise
+                except OSError:  # the worker ended just before the request reached it
+                    self.worker.stop()
+                    self.worker = None
+                    if attempt:
+                        raise StorageError(f"{path}: the process that checks its structure ended twice") from None
+
+    def close(self) -> None:
+        with self.lock:
+            if self.worker is not None:
+                self.worker.stop()
+                self.worker = None
+
+
+_PROBE_SERVICE = _ProbeService()
+atexit.register(_PROBE_SERVICE.close)
+
+
+def _probe_in_child(path: Path, timeout_s: float) -> None:
+    """Walk the file's structure in the worker process (module docstring, step 3); DamagedFileError if the walk
+    fails, crashes its worker or is not done within timeout_s."""
+    _PROBE_SERVICE.walk(path, timeout_s)

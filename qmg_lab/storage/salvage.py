@@ -42,8 +42,8 @@ import h5py
 import numpy as np
 
 from qmg_lab.storage.h5clear import clear_superblock_flags
-from qmg_lab.storage.layout import GROUP_UNITS, DamagedFileError, StorageError
-from qmg_lab.storage.runfile import H5_ERRORS, child_env, open_run_file, valid_rows
+from qmg_lab.storage.layout import GROUP_UNITS, H5_ERRORS, DamagedFileError, StorageError
+from qmg_lab.storage.runfile import child_env, open_run_file, valid_rows
 from qmg_lab.storage.superblock import read_superblock
 
 __all__ = [
