@@ -822,10 +822,11 @@ TMPFS_BYTES = 80 << 20  # the small disk: room for the run's check before it sta
 
 
 def _fill(mount: Path, leave: int) -> Path:
-    """Fill the disk at `mount` up to `leave` free bytes with a new file (as another program would)."""
+    """Fill the disk at `mount` up to `leave` free bytes with a new file (as another program would); the disk
+    keeps whole blocks, so at least `leave` bytes stay free (less than one block more)."""
     filler = mount / f"filler-{time.monotonic_ns()}"
     st = os.statvfs(mount)
-    todo = max(st.f_bavail * st.f_frsize - leave, 0)
+    todo = max(st.f_bavail * st.f_frsize - leave, 0) // st.f_frsize * st.f_frsize
     with open(filler, "wb") as fh:
         while todo > 0:
             try:
