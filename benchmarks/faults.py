@@ -818,6 +818,8 @@ def resume_window_kills(n: int, seed: int, tmp: Path, deadline: float = float("i
 
 #: free bytes left on the run's disk when it fills up: from nothing to more than a flush needs
 FILL_LEVELS = (0, 4096, 65536, 262144, 1 << 20, 2 << 20, 4 << 20, 6 << 20, 8 << 20, 12 << 20)
+#: free bytes left when the disk fills again during the resume: less than the rest of the run needs
+REFILL_LEVELS = tuple(x for x in FILL_LEVELS if x <= 1 << 20)
 TMPFS_BYTES = 80 << 20  # the small disk: room for the run's check before it starts (raw rate) and its file
 
 
@@ -848,8 +850,9 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
     """A real full disk at every level of FILL_LEVELS, twice in a row: each case runs the writer soaks' campaign on
     a small tmpfs; another program fills the disk to the level after a random step; the run must end with exit
     2 or 3 and words, never exit 0 without every step in the file, never a traceback or a signal (segfault). Then
-    the disk fills again during the resume (the second full disk). Then exactly the space the run asked for is
-    freed and a plain --resume must complete the file to the uninterrupted run's data. Needs root (mount) on
+    the disk fills again during the resume (the second full disk, to at most 1 MiB free). Then exactly the space
+    the run asked for is freed and a plain --resume must complete the file to the uninterrupted run's data; every
+    file a full disk ended is compared with the uninterrupted run, also when its first resume completed it. Needs root (mount) on
     Linux; otherwise skipped."""
     if sys.platform != "linux" or os.geteuid() != 0:
         return {"skipped": "needs root on Linux to mount a tmpfs"}
@@ -880,7 +883,8 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
                 )
                 start = max(completed_steps_now(path), 0)
                 if _wait_steps(proc, path, start + rng.randint(2, 6) if attempt == 0 else start + 1):
-                    _fill(mount, level if attempt == 0 else rng.choice(FILL_LEVELS))
+                    # the second time, a level the rest of the run cannot fit in: the disk is full twice in a row
+                    _fill(mount, level if attempt == 0 else rng.choice(REFILL_LEVELS))
                 try:
                     _, err = proc.communicate(timeout=HANG_S)
                 except subprocess.TimeoutExpired:
@@ -908,6 +912,8 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
             fig["cases"] = int(fig["cases"]) + 1
             fig["exit_codes"].append(codes)  # type: ignore[union-attr]
             if _completed(path):
+                if codes[0] != 0:  # a full disk ended the run and a resume completed it: held to the reference too
+                    _compare(path, ref, dt, poll_s, fig, f"disk{i} (level {level} B)")
                 continue
             try:
                 before = _checkpoints(path)
@@ -927,13 +933,29 @@ def disk_full_levels(seed: int, tmp: Path) -> dict[str, object]:
             for f in mount.glob("filler-*"):
                 f.unlink()
             _finish_and_compare(path, cfg, ref, dt, poll_s, before, fig, f"disk{i} (level {level} B)")
-            if TRUTH_CHECKS and TRUTH_CHECKS[-1]["file"] == str(path):
-                fig.setdefault("truth_checks_ppm", []).append(  # type: ignore[union-attr]
-                    [round(float(TRUTH_CHECKS[-1][k]), 2) for k in ("plain_ppm", "delivered_rates_ppm")]  # type: ignore[arg-type]
-                )
+            _note_truth_check(path, fig)
         finally:
             subprocess.run(["umount", str(mount)], check=False)
     return fig
+
+
+def _compare(path: Path, ref: Path, dt: float, poll_s: float, fig: dict[str, object], label: str) -> None:
+    """A completed file compared with the uninterrupted run (check_against): counted in `compared`, a difference
+    in `mismatches`."""
+    fig["compared"] = int(fig.get("compared", 0)) + 1  # type: ignore[call-overload]
+    bad = check_against(path, ref, dt, poll_s)
+    if bad:
+        fig["mismatches"] = int(fig["mismatches"]) + 1  # type: ignore[call-overload]
+        fig["details"].append(f"{label}: " + "; ".join(bad))  # type: ignore[attr-defined]
+    _note_truth_check(path, fig)
+
+
+def _note_truth_check(path: Path, fig: dict[str, object]) -> None:
+    """The file's truth checks (as analysed, with the delivered table rates), ppm, in fig["truth_checks_ppm"]."""
+    if TRUTH_CHECKS and TRUTH_CHECKS[-1]["file"] == str(path):
+        fig.setdefault("truth_checks_ppm", []).append(  # type: ignore[union-attr]
+            [round(float(TRUTH_CHECKS[-1][k]), 2) for k in ("plain_ppm", "delivered_rates_ppm")]  # type: ignore[arg-type]
+        )
 
 
 def _completed(path: Path) -> bool:

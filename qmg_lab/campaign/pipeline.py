@@ -43,7 +43,7 @@ from qmg_lab.instruments import InstrumentError, LimitError, Station
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS, DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
-from qmg_lab.storage.space import SpaceNeed
+from qmg_lab.storage.space import WORDS_PATTERN, SpaceNeed
 from qmg_lab.storage.study_level import create_study_writer, refuse_study_resume
 from qmg_lab.storage.superblock import read_superblock
 from qmg_lab.storage.writer import RunFileWriteError, RunWriter, read_run
@@ -384,12 +384,15 @@ def _not_recorded(end: RunEnd, exc: BaseException, path: Path, cfg: Config, plan
     successful flush and resumes from there. Out of space: the figure to free is what the resume's check of the
     closed file asks (`resume_space_need`), not what the run had left when it failed (checkpoints written after
     the last successful flush did not reach the disk, and the resume reruns their steps)."""
-    space = ""
+    space, before = "", end.message
     if isinstance(exc, RunFileWriteError) and exc.out_of_space:
-        space = f" (out of space: {resume_space_need(cfg, plan, path).words()}; free that much, then resume)"
+        need = resume_space_need(cfg, plan, path).words()
+        space = f" (out of space: {need}; free that much, then resume)"
+        # a figure the run named before this write failed (its space check) counted steps whose rows were lost
+        before = WORDS_PATTERN.sub(need, before)
     words = f"the run file's last write failed{space}: {exc}; file {path} (continue with --resume {path})"
     code = end.exit_code if end.exit_code not in (EXIT_DONE, EXIT_BAD_INPUT) else EXIT_FAULT
-    message = f"{end.message}; {words}" if end.message else words
+    message = f"{before}; {words}" if before else words
     return RunEnd(code, message, path, summary=end.summary, error=exc, safe_state_note=end.safe_state_note)
 
 
