@@ -585,12 +585,13 @@ def _faulty(faults: FaultInjector | None, name: str, twin: Any) -> Any:
 
 def restore_world(world: World, state: dict[str, Any]) -> None:
     """A resumed simulated run: the physical world did not stop when the host process died. Put the twins'
-    world back where the file says it was (time, chamber setpoint and air, gyro temperature)."""
+    world back where the file says it was (time, chamber setpoint and air, gyro temperature, table angle)."""
     world.restore(
         time_s=state.get("last_time"),
         chamber_setpoint_c=state.get("chamber_setpoint_c"),
         chamber_air_c=state.get("chamber_temperature_c"),
         gyro_c=state.get("gyro_temperature_c"),
+        table_angle_deg=state.get("table_angle_deg"),
     )
 
 

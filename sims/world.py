@@ -260,13 +260,17 @@ class World:
         chamber_setpoint_c: float | None = None,
         chamber_air_c: float | None = None,
         gyro_c: float | None = None,
+        table_angle_deg: float | None = None,
     ) -> None:
         """Put the world back where a resumed run's file says it was: the physical bench did not stop when the
         host process died. The time is restored only on the virtual clock (a wall clock runs on by itself); the
-        chamber controller's setpoint and target, its air and the gyro temperature as given (None: unchanged)."""
+        chamber controller's setpoint and target, its air, the gyro temperature and the table's angle (deg: the
+        once-per-revolution rate ripple and the encoder depend on it) as given (None: unchanged)."""
         with self.lock:
             if time_s is not None and self.clock == "virtual":
                 self.t = float(time_s)
+            if table_angle_deg is not None:
+                self.table.angle_deg = float(table_angle_deg)
             if chamber_setpoint_c is not None:
                 self.chamber.controller_setpoint_c = float(chamber_setpoint_c)
                 self.chamber.target_c = float(chamber_setpoint_c)

@@ -43,7 +43,9 @@ from qmg_lab.instruments import InstrumentError, LimitError, Station
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS, DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
+from qmg_lab.storage.space import WORDS_PATTERN, SpaceNeed
 from qmg_lab.storage.study_level import create_study_writer, refuse_study_resume
+from qmg_lab.storage.superblock import read_superblock
 from qmg_lab.storage.writer import RunFileWriteError, RunWriter, read_run
 
 log = logging.getLogger(__name__)
@@ -224,16 +226,44 @@ def _check_resumable(cfg: Config, config_text: str, path: Path) -> set[int]:
 
 def _check_space(cfg: Config, plan: CheckedPlan, path: Path, done: set[int], resume: bool) -> None:
     """The space the rest of the plan needs on the file's disk: refused before anything starts if it is not free."""
-    left_s = plan_duration_s([s for s in plan.steps if s.index not in done])
     if resume:
-        need = run_space_need(cfg, path, run_time_s=_file_run_time(path), left_s=left_s)
+        need = resume_space_need(cfg, plan, path, done)
     else:
+        left_s = plan_duration_s([s for s in plan.steps if s.index not in done])
         need = run_space_need(cfg, path, run_time_s=0.0, left_s=left_s)
     if not need.enough:
         raise RunRefused(
             f"not enough space for the run file {path}: {need.words()}. Free the space or write to another disk "
             "(-o), then start again"
         )
+
+
+def resume_space_need(cfg: Config, plan: CheckedPlan, path: Path, done: set[int] | None = None) -> SpaceNeed:
+    """The space `--resume` of the file at `path` needs, as its own check computes it (`_check_space`): the
+    steps the file does not hold as completed (`done`; None: read from the file, every step if it does not read)
+    at the bytes per second the file shows over the run time it holds (qmg_lab/storage/space.py). A file a full
+    disk left shorter than its superblock's end of file (`ends_short`) needs that end's bytes more: the resume
+    checks it on a copy padded to that end (the whole file once more, while the check runs) and then pads the
+    file itself. The figure a run that ran out of space asks for is this one, computed once its file is closed,
+    so freeing it is enough for the resume's check."""
+    if done is None:
+        try:
+            steps = read_run(path, select=()).steps
+            done = {int(i) for i, st in zip(steps["index"], steps["status"], strict=True) if st == "completed"}
+        except StorageError:
+            done = set()
+    left_s = plan_duration_s([s for s in plan.steps if s.index not in done])
+    need = run_space_need(cfg, path, run_time_s=_file_run_time(path), left_s=left_s)
+    try:
+        short = ends_short(path)
+        eof = read_superblock(path).eof_address if short else None
+    except (StorageError, OSError):
+        short, eof = False, None
+    if short and eof is not None:
+        size = path.stat().st_size
+        needed = max(need.needed + (eof - size), eof)
+        need = SpaceNeed(needed, need.free, need.bytes_per_s, need.left_s, need.measured)
+    return need
 
 
 def _file_run_time(path: Path) -> float:
@@ -333,7 +363,7 @@ def _run(
         with guard.protect():  # a second stop signal waits for the file's last write
             closed = _close(writer)
     if closed is not None:  # the last flush or close failed: what the run did is not all in the file
-        return _not_recorded(end, closed, path)
+        return _not_recorded(end, closed, path, cfg, plan)
     if end.ok:
         return _read_back(end, plan, path)
     return end
@@ -349,15 +379,20 @@ def _close(writer: RunWriter) -> BaseException | None:
     return writer.write_error
 
 
-def _not_recorded(end: RunEnd, exc: BaseException, path: Path) -> RunEnd:
-    """A failed final write turns any ending into exit 3 (a signal's exit code stays): the file keeps its last
-    successful flush and resumes from there."""
-    space = ""
+def _not_recorded(end: RunEnd, exc: BaseException, path: Path, cfg: Config, plan: CheckedPlan) -> RunEnd:
+    """A failed write turns any ending into exit 3 (a signal's exit code stays): the file keeps its last
+    successful flush and resumes from there. Out of space: the figure to free is what the resume's check of the
+    closed file asks (`resume_space_need`), not what the run had left when it failed (checkpoints written after
+    the last successful flush did not reach the disk, and the resume reruns their steps)."""
+    space, before = "", end.message
     if isinstance(exc, RunFileWriteError) and exc.out_of_space:
-        space = " (out of space: free some, then resume)"
+        need = resume_space_need(cfg, plan, path).words()
+        space = f" (out of space: {need}; free that much, then resume)"
+        # a figure the run named before this write failed (its space check) counted steps whose rows were lost
+        before = WORDS_PATTERN.sub(need, before)
     words = f"the run file's last write failed{space}: {exc}; file {path} (continue with --resume {path})"
     code = end.exit_code if end.exit_code not in (EXIT_DONE, EXIT_BAD_INPUT) else EXIT_FAULT
-    message = f"{end.message}; {words}" if end.message else words
+    message = f"{before}; {words}" if before else words
     return RunEnd(code, message, path, summary=end.summary, error=exc, safe_state_note=end.safe_state_note)
 
 

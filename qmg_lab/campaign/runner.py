@@ -344,17 +344,13 @@ class CampaignRunner:
         return failures
 
     def _write_failure_reason(self, exc: RunFileWriteError) -> str:
-        """The abort reason of a failed write; out of space: how much more the run needs (qmg_lab/storage/space.py,
-        the figure the resume's own check asks for), and what is free on the file's disk."""
+        """The abort reason of a failed write. Out of space: what is full; the space to free is named once the
+        file is closed (qmg_lab.campaign.pipeline.resume_space_need: what the resume's check will ask of it)."""
         if not exc.out_of_space:
             return f"the run file could not be written: {exc}"
         path = self.writer.path
         what = "the process's file size limit (ulimit -f) was reached" if exc.size_limit else "the disk is full"
-        need = self._space_need()
-        return (
-            f"the run file could not be written: {what} ({path}, {self._t:.0f} s of run time written). "
-            f"{need.words()}. Free the space, then continue with --resume {path}"
-        )
+        return f"the run file could not be written: {what} ({path}, {self._t:.0f} s of run time written)"
 
     def _space_need(self) -> SpaceNeed:
         return run_space_need(

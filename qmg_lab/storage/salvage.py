@@ -31,9 +31,11 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import shutil
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -95,6 +97,7 @@ def _read_prefix(ds: h5py.Dataset) -> tuple[np.ndarray, str]:
         return np.empty(0), f"its layout does not read: {exc}"
     parts: list[np.ndarray] = []
     for start in range(0, n, step):
+        _beat()
         try:
             parts.append(np.asarray(ds[start : min(start + step, n)]))
         except H5_ERRORS as exc:
@@ -109,6 +112,7 @@ def _datasets(h5: h5py.File, unreadable: list[DatasetScan] | None = None) -> lis
     skipped = unreadable if unreadable is not None else []
 
     def members(group: h5py.Group) -> list[str]:
+        _beat()
         try:
             return list(group.keys())
         except H5_ERRORS as exc:
@@ -116,6 +120,7 @@ def _datasets(h5: h5py.File, unreadable: list[DatasetScan] | None = None) -> lis
             return []
 
     def member(group: h5py.Group, name: str) -> Any:
+        _beat()
         try:
             return group[name]
         except H5_ERRORS as exc:
@@ -180,6 +185,7 @@ def salvage(source: str | Path, target: str | Path) -> list[DatasetScan]:
                 steps = _cut_steps(data, groups)
                 _add_events(data, groups)
                 for ds in datasets:
+                    _beat()
                     _copy_dataset(ds, out, data[ds.name])
                 _copy_attrs(h5.attrs, out.attrs)
                 if steps["kept"] < steps["found"]:
@@ -345,43 +351,101 @@ def _copy_attrs(source: h5py.AttributeManager, target: h5py.AttributeManager) ->
             continue
 
 
-#: `scan_isolated`'s time limit, s; `salvage_isolated`'s: this plus SALVAGE_S_PER_MB per MB of the file (a
-#: copy of a long run legitimately takes minutes)
-ISOLATED_S = 30.0
-SALVAGE_S_PER_MB = 2.0
+#: how long the child of `scan_isolated` / `salvage_isolated` may go without reporting progress, s: it reports
+#: before every member list, every dataset it opens and every chunk it reads or copies (milliseconds each on an
+#: intact file), so a child silent this long is looping inside HDF5's C code on a damaged part of the file. A
+#: limit on progress, not on the whole run, so that a long run's salvage (minutes of chunks) is not stopped, and a
+#: damaged file is answered within the 5 s a reader has: the child's start + this
+STALL_S = 3.0
+#: how long the child may take to start (a Python with numpy and h5py, on a loaded machine) before it reports
+START_S = 20.0
+_STARTED, _BEAT = "started", "."
 
 
-def _in_child(argv: list[str], timeout_s: float, what: str, path: Path) -> str:
-    """Run `python -m qmg_lab.storage.salvage ARGV` with a time limit: HDF5 can loop inside its C code on bytes
-    that decode as nonsense (a zero-filled attribute heap was seen to), where only a child can be stopped.
-    Returns its stdout; StorageError in words if it fails or runs out of time."""
+def _beat() -> None:
+    """Progress, reported by the child (`_main` turns this on); a no-op in any other process."""
+    if _REPORTING.is_set():
+        sys.stdout.write(_BEAT + "\n")
+        sys.stdout.flush()
+
+
+_REPORTING = threading.Event()  # set in the child only
+
+
+def _in_child(argv: list[str], what: str, path: Path, stall_s: float = STALL_S, start_s: float = START_S) -> str:
+    """Run `python -m qmg_lab.storage.salvage ARGV` and stop it once it has reported no progress for `stall_s`
+    (after its start, allowed `start_s`): HDF5 can loop inside its C code on bytes that decode as nonsense (a
+    zero-filled attribute heap was seen to), where only a child can be stopped. Its reports are read by a thread
+    into a queue (a pipe cannot be polled on Windows). Returns its result line; StorageError in words if it
+    fails or stops progressing."""
     full = [sys.executable, "-m", "qmg_lab.storage.salvage", *argv]
+    proc = subprocess.Popen(
+        full, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env(), stdin=subprocess.DEVNULL
+    )
+    lines: queue.Queue[str | None] = queue.Queue()
+    said: list[str] = []
+
+    def pump_stdout() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.put(line.rstrip("\n"))
+        lines.put(None)
+
+    def pump_stderr() -> None:
+        assert proc.stderr is not None
+        said.append(proc.stderr.read())
+
+    readers = [threading.Thread(target=f, daemon=True) for f in (pump_stdout, pump_stderr)]
+    for t in readers:
+        t.start()
+    result, limit, started = "", start_s, False
     try:
-        done = subprocess.run(full, capture_output=True, text=True, timeout=timeout_s, env=child_env(), check=False)
-    except subprocess.TimeoutExpired:
-        raise DamagedFileError(
-            f"{path}: {what} did not finish within {timeout_s:g} s: HDF5 loops on a damaged part of the file"
-        ) from None
-    if done.returncode != 0:
-        said = " ".join(done.stderr.split()[-60:]) or f"exit {done.returncode}"
-        raise StorageError(f"{path}: {what} failed: {said}")
-    return done.stdout
+        while True:
+            try:
+                line = lines.get(timeout=limit)
+            except queue.Empty:
+                proc.kill()
+                proc.wait()
+                if not started:
+                    raise DamagedFileError(
+                        f"{path}: {what} did not start within {start_s:g} s (the machine is too busy?)"
+                    ) from None
+                raise DamagedFileError(
+                    f"{path}: {what} did not finish: no progress within {stall_s:g} s, HDF5 loops on a damaged "
+                    "part of the file"
+                ) from None
+            if line is None:
+                break
+            if line == _STARTED:
+                started, limit = True, stall_s
+            elif line == _BEAT:
+                limit = stall_s
+            else:
+                result = line
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+        for t in readers:
+            t.join(timeout=5.0)
+    if proc.returncode != 0:
+        words = " ".join("".join(said).split()[-60:]) or f"exit {proc.returncode}"
+        raise StorageError(f"{path}: {what} failed: {words}")
+    return result
 
 
-def scan_isolated(path: str | Path, timeout_s: float = ISOLATED_S) -> list[DatasetScan]:
-    """`scan` in a child process with a time limit (`_in_child`)."""
-    out = _in_child(["scan", str(path)], timeout_s, "the scan of what still reads", Path(path))
+def scan_isolated(path: str | Path, stall_s: float = STALL_S, start_s: float = START_S) -> list[DatasetScan]:
+    """`scan` in a child process stopped when it stops progressing (`_in_child`)."""
+    out = _in_child(["scan", str(path)], "the scan of what still reads", Path(path), stall_s, start_s)
     return [DatasetScan(**row) for row in json.loads(out)]
 
 
 def salvage_isolated(source: str | Path, target: str | Path) -> list[DatasetScan]:
-    """`salvage` in a child process with a time limit growing with the file (`_in_child`); nothing is left at
-    `target` if it fails."""
-    src = Path(source)
-    size_mb = src.stat().st_size / 1e6 if src.is_file() else 0.0
+    """`salvage` in a child process stopped when it stops progressing (`_in_child`); nothing is left at `target`
+    if it fails."""
     dst = Path(target)
     try:
-        out = _in_child(["salvage", str(source), str(target)], ISOLATED_S + SALVAGE_S_PER_MB * size_mb, "salvage", src)
+        out = _in_child(["salvage", str(source), str(target)], "salvage", Path(source))
     except StorageError:
         for partial in dst.parent.glob(f".{dst.name}.*.salvaging"):  # a stopped child's unfinished copy
             partial.unlink(missing_ok=True)
@@ -391,7 +455,9 @@ def salvage_isolated(source: str | Path, target: str | Path) -> list[DatasetScan
 
 def _main(argv: list[str]) -> int:
     """The child of `scan_isolated` / `salvage_isolated`: the scan as JSON on stdout; exit 1 with the words on
-    stderr for a StorageError."""
+    stderr for a StorageError. Its progress goes to stdout too, one line per step (`_beat`)."""
+    _REPORTING.set()
+    print(_STARTED, flush=True)
     try:
         rows = scan(argv[1]) if argv[0] == "scan" else salvage(argv[1], argv[2])
     except StorageError as exc:

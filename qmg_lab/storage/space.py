@@ -19,6 +19,7 @@ free, the resume's own check passes.
 from __future__ import annotations
 
 import math
+import re
 import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -87,6 +88,10 @@ class SpaceNeed:
             f"({self.bytes_per_s * 3600 / 1e6:.0f} MB per hour of run time, {how}, x{MARGIN:g} "
             f"+ {RESERVE_BYTES / 1e6:.1f} MB); {free} are free"
         )
+
+
+#: `SpaceNeed.words()` in a message (from "The run needs about" to "are free")
+WORDS_PATTERN = re.compile(r"The run needs about [0-9.]+ MB more .*? (?:MB|unknown) are free", re.DOTALL)
 
 
 def space_need(path: Path, *, bytes_per_s: float, left_s: float, measured: bool) -> SpaceNeed:

@@ -143,6 +143,7 @@ class ResumeState:
     chamber_setpoint_c: float | None
     chamber_temperature_c: float | None
     gyro_temperature_c: float | None
+    table_angle_deg: float | None = None  # the table's angle at last_time (its last position reading)
 
     def as_dict(self) -> dict[str, float | None]:
         return dict(self.__dict__)
@@ -659,7 +660,9 @@ class RunWriter:
             self._h5.attrs["clsf_reference"] = float(rho_ref)
 
     def resume_state(self) -> ResumeState:
-        """Where a resumed run continues: last time, CLSF reference and gain, last chamber and truth readings."""
+        """Where a resumed run continues: last time, CLSF reference and gain, last chamber and truth readings, and
+        the table's angle at the last time: its last /table position (deg) + its measured rate (deg/s) x the time
+        from that reading to the last lock-in sample (on the twins both fall at the same block's end)."""
         self._check_open()
         self._flush_buffers()
 
@@ -671,6 +674,9 @@ class RunWriter:
 
         ref = self._h5.attrs.get("clsf_reference")
         has_data = bool(np.isfinite(self._last_time.get("lockin", -np.inf)))
+        angle, table_t, table_rate = last("table", "position"), last("table", "time"), last("table", "rate_measured")
+        if angle is not None and table_t is not None and table_rate is not None and has_data:
+            angle += table_rate * (self.last_time() - table_t)
         return ResumeState(
             last_time=self.last_time() if has_data else None,
             rho_ref=float(ref) if ref is not None and np.isfinite(ref) else None,
@@ -678,6 +684,7 @@ class RunWriter:
             chamber_setpoint_c=last("chamber", "setpoint"),
             chamber_temperature_c=last("chamber", "temperature"),
             gyro_temperature_c=last("truth", "temperature"),
+            table_angle_deg=angle if angle is not None and math.isfinite(angle) else None,
         )
 
     # ---- flushing and status --------------------------------------------------------------------------------

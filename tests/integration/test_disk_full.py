@@ -10,6 +10,7 @@ space was freed.
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 
@@ -17,7 +18,8 @@ import h5py
 import numpy as np
 import pytest
 
-from qmg_lab.campaign.plan import build_plan
+from qmg_lab.campaign.pipeline import resume_space_need
+from qmg_lab.campaign.plan import build_plan, checked_plan
 from qmg_lab.config.schema import parse_config
 from qmg_lab.storage.records import read_events
 from tests.support.campaigns import config_text, qmg
@@ -48,6 +50,11 @@ def test_a_full_disk_aborts_safe_with_exit_3_and_the_run_resumes(tmp_path: Path)
     assert "Traceback" not in said
     assert "file size limit" in said and "The run needs about" in said and "MB more" in said
     assert "(safe_state: confirmed)" in said and f"--resume {path}" in said
+    # the figure asked is what the resume's own check of this file asks: freeing it is enough
+    asked = re.search(r"The run needs about ([0-9.]+) MB more", said)
+    assert asked is not None
+    plan_checked = checked_plan(parse_config(text))
+    assert resume_space_need(parse_config(text), plan_checked, path).needed <= float(asked.group(1)) * 1e6
 
     done = subprocess.run(qmg("run", str(cfg), "--resume", str(path), "-q"), capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

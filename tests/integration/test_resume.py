@@ -261,3 +261,30 @@ def test_the_cli_final_close_is_protected_from_a_second_ctrl_c(tmp_path, monkeyp
     assert closes_completed == [True]  # the interrupt came after the close, not in the middle of it
     run = read_run(path)
     assert run.status == "completed" and not run.writer_open
+
+
+def test_a_resume_continues_the_twin_table_where_it_stood(tmp_path):
+    """The table does not turn back to 0 deg because its host process died: a run stopped in the middle of a
+    +5 deg/s step is resumed with the twin's table at the angle of its last /table reading (the once-per-revolution
+    rate ripple, table_rate_ripple_ppm, depends on it: a table put back at 0 deg gives the resumed steps another
+    delivered rate than the uninterrupted run's). Between the stop and the first reading of the resumed run the
+    table does not move: the safe state stopped it, and the resume waits for lock with the table at rest."""
+    stopped_at: list[float] = []
+
+    def progress(p) -> None:
+        if p.step.index == 5 and p.step_elapsed_s >= 6.0 and not stopped_at:
+            stopped_at.append(p.run_time_s)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    text = config_text()
+    first = run_inprocess(tmp_path, text, progress=progress)
+    assert stopped_at and first.error is not None
+    before = first.run().groups["table"]
+    angle = float(before["position"][-1])
+    assert angle > 20.0  # 6 s into a +5 deg/s step that started at 0 deg
+    second = run_inprocess(tmp_path, text, resume=True)
+    assert second.error is None
+    after = second.run().groups["table"]
+    later = after["time"] > before["time"][-1]
+    assert after["rate_measured"][later][0] == 0.0  # at rest: the first reading of the resumed run is in its lock wait
+    assert abs(float(after["position"][later][0]) - angle) < 0.01  # the 1291BR's position reads to 0.01 deg

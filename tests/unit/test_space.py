@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from qmg_lab.storage.space import MARGIN, RESERVE_BYTES, SpaceNeed, raw_bytes_per_s, space_need
+from qmg_lab.storage.space import MARGIN, RESERVE_BYTES, WORDS_PATTERN, SpaceNeed, raw_bytes_per_s, space_need
 
 
 def test_the_raw_rate_is_the_stored_bytes_of_every_column() -> None:
@@ -31,3 +31,12 @@ def test_freeing_the_figure_asked_is_always_enough() -> None:
         asked = float(found.group(1)) * 1e6
         assert asked >= needed, said
         assert SpaceNeed(needed, round(asked), 100.0, 10.0, True).enough
+
+
+def test_the_words_pattern_finds_every_figure_asked() -> None:
+    """A figure asked before a write failed is replaced by the one computed after it (campaign.pipeline), found
+    by WORDS_PATTERN: it must match the whole of every `words()`, known free space or not."""
+    for free in (0, None, 123_456_789):
+        said = SpaceNeed(4_250_001, free, 100.0, 10.0, True).words()
+        found = WORDS_PATTERN.search(f"stopped: {said}. Free the space")
+        assert found is not None and found.group(0) == said

@@ -198,6 +198,8 @@ def test_restore_puts_back_time_chamber_and_gyro_but_not_the_time_of_a_wall_cloc
     assert (w.chamber.air_c, w.chamber.gyro_c) == (30.2, 29.9)
     w.restore(gyro_c=28.0)  # None leaves a quantity as it is
     assert (w.t, w.chamber.air_c, w.chamber.gyro_c) == (1234.5, 30.2, 28.0)
+    w.restore(table_angle_deg=137.5)  # the table stands where the file last saw it (its ripple depends on it)
+    assert w.table_angle_deg() == 137.5 and w.t == 1234.5
     wall = paper_world(clock="wall")
     t0 = wall.t
     wall.restore(time_s=1e6)
