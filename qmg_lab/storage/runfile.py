@@ -349,8 +349,13 @@ class _ProbeWorker:
     hang-up meant for the campaign does not end it."""
 
     def __init__(self, start_timeout_s: float) -> None:
+        # Windows: a process group of its own (Ctrl+C is disabled in it: Python's subprocess documentation) and no
+        # console window of its own (a notebook's kernel has no console to share); POSIX: a session of its own
         group = (
-            {"creationflags": getattr(subprocess, "CREATE_NEW_PROCESS_GROUP", 0)}
+            {
+                "creationflags": getattr(subprocess, "CREATE_NEW_PROCESS_GROUP", 0)
+                | getattr(subprocess, "CREATE_NO_WINDOW", 0)
+            }
             if os.name == "nt"
             else {"start_new_session": True}
         )
