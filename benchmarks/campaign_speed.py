@@ -101,7 +101,7 @@ def run_once(
     if proc.returncode != 0:
         err = proc.stderr.read().decode() if proc.stderr else ""
         raise SystemExit(f"qmg-lab run {config} failed ({proc.returncode}):\n{err}")
-    run = read_run(out, select=("lockin/time",))
+    run = read_run(out, select=("lockin/time", "truth/time"))
     simulated = float(run.groups["lockin"]["time"][-1])
     assert run.has_truth, "the twins' file has /truth"
     cpu = usage.ru_utime + usage.ru_stime

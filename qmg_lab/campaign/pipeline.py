@@ -43,6 +43,7 @@ from qmg_lab.instruments import InstrumentError, LimitError, Station
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS, DamagedFileError, StorageError
 from qmg_lab.storage.lock import RunFileLock
 from qmg_lab.storage.resume import SALVAGE, ends_short, heal_interrupted_open
+from qmg_lab.storage.runfile import start_structure_worker
 from qmg_lab.storage.space import WORDS_PATTERN, SpaceNeed
 from qmg_lab.storage.study_level import create_study_writer, refuse_study_resume
 from qmg_lab.storage.superblock import read_superblock
@@ -168,6 +169,7 @@ def run_campaign(
             return RunEnd(EXIT_BAD_INPUT, words, path, error=exc)
         except (RunRefused, StorageError, LimitError) as exc:
             return RunEnd(EXIT_BAD_INPUT, str(exc), path, error=exc)
+        start_structure_worker()  # the read-back's walk of the closed file (_read_back) finds its worker started
         guard = stack.enter_context(InterruptGuard())
         # from here to the file's last close a stop signal is kept for the campaign, which stops at its first block
         if station is None:

@@ -457,15 +457,37 @@ class _ProbeService:
                     if attempt:
                         raise StorageError(f"{path}: the process that checks its structure ended twice") from None
 
-    def close(self) -> None:
+    def start(self) -> None:
+        """Start the worker if there is none (a start that fails is tried again, and said, at the next walk)."""
         with self.lock:
+            if self.worker is None or self.worker.proc.poll() is not None:
+                try:
+                    self.worker = _ProbeWorker(WORKER_START_TIMEOUT_S)
+                except StorageError:
+                    self.worker = None
+
+    def close(self) -> None:
+        # at the process's exit: a worker still starting (start_structure_worker) is not waited for; it ends by
+        # itself when this process's end closes its input
+        if not self.lock.acquire(timeout=WORKER_STOP_S):
+            return
+        try:
             if self.worker is not None:
                 self.worker.stop()
                 self.worker = None
+        finally:
+            self.lock.release()
 
 
 _PROBE_SERVICE = _ProbeService()
 atexit.register(_PROBE_SERVICE.close)
+
+
+def start_structure_worker() -> None:
+    """Start this process's structure worker in a background thread, if it has none: a caller that will open a
+    run file later (a campaign reads its file back once it has closed it) pays the worker's start (a Python start
+    with h5py) while it works, not after."""
+    threading.Thread(target=_PROBE_SERVICE.start, name="qmg-lab-probe-start", daemon=True).start()
 
 
 def _probe_in_child(path: Path, timeout_s: float) -> None:

@@ -99,3 +99,13 @@ def test_the_worker_has_a_process_group_of_its_own(tmp_path: Path, service: runf
     service.walk(_small_file(tmp_path / "f.h5"), runfile.PROBE_TIMEOUT_S)
     assert service.worker is not None
     assert os.getpgid(service.worker.proc.pid) != os.getpgid(0)
+
+
+def test_a_worker_started_ahead_serves_the_next_walk(tmp_path: Path, service: runfile._ProbeService) -> None:
+    """`start_structure_worker` (a campaign, for its read-back): the worker started before any file is the one
+    that walks the first file."""
+    service.start()
+    assert service.worker is not None
+    pid = service.worker.proc.pid
+    service.walk(_small_file(tmp_path / "f.h5"), runfile.PROBE_TIMEOUT_S)
+    assert service.worker.proc.pid == pid
