@@ -478,9 +478,18 @@ class _ProbeService:
         finally:
             self.lock.release()
 
+    def forget_inherited(self) -> None:
+        """In a child made by fork(): the parent's worker and its pipes are the parent's, and the lock may have been
+        held by one of the parent's threads at the fork; the child starts afresh (its first walk starts its own
+        worker), so that replies never cross between the two processes."""
+        self.worker = None
+        self.lock = threading.Lock()
+
 
 _PROBE_SERVICE = _ProbeService()
 atexit.register(_PROBE_SERVICE.close)
+if hasattr(os, "register_at_fork"):  # POSIX (multiprocessing's default start method on Linux is fork)
+    os.register_at_fork(after_in_child=_PROBE_SERVICE.forget_inherited)
 
 
 def start_structure_worker() -> None:

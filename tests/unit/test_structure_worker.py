@@ -7,6 +7,8 @@ meant for the campaign does not reach it."""
 from __future__ import annotations
 
 import os
+import select
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -109,3 +111,38 @@ def test_a_worker_started_ahead_serves_the_next_walk(tmp_path: Path, service: ru
     pid = service.worker.proc.pid
     service.walk(_small_file(tmp_path / "f.h5"), runfile.PROBE_TIMEOUT_S)
     assert service.worker.proc.pid == pid
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork() is POSIX")
+def test_a_forked_child_walks_with_a_worker_of_its_own(tmp_path: Path) -> None:
+    """A process that forks after its first file (multiprocessing's default on Linux), while another of its
+    threads is in a walk (the service's lock held): the child's walk starts its own worker instead of waiting
+    for ever on a lock no thread of the child will release, and the parent's worker keeps serving the parent."""
+    f = _small_file(tmp_path / "f.h5")
+    runfile.forget_walks()
+    runfile._probe_in_child(f, runfile.PROBE_TIMEOUT_S)
+    parent_worker = runfile._PROBE_SERVICE.worker
+    assert parent_worker is not None
+    r, w = os.pipe()
+    with runfile._PROBE_SERVICE.lock:  # as a walk in another thread holds it
+        pid = os.fork()
+        if pid == 0:  # the child: report its worker's pid (0 if its walk failed), then leave at once
+            os.close(r)
+            try:
+                runfile._probe_in_child(f, runfile.PROBE_TIMEOUT_S)
+                worker = runfile._PROBE_SERVICE.worker
+                said = str(worker.proc.pid if worker is not None else 0)
+            except BaseException as exc:
+                said = f"error {exc}"
+            os.write(w, said.encode())
+            os._exit(0)
+    os.close(w)
+    ready, _, _ = select.select([r], [], [], 60.0)
+    if not ready:
+        os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    with os.fdopen(r) as fh:
+        said = fh.read() if ready else "the child's walk hung (the lock it inherited was held)"
+    assert said.isdigit() and int(said) not in (0, parent_worker.proc.pid), said
+    runfile._probe_in_child(_small_file(tmp_path / "g.h5"), runfile.PROBE_TIMEOUT_S)
+    assert runfile._PROBE_SERVICE.worker is parent_worker  # the parent's worker still serves the parent
