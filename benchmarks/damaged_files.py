@@ -26,7 +26,7 @@ without the intact file's row), and the median and maximum wall and CPU times; t
 references are the baseline (a Python start with the analysis's imports costs seconds before any file is read).
 Exit codes and refusals are not judged here beyond "answered in words": a damaged file may still read (a flipped
 data byte in an uncompressed column changes a value, nothing more). Also measured: the cost of `open_run_file` on
-the two intact references (the killed one pays the child-process walk), median of 5.
+the two intact references (each pays the structure worker's walk), median of 5.
 
 The figures go to docs/reliability.md ("Damaged files: every reader answers").
 """

@@ -4,7 +4,8 @@ runs them, in a fresh process each time.
 
 Two cases, side by side, each in its own fresh process (`--runs` rounds, alternating):
 
-    probe      the code as it is: open_run walks the file once in a child process (a Python start with h5py)
+    probe      the code as it is: open_run has the file walked once by its structure worker (started at the
+               process's first file: a Python start with h5py)
     no_probe   the same with the file registered as walked beforehand (runfile's per-process record of walked
                files), so that no child is started: the walk's cost is the difference
 

@@ -52,7 +52,6 @@ import numpy as np
 
 from qmg_lab.storage.h5clear import writer_flags_set
 from qmg_lab.storage.layout import FORMAT, GROUP_UNITS, H5_ERRORS, READ_FORMATS, DamagedFileError, StorageError
-from qmg_lab.storage.probe import walk_structure
 from qmg_lab.storage.superblock import check_file_end
 from qmg_lab.storage.view import ClearedView
 
@@ -204,8 +203,8 @@ def open_run_file(
 
     Yields a RunFile (`run.h5` the h5py.File, `run.attrs`, `run.format`, `run.writer_open`, `run.read(group)`).
     Raises StorageError naming the file and what is wrong (DamagedFileError for damaged bytes), never an h5py
-    exception. probe=False skips the child-process walk of the file's structure (step 4): only for a file this
-    caller has already probed. damaged=True (salvage and its scan): a file cut short or left open
+    exception. probe=False skips the worker's walk of the file's structure (step 3): only for a file this
+    caller has already walked. damaged=True (salvage and its scan): a file cut short or left open
     by a writer is opened too, always through `ClearedView` without SWMR (bounded by the bytes on disk: nothing
     is retried), and root attributes that do not read are left out instead of refused.
     """
@@ -275,13 +274,11 @@ def _root_attrs(p: Path, h5: h5py.File, *, tolerant: bool) -> dict[str, Any]:
 
 
 def check_structure(path: str | Path) -> None:
-    """Open the file (`open_run_file`) and read every attribute, member, dataset header and chunk index of it
-    (the walk of step 4, here in this process: a file whose writer flags are set was walked in a child already,
-    a cleanly closed one is read without SWMR, so nothing retries). StorageError/DamagedFileError in words. For
-    commands that want to answer for a damaged file before loading anything heavy (`analyze`, `watch`)."""
-    with open_run_file(path) as run:
-        if not run.writer_open:
-            walk_structure(run.h5)
+    """Open the file (`open_run_file`), whose worker walks every attribute, member, dataset header and chunk index
+    of it (step 3), and close it. StorageError/DamagedFileError in words. For commands that want to answer for a
+    damaged file before loading anything heavy (`analyze`, `watch`)."""
+    with open_run_file(path):
+        pass
 
 
 def check_format(path: Path, fmt: str) -> None:
@@ -299,7 +296,7 @@ def check_format(path: Path, fmt: str) -> None:
     )
 
 
-#: files whose structure a child walked without fault, as (path, size, mtime ns): a file that has not changed
+#: files whose structure the worker walked without fault, as (path, size, mtime ns): a file that has not changed
 #: since is not walked again by this process (analyze opens the same killed file several times)
 _PROBED: set[tuple[str, int, int]] = set()
 
