@@ -46,6 +46,15 @@ Each trace is a `Trace` (a `Band` for the envelope): new rows are reduced by min
 2 x MAX_POINTS points it is decimated again to MAX_POINTS and sent whole. The browser thus never holds more than
 about 2 x MAX_POINTS points per trace, whatever the run's length.
 
+What the browser redraws: BokehJS draws the page on canvases, in software on many lab PCs and on the twins' own
+cores, so an update costs what it makes the browser do, not what it sends. Three things kept every update
+from costing a whole new layout of the page: the now panel and the header are a document root of their own
+(`_layout`: their new text every update lays out the text, not the plots); each numeric plot's y range is a
+`StableRange`, which moves only when the data leave it (new tick labels make BokehJS measure and align every
+axis again); and the legends are drawn from stand-in glyphs on a source that never changes (`_keyed`: BokehJS
+3.9 rebuilds a legend's entries whenever anything under its renderers changes). Only the top and the bottom plot
+label the shared time axis. docs/performance.md has the browser's CPU per update before and after.
+
 Timing: the page checks the file's status every CHECK_MS and reads its new rows every POLL_MS; a change of status
 (the run ended, was stopped, or its process died) is sent to the browser at once, alone (the now panel's text),
 and the file is read and redrawn on the next tick: the final status is on the page within CHECK_MS plus the
@@ -64,7 +73,7 @@ from typing import Any
 import numpy as np
 from bokeh.document import Document
 from bokeh.layouts import column, gridplot
-from bokeh.models import ColumnDataSource, DataRange1d, FactorRange, HoverTool
+from bokeh.models import ColumnDataSource, DataRange1d, FactorRange, HoverTool, Range1d
 from bokeh.models.annotations import Legend
 from bokeh.models.widgets import Div
 from bokeh.plotting import figure
@@ -87,6 +96,7 @@ CHECK_MS = 500
 SPEED_WINDOW_S = 60.0
 STEP_FAMILIES = ("lock", "dither", "soak", "rate", "hold", "sine", "level", "return")
 PLOTS = ("sf", "gain", "temp", "table", "drive", "pll", "steps", "events")  # model names: plot_<name>
+TIME_LABELLED = ("sf", "events")  # the plots that label the shared time axis: the top one and the bottom one
 DIED = "process died: check the instruments"
 
 
@@ -147,6 +157,63 @@ class Band:
     def clear(self) -> None:
         self.t, self.lo, self.hi = np.zeros(0), np.zeros(0), np.zeros(0)
         self.source.data = {"t": [], "lo": [], "hi": []}
+
+
+def _nice_step(span: float) -> float:
+    """The smallest 1, 2 or 5 x 10^k that is >= span (span > 0)."""
+    k = 10.0 ** math.floor(math.log10(span))
+    return next(m * k for m in (1.0, 2.0, 5.0, 10.0) if m * k >= span * (1 - 1e-12))
+
+
+class StableRange:
+    """A plot's y range that moves only when its data leave it.
+
+    Bokeh's DataRange1d follows the data at every update, and every new range gives the axis new tick labels:
+    the browser then lays out the whole page again (BokehJS measures every axis's labels to align the stacked
+    plots), which on a software-drawn page cost as much as drawing it. A trace keeps its whole run (min/max
+    decimation keeps every extreme), so the data's extent [lo, hi] only grows, until a resume starts the page
+    again (`clear`). The first range is [lo - PAD w, hi + PAD w], w = hi - lo (flat data: w = |hi| 1e-6, or 1
+    at zero); when the data leave [a, b], each side they left by moves out by b - a beyond them, so the span at
+    least doubles and a steady drift changes the range a logarithmic number of times, not at every update.
+    Both ends are rounded outwards to the 1-2-5 step >= span / 5. Reset (the toolbar) returns to [a, b].
+    """
+
+    PAD = 0.1
+
+    def __init__(self) -> None:
+        self.range = Range1d(start=0.0, end=1.0)
+        self.bounds: tuple[float, float] | None = None
+
+    def cover(self, lo: float, hi: float) -> None:
+        """Make [a, b] hold [lo, hi], the minimum and maximum of all the plot's data."""
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return
+        if self.bounds is None:
+            w = hi - lo if hi > lo else (abs(hi) * 1e-6 or 1.0)
+            a, b = lo - self.PAD * w, hi + self.PAD * w
+        else:
+            a, b = self.bounds
+            if a <= lo and hi <= b:
+                return
+            span = b - a
+            a, b = (lo - span if lo < a else a), (hi + span if hi > b else b)
+        step = _nice_step((b - a) / 5.0)
+        self.bounds = (math.floor(a / step) * step, math.ceil(b / step) * step)
+        a, b = self.bounds
+        self.range.update(start=a, end=b, reset_start=a, reset_end=b)
+
+    def clear(self) -> None:
+        self.bounds = None
+
+
+def _extent(*arrays: Any) -> tuple[float, float]:
+    """(min, max) over the finite values of all arrays; (nan, nan) if none."""
+    values = [np.asarray(a, dtype=float) for a in arrays]
+    values = [v[np.isfinite(v)] for v in values if v.shape[0]]
+    values = [v for v in values if v.shape[0]]
+    if not values:
+        return math.nan, math.nan
+    return min(float(v.min()) for v in values), max(float(v.max()) for v in values)
 
 
 def _clock(s: float) -> str:
@@ -243,11 +310,23 @@ class WatchPage:
             text=f"<b>{html.escape(path.name)}</b>: opening ...", name="header", height=44, sizing_mode="stretch_width"
         )
         self.polls = ColumnDataSource({"n": [0]}, name="polls")  # how many times the page has read the file
-        self.layout = self._layout()
+        # the legends' stand-in glyphs draw from this source, which never changes (_keyed): one row whose
+        # coordinates are NaN, so it draws nothing on the plots and gives each legend swatch a row to draw
+        nan = np.full(1, np.nan)
+        key = {c: nan for c in ("t", "y", "lo", "hi", "left", "right")}
+        self.key_source = ColumnDataSource(
+            {**key, "family": [STEP_FAMILIES[0]], "kind": [EVENT_KINDS[0]]}, name="legend_key"
+        )
+        self.y_ranges: dict[str, StableRange] = {}
+        self.text, self.plots = self._layout()
 
     # ---- layout ------------------------------------------------------------------------------------------
 
     def _figure(self, name: str, title: str, ylabel: str, x_range: DataRange1d | None, **kw: Any) -> Any:
+        """A plot of the stack. Its legend (on the right) is drawn from stand-ins (`_keyed`); only the top and
+        the bottom plot label the shared time axis (the plots between keep its grid lines)."""
+        if "y_range" not in kw:
+            kw["y_range"] = self.y_ranges.setdefault(name, StableRange()).range
         fig = figure(
             name=f"plot_{name}",
             title=title,
@@ -259,24 +338,37 @@ class WatchPage:
             **kw,
         )
         fig.yaxis.axis_label = ylabel
-        fig.xaxis.axis_label = "run time [s]"
-        fig.add_layout(Legend(location="top_left", click_policy="hide"), "right")
+        if name in TIME_LABELLED:
+            fig.xaxis.axis_label = "run time [s]"
+        else:
+            fig.xaxis.visible = False
+        fig.add_layout(Legend(location="top_left"), "right")
         return fig
 
+    def _keyed(self, fig: Any, glyph: str, label: str, source: ColumnDataSource, **kw: Any) -> None:
+        """Draw `glyph` from `source`, and its legend entry from the same glyph on `key_source`, which never
+        changes: BokehJS 3.9's legend builds its entries again (new DOM elements, a canvas each) whenever
+        anything under its renderers changes, which for a renderer of a streamed source was every update. (An
+        empty source would not do: the legend draws a swatch from a row of its renderer's data.)"""
+        getattr(fig, glyph)(source=source, **kw)
+        getattr(fig, glyph)(source=self.key_source, legend_label=label, **kw)
+
     def _line(self, fig: Any, trace: str, label: str, color: str, **kw: Any) -> None:
-        fig.line("t", "y", source=self.traces[trace].source, legend_label=label, color=color, **kw)
+        self._keyed(fig, "line", label, self.traces[trace].source, x="t", y="y", color=color, **kw)
 
     def _dots(self, fig: Any, trace: str, label: str, color: str) -> None:
         """A lock-in-rate trace: read in sampled chunks (follow.py), so drawn as points: no line across a gap."""
-        fig.scatter("t", "y", source=self.traces[trace].source, legend_label=label, color=color, size=2)
+        self._keyed(fig, "scatter", label, self.traces[trace].source, x="t", y="y", color=color, size=2)
 
-    def _layout(self) -> Any:
+    def _layout(self) -> tuple[Any, Any]:
+        """(the text: now panel and header; the plots): two roots of the document, so that a new text (every
+        update) lays out the text alone, not the plots below it."""
         sf = self._figure("sf", "scale factor", "SF change [ppm]", None)
         x = self.x_range = sf.x_range
-        band = self.sf_band.source
-        sf.varea("t", "lo", "hi", source=band, color="#cccccc", alpha=0.7, legend_label="CLSF, each period (min-max)")
+        band = dict(x="t", y1="lo", y2="hi", color="#cccccc", alpha=0.7)
+        self._keyed(sf, "varea", "CLSF, each period (min-max)", self.sf_band.source, **band)
         self._line(sf, "sf_mean", "CLSF, 60 s mean", "#1f77b4", line_width=2)
-        sf.scatter("t", "y", source=self.pairs, size=8, color="#d62728", legend_label="true SF, step pairs")
+        self._keyed(sf, "scatter", "true SF, step pairs", self.pairs, x="t", y="y", size=8, color="#d62728")
         gain = self._figure("gain", "CLSF gain correction", "g_c - 1 [ppm]", x)
         self._line(gain, "gain", "g_c - 1", "#ff7f0e")
         temp = self._figure("temp", "temperatures", "degC", x)
@@ -290,20 +382,15 @@ class WatchPage:
         self._dots(drive, "drive_amplitude", "drive R", "#8c564b")
         pll = self._figure("pll", "PLL frequency (steady while locked)", "Hz", x)
         self._dots(pll, "pll_frequency", "PLL oscillator", "#17becf")
-        pll.scatter("t", "y", source=self.unlocked, size=5, color="#d62728", legend_label="PLL not locked")
+        self._keyed(pll, "scatter", "PLL not locked", self.unlocked, x="t", y="y", size=5, color="#d62728")
         steps = self._figure("steps", "plan", "", x, y_range=FactorRange(factors=list(STEP_FAMILIES)), height=200)
-        steps.hbar(
-            y="family",
-            left="left",
-            right="right",
-            height=0.7,
-            color="color",
-            source=self.steps,
-            legend_field="label",
-        )
+        bars = dict(y="family", left="left", right="right", height=0.7)
+        steps.hbar(color="color", source=self.steps, **bars)
+        for label, color in (("completed", "#1f77b4"), ("current", "#d62728"), ("planned", "#cccccc")):
+            steps.hbar(color=color, source=self.key_source, legend_label=label, **bars)
         steps.add_tools(HoverTool(tooltips=[("step", "@label"), ("from", "@left{0.0} s"), ("to", "@right{0.0} s")]))
         events = self._figure("events", "events", "", x, y_range=FactorRange(factors=list(EVENT_KINDS)), height=220)
-        events.scatter("t", "kind", source=self.events, size=9, color="#d62728", legend_label="event")
+        self._keyed(events, "scatter", "event", self.events, x="t", y="kind", size=9, color="#d62728")
         events.add_tools(HoverTool(tooltips=[("t", "@t{0.0} s"), ("", "@instrument: @message")]))
         # one toolbar for all the plots (their tools merged): pan or zoom one and all follow the shared time axis
         plots = gridplot(
@@ -312,7 +399,21 @@ class WatchPage:
             toolbar_location="right",
             sizing_mode="stretch_width",
         )
-        return column(self.now, self.header, plots, sizing_mode="stretch_width")
+        return column(self.now, self.header, sizing_mode="stretch_width"), plots
+
+    def _cover_ranges(self) -> None:
+        """Each numeric plot's y range over all its data (StableRange)."""
+        tr = self.traces
+        data = {
+            "sf": (self.sf_band.lo, self.sf_band.hi, tr["sf_mean"].y, self.pairs.data["y"]),
+            "gain": (tr["gain"].y,),
+            "temp": (tr["chamber_air"].y, tr["chamber_setpoint"].y, tr["gyro_temperature"].y),
+            "table": (tr["table_command"].y, tr["table_measured"].y),
+            "drive": (tr["drive_amplitude"].y,),
+            "pll": (tr["pll_frequency"].y, self.unlocked.data["y"]),
+        }
+        for name, arrays in data.items():
+            self.y_ranges[name].cover(*_extent(*arrays))
 
     # ---- updates -----------------------------------------------------------------------------------------
 
@@ -321,7 +422,8 @@ class WatchPage:
         tick, so the page is up at once and says it is loading until the file is drawn; a bare document (tests,
         benchmarks) is fed at once."""
         doc.title = f"qmg-lab watch: {self.path.name}"
-        doc.add_root(self.layout)
+        doc.add_root(self.text)
+        doc.add_root(self.plots)
         doc.add_root(self.polls)
         self.doc = doc
         if doc.session_context is None:
@@ -378,6 +480,8 @@ class WatchPage:
                 tr.clear()
             self.sf_band.clear()
             self.unlocked.data = {"t": [], "y": []}
+            for r in self.y_ranges.values():
+                r.clear()
             self.last_t = self.unlocked_at = math.nan
             self.seen = []
             self.lost = 0
@@ -388,6 +492,7 @@ class WatchPage:
         self.file_steps = up.steps
         self.lost += up.lost_samples
         self._feed(up)
+        self._cover_ranges()
         if math.isfinite(up.horizon):
             self.last_t = up.horizon
         if self.status.startswith("running") and math.isfinite(self.last_t):

@@ -5,17 +5,20 @@ against `qmg-lab analyze`'s. The page in a real browser: test_watch_browser.py."
 from __future__ import annotations
 
 import html
+import math
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from bokeh.document import Document
+from bokeh.models import Div, GlyphRenderer, Legend, Plot, Range1d
 
 from qmg_lab.analysis.compute import analyze
-from qmg_lab.watch.page import CHUNK_BINS, MAX_POINTS, PLOTS, Band, Trace, WatchPage
+from qmg_lab.watch.page import CHUNK_BINS, MAX_POINTS, PLOTS, Band, StableRange, Trace, WatchPage
 from tests.support.live_runs import append_block, interrupted_then_resumed, live_writer
 
 
@@ -183,3 +186,73 @@ def test_the_closed_tab_warning_alone_is_filtered(caplog) -> None:  # type: igno
         log.warning(CLOSED_TAB)
         log.warning("another websocket problem")
     assert [r.getMessage() for r in caplog.records] == ["another websocket problem"]
+
+
+def test_a_stable_range_moves_only_when_its_data_leave_it() -> None:
+    """StableRange's rule (its docstring): first [lo - 0.1 w, hi + 0.1 w] rounded out to the 1-2-5 step >= span/5;
+    data inside change nothing; data beyond a side move that side out by the span beyond them."""
+    r = StableRange()
+    r.cover(0.0, 10.0)  # [-1, 11]: span 12, step 5 (>= 2.4)
+    assert r.bounds == (-5.0, 15.0)
+    assert (r.range.start, r.range.end, r.range.reset_start, r.range.reset_end) == (-5.0, 15.0, -5.0, 15.0)
+    r.cover(-4.0, 14.0)
+    assert r.bounds == (-5.0, 15.0)
+    r.cover(-4.0, 16.0)  # above by 1: the top moves to 16 + 20 = 36; [-5, 36]: span 41, step 10
+    assert r.bounds == (-10.0, 40.0)
+    r.cover(-12.0, 16.0)  # below: -12 - 50 = -62; [-62, 40]: span 102, step 50
+    assert r.bounds == (-100.0, 50.0)
+    r.clear()
+    r.cover(2200.0, 2200.0)  # flat: w = 2200e-6 -> [2199.99978, 2200.00022], step 1e-4
+    a, b = r.bounds or (0.0, 0.0)
+    assert math.isclose(a, 2199.9997, rel_tol=1e-12) and math.isclose(b, 2200.0003, rel_tol=1e-12)
+    r.clear()
+    r.cover(0.0, 0.0)  # flat at zero: w = 1 -> [-0.1, 0.1], step 0.05
+    assert r.bounds is not None and np.allclose(r.bounds, (-0.1, 0.1))
+    r.cover(math.nan, 1.0)  # nothing finite: nothing moves
+    assert r.bounds is not None and np.allclose(r.bounds, (-0.1, 0.1))
+
+
+def test_every_plot_holds_its_data_and_every_legend_draws_from_a_source_that_never_changes(tmp_path: Path) -> None:
+    """After a live file's blocks: each numeric plot's y range holds all of its traces' points; every legend
+    entry's renderers draw from the page's key source, which stays as it was made, one row of NaN coordinates (so
+    streaming a trace never makes the browser rebuild a legend, and the stand-ins draw nothing); the now panel and
+    header are a root of their own, apart from the plots."""
+    path = tmp_path / "live.h5"
+    w = live_writer(path, "ranges", ["soak", "soak", "soak"])
+    try:
+        page = WatchPage(path)
+        doc = Document()
+        page.attach(doc)
+        for k in range(3):
+            append_block(w, k, "soak")
+            page.update()
+            assert page.traces["chamber_air"].t.shape[0] > 0
+            drawn: dict[str, list[Any]] = {}
+            for r in page.plots.select({"type": GlyphRenderer}):
+                if r.data_source is page.key_source:
+                    continue
+                data = r.data_source.data
+                ys = [data[c] for c in ("y", "lo", "hi") if c in data and len(data[c])]
+                fig = next(f for f in page.plots.select({"type": Plot}) if r in f.renderers)
+                drawn.setdefault(fig.name, []).extend(ys)
+            for name, arrays in drawn.items():
+                if not arrays or not isinstance(doc.get_model_by_name(name).y_range, Range1d):
+                    continue
+                y = np.concatenate([np.asarray(a, dtype=float) for a in arrays])
+                rng = doc.get_model_by_name(name).y_range
+                assert rng.start <= np.nanmin(y) and np.nanmax(y) <= rng.end, name
+    finally:
+        w.set_status("completed")
+        w.close()
+    legends = list(page.plots.select({"type": Legend}))
+    assert len(legends) == len(PLOTS)
+    for legend in legends:
+        assert legend.items
+        for item in legend.items:
+            assert all(r.data_source is page.key_source for r in item.renderers)
+    key = page.key_source.data
+    assert all(len(v) == 1 for v in key.values())
+    assert all(np.isnan(key[c][0]) for c in ("t", "y", "lo", "hi", "left", "right"))
+    texts = set(page.text.select({"type": Div}))
+    assert texts == {page.now, page.header} and not set(page.plots.select({"type": Div}))
+    assert [r for r in doc.roots if r is page.text or r is page.plots] == [page.text, page.plots]
