@@ -3,7 +3,9 @@
 Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
 
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
-  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods. For a
+  the stored configuration, the configured rate loop's time to within e^-5 of the end of a step from its step
+  response: 1.33 s critically damped, 0.40 s first order at 2 Hz; qmg_lab/analysis/reductions.py
+  analysis_settle_s); sine steps also wait 2 periods. For a
   rate or level step that moves the table, t_start and t_end are the ends of the table's constant-rate plateau
   seen by its encoder on the HF2's clock (/lockin/table_encoder, qmg_lab/analysis/encoder.py) when the file has
   it and [table] encoder_on_dio is on; otherwise the host's step times.
