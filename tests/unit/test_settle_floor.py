@@ -28,9 +28,7 @@ LEVEL = math.exp(-5.0)
 
 def _cfg(design: str, bandwidth_hz: float, settle_s: float, zero_offset_hz: float = 0.0) -> Config:
     return Config(
-        loops=LoopsSection(
-            sense_pi_design=design, rate_bandwidth_hz=bandwidth_hz, rate_zero_offset_hz=zero_offset_hz
-        ),
+        loops=LoopsSection(sense_pi_design=design, rate_bandwidth_hz=bandwidth_hz, rate_zero_offset_hz=zero_offset_hz),
         plan=PlanSection(settle_s=settle_s),
     )
 
