@@ -10,8 +10,10 @@ run's own Allan deviation of the dither-free rate output, qmg_lab/analysis/compu
 a window of T = dwell_s - settle_s seconds averages the gyro's noise to
     sigma_w^2 = N^2 / T + (0.664 B)^2        (N the ARW in deg/s/sqrt(Hz), B the bias instability, [sim])
 a pair's SF change carries sqrt(2) sigma_w / (2 Omega) (two window means), and e_i - t_i, referred to pair 0,
-sqrt(2) of that again: sigma_w / Omega. Printed per rate: each seed's measured and predicted figure, the seeds'
-mean and RMS of the measured one, and the model.
+sqrt(2) of that again: sigma_w / Omega. Printed per run: the truth check, the predicted figure with its 68 % bounds,
+the truth check with its mean over pairs 1..n-1 removed (pair 0's draw eps_0, common to every e_i, taken out)
+beside its prediction sqrt(predicted^2 - pair 0's share^2) ("pairs own"), and the model; per rate the seeds' mean
+and RMS of each.
 
     python benchmarks/truth_check_noise.py [--seeds 1 2 3 4 5] [--fast-seeds 1 2 3] [--fast-rate 20] [--json]
         [--dir /tmp/truth_check_noise] [--reuse]
@@ -66,14 +68,24 @@ def one_run(folder: Path, rate_dps: float, seed: int, reuse: bool) -> dict[str, 
     if not (reuse and run.exists()):
         _qmg("run", str(cfg_path), "--sim", "-o", str(run), "-q", "--overwrite")
     res = json.loads(_qmg("analyze", str(run), "--json"))
+    d = [p["true_change_ppm"] - p["truth_change_ppm"] for p in res["pairs"][1:]]
+    mean = sum(d) / len(d)
     return {
         "table_rate_dps": rate_dps,
         "seed": seed,
         "n_pairs": len(res["pairs"]),
         "truth_check_rms_ppm": res["truth_check_rms_ppm"],
+        "truth_check_rms_ppm_mean_removed": math.sqrt(sum((x - mean) ** 2 for x in d) / len(d)),
         "table_step_noise_ppm": res.get("table_step_noise_ppm"),
+        "table_step_noise_ppm_low": res.get("table_step_noise_ppm_low"),
+        "table_step_noise_ppm_high": res.get("table_step_noise_ppm_high"),
+        "table_step_noise_pair0_ppm": res.get("table_step_noise_pair0_ppm"),
         "model_ppm": model_ppm(parse_config(text, str(cfg_path))),
     }
+
+
+def _rms(values: list[float]) -> float:
+    return math.sqrt(sum(v * v for v in values) / len(values))
 
 
 def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -82,14 +94,22 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for rate in sorted({r["table_rate_dps"] for r in rows}):
         mine = [r for r in rows if r["table_rate_dps"] == rate]
         measured = [r["truth_check_rms_ppm"] for r in mine]
+        spread = [r["truth_check_rms_ppm_mean_removed"] for r in mine]
         predicted = [r["table_step_noise_ppm"] for r in mine if r["table_step_noise_ppm"] is not None]
+        own = [
+            math.sqrt(r["table_step_noise_ppm"] ** 2 - r["table_step_noise_pair0_ppm"] ** 2)
+            for r in mine
+            if r["table_step_noise_ppm"] is not None
+        ]
         out.append(
             {
                 "table_rate_dps": rate,
                 "seeds": [r["seed"] for r in mine],
                 "measured_mean_ppm": sum(measured) / len(measured),
-                "measured_rms_ppm": math.sqrt(sum(m * m for m in measured) / len(measured)),
-                "predicted_mean_ppm": sum(predicted) / len(predicted) if predicted else None,
+                "measured_rms_ppm": _rms(measured),
+                "predicted_rms_ppm": _rms(predicted) if predicted else None,
+                "measured_mean_removed_rms_ppm": _rms(spread),
+                "predicted_pairs_own_rms_ppm": _rms(own) if own else None,
                 "model_ppm": mine[0]["model_ppm"],
             }
         )
@@ -113,18 +133,28 @@ def main() -> None:
     if args.json:
         print(json.dumps(result, indent=2))
         return
-    print(f"{'rate deg/s':>10} {'seed':>4} {'pairs':>5} {'truth check':>12} {'predicted':>10} {'model':>7}  (ppm RMS)")
+    print(
+        f"{'deg/s':>5} {'seed':>4} {'pairs':>5} {'truth check':>11} {'predicted (68 %)':>22} {'mean removed':>12} "
+        f"{'pairs own':>9} {'model':>6}   (ppm RMS over pairs 1..n-1)"
+    )
     for r in rows:
         pred = r["table_step_noise_ppm"]
+        band = (
+            "-"
+            if pred is None
+            else f"{pred:.2f} ({r['table_step_noise_ppm_low']:.2f}-{r['table_step_noise_ppm_high']:.2f})"
+        )
+        own = "-" if pred is None else f"{math.sqrt(pred**2 - r['table_step_noise_pair0_ppm'] ** 2):.2f}"
         print(
-            f"{r['table_rate_dps']:>10g} {r['seed']:>4} {r['n_pairs']:>5} {r['truth_check_rms_ppm']:>12.2f} "
-            f"{'-' if pred is None else f'{pred:.2f}':>10} {r['model_ppm']:>7.2f}"
+            f"{r['table_rate_dps']:>5g} {r['seed']:>4} {r['n_pairs']:>5} {r['truth_check_rms_ppm']:>11.2f} {band:>22} "
+            f"{r['truth_check_rms_ppm_mean_removed']:>12.2f} {own:>9} {r['model_ppm']:>6.2f}"
         )
     for s in result["summary"]:
-        pred = s["predicted_mean_ppm"]
+        pred, own = s["predicted_rms_ppm"], s["predicted_pairs_own_rms_ppm"]
         print(
-            f"{s['table_rate_dps']:g} deg/s, seeds {s['seeds']}: measured mean {s['measured_mean_ppm']:.2f}, "
-            f"RMS {s['measured_rms_ppm']:.2f}; predicted mean {'-' if pred is None else f'{pred:.2f}'}; "
+            f"{s['table_rate_dps']:g} deg/s, seeds {s['seeds']}: truth check mean {s['measured_mean_ppm']:.2f}, "
+            f"RMS {s['measured_rms_ppm']:.2f}, predicted RMS {'-' if pred is None else f'{pred:.2f}'}; mean removed "
+            f"RMS {s['measured_mean_removed_rms_ppm']:.2f}, predicted {'-' if own is None else f'{own:.2f}'}; "
             f"model {s['model_ppm']:.2f} ppm"
         )
 
