@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import allantools
@@ -35,6 +36,15 @@ class AllanResult:
         if self.tau_s.size == 0 or not self.tau_s[0] <= tau_s <= self.tau_s[-1]:
             return float("nan")
         return float(np.exp(np.interp(np.log(tau_s), np.log(self.tau_s), np.log(self.dev))))
+
+    def bounds_at(self, tau_s: float) -> tuple[float, float, float]:
+        """(sigma, its 68.3 % low bound, its high bound) at tau, each interpolated log-log like `at` (NaN outside
+        the computed range)."""
+        if self.tau_s.size == 0 or not self.tau_s[0] <= tau_s <= self.tau_s[-1]:
+            return (float("nan"),) * 3
+        x, xp = math.log(tau_s), np.log(self.tau_s)
+        sigma, low, high = (float(np.exp(np.interp(x, xp, np.log(v)))) for v in (self.dev, self.low, self.high))
+        return sigma, low, high
 
     def rows(self, scale: float = 1.0) -> list[dict[str, float]]:
         return [

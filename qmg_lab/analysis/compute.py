@@ -3,7 +3,9 @@
 Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
 
 * Analysis windows. Each completed step contributes [t_start + settle, t_end], settle = max([plan] settle_s of
-  the stored configuration, 5 rate-loop time constants 5/(2 pi f_bw)); sine steps also wait 2 periods. For a
+  the stored configuration, the configured rate loop's time to within e^-5 of the end of a step from its step
+  response: 1.33 s critically damped, 0.40 s first order at 2 Hz; qmg_lab/analysis/reductions.py
+  analysis_settle_s); sine steps also wait 2 periods. For a
   rate or level step that moves the table, t_start and t_end are the ends of the table's constant-rate plateau
   seen by its encoder on the HF2's clock (/lockin/table_encoder, qmg_lab/analysis/encoder.py) when the file has
   it and [table] encoder_on_dio is on; otherwise the host's step times.
@@ -25,6 +27,10 @@ Procedures (docs/physics.md sections 7-8; docs/hdf5.md for the data):
   RMS(c_i - t_i) over pairs 1..n-1: the estimator against the twin's truth, without the table steps' noise.
   The c_i and both RMS figures are `series_accuracy` of /clsf/sf_change_estimate: any other SF-change series
   (a calibrated one) is judged by the same function, and no table step enters the series it judges.
+* Table-step noise (predicted): the truth check's expected RMS from the gyro's own noise, read off the ADEV of
+  the static segment (below) at each window's length, sqrt(mean_(i >= 1) var_i + var_0) with var_i =
+  (sigma_A^2(T+) + sigma_A^2(T-))/(Omega+ - Omega-)^2 (qmg_lab/analysis/table_noise.py): how good the table steps
+  can be as a judge.
 * CLSF precision: overlapping ADEV of sf_change_estimate (one value per dither period; gaps from CLSF holds are
   closed up), in ppm, with 68 % confidence bounds (qmg_lab/analysis/adev.py). In correct mode the same series is the
   residual of the self-calibrated SF; the ADEV of ln(gain_correction) is given too (the drift it removed).
@@ -66,6 +72,7 @@ from qmg_lab.analysis.reductions import (
     mean_between_edges,
     rate_pairs,
 )
+from qmg_lab.analysis.table_noise import PairWindows, table_step_noise
 from qmg_lab.clsf.dither_edges import edge_threshold_v
 from qmg_lab.config.schema import Config, ConfigError, dither_amplitude_vpp, parse_config
 from qmg_lab.storage.layout import RUN_CONTEXT_ATTRS
@@ -169,6 +176,12 @@ class AnalysisResult:
     clsf_tempco_ppm_per_c: float = float("nan")
     truth_check_rms_ppm: float | None = None
     clsf_vs_truth_rms_ppm: float | None = None
+    #: the truth check's expected RMS from the gyro's own noise (qmg_lab/analysis/table_noise.py), ppm: the judge's
+    #: noise, with the 68 % bounds of the ADEV it reads and pair 0's share; None without a static segment
+    table_step_noise_ppm: float | None = None
+    table_step_noise_ppm_low: float | None = None
+    table_step_noise_ppm_high: float | None = None
+    table_step_noise_pair0_ppm: float | None = None
     adev: list[dict[str, float]] = field(default_factory=list)
     adev_at_60s_ppm: float = float("nan")
     adev_at_2000s_ppm: float = float("nan")
@@ -521,6 +534,8 @@ def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> _Found:
     runs = _static_runs(ctx)
     if not runs:
         found.notes.append("gyro ARW/bias instability: no completed hold or soak step")
+        if res.pairs:
+            found.notes.append("table-step noise (predicted): the run has no hold or soak step to measure it on")
         return found
     a, b = max(runs, key=lambda r: r[1] - r[0])
     clsf = ctx.run.groups.get("clsf")
@@ -547,6 +562,19 @@ def _gyro_noise(ctx: _Ctx, res: AnalysisResult, sf: float) -> _Found:
     found.values["arw_deg_per_rt_h"] = arw_deg_per_rt_h(r)
     found.values["bias_instability_deg_per_h"] = bias_instability_deg_per_h(r)
     found.notes.append(f"gyro noise from the static segment {a:.1f}-{b:.1f} s")
+    if res.pairs:
+        windows = [PairWindows(p.window_plus_s, p.window_minus_s, p.rate_plus_dps, p.rate_minus_dps) for p in res.pairs]
+        judge = table_step_noise(windows, r)
+        if judge is None:
+            found.notes.append(
+                "table-step noise (predicted): needs two step pairs and the gyro ADEV at the windows' length "
+                f"(the static segment's ADEV reaches {r.tau_s[-1] if r.tau_s.size else 0:.3g} s)"
+            )
+        else:
+            found.values["table_step_noise_ppm"] = judge.rms_ppm
+            found.values["table_step_noise_ppm_low"] = judge.rms_ppm_low
+            found.values["table_step_noise_ppm_high"] = judge.rms_ppm_high
+            found.values["table_step_noise_pair0_ppm"] = judge.pair0_ppm
     return found
 
 

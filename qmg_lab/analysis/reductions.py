@@ -1,8 +1,10 @@
 """The analysis's reductions of the raw streams, written once: used by `qmg-lab analyze` on a full file and by the
 study storage level while the campaign runs (qmg_lab/campaign/study_level.py).
 
-* The settle time that starts each step's analysis window: max(plan.settle_s, 5 rate-loop time constants
-  5/(2 pi f_bw)).
+* The settle time that starts each step's analysis window: max(plan.settle_s, the configured rate loop's time to
+  within e^-5 of the end of a step), the floor from its step response (qmg_lab/config/rate_loop.py settle_time_s):
+  1 - e^(-pt) (1 - (p - g) t) critically damped (pt = 6.75, 1.33 s at 2 Hz), e^(-w_c t) for the first-order
+  zero-on-pole loop (5/w_c, 0.40 s at 2 Hz).
 * The rate output's running integral by the trapezoid rule, I_k = I_(k-1) + (t_k - t_(k-1)) (r_k + r_(k-1)) / 2
   from I_0 = 0 at the first sample, carried from block to block (`RateIntegral`).
 * The rising edges of the recorded dither, located by the CLSF estimator's edge tracker
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from qmg_lab.clsf.dither_edges import EdgeTracker
+from qmg_lab.config.rate_loop import config_settle_floor_s
 from qmg_lab.config.schema import Config
 
 #: the edge tracker is fed chunks of this many lock-in samples (its level estimate is updated per chunk)
@@ -47,8 +50,9 @@ def rate_pairs(steps: Mapping[int, tuple[str, float]]) -> list[int]:
 
 
 def analysis_settle_s(cfg: Config) -> float:
-    """Start of a step excluded from the analysis: max(plan.settle_s, 5 rate-loop time constants 5/(2 pi f_bw)), s."""
-    return max(cfg.plan.settle_s, 5.0 / (2 * math.pi * cfg.loops.rate_bandwidth_hz))
+    """Start of a step excluded from the analysis: max(plan.settle_s, the configured rate loop's time to within
+    e^-5 of the end of a step, qmg_lab/config/rate_loop.py config_settle_floor_s), s."""
+    return max(cfg.plan.settle_s, config_settle_floor_s(cfg))
 
 
 @dataclass

@@ -28,6 +28,7 @@ def why_missing(r: AnalysisResult) -> dict[str, str]:
         "tempco": (no_pairs or "< 3 pairs or < 0.5 degC span") if len(r.pairs) < 3 else "< 0.5 degC span",
         "accuracy": "CLSF off" if r.clsf_mode == "off" else (no_pairs or "< 2 pairs"),
         "truth": "bench: no truth" if r.mode == "hardware" else (no_pairs or "no truth"),
+        "judge": no_pairs or ("no hold/soak step" if not r.gyro_adev_deg_per_h else "ADEV too short"),
         "adev_60": clsf,
         "adev_2000": clsf,
         "adev_min": "CLSF off" if r.clsf_mode == "off" else "no CLSF periods",
@@ -79,6 +80,7 @@ def render_table(result: AnalysisResult) -> Table:
         ("CLSF accuracy RMS", f(r.clsf_accuracy_rms_ppm, "{:.1f}", "accuracy"), "ppm"),
         ("CLSF accuracy RMS, mean removed", f(r.clsf_accuracy_rms_ppm_mean_removed, "{:.1f}", "accuracy"), "ppm"),
         ("truth check RMS", f(r.truth_check_rms_ppm, "{:.2f}", "truth"), "ppm"),
+        ("table-step noise (predicted)", _judge_noise(r, f(r.table_step_noise_ppm, "{:.2f}", "judge")), "ppm RMS"),
         ("CLSF vs truth RMS", f(r.clsf_vs_truth_rms_ppm, "{:.2f}", "truth"), "ppm"),
         ("CLSF ADEV at 60 s", f(r.adev_at_60s_ppm, "{:.2f}", "adev_60"), "ppm"),
         ("CLSF ADEV at 2000 s", f(r.adev_at_2000s_ppm, "{:.2f}", "adev_2000"), "ppm"),
@@ -101,6 +103,16 @@ def render_table(result: AnalysisResult) -> Table:
     for row in rows:
         tab.add_row(*row)
     return tab
+
+
+def _judge_noise(r: AnalysisResult, value: str) -> str:
+    """The predicted table-step noise with its 68 % range and pair 0's share (qmg_lab/analysis/table_noise.py)."""
+    if r.table_step_noise_ppm is None:
+        return value
+    return (
+        f"{value} (68 %: {r.table_step_noise_ppm_low:.2f}-{r.table_step_noise_ppm_high:.2f}; "
+        f"pair 0's share {r.table_step_noise_pair0_ppm:.2f})"
+    )
 
 
 def _pair(a: str, b: str, reason: str) -> str:

@@ -23,7 +23,7 @@ Equations and their derivation: docs/noise-budget.md. In short, for the ratio es
 2. **One dither period.** The estimate projects the equation error on r, the filtered triangle with its mean and
    slope removed, and divides by the same projection of the forcer input's integral, which the closed rate loop
    shapes by its sensitivity S(s) = 1 - T(s), T the closed loop of the configured sense PI
-   (qmg_lab.campaign.loops.rate_loop_t; s / (s + w_c) for the zero-on-pole design, w_c = 2 pi rate bandwidth).
+   (qmg_lab.config.rate_loop.rate_loop_t; s / (s + w_c) for the zero-on-pole design, w_c = 2 pi rate bandwidth).
    With the triangle's Fourier coefficients 4 A / (pi^2 m^2) at the odd harmonics m f_d (A = Omega_v / (4 f_d))
    and the demodulator filter H, the per-period estimates are independent and white, of
    level (ADEV = q / sqrt(tau))
@@ -47,8 +47,8 @@ from typing import Any
 import numpy as np
 
 from qmg_lab.budget.sweep import SweepAccuracy, sweep_accuracy
-from qmg_lab.campaign.loops import config_rate_loop, rate_loop_t
 from qmg_lab.clsf.stream_plan import hf2_rate
+from qmg_lab.config.rate_loop import config_rate_loop, rate_loop_t
 from qmg_lab.config.schema import Config
 
 RAD_PER_DEG = math.pi / 180.0

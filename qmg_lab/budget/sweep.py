@@ -43,8 +43,8 @@ import numpy as np
 from scipy.linalg import expm
 
 from qmg_lab.analysis.reductions import analysis_settle_s, rate_pairs
-from qmg_lab.campaign.loops import config_quadrature_loop, config_rate_loop, rate_loop_t
 from qmg_lab.campaign.plan import Step, build_plan
+from qmg_lab.config.rate_loop import config_quadrature_loop, config_rate_loop, rate_loop_t
 from qmg_lab.config.schema import Config
 
 PPM = 1e6
@@ -199,7 +199,7 @@ def _demod_h2(cfg: Config, w: float) -> float:
 
 def loop_bandwidths_rad_s(cfg: Config, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rate and quadrature loops' actual loop gains w_c, w_q at T: the design's (b |P| of
-    campaign.loops.rate_loop_design) times the plant's actual gain over the nominal one the
+    config.rate_loop.rate_loop_design) times the plant's actual gain over the nominal one the
     PIs were designed on, b/b_nom = (k/k_nom)(SF_nom/SF(T)) G_py(T)."""
     s, d = cfg.sim, cfg.device
     dt = temp_c - s.reference_temperature_c
@@ -234,7 +234,7 @@ def frontend_temperature_c(cfg: Config, t_s: np.ndarray, ramp_start_s: float, gr
 
 def projection(cfg: Config, f: Any, wc: float) -> float:
     """P[f]: the in-phase part of f(s) m_d on the dither's triangle m_d, over the triangle's projection of the
-    loop's forcer input m = (1 - T) m_d, T the rate loop's closed loop at loop gain w_c (campaign.loops.rate_loop_t:
+    loop's forcer input m = (1 - T) m_d, T the rate loop's closed loop at loop gain w_c (config.rate_loop.rate_loop_t:
     w_c/(s + w_c) for the zero-on-pole design); f is called with s = j n w_d."""
     wd = 2.0 * math.pi * cfg.dither.frequency_hz
     loop = config_rate_loop(cfg)

@@ -13,7 +13,8 @@ Plants (slow-variable model, docs/physics.md sections 1-3):
 
 * Rate loop. With FTR holding c_y ~ 0, the sense demod X_s obeys
   dX_s/dt = -X_s/tau - k R_d Omega + (k R_d / SF) G V,  SF the FTR scale factor in V per rad/s,
-  V = rate command (V), G = forcer-path gain, b = k R_d / SF. Two PI designs (rate_loop_design):
+  V = rate command (V), G = forcer-path gain, b = k R_d / SF. Two PI designs (rate_loop_design, written in
+  qmg_lab/config/rate_loop.py with the closed loop and its settle time, and imported here):
   "zero_on_pole", I = P (1/tau + 2 pi f_z): with f_z = 0 the zero cancels the envelope pole (paper eq. 5 with
   tau_cy = tau/2), the loop is b P / s, the closed loop first order with f_bw = b P / (2 pi); and
   "critically_damped" (the default): both closed-loop poles at -p, -3 dB at f_bw, no slow mode.
@@ -28,10 +29,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
 
-import numpy as np
-
+from qmg_lab.config.rate_loop import RatePiDesign, rate_loop_design
 from qmg_lab.config.schema import Config, DeviceSection
 from qmg_lab.instruments import LockInSetup, PidGains
 
@@ -86,58 +85,6 @@ def forcer_path_problem(rho_ref: float, device: DeviceSection, forcer_gain: floa
     )
 
 
-RatePiDesign = Literal["critically_damped", "zero_on_pole"]
-CRITICAL_BANDWIDTH_RATIO = math.sqrt(3.0 + math.sqrt(10.0))  # -3 dB of (2p s + p^2)/(s + p)^2 at w = 2.4824 p
-
-
-@dataclass(frozen=True)
-class RateLoopDesign:
-    """The FTR rate PI as loop quantities: loop gain w_l = b P and PI zero z = I / P, both rad/s."""
-
-    gain_rad_s: float
-    zero_rad_s: float
-
-
-def rate_loop_design(
-    device: DeviceSection, bandwidth_hz: float, design: RatePiDesign = "critically_damped", zero_offset_hz: float = 0.0
-) -> RateLoopDesign:
-    """Loop gain w_l = b P and zero z = I/P of the rate PI on the plant b/(s + g), g = 1/tau (nominal device).
-
-    Open loop L(s) = w_l (s + z) / (s (s + g)); closed loop from the rate to the rate output
-        T(s) = w_l (s + z) / (s^2 + (g + w_l) s + w_l z).
-    * zero_on_pole: z = g + 2 pi f_z, w_l = 2 pi f_bw. With f_z = 0, T = w_l/(s + w_l), first order. A plant whose
-      g differs from the design's (Q moves with temperature) or whose sense mode is detuned by a split d keeps a
-      closed-loop pole near -z, about 1/tau: after each table step a tail of relative size ~ (g - z)/w_l decaying
-      with tau = 2Q/omega (174 s), longer than a table dwell.
-    * critically_damped: s^2 + (g + w_l) s + w_l z = (s + p)^2, so w_l = 2p - g, z = p^2 / w_l, and
-      T(s) = w_l (s + z)/(s + p)^2; for g << p, |T(j w)|^2 = (4 p^2 w^2 + p^4)/(w^2 + p^2)^2 = 1/2 at
-      w = p sqrt(3 + sqrt 10): p = 2 pi f_bw / 2.4824 (1.61 Hz loop gain, 0.40 Hz zero for f_bw = 2 Hz). Step
-      response 1 - e^{-pt} (1 - p t): 13.5 % overshoot at t = 2/p, within 2 % after p t = 5.39 (1.07 s at 2 Hz).
-      Every closed-loop pole sits at -p: a drift of g or a split d << p moves them by O(dg, d^2/p), none becomes
-      slow, so nothing of a table step remains after a few 1/p (e^{-25} after the campaign's 5 s settle).
-    """
-    g = 1.0 / device.tau_s
-    if design == "zero_on_pole":
-        return RateLoopDesign(2.0 * math.pi * bandwidth_hz, g + 2.0 * math.pi * zero_offset_hz)
-    p = 2.0 * math.pi * bandwidth_hz / CRITICAL_BANDWIDTH_RATIO
-    gain = 2.0 * p - g
-    return RateLoopDesign(gain, p * p / gain)
-
-
-def rate_loop_t(loop: RateLoopDesign, plant_pole_rad_s: float, s: complex | np.ndarray, gain_scale: float = 1.0) -> Any:
-    """Closed loop T(s) = w (s + z)/(s (s + g) + w (s + z)), w = gain_scale w_l (the plant's actual gain over the
-    nominal one scales the loop gain, not the zero I/P), g the plant's pole (rad/s); S = 1 - T keeps the share
-    of a forcer-input disturbance the loop does not rebalance."""
-    w = gain_scale * loop.gain_rad_s
-    return w * (s + loop.zero_rad_s) / (s * (s + plant_pole_rad_s) + w * (s + loop.zero_rad_s))
-
-
-def config_rate_loop(cfg: Config) -> RateLoopDesign:
-    """rate_loop_design of a configuration's [device] and [loops]."""
-    lp = cfg.loops
-    return rate_loop_design(cfg.device, lp.rate_bandwidth_hz, lp.sense_pi_design, lp.rate_zero_offset_hz)
-
-
 def rate_pi(
     device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0, design: RatePiDesign = "zero_on_pole"
 ) -> PidGains:
@@ -155,11 +102,6 @@ def quadrature_pi(device: DeviceSection, bandwidth_hz: float, design: RatePiDesi
     loop = rate_loop_design(device, bandwidth_hz, design)
     p = -loop.gain_rad_s / plant.b
     return PidGains(p=p, i=p * loop.zero_rad_s, setpoint=0.0, center=0.0, range=device.max_forcer_v)
-
-
-def config_quadrature_loop(cfg: Config) -> RateLoopDesign:
-    """rate_loop_design of the quadrature loop of a configuration's [device] and [loops]."""
-    return rate_loop_design(cfg.device, cfg.loops.quadrature_bandwidth_hz, cfg.loops.sense_pi_design)
 
 
 def agc_pi(device: DeviceSection, bandwidth_hz: float, zero_offset_hz: float = 0.0) -> PidGains:

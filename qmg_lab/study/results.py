@@ -36,6 +36,7 @@ HEADLINE = (
     "adev_at_60s_ppm",
     "adev_at_2000s_ppm",
     "truth_check_rms_ppm",
+    "table_step_noise_ppm",
     "sf_true_change_ppm",
     "arw_deg_per_rt_h",
 )

@@ -27,7 +27,7 @@ from sims.world import World
 from tests.support.twin_params import hf2_twin_settings, paper_gyro_params, paper_world
 
 DEV = "/dev1234"
-# rate PID of the default critically damped design (qmg_lab/campaign/loops.py rate_loop_design): P = (2p - 1/tau) / b,
+# rate PID of the default critically damped design (qmg_lab/config/rate_loop.py rate_loop_design): P = (2p - 1/tau) / b,
 # p = 2 pi 2 Hz / sqrt(3 + sqrt 10), 1/tau = 2 pi 2200 / (2 * 1.2e6), b = k R_d / SF = 0.8 * 0.5 / (0.06 * 180/pi):
 # 86.96 V/Vrms
 RATE_P = (

@@ -3,7 +3,7 @@
 Expected from the noise model (physics.md section 4, IEEE 952 reading): white rate noise N = 0.02 deg/sqrt(h)
 gives sigma(tau) = 60 N / sqrt(tau) deg/h (the -1/2 line; ARW = sigma[deg/h] at 1 s / 60), and flicker rate
 noise of one-sided PSD B^2/(pi f) gives a flat floor 0.664 B, B = 0.2 deg/h.
-Reading: the rate loop shapes the white noise by its closed loop T (qmg_lab.campaign.loops.rate_loop_t): the Allan
+Reading: the rate loop shapes the white noise by its closed loop T (qmg_lab.config.rate_loop.rate_loop_t): the Allan
 variance at tau weighs |T(f)|^2 with sin^4(pi f tau)/(pi f tau)^2, so sigma at 1 s reads the white level times
 sqrt(int |T|^2 K / int K) (1.062 for the default critically damped loop, whose |T| exceeds 1 between 0.2 and
 1.5 Hz; 0.939 for the first-order zero-on-pole loop); the -1/2 line is fitted over tau = 2..5 s, where that factor
@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 from scipy.integrate import trapezoid
 
-from qmg_lab.campaign.loops import config_rate_loop, lockin_setup, rate_loop_t
+from qmg_lab.campaign.loops import lockin_setup
+from qmg_lab.config.rate_loop import config_rate_loop, rate_loop_t
 from qmg_lab.config.schema import Config
 from sims.gyro import GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from tests.support.twin_params import paper_gyro_params

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from qmg_lab.budget.sweep import loop_tail_errors
-from qmg_lab.campaign.loops import config_quadrature_loop, config_rate_loop, lockin_setup, rate_pi
+from qmg_lab.campaign.loops import lockin_setup, rate_pi
+from qmg_lab.config.rate_loop import config_quadrature_loop, config_rate_loop
 from qmg_lab.config.schema import Config, DeviceSection, LoopsSection, PlanSection
 from sims.gyro import GyroSim, LoopSettings, PidSettings, PllSettings, held_inputs
 from sims.gyro_params import NONIDEALITIES_OFF, GyroParams
@@ -115,7 +116,7 @@ def _rate_step(params: GyroParams, cfg: Config, seconds: float) -> tuple[np.ndar
 
 
 def test_critically_damped_step_response_follows_its_double_pole() -> None:
-    """campaign.loops.rate_loop_design: T(s) = (2p - g)(s + z)/(s + p)^2, z = p^2/(2p - g), so the step response is
+    """config.rate_loop.rate_loop_design: T(s) = (2p - g)(s + z)/(s + p)^2, z = p^2/(2p - g), so the step response is
     y(t) = 1 - e^{-pt} (1 - (p - g) t), p = 2 pi 2 Hz / sqrt(3 + sqrt 10) = 5.062 rad/s: 13.5 % overshoot at 2/p."""
     cfg = Config()
     assert cfg.loops.sense_pi_design == "critically_damped"
