@@ -15,7 +15,8 @@ A first unwatched run warms numba's cache and is not counted.
 `--ramp-divisor K` divides the chamber ramp rate by K: the paper campaign (55 simulated minutes) becomes about
 K times longer (K = 3.3: about 3 hours). Reported: the medians, `slowdown` = median(watched) / median(unwatched)
 - 1, each pair's ratio, and the CPU seconds the page server and the browser (all its processes, from Linux's
-/proc) used during each watched run. These machines are shared and noisy (2 cores for everything, the browser
+/proc) used during each watched run, with the page's updates in that time (`page_updates`, its "polls" model)
+and the browser's CPU per update. These machines are shared and noisy (2 cores for everything, the browser
 included): quote the median and the pairs. Headless Chromium started with --disable-gpu draws every canvas in
 software, so its share here is an upper bound for a desktop browser; `--no-browser` isolates the page's own cost
 (reading the file, decimating, building the models).
@@ -37,6 +38,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "configs" / "paper_campaign.toml"
+# how many times the page has read the file and sent an update (qmg_lab/watch/page.py's "polls" model)
+POLLS_JS = "return Bokeh.documents[0].get_model_by_name('polls').data.n[0];"
 WALL = re.compile(r"wall time\s*│\s*([0-9.]+) s")
 PAGE_LOOP = """
 import sys, time
@@ -135,8 +138,11 @@ def _watched(cfg: Path, out: Path, tmp: Path, use_browser: bool) -> tuple[float,
         WebDriverWait(driver, 120, poll_frequency=0.2).until(lambda d: "waiting" in str(d.execute_script(HEADER_JS)))
         browser_pid = driver.service.process.pid
         c0, b0 = _cpu_s(server.pid), _cpu_s(browser_pid)
+        n0 = driver.execute_script(POLLS_JS)
         wall = _run(cfg, out)
         cpu = {"page_cpu_s": _cpu_s(server.pid) - c0, "browser_cpu_s": _cpu_s(browser_pid) - b0}
+        cpu["page_updates"] = driver.execute_script(POLLS_JS) - n0
+        cpu["browser_cpu_s_per_update"] = round(cpu["browser_cpu_s"] / max(cpu["page_updates"], 1), 3)
         return wall, "qmg-lab watch + headless Chromium", cpu
     finally:
         driver.quit()
