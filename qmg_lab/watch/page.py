@@ -87,8 +87,8 @@ from qmg_lab.watch.follow import PPM, RunFollower, Update, planned_kinds
 MAX_POINTS = 1000  # about a plot's width in pixels
 CHUNK_BINS = MAX_POINTS // 5
 #: the page reads the file and redraws every 3 s: a block is on the page within 3 s of the writer's flush plus the
-#: draw; with a software-drawn browser on the campaign's own two cores, every 1.5 s cost a twin campaign 27 % of
-#: its wall time on an idle machine, every 3 s 12 % (docs/performance.md). A run's end is shown within CHECK_MS.
+#: draw. Beside a twin campaign the browser's drawing is the page's main cost, paid once per update
+#: (docs/performance.md has it per update, and the campaign's slowdown). A run's end is shown within CHECK_MS.
 POLL_MS = 3000
 #: ... and checks the file's status (its root attributes and its writer's liveness: no data) every 0.5 s
 CHECK_MS = 500
